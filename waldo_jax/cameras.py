@@ -37,7 +37,7 @@ __all__ = [
     "pixel_directions",
     "camera_rays",
     "project_points",
-    "nearest_point_to_axes",
+    "camera_focus",
 ]
 
 _EPS = 1e-8
@@ -76,7 +76,10 @@ def look_at(origin: Array, target: Array, up: Array) -> Array:
     default_up = jnp.where(jnp.abs(forward[1]) < 0.99, jnp.array([0.0, 1.0, 0.0]), _least_aligned_axis(forward))
     up_dir, _ = _safe_normalize(jnp.asarray(up, jnp.float32), default_up)
     # Parallel up: fall back to the axis least aligned with the view direction.
-    right, ok = _safe_normalize(jnp.cross(forward, up_dir), jnp.zeros(3))
+    # Orthogonalise up against the view direction first: the cross product of nearly parallel
+    # float32 vectors alone loses precision.
+    up_ortho = up_dir - jnp.dot(up_dir, forward) * forward
+    right, ok = _safe_normalize(jnp.cross(forward, up_ortho), jnp.zeros(3))
     fallback_right, _ = _safe_normalize(jnp.cross(forward, _least_aligned_axis(forward)), jnp.array([1.0, 0.0, 0.0]))
     right = jnp.where(ok & (jnp.abs(jnp.dot(forward, up_dir)) < 1.0 - 1e-6), right, fallback_right)
     true_up = jnp.cross(right, forward)
@@ -278,22 +281,23 @@ def project_points(c2w: Array, intrinsics: Intrinsics, points: Array) -> Tuple[A
     return uv, depth
 
 
-def nearest_point_to_axes(c2w: np.ndarray) -> np.ndarray:
-    """Least-squares point closest to all cameras' optical axes (host-side, NumPy).
+def camera_focus(c2w: np.ndarray) -> np.ndarray:
+    """The point closest (least squares) to all cameras' optical axes: where they look (host, NumPy).
+
+    A small pull towards the mean camera origin keeps it finite when the axes are parallel.
 
     Args:
       c2w: [N, 4, 4] or [N, 3, 4] camera-to-world matrices.
 
     Returns:
-      [3] the point minimising the summed squared distance to the N view lines; when the axes are
-      (nearly) parallel the system is regularised towards the mean camera origin.
+      float64 [3], world coordinates.
     """
     c2w = np.asarray(c2w, np.float64)
     origins = c2w[:, :3, 3]
     dirs = -c2w[:, :3, 2]
     dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    projectors = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3]
-    lhs = projectors.sum(0)
-    rhs = np.einsum("nij,nj->i", projectors, origins)
-    reg = 1e-6 * len(c2w)
-    return np.linalg.solve(lhs + reg * np.eye(3), rhs + reg * origins.mean(0))
+    projectors = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3], off each axis
+    ridge = 1e-4 * len(origins)
+    lhs = projectors.sum(0) + ridge * np.eye(3)
+    rhs = np.einsum("nij,nj->i", projectors, origins) + ridge * origins.mean(0)
+    return np.linalg.solve(lhs, rhs)

@@ -260,7 +260,11 @@ def _render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, conf
     c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
     # Padding repeats the last pose: always a valid camera, cropped away below.
     c2w = jnp.concatenate([c2w, jnp.repeat(c2w[-1:], pad, axis=0)]).reshape(num_chunks, chunk, 3, 4)
-    keys = None if key is None else jax.random.split(key, num_chunks * chunk).reshape(num_chunks, chunk)
+    if key is None:
+        keys = None
+    else:  # typed keys are [n]; legacy uint32 keys are [n, 2]
+        keys = jax.random.split(key, num_chunks * chunk)
+        keys = keys.reshape((num_chunks, chunk) + keys.shape[1:])
 
     def render_chunk(args):
         chunk_c2w, chunk_keys = args

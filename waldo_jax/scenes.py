@@ -72,6 +72,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
+from waldo_jax.cameras import camera_focus
 from waldo_jax.errors import SceneFormatError, WaldoError
 from waldo_jax.types import Intrinsics, Scene
 
@@ -236,28 +237,6 @@ def _check_rigid(m: np.ndarray, path: Path, what: str) -> np.ndarray:
     if m.shape == (4, 4) and float(np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)))) > RIGID_TOL:
         raise SceneFormatError(path, f"{what}: pose bottom row is {m[3].tolist()}, expected [0, 0, 0, 1]")
     return m
-
-
-def camera_focus(c2w: np.ndarray) -> np.ndarray:
-    """The point closest (least squares) to all optical axes: where the cameras look.
-
-    A small pull towards the mean camera origin keeps it finite when the axes are parallel.
-
-    Args:
-      c2w: [N, 4, 4] or [N, 3, 4] OpenGL camera-to-world matrices.
-
-    Returns:
-      float64 [3], world coordinates.
-    """
-    c2w = np.asarray(c2w, np.float64)
-    origins = c2w[:, :3, 3]
-    dirs = -c2w[:, :3, 2]
-    dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    proj = np.eye(3) - dirs[:, :, None] * dirs[:, None, :]  # [N, 3, 3], projects off each axis.
-    ridge = 1e-4 * len(origins)
-    lhs = proj.sum(0) + ridge * np.eye(3)
-    rhs = np.einsum("nij,nj->i", proj, origins) + ridge * origins.mean(0)
-    return np.linalg.solve(lhs, rhs)
 
 
 def camera_bounds(
