@@ -28,6 +28,8 @@ from typing import Optional, Tuple
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 
 from waldo_jax.cameras import camera_rays
 from waldo_jax.types import Array, Field, Intrinsics, PRNGKey, RenderOutput
@@ -43,6 +45,8 @@ __all__ = [
     "render_rays",
     "render_view",
     "render_views",
+    "render_views_sharded",
+    "pose_mesh",
 ]
 
 # Densities are clamped to this value: sigma * delta stays finite for any delta used here.
@@ -251,20 +255,22 @@ def render_view(field: Field, params, c2w: Array, intrinsics: Intrinsics, config
     return jax.tree.map(lambda a: a.reshape((h, w) + a.shape[1:]), out)
 
 
-def _render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
-                  key: Optional[PRNGKey] = None) -> RenderOutput:
+def _pad_poses(a: Array, pad: int) -> Array:
+    """Appends `pad` copies of the last row (a valid camera or key, cropped away afterwards)."""
+    return jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
+
+
+def _render_posed(field: Field, params, c2w: Array, pose_keys: Optional[Array], intrinsics: Intrinsics,
+                  config: RenderConfig) -> RenderOutput:
+    """Renders poses c2w [P, 3 or 4, 4] with per-pose keys [P] (or None), `pose_chunk` at a time."""
     num_poses = c2w.shape[0]
     chunk = max(1, min(config.pose_chunk, num_poses))
     num_chunks = -(-num_poses // chunk)
     pad = num_chunks * chunk - num_poses
-    c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
-    # Padding repeats the last pose: always a valid camera, cropped away below.
-    c2w = jnp.concatenate([c2w, jnp.repeat(c2w[-1:], pad, axis=0)]).reshape(num_chunks, chunk, 3, 4)
-    if key is None:
-        keys = None
-    else:  # typed keys are [n]; legacy uint32 keys are [n, 2]
-        keys = jax.random.split(key, num_chunks * chunk)
-        keys = keys.reshape((num_chunks, chunk) + keys.shape[1:])
+    c2w = _pad_poses(jnp.asarray(c2w, jnp.float32)[:, :3, :4], pad).reshape(num_chunks, chunk, 3, 4)
+    if pose_keys is not None:  # typed keys are [P]; legacy uint32 keys are [P, 2]
+        pose_keys = _pad_poses(pose_keys, pad)
+        pose_keys = pose_keys.reshape((num_chunks, chunk) + pose_keys.shape[1:])
 
     def render_chunk(args):
         chunk_c2w, chunk_keys = args
@@ -273,8 +279,13 @@ def _render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, conf
             in_axes=(0, None if chunk_keys is None else 0),
         )(chunk_c2w, chunk_keys)
 
-    out = jax.lax.map(render_chunk, (c2w, keys))
+    out = jax.lax.map(render_chunk, (c2w, pose_keys))
     return jax.tree.map(lambda a: a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_poses], out)
+
+
+def _pose_keys(key: Optional[PRNGKey], num_poses: int) -> Optional[Array]:
+    """One sampling stream per pose (the same whatever the chunking or device count)."""
+    return None if key is None else jax.random.split(key, num_poses)
 
 
 @functools.partial(jax.jit, static_argnames=("field",))
@@ -285,8 +296,9 @@ def render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, confi
     Poses are processed `config.pose_chunk` at a time (vmap within a chunk, `lax.map` over chunks)
     and each view's rays `config.ray_chunk` at a time, so memory is bounded by
     pose_chunk x ray_chunk x num_samples field evaluations whatever P is. The result is
-    deterministic unless `key` is given; with a key each pose gets its own stratified-sampling stream.
-    The field function is a static argument: pass the same function object to reuse the compilation.
+    deterministic unless `key` is given; with a key each pose gets its own stratified-sampling stream
+    (`split(key, P)[i]` for pose i). The field function is a static argument: pass the same function
+    object to reuse the compilation.
 
     Args:
       field: radiance field for one point, `field(params, x, d) -> (sigma, rgb)`.
@@ -299,4 +311,53 @@ def render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, confi
     Returns:
       `RenderOutput` with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W].
     """
-    return _render_views(field, params, c2w, intrinsics, config, key)
+    return _render_posed(field, params, c2w, _pose_keys(key, c2w.shape[0]), intrinsics, config)
+
+
+def pose_mesh(devices=None) -> Mesh:
+    """A one-axis mesh named "poses" over `devices` (default: all local devices)."""
+    devices = jax.local_devices() if devices is None else devices
+    return Mesh(np.asarray(devices), ("poses",))
+
+
+@functools.partial(jax.jit, static_argnames=("field", "mesh"))
+def _render_views_sharded(field, params, c2w, pose_keys, intrinsics, config, mesh):
+    spec = PartitionSpec("poses")
+    local = functools.partial(_render_posed, field, intrinsics=intrinsics, config=config)
+    return jax.shard_map(
+        lambda p, c, k: local(p, c, k),
+        mesh=mesh,
+        in_specs=(PartitionSpec(), spec, None if pose_keys is None else spec),
+        out_specs=spec,
+    )(params, c2w, pose_keys)
+
+
+def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
+                         key: Optional[PRNGKey] = None, mesh: Optional[Mesh] = None) -> RenderOutput:
+    """`render_views` with the population split over devices along the pose axis.
+
+    The poses are padded to a multiple of the mesh size and sharded over the mesh axis "poses"
+    (`jax.sharding`); the params are replicated; each device renders its share with the same
+    chunked code as `render_views`, so the images equal the single-device ones (per-pose sampling
+    keys are drawn before the split). On one device this is `render_views`.
+
+    Multi-host: call `jax.distributed.initialize()` on every host first and pass a mesh over
+    `jax.devices()` (all hosts' devices); every host then calls this function with the same
+    arguments (SPMD), and the returned arrays are global `jax.Array`s sharded over the hosts.
+
+    Args:
+      field, params, c2w, intrinsics, config, key: as for `render_views`.
+      mesh: a one-axis mesh named "poses" (default: `pose_mesh()` over the local devices).
+
+    Returns:
+      `RenderOutput` with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W], sharded over the mesh.
+    """
+    mesh = pose_mesh() if mesh is None else mesh
+    num_poses = c2w.shape[0]
+    pad = (-num_poses) % mesh.size
+    c2w = _pad_poses(jnp.asarray(c2w, jnp.float32)[:, :3, :4], pad)
+    pose_keys = _pose_keys(key, num_poses)
+    if pose_keys is not None:
+        pose_keys = _pad_poses(pose_keys, pad)
+    out = _render_views_sharded(field, params, c2w, pose_keys, intrinsics, config, mesh)
+    return jax.tree.map(lambda a: a[:num_poses], out) if pad else out
