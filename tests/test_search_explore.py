@@ -1,0 +1,192 @@
+"""The compiled exploration loop (waldo_jax.search.explore): determinism, scan == loop, NaN scores,
+multi-seed vmap, no retracing, progress lines and input errors.
+
+A toy criterion on 8 ring cameras stands in for render + criterion (no rendering): 3 epochs of 6
+children, so each method compiles in about a second.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+# Importing waldo_jax first sets the XLA flag it needs before JAX starts its CPU backend.
+from waldo_jax.cameras import look_at
+from waldo_jax.search import METHODS, ExploreConfig, Initial, explore, explore_loop, explore_seeds
+
+import jax  # noqa: E402  (after waldo_jax, see above)
+import jax.numpy as jnp  # noqa: E402
+
+CONFIG = ExploreConfig(epochs=3, children_per_epoch=6, top_k=5, top_n=4)
+SWEET_SPOT = np.array([1.5, 1.2, 0.5], np.float32)
+TRACES = []
+
+
+def toy_score(c2w):
+    """Higher near SWEET_SPOT and when looking towards the room's centre: [P, 4, 4] -> [P]."""
+    TRACES.append(c2w.shape)  # Python side effect: runs once per trace (and per eager call)
+    origin, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
+    to_centre = -origin / jnp.linalg.norm(origin, axis=-1, keepdims=True)
+    return -jnp.sum((origin - SWEET_SPOT) ** 2, -1) + jnp.sum(forward * to_centre, -1)
+
+
+def half_nan_score(c2w):
+    """toy_score, but NaN for every camera with x > 0 (about half of them)."""
+    return jnp.where(c2w[:, 0, 3] > 0.0, jnp.nan, toy_score(c2w))
+
+
+def ring_initial(score_fn, n=8):
+    angle = 2 * np.pi * np.arange(n) / n + 0.1
+    origins = np.stack([3 * np.cos(angle), 1.0 + 0.3 * np.sin(2 * angle), 3 * np.sin(angle)], -1).astype(np.float32)
+    targets = np.stack([0.2 * np.cos(3 * angle), 0.5 * np.ones(n), 0.2 * np.sin(angle)], -1).astype(np.float32)
+    up = jnp.array([0.0, 1.0, 0.0])
+    c2w = jax.vmap(look_at, in_axes=(0, 0, None))(jnp.asarray(origins), jnp.asarray(targets), up)
+    return Initial(c2w=np.asarray(c2w), scores=np.asarray(score_fn(c2w)))
+
+
+INITIAL = ring_initial(toy_score)
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree.leaves(tree)]
+
+
+def assert_same(a, b, atol=0.0):
+    for x, y in zip(leaves(a), leaves(b), strict=True):
+        if atol == 0.0 or x.dtype == bool or np.issubdtype(x.dtype, np.integer):
+            np.testing.assert_array_equal(x, y)
+        else:
+            np.testing.assert_allclose(x, y, atol=atol, rtol=0)
+
+
+@pytest.mark.parametrize("method", ["grs", "pibs", "egps"])
+def test_scan_equals_python_loop(method):
+    key = jax.random.key(4)
+    scanned = explore(key, toy_score, INITIAL, method, CONFIG)
+    looped = explore_loop(key, toy_score, INITIAL, method, CONFIG)
+    assert_same(scanned, looped, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(scanned.top_indices), np.asarray(looped.top_indices))
+    # The run did something: 8 training views + 3 epochs of children, and it improved.
+    assert np.asarray(scanned.population.valid).sum() > 8
+    assert float(scanned.cvir) > 0.0
+
+
+@pytest.mark.parametrize("method", ["grs", "egps"])
+def test_same_key_bit_identical_other_key_differs(method):
+    first = explore(jax.random.key(4), toy_score, INITIAL, method, CONFIG)
+    again = explore(jax.random.key(4), toy_score, INITIAL, method, CONFIG)
+    assert_same(first, again)
+    other = explore(jax.random.key(5), toy_score, INITIAL, method, CONFIG)
+    assert not np.array_equal(np.asarray(first.population.origin), np.asarray(other.population.origin))
+    assert not np.array_equal(np.asarray(first.population.score), np.asarray(other.population.score))
+
+
+def test_pibs_without_fallback_ignores_the_key():
+    first = explore(jax.random.key(4), toy_score, INITIAL, "pibs", CONFIG)
+    assert_same(first, explore(jax.random.key(5), toy_score, INITIAL, "pibs", CONFIG))
+
+
+@pytest.mark.parametrize("method", ["egps"])
+def test_nan_scores_are_counted_and_never_selected(method):
+    initial = ring_initial(half_nan_score)
+    assert np.isnan(initial.scores).sum() == 4 and np.isfinite(initial.scores).sum() == 4
+    result = explore(jax.random.key(0), half_nan_score, initial, method, CONFIG)
+    population = result.population
+    score = np.asarray(population.score)
+    valid = np.asarray(population.valid)
+    assert np.isnan(score[valid]).any()  # some children failed ...
+    children = valid & (np.asarray(population.epoch) > 0)
+    assert np.asarray(result.metrics.num_failed)[1:].sum() == np.isnan(score[children]).sum()
+    assert np.asarray(result.metrics.num_failed)[0] == 4
+    top = np.asarray(result.top_indices)[np.asarray(result.top_valid)]
+    assert len(top) == CONFIG.top_k
+    assert np.all(np.isfinite(score[top]))  # ... but none is selected
+    np.testing.assert_array_equal(np.asarray(result.top_scores), score[np.asarray(result.top_indices)])
+    assert np.all(np.asarray(population.c2w)[top][:, 0, 3] <= 0.0)
+    assert np.isfinite(float(result.cvir)) and np.isfinite(float(result.mcvir))
+    assert np.all(np.isfinite(np.asarray(result.metrics.best)))
+
+
+def negated_toy_score(c2w):
+    return -toy_score(c2w)
+
+
+def test_min_direction_mirrors_max_direction():
+    maximised = explore(jax.random.key(4), toy_score, INITIAL, "egps", CONFIG)
+    negated = Initial(c2w=INITIAL.c2w, scores=-INITIAL.scores)
+    minimised = explore(jax.random.key(4), negated_toy_score, negated, "egps",
+                        dataclasses.replace(CONFIG, direction="min"))
+    np.testing.assert_array_equal(np.asarray(minimised.population.origin), np.asarray(maximised.population.origin))
+    np.testing.assert_array_equal(np.asarray(minimised.top_indices), np.asarray(maximised.top_indices))
+    np.testing.assert_allclose(np.asarray(minimised.metrics.best), -np.asarray(maximised.metrics.best))
+    assert float(minimised.cvir) == pytest.approx(float(maximised.cvir)) and float(minimised.cvir) > 0.0
+    assert float(minimised.mcvir) == pytest.approx(float(maximised.mcvir))
+
+
+def test_multi_seed_vmap_equals_per_seed_runs():
+    keys = jax.random.split(jax.random.key(11), 3)
+    batch = explore_seeds(keys, toy_score, INITIAL, "egps", CONFIG)
+    singles = [explore(keys[i], toy_score, INITIAL, "egps", CONFIG) for i in range(3)]
+    for i, single in enumerate(singles):
+        assert_same(jax.tree.map(lambda x: x[i], batch.results), single, atol=1e-6)
+    cvirs = np.array([float(s.cvir) for s in singles])
+    mcvirs = np.array([float(s.mcvir) for s in singles])
+    assert float(batch.cvir_mean) == pytest.approx(cvirs.mean(), rel=1e-5)
+    assert float(batch.cvir_std) == pytest.approx(cvirs.std(), rel=1e-4, abs=1e-5)
+    assert float(batch.mcvir_mean) == pytest.approx(mcvirs.mean(), rel=1e-5)
+    assert float(batch.mcvir_std) == pytest.approx(mcvirs.std(), rel=1e-4, abs=1e-5)
+    assert len(set(cvirs.tolist())) > 1  # the seeds really differ
+
+
+def test_second_call_does_not_retrace():
+    explore(jax.random.key(0), toy_score, INITIAL, "egps", CONFIG)  # compiled here or by an earlier test
+    before = len(TRACES)
+    explore(jax.random.key(1), toy_score, INITIAL, "egps", CONFIG)
+    explore(jax.random.key(2), toy_score, ring_initial(jax.jit(toy_score)), "egps", CONFIG)  # new values
+    assert len(TRACES) == before + 1  # only the jit(toy_score) of ring_initial traced
+
+
+def _distance_score(spot, c2w):
+    SPOT_TRACES.append(c2w.shape)
+    return -jnp.sum((c2w[:, :3, 3] - spot) ** 2, -1)
+
+
+SPOT_TRACES = []
+
+
+def test_partial_score_fn_takes_traced_arrays_without_retracing():
+    near = explore(jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT)), INITIAL,
+                   "grs", CONFIG)
+    traces = len(SPOT_TRACES)
+    assert traces >= 1
+    far = explore(jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT) + 10.0),
+                  INITIAL, "grs", CONFIG)
+    assert len(SPOT_TRACES) == traces  # the bound array is an argument, not a compile-time constant
+    # Same poses (GRS ignores scores), different scores.
+    np.testing.assert_array_equal(np.asarray(near.population.origin), np.asarray(far.population.origin))
+    assert not np.array_equal(np.asarray(near.population.score), np.asarray(far.population.score))
+
+
+def test_progress_lines(capsys):
+    config = ExploreConfig(epochs=2, children_per_epoch=3, top_k=3, top_n=2, progress=True)
+    explore(jax.random.key(0), toy_score, INITIAL, "grs", config)
+    jax.effects_barrier()
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[explore grs]")]
+    assert len(lines) == 2 and lines[0].startswith("[explore grs] epoch 1/2: best ")
+    explore(jax.random.key(0), toy_score, INITIAL, "grs", CONFIG)  # off by default
+    jax.effects_barrier()
+    assert "[explore" not in capsys.readouterr().out
+
+
+def test_registry_and_input_errors():
+    assert set(METHODS) == {"grs", "pibs", "egps"}
+    with pytest.raises(ValueError, match="unknown search method 'cmaes'"):
+        explore(jax.random.key(0), toy_score, INITIAL, "cmaes", CONFIG)
+    with pytest.raises(ValueError, match=r"initial.scores must have shape \(8,\)"):
+        explore(jax.random.key(0), toy_score, Initial(c2w=INITIAL.c2w, scores=INITIAL.scores[:5]), "grs", CONFIG)
+    with pytest.raises(ValueError, match="initial.c2w"):
+        explore(jax.random.key(0), toy_score, Initial(c2w=INITIAL.c2w[:, :2], scores=INITIAL.scores), "grs", CONFIG)
+    with pytest.raises(ValueError, match="direction"):
+        ExploreConfig(direction="up")

@@ -1,0 +1,38 @@
+"""Scene-space search of "Finding Waldo" (MMSys'24), Algorithm 1: GRS, PIBS and EGPS.
+
+One module per method (`grs`, `pibs`, `egps`), each with a numeric `Params` pytree, a static `Config`
+and a pure `propose(key, population, params, config, epoch)`; the population buffer in `population`;
+CVIR / mCVIR in `metrics`; the compiled exploration loop in `explore`.
+
+    from waldo_jax.search import ExploreConfig, Initial, explore
+    result = explore(jax.random.key(0), score_fn, Initial(c2w=train_c2w, scores=train_scores), "egps",
+                     ExploreConfig(budget="low"))
+"""
+
+from waldo_jax.search import egps as egps
+from waldo_jax.search import grs as grs
+from waldo_jax.search import pibs as pibs
+from waldo_jax.search.explore import BUDGETS as BUDGETS
+from waldo_jax.search.explore import ExploreConfig as ExploreConfig
+from waldo_jax.search.explore import Initial as Initial
+from waldo_jax.search.explore import Result as Result
+from waldo_jax.search.explore import SeedsResult as SeedsResult
+from waldo_jax.search.explore import budget_children as budget_children
+from waldo_jax.search.explore import explore as explore
+from waldo_jax.search.explore import explore_loop as explore_loop
+from waldo_jax.search.explore import explore_seeds as explore_seeds
+from waldo_jax.search.metrics import EpochMetrics as EpochMetrics
+from waldo_jax.search.metrics import cvir as cvir
+from waldo_jax.search.metrics import epoch_metrics as epoch_metrics
+from waldo_jax.search.metrics import mcvir as mcvir
+from waldo_jax.search.metrics import mean_top_n as mean_top_n
+from waldo_jax.search.method import SearchMethod as SearchMethod
+from waldo_jax.search.population import Population as Population
+from waldo_jax.search.population import init_population as init_population
+from waldo_jax.search.population import top_k_indices as top_k_indices
+from waldo_jax.search.population import training_look_at as training_look_at
+from waldo_jax.search.population import training_poses as training_poses
+from waldo_jax.search.population import write_children as write_children
+
+# The registry of search methods, by the names the paper uses (`explore` looks names up here).
+METHODS = {"grs": grs.METHOD, "pibs": pibs.METHOD, "egps": egps.METHOD}

@@ -1,0 +1,233 @@
+"""Evolution-guided pose search (EGPS), the method of "Finding Waldo" (MMSys'24), Algorithm 1.
+
+A generational genetic algorithm on poses. Every child of an epoch is bred from the population as it
+was at the start of the epoch:
+  1. selection: sort by fitness; two distinct parents are drawn from the better half with a
+     rank-biased distribution;
+  2. crossover: up = the normalised mean of the parents' ups; origin and look-at point uniform per
+     axis between the parents' (each component independently);
+  3. mutation: each component of the origin and of the look-at point moves by delta in
+     {-nabla, 0, +nabla} with probabilities `mutation_probs` = (0.05, 0.9, 0.05), where
+     nabla = `nabla_scale` * (parent1 - parent2) per component (`nabla_scale` = 0.1).
+
+Choices where the paper is silent (documented here, parameters where reasonable):
+  * Better half: the best h = max(2, floor(n_finite / 2)) views among the n_finite views with a
+    finite fitness. With fewer than two such views no child can be bred and all are masked.
+  * Rank bias: P(rank r) proportional to (h - r) ** `rank_bias` for r = 0 .. h - 1 (0 is the best):
+    linear ranking for the default `rank_bias` = 1, uniform over the better half for 0, greedier
+    above 1. The second parent is drawn from the same distribution without the first one, so the
+    parents are distinct slots.
+  * parent1 is the better-ranked of the two (the sign of nabla does not matter for the symmetric
+    default probabilities, but does for asymmetric ones).
+  * Up vectors: parents with opposite ups have a zero mean; it is left at zero and, like an up
+    parallel to the view direction, handled by `waldo_jax.cameras.look_at`, which then returns a
+    deterministic valid rotation.
+
+Randomness: `propose` uses its key once, for a [children_per_epoch, 14] block of uniforms in
+[0, 1); the per-child functions below are deterministic maps of their row (2 for the parents by
+inverse CDF, 6 for the crossover, 6 for the mutation). This keeps "write for one child and vmap"
+while compiling several times faster than per-child keys under vmap (measured on 2 CPU cores), and
+makes each operator testable from plain uniforms.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Tuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.population import Population, uniform_rows
+from waldo_jax.types import Array, Pose, PRNGKey
+
+__all__ = [
+    "NUM_UNIFORMS",
+    "Params",
+    "Config",
+    "propose",
+    "parent_weights",
+    "select_parents",
+    "crossover",
+    "mutation_delta",
+    "breed",
+    "METHOD",
+]
+
+# Uniform numbers one child consumes: 2 parent draws, 3 + 3 crossover, 3 + 3 mutation.
+NUM_UNIFORMS = 14
+
+
+def _default_mutation_probs() -> Array:
+    return jnp.asarray([0.05, 0.9, 0.05], jnp.float32)
+
+
+@flax.struct.dataclass
+class Params:
+    """Numeric hyper-parameters of EGPS (a pytree: a sweep can vmap over them).
+
+    Attributes:
+      mutation_probs: float32 [3], probabilities of delta = -nabla, 0, +nabla (normalised to sum 1).
+      nabla_scale: float32 [], nabla = nabla_scale * (parent1 - parent2), per component.
+      rank_bias: float32 [], exponent of the rank weights (h - r) ** rank_bias over the better half.
+    """
+
+    mutation_probs: Array = flax.struct.field(default_factory=_default_mutation_probs)
+    nabla_scale: Array = flax.struct.field(default_factory=lambda: jnp.asarray(0.1, jnp.float32))
+    rank_bias: Array = flax.struct.field(default_factory=lambda: jnp.asarray(1.0, jnp.float32))
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static settings of EGPS.
+
+    Attributes:
+      children_per_epoch: children bred per epoch.
+    """
+
+    children_per_epoch: int
+
+    def __post_init__(self):
+        if self.children_per_epoch < 1:
+            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
+
+    @classmethod
+    def create(cls, children_per_epoch: int, **options: Any) -> "Config":
+        """EGPS has no static options; those of other methods are ignored."""
+        del options
+        return cls(children_per_epoch=int(children_per_epoch))
+
+
+def parent_weights(fitness: Array, rank_bias: Array) -> Tuple[Array, Array]:
+    """Selection weights of each slot as a parent.
+
+    Args:
+      fitness: [C] signed scores, -inf for unusable slots.
+      rank_bias: the exponent of the rank weights.
+
+    Returns:
+      weights: [C] ((h - rank) / h) ** rank_bias for the better half (rank 0 = best, h its size),
+        0 elsewhere (unnormalised; the division by h only avoids overflow for large exponents).
+      can_breed: bool [], at least two slots have a finite fitness.
+    """
+    capacity = fitness.shape[0]
+    order = jnp.argsort(-fitness, stable=True)
+    rank = jnp.zeros(capacity, jnp.int32).at[order].set(jnp.arange(capacity, dtype=jnp.int32))
+    num_finite = jnp.sum(jnp.isfinite(fitness), dtype=jnp.int32)
+    half = jnp.minimum(jnp.maximum(num_finite // 2, 2), num_finite)
+    relative = (half - rank).astype(jnp.float32) / jnp.maximum(half, 1).astype(jnp.float32)
+    weights = jnp.where(rank < half, jnp.power(jnp.maximum(relative, 1e-30), rank_bias), 0.0)
+    return weights, num_finite >= 2
+
+
+def select_parents(u: Array, weights: Array, fitness: Array) -> Tuple[Array, Array]:
+    """Two distinct parent slots drawn from `parent_weights`; the better-ranked one first.
+
+    Inverse-CDF sampling with a binary search, so a child costs O(log C) after an O(C) cumulative
+    sum that does not depend on u (computed once when vmapped over children). The second draw
+    skips the first parent's segment of the CDF, which is exact sampling without replacement; if
+    float rounding ever lands it on the first parent again (probability ~1e-7), the best other slot
+    is taken instead.
+
+    Args:
+      u: two uniforms in [0, 1), [2].
+      weights: [C] from `parent_weights` (at least two positive entries).
+      fitness: [C] the fitness the weights come from (orders the two parents).
+
+    Returns:
+      (parent1, parent2): int32 [] slot indices; parent1 has the higher fitness (ties: lower slot,
+      as in the ranking).
+    """
+    cdf = jnp.cumsum(weights)
+    total = cdf[-1]
+    last_positive = jnp.sum(cdf < total, dtype=jnp.int32)  # guards u * total rounding up to total
+    top_two = jax.lax.top_k(weights, 2)[1]
+
+    def draw(v):
+        return jnp.minimum(jnp.searchsorted(cdf, v, side="right").astype(jnp.int32), last_positive)
+
+    first = draw(u[0] * total)
+    first_weight = weights[first]
+    first_start = cdf[first] - first_weight
+    v = u[1] * (total - first_weight)
+    v = jnp.where(v >= first_start, jnp.maximum(v + first_weight, cdf[first]), v)  # skip first's segment
+    second = draw(v)
+    other = jnp.where(first == top_two[0], top_two[1], top_two[0]).astype(jnp.int32)
+    second = jnp.where(second == first, other, second)
+    first_is_better = (fitness[first] > fitness[second]) | ((fitness[first] == fitness[second]) & (first < second))
+    return jnp.where(first_is_better, first, second), jnp.where(first_is_better, second, first)
+
+
+def crossover(u: Array, parent1: Pose, parent2: Pose) -> Pose:
+    """EGPS crossover of two poses ([3] fields) from six uniforms u [6].
+
+    Origin and look-at point are uniform per axis between the parents'; up is the normalised mean
+    of the parents' ups (zero when they cancel; see the module docstring).
+    """
+
+    def between(v, a, b):
+        low, high = jnp.minimum(a, b), jnp.maximum(a, b)
+        return jnp.clip(low + v * (high - low), low, high)  # the clip only guards rounding
+
+    up = parent1.up + parent2.up  # the mean, up to a factor normalised away
+    norm = jnp.linalg.norm(up)
+    up = jnp.where(norm > 0.0, up / jnp.where(norm > 0.0, norm, 1.0), up)
+    return Pose(origin=between(u[:3], parent1.origin, parent2.origin),
+                target=between(u[3:], parent1.target, parent2.target), up=up)
+
+
+def mutation_delta(u: Array, nabla: Array, mutation_probs: Array) -> Array:
+    """Per-component mutation [3] from uniforms u [3]: -nabla, 0 or +nabla with `mutation_probs` [3]."""
+    cdf = jnp.cumsum(mutation_probs / jnp.sum(mutation_probs))
+    step = (u >= cdf[0]).astype(nabla.dtype) + (u >= cdf[1]).astype(nabla.dtype) - 1.0  # -1, 0, +1
+    return step * nabla
+
+
+def breed(u: Array, parent1: Pose, parent2: Pose, params: Params) -> Pose:
+    """One child of two parents ([3] fields) from 12 uniforms u [12]: crossover, then mutation."""
+    child = crossover(u[:6], parent1, parent2)
+    nabla_origin = params.nabla_scale * (parent1.origin - parent2.origin)
+    nabla_target = params.nabla_scale * (parent1.target - parent2.target)
+    return child.replace(
+        origin=child.origin + mutation_delta(u[6:9], nabla_origin, params.mutation_probs),
+        target=child.target + mutation_delta(u[9:12], nabla_target, params.mutation_probs),
+    )
+
+
+def _child(u: Array, poses: Pose, fitness: Array, weights: Array, params: Params) -> Pose:
+    """Selection and breeding of one child from NUM_UNIFORMS uniforms and poses ([C, 3] fields)."""
+    parent1, parent2 = select_parents(u[:2], weights, fitness)
+    pick = lambda index: jax.tree.map(lambda x: x[index], poses)  # noqa: E731
+    return breed(u[2:], pick(parent1), pick(parent2), params)
+
+
+def propose(key: PRNGKey, population: Population, params: Params, config: Config,
+            epoch: Array) -> Tuple[Pose, Array, Population]:
+    """Breeds one epoch of EGPS children.
+
+    Args:
+      key: PRNG key (consumed).
+      population: the population at the start of the epoch.
+      params: `Params`.
+      config: `Config`.
+      epoch: the current epoch (unused: the operators do not change over epochs).
+
+    Returns:
+      children: `Pose` with [children_per_epoch, 3] fields.
+      child_mask: bool [children_per_epoch], all True unless fewer than two views have a finite
+        score (then all False; the children are still finite poses).
+      population: unchanged.
+    """
+    del epoch
+    n = config.children_per_epoch
+    fitness = population.fitness
+    weights, can_breed = parent_weights(fitness, params.rank_bias)
+    uniforms = uniform_rows(key, n, NUM_UNIFORMS)
+    children = jax.vmap(_child, in_axes=(0, None, None, None, None))(
+        uniforms, population.poses, fitness, weights, params)
+    return children, jnp.broadcast_to(can_breed, (n,)), population
+
+
+METHOD = SearchMethod(name="egps", params_type=Params, config_type=Config, propose=propose)

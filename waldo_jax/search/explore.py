@@ -1,0 +1,410 @@
+"""The exploration loop of "Finding Waldo" (MMSys'24), Algorithm 1, for any search method.
+
+Starting from the scored training views, every epoch the method proposes `children_per_epoch` poses,
+they are scored by the caller's `score_fn` (render + criterion, composed by the caller), written into
+the population, and after `epochs` epochs the top-k views are returned with CVIR / mCVIR and
+per-epoch curves (`waldo_jax.search.metrics`).
+
+The whole search is one `jax.lax.scan` over epochs inside one `jax.jit`; epoch e draws its random
+numbers from `fold_in(key, e)`. `score_fn` always receives the full [children_per_epoch, 4, 4]
+batch (fixed shapes); the scores of masked children are discarded. `explore_loop` runs the same
+epochs as a Python loop over a jitted step (same results), `explore_seeds` vmaps the whole search
+over a batch of keys in one compiled call.
+
+`score_fn` is part of the compilation cache key (by identity): define it once, not as a fresh lambda
+per call. To pass arrays (a scene, network weights) as traced arguments instead of compile-time
+constants, give a `jax.tree_util.Partial(fn, *arrays)`, which is called as fn(*arrays, c2w).
+
+Budgets (paper, Sec. 5): "low" = 250 to 300 images in total (training + generated), "high" = 900 to
+1000, over 5 epochs; `budget_children` derives children_per_epoch from the number of training views.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, Optional, Tuple, Union
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.cameras import pose_to_c2w
+from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.metrics import EpochMetrics, epoch_metrics, population_cvir, population_mcvir
+from waldo_jax.search.population import (
+    DIRECTIONS,
+    Population,
+    gather_poses,
+    init_population,
+    top_k_indices,
+    training_poses,
+    write_children,
+)
+from waldo_jax.types import Array, Pose, PRNGKey
+
+__all__ = [
+    "BUDGETS",
+    "ExploreConfig",
+    "Initial",
+    "Result",
+    "SeedsResult",
+    "budget_children",
+    "explore",
+    "explore_loop",
+    "explore_seeds",
+]
+
+# Total images (training + generated) of the paper's budgets, inclusive bounds.
+BUDGETS = {"low": (250, 300), "high": (900, 1000)}
+
+Budget = Union[str, Tuple[int, int]]
+
+
+def _budget_bounds(budget: Budget) -> Tuple[int, int]:
+    if isinstance(budget, str):
+        if budget not in BUDGETS:
+            raise ValueError(f"budget must be one of {tuple(BUDGETS)} or a (min, max) pair, got {budget!r}")
+        return BUDGETS[budget]
+    low, high = (int(b) for b in budget)
+    if not 0 < low <= high:
+        raise ValueError(f"a budget (min, max) needs 0 < min <= max, got {budget!r}")
+    return low, high
+
+
+def budget_children(n_train: int, budget: Budget = "low", epochs: int = 5) -> int:
+    """children_per_epoch so that n_train + epochs * children_per_epoch falls within the budget.
+
+    The total aims at the middle of the budget's range (275 for "low", 950 for "high") and is then
+    kept inside it; at least one child per epoch.
+
+    Args:
+      n_train: number of training views.
+      budget: "low" (250 to 300 images in total), "high" (900 to 1000) or a (min, max) pair.
+      epochs: number of epochs.
+
+    Returns:
+      children_per_epoch.
+
+    Raises:
+      ValueError: when n_train alone (plus one child per epoch) exceeds the budget, or no whole
+        number of children per epoch lands in the range.
+    """
+    low, high = _budget_bounds(budget)
+    n_train, epochs = int(n_train), int(epochs)
+    if epochs < 1:
+        raise ValueError(f"epochs must be >= 1, got {epochs}")
+    if n_train < 1:
+        raise ValueError(f"n_train must be >= 1, got {n_train}")
+    if n_train + epochs > high:
+        raise ValueError(
+            f"{n_train} training views already exceed the {budget!r} budget of at most {high} images "
+            f"with one child per epoch over {epochs} epochs; choose a larger budget or fewer views")
+    fewest = max(1, math.ceil((low - n_train) / epochs))
+    most = (high - n_train) // epochs
+    if fewest > most:
+        raise ValueError(
+            f"no whole number of children per epoch puts {n_train} + {epochs} x children in [{low}, {high}]; "
+            f"set children_per_epoch explicitly")
+    goal = round(((low + high) / 2 - n_train) / epochs)
+    return int(min(max(goal, fewest), most))
+
+
+@dataclasses.dataclass(frozen=True)
+class ExploreConfig:
+    """Static settings of an exploration run (hashable: it is a static argument of the jit).
+
+    Attributes:
+      method: "grs", "pibs" or "egps" (a key of `waldo_jax.search.METHODS`).
+      epochs: number of epochs E (paper: 5).
+      children_per_epoch: poses generated per epoch; None derives it from the budget.
+      budget: "low", "high" or a (min, max) total image count; used when children_per_epoch is None.
+      top_k: views returned (paper: 10).
+      top_n: N of mCVIR and of the mean-top-N curve (paper: 10).
+      top_c: PIBS: how many of the best views are paired.
+      pibs_fallback: PIBS: "none" (mask slots it cannot fill) or "grs" (fill them with GRS poses).
+      direction: "max" when higher criterion scores are better, "min" when lower ones are.
+      focus_min_fraction: training look-at points lie at least this fraction of the distance to the
+        scene focus in front of their camera (`population.training_look_at`).
+      progress: print one line per epoch (through `jax.debug.callback`).
+    """
+
+    method: str = "egps"
+    epochs: int = 5
+    children_per_epoch: Optional[int] = None
+    budget: Budget = "low"
+    top_k: int = 10
+    top_n: int = 10
+    top_c: int = 5
+    pibs_fallback: str = "none"
+    direction: str = "max"
+    focus_min_fraction: float = 0.1
+    progress: bool = False
+
+    def __post_init__(self):
+        if self.epochs < 1:
+            raise ValueError(f"epochs must be >= 1, got {self.epochs}")
+        if self.children_per_epoch is not None and self.children_per_epoch < 1:
+            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
+        if self.top_k < 1 or self.top_n < 1:
+            raise ValueError(f"top_k and top_n must be >= 1, got {self.top_k} and {self.top_n}")
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction must be one of {DIRECTIONS}, got {self.direction!r}")
+        if not isinstance(self.budget, str):  # a list would make the config unhashable
+            object.__setattr__(self, "budget", tuple(int(b) for b in self.budget))
+        _budget_bounds(self.budget)
+
+    def resolve(self, n_train: int) -> "ExploreConfig":
+        """This config with children_per_epoch fixed (from the budget when it is None)."""
+        if self.children_per_epoch is not None:
+            return self
+        return dataclasses.replace(self, children_per_epoch=budget_children(n_train, self.budget, self.epochs))
+
+    def capacity(self, n_train: int) -> int:
+        """C = n_train + epochs * children_per_epoch."""
+        return int(n_train) + self.epochs * self.resolve(n_train).children_per_epoch
+
+
+@flax.struct.dataclass
+class Initial:
+    """The scored training views a search starts from.
+
+    Attributes:
+      c2w: float32 [N, 4, 4] (or [N, 3, 4]) training camera-to-world matrices.
+      scores: float32 [N] their raw criterion scores (from the real images or from renders: the
+        caller decides). NaN marks a failed score.
+      focus: optional [3] scene focus point for the training look-at points (default:
+        `waldo_jax.cameras.camera_focus` of c2w).
+    """
+
+    c2w: Array
+    scores: Array
+    focus: Optional[Array] = None
+
+
+@flax.struct.dataclass
+class Result:
+    """What a search returns.
+
+    Attributes:
+      population: the final `Population` (training views and every child, with scores).
+      top_indices: int32 [k], slots of the k best views, best first.
+      top_valid: bool [k], False for entries beyond the number of usable scores.
+      top_poses: `Pose` with [k, 3] fields.
+      top_c2w: float32 [k, 4, 4].
+      top_scores: float32 [k] raw scores (NaN where top_valid is False).
+      metrics: `EpochMetrics`, [E + 1] curves (index 0: the training views).
+      cvir: float32 [] CVIR in percent.
+      mcvir: float32 [] mCVIR in percent (N = config.top_n).
+    """
+
+    population: Population
+    top_indices: Array
+    top_valid: Array
+    top_poses: Pose
+    top_c2w: Array
+    top_scores: Array
+    metrics: EpochMetrics
+    cvir: Array
+    mcvir: Array
+
+
+@flax.struct.dataclass
+class SeedsResult:
+    """`explore_seeds` output: per-seed results (leading axis K) and CVIR / mCVIR statistics.
+
+    Attributes:
+      results: `Result` whose every leaf has a leading [K] axis.
+      cvir_mean, cvir_std, mcvir_mean, mcvir_std: float32 [] over the K seeds (population std,
+        ddof = 0; NaN if any seed's value is NaN).
+    """
+
+    results: Result
+    cvir_mean: Array
+    cvir_std: Array
+    mcvir_mean: Array
+    mcvir_std: Array
+
+
+# ---------------------------------------------------------------------------------------------
+# Setup (host side, raises clear errors).
+
+
+def _resolve_method(method: Union[str, SearchMethod, None], config: ExploreConfig) -> SearchMethod:
+    from waldo_jax.search import METHODS  # the registry lives in the package __init__
+
+    if isinstance(method, SearchMethod):
+        return method
+    name = config.method if method is None else method
+    if name not in METHODS:
+        raise ValueError(f"unknown search method {name!r}; choose one of {sorted(METHODS)}")
+    return METHODS[name]
+
+
+def _as_partial(score_fn: Callable) -> jax.tree_util.Partial:
+    if not callable(score_fn):
+        raise TypeError(f"score_fn must be callable, got {type(score_fn).__name__}")
+    return score_fn if isinstance(score_fn, jax.tree_util.Partial) else jax.tree_util.Partial(score_fn)
+
+
+def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params):
+    """Validates the inputs and returns everything the jitted search needs."""
+    config = ExploreConfig() if config is None else config
+    search_method = _resolve_method(method, config)
+    config = dataclasses.replace(config, method=search_method.name)
+    c2w = np.asarray(initial.c2w, np.float32)
+    scores = np.asarray(initial.scores, np.float32)
+    if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)) or c2w.shape[0] < 1:
+        raise ValueError(f"initial.c2w must be [N, 4, 4] or [N, 3, 4] with N >= 1, got shape {c2w.shape}")
+    if scores.shape != (c2w.shape[0],):
+        raise ValueError(f"initial.scores must have shape ({c2w.shape[0]},), got {scores.shape}")
+    if c2w.shape[1] == 3:
+        c2w = np.concatenate([c2w, np.broadcast_to(np.array([[[0, 0, 0, 1]]], np.float32), (len(c2w), 1, 4))], 1)
+    n_train = c2w.shape[0]
+    config = config.resolve(n_train)
+    if config.top_k > config.capacity(n_train):
+        raise ValueError(f"top_k={config.top_k} exceeds the population capacity {config.capacity(n_train)}")
+    method_config = search_method.make_config(config.children_per_epoch, top_c=config.top_c,
+                                              pibs_fallback=config.pibs_fallback)
+    params = search_method.default_params() if params is None else params
+    poses = training_poses(c2w, initial.focus, config.focus_min_fraction)
+    return search_method, method_config, config, params, poses, jnp.asarray(c2w), jnp.asarray(scores)
+
+
+# ---------------------------------------------------------------------------------------------
+# The search (pure, jitted with method / method_config / config static).
+
+
+def _init(poses: Pose, c2w: Array, scores: Array, config: ExploreConfig) -> Population:
+    n_train = int(c2w.shape[0])
+    return init_population(poses, scores, config.capacity(n_train), config.direction, train_c2w=c2w)
+
+
+def _report(method_name: str, epochs: int, top_n: int, epoch, best, mean_top, scored, failed) -> None:
+    """Host-side progress line (one per epoch and seed)."""
+    for values in zip(*(np.atleast_1d(np.asarray(v)) for v in (epoch, best, mean_top, scored, failed))):
+        e, b, m, s, f = values
+        print(f"[explore {method_name}] epoch {int(e)}/{epochs}: best {float(b):.6g}, "
+              f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}", flush=True)
+
+
+def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, population: Population, epoch: Array, params,
+                method: SearchMethod, method_config, config: ExploreConfig) -> Population:
+    """One epoch of Algorithm 1: propose, score, write. epoch is 1-based (int32, may be traced)."""
+    n = config.children_per_epoch
+    epoch_key = jax.random.fold_in(key, epoch)
+    children, mask, population = method.propose(epoch_key, population, params, method_config, epoch)
+    c2w = jax.vmap(pose_to_c2w)(children)  # [n, 4, 4]
+    scores = jnp.asarray(score_fn(c2w), jnp.float32).reshape(n)
+    offset = population.num_train + (epoch - 1) * n
+    population = write_children(population, children, c2w, scores, mask, epoch, offset)
+    if config.progress:
+        curves = epoch_metrics(population, config.epochs, config.top_n)
+        jax.debug.callback(
+            lambda *a: _report(method.name, config.epochs, config.top_n, *a),
+            epoch, curves.best[epoch], curves.mean_top_n[epoch], curves.num_scored[epoch], curves.num_failed[epoch])
+    return population
+
+
+def _finish(population: Population, config: ExploreConfig) -> Result:
+    indices, ok = top_k_indices(population, config.top_k)
+    return Result(
+        population=population,
+        top_indices=indices,
+        top_valid=ok,
+        top_poses=gather_poses(population, indices),
+        top_c2w=population.c2w[indices],
+        top_scores=jnp.where(ok, population.score[indices], jnp.nan),
+        metrics=epoch_metrics(population, config.epochs, config.top_n),
+        cvir=population_cvir(population),
+        mcvir=population_mcvir(population, config.top_n),
+    )
+
+
+def _search(key: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
+            method: SearchMethod, method_config, config: ExploreConfig) -> Result:
+    population = _init(poses, c2w, scores, config)
+
+    def body(population, epoch):
+        return _epoch_step(key, score_fn, population, epoch, params, method, method_config, config), None
+
+    population, _ = jax.lax.scan(body, population, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
+    return _finish(population, config)
+
+
+def _search_seeds(keys: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
+                  method: SearchMethod, method_config, config: ExploreConfig) -> SeedsResult:
+    results = jax.vmap(lambda key: _search(key, score_fn, poses, c2w, scores, params, method, method_config, config))(
+        keys)
+    return SeedsResult(results=results, cvir_mean=jnp.mean(results.cvir), cvir_std=jnp.std(results.cvir),
+                       mcvir_mean=jnp.mean(results.mcvir), mcvir_std=jnp.std(results.mcvir))
+
+
+_STATIC = ("method", "method_config", "config")
+_search_jit = jax.jit(_search, static_argnames=_STATIC)
+_search_seeds_jit = jax.jit(_search_seeds, static_argnames=_STATIC)
+_init_jit = jax.jit(_init, static_argnames=("config",))
+_epoch_step_jit = jax.jit(_epoch_step, static_argnames=_STATIC)
+_finish_jit = jax.jit(_finish, static_argnames=("config",))
+
+
+# ---------------------------------------------------------------------------------------------
+# Public entry points.
+
+
+def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
+            method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
+            params=None) -> Result:
+    """Runs one search (Algorithm 1) as a single compiled `lax.scan` over epochs.
+
+    Args:
+      key: PRNG key (`jax.random.key(seed)`); epoch e uses `fold_in(key, e)`.
+      score_fn: jit-able c2w [P, 4, 4] -> raw scores [P] (P = children_per_epoch); NaN allowed
+        (such a view is kept, counted as failed and never selected). Static (by identity), or a
+        `jax.tree_util.Partial` whose bound arrays are traced.
+      initial: `Initial` with the training c2w [N, 4, 4] and their scores [N].
+      method: "grs", "pibs", "egps" or a `SearchMethod`; overrides `config.method` when given.
+      config: `ExploreConfig` (default: EGPS, 5 epochs, low budget).
+      params: the method's `Params` pytree (default: the paper's values).
+
+    Returns:
+      `Result`.
+    """
+    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
+    return _search_jit(key, _as_partial(score_fn), poses, c2w, scores, params,
+                       method=search_method, method_config=method_config, config=config)
+
+
+def explore_loop(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
+                 method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
+                 params=None) -> Result:
+    """`explore` as a Python loop over a jitted per-epoch step (same arguments, same result).
+
+    Useful to inspect or checkpoint between epochs, and as the reference the scan is tested against.
+    """
+    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
+    score_fn = _as_partial(score_fn)
+    population = _init_jit(poses, c2w, scores, config=config)
+    for epoch in range(1, config.epochs + 1):
+        population = _epoch_step_jit(key, score_fn, population, jnp.int32(epoch), params,
+                                     method=search_method, method_config=method_config, config=config)
+    return _finish_jit(population, config=config)
+
+
+def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
+                  method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
+                  params=None) -> SeedsResult:
+    """`explore` for a batch of keys [K], vmapped in one compiled call.
+
+    Args:
+      keys: [K] PRNG keys (e.g. `jax.random.split(jax.random.key(seed), K)`).
+      score_fn, initial, method, config, params: as `explore`; score_fn is vmapped over the seeds,
+        so it must be vmap-able (any jnp function is).
+
+    Returns:
+      `SeedsResult`: per-seed `Result`s (leading axis K) and the mean / std of CVIR and mCVIR.
+    """
+    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
+    return _search_seeds_jit(keys, _as_partial(score_fn), poses, c2w, scores, params,
+                             method=search_method, method_config=method_config, config=config)

@@ -1,0 +1,154 @@
+"""Pose interpolation-based search (PIBS), the second baseline of "Finding Waldo" (MMSys'24), Algorithm 1.
+
+Each epoch:
+  1. sort the population by fitness and take the `top_c` best views (non-finite ones excluded);
+  2. list the pairs among them (better rank first, in rank order (0, 1), (0, 2), ..., (1, 2), ...)
+     that were not explored yet;
+  3. interpolation_step = round(children_per_epoch / number_of_pairs), at least 1;
+  4. for each pair (a, b) in that order, `interpolation_step` poses strictly between them by SLERP
+     (`waldo_jax.cameras.slerp_pose`) at t = k / (interpolation_step + 1), k = 1 .. step,
+     until the children_per_epoch slots are used up;
+  5. mark the pairs that received children as explored, in both orders.
+
+Choices where the paper is silent (documented here, the defaults reproduce the paper's description):
+  * `round` is `jnp.round` (halves to even, like Python's `round`); a step of 0 (more pairs than
+    twice the slots) is raised to 1, so the first `children_per_epoch` pairs each get one child.
+  * Only pairs that actually received a child are marked explored; pairs cut off by the slot limit
+    stay available for later epochs.
+  * Fewer pairs x step than slots: the remaining slots are masked (not rendered, no budget spent).
+  * Once every pair of the current top_c is explored (and no child entered the top_c), PIBS has
+    nothing to propose: by default (`fallback="none"`) all slots are masked; with `fallback="grs"`
+    the empty slots are filled with GRS poses (`waldo_jax.search.grs`).
+  * `top_c` sets the shape of the pair table, so it is static (`Config`), not a `Params` leaf.
+  * Up vectors: interpolated frames are rotations, so the child's up is its frame's up axis; the
+    look-at point lies on the interpolated view axis at the interpolated focus distance
+    (`slerp_pose`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Tuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.cameras import slerp_pose
+from waldo_jax.search import grs
+from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.population import Population, gather_poses
+from waldo_jax.types import Array, Pose, PRNGKey
+
+__all__ = ["FALLBACKS", "Params", "Config", "propose", "pair_table", "METHOD"]
+
+FALLBACKS = ("none", "grs")
+
+
+@flax.struct.dataclass
+class Params:
+    """PIBS has no numeric hyper-parameters (its `top_c` is shape-setting, see `Config`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static settings of PIBS.
+
+    Attributes:
+      children_per_epoch: slots per epoch.
+      top_c: how many of the best views are paired (top_c * (top_c - 1) / 2 pairs).
+      fallback: what fills slots PIBS leaves empty: "none" (mask them) or "grs" (GRS poses).
+    """
+
+    children_per_epoch: int
+    top_c: int = 5
+    fallback: str = "none"
+
+    def __post_init__(self):
+        if self.children_per_epoch < 1:
+            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
+        if self.top_c < 2:
+            raise ValueError(f"top_c must be >= 2 (pairs are needed), got {self.top_c}")
+        if self.fallback not in FALLBACKS:
+            raise ValueError(f"fallback must be one of {FALLBACKS}, got {self.fallback!r}")
+
+    @classmethod
+    def create(cls, children_per_epoch: int, top_c: int = 5, pibs_fallback: str = "none",
+               **options: Any) -> "Config":
+        """Config from the shared exploration options; those of other methods are ignored."""
+        del options
+        return cls(children_per_epoch=int(children_per_epoch), top_c=int(top_c), fallback=pibs_fallback)
+
+
+def pair_table(top_c: int) -> Tuple[np.ndarray, np.ndarray]:
+    """The rank pairs (i, j), i < j < top_c, in the order PIBS visits them: int32 [P] each."""
+    first, second = np.triu_indices(top_c, k=1)
+    return first.astype(np.int32), second.astype(np.int32)
+
+
+def _interpolate_one(pose_a: Pose, pose_b: Pose, t: Array) -> Pose:
+    """The pose at parameter t in (0, 1) on the SLERP arc from pose_a to pose_b ([3] fields)."""
+    return slerp_pose(pose_a, pose_b, t)
+
+
+def propose(key: PRNGKey, population: Population, params: Params, config: Config,
+            epoch: Array) -> Tuple[Pose, Array, Population]:
+    """Proposes one epoch of PIBS children and marks their pairs as explored.
+
+    Args:
+      key: PRNG key; consumed only by the GRS fallback (PIBS itself is deterministic).
+      population: the population.
+      params: `Params()` (none).
+      config: `Config`.
+      epoch: the current epoch (passed on to the fallback).
+
+    Returns:
+      children: `Pose` with [children_per_epoch, 3] fields (masked slots hold the best view's pose,
+        or GRS poses with `fallback="grs"`).
+      child_mask: bool [children_per_epoch].
+      population: with the used pairs marked in `explored` (both orders).
+    """
+    del params
+    n = config.children_per_epoch
+    top_c = min(config.top_c, population.capacity)
+    fitness = population.fitness
+    order = jnp.argsort(-fitness, stable=True)  # best first, -inf last
+    top = order[:top_c]  # [top_c] slots
+    top_ok = jnp.isfinite(fitness[top])
+
+    rank_a, rank_b = pair_table(top_c)
+    num_pairs = rank_a.shape[0]
+    slot_a, slot_b = top[rank_a], top[rank_b]  # [P]
+    available = top_ok[rank_a] & top_ok[rank_b] & ~population.explored[slot_a, slot_b]
+    num_available = jnp.sum(available, dtype=jnp.int32)
+    step = jnp.maximum(1, jnp.round(n / jnp.maximum(num_available, 1))).astype(jnp.int32)
+
+    position = jnp.cumsum(available, dtype=jnp.int32) - 1  # rank of each pair among the available
+    used = available & (position * step < n)
+    # The pairs are distinct, so every (a, b) cell is written at most once.
+    explored = population.explored.at[slot_a, slot_b].set(population.explored[slot_a, slot_b] | used)
+    explored = explored.at[slot_b, slot_a].set(explored[slot_b, slot_a] | used)
+
+    (available_pairs,) = jnp.nonzero(available, size=num_pairs, fill_value=0)
+    child = jnp.arange(n, dtype=jnp.int32)
+    pair_position = child // step
+    mask = pair_position < num_available
+    pair = available_pairs[jnp.minimum(pair_position, num_pairs - 1)]
+    t = (child % step + 1).astype(jnp.float32) / (step + 1).astype(jnp.float32)
+    pose_a = gather_poses(population, slot_a[pair])
+    pose_b = gather_poses(population, slot_b[pair])
+    children = jax.vmap(_interpolate_one)(pose_a, pose_b, t)
+
+    if config.fallback == "grs":
+        filler, _, _ = grs.propose(key, population, grs.Params(), grs.Config(n), epoch)
+        mask_out = jnp.ones(n, bool)
+    else:
+        del key
+        filler = gather_poses(population, jnp.broadcast_to(order[0], (n,)))
+        mask_out = mask
+    children = jax.tree.map(lambda c, f: jnp.where(mask[:, None], c, f), children, filler)
+    return children, mask_out, population.replace(explored=explored)
+
+
+METHOD = SearchMethod(name="pibs", params_type=Params, config_type=Config, propose=propose)
