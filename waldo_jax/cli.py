@@ -1,8 +1,10 @@
 """The `waldo` command line (also `python -m waldo_jax`).
 
 Commands:
-  waldo scene info PATH [--json]             summary of a scene on disk
-  waldo render procedural[:SEED] --out DIR   the procedural Waldo room's training views, PNGs + sheet
+  waldo scene info PATH [--json]                       summary of a scene on disk
+  waldo train SCENE_PATH --out RUN_DIR                 train an Instant-NGP field (waldo_jax.nerf.commands)
+  waldo render procedural[:SEED] --out DIR             the procedural room's training views, PNGs + sheet
+  waldo render RUN_DIR --poses FILE|train --out DIR    render poses with a trained field
 
 Bad input (a missing file, a malformed scene, an existing output folder) prints one line
 `waldo: error: ...` on stderr and exits with status 1, without a traceback.
@@ -76,6 +78,10 @@ def _cmd_render_procedural(args, seed: int) -> int:
     from waldo_jax import io
     from waldo_jax.procedural import RoomCameraConfig, room_scene, waldo_visibility_batch
 
+    resolution = 128 if args.resolution is None else args.resolution
+    args.resolution = resolution
+    if args.poses is not None:
+        raise WaldoError("--poses is for trained runs; the procedural room renders its own training views")
     if args.views < 1:
         raise WaldoError(f"--views must be >= 1, got {args.views}")
     if not 8 <= args.resolution <= 4096:
@@ -115,7 +121,10 @@ def _cmd_render(args) -> int:
     seed = parse_procedural(args.source, args.seed)
     if seed is not None:
         return _cmd_render_procedural(args, seed)
-    raise WaldoError(f"unknown render source {args.source!r}: expected procedural or procedural:SEED")
+    from waldo_jax.nerf.commands import cmd_render
+
+    args.run_dir = args.source
+    return cmd_render(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,14 +146,23 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--split", default=None, help="train, val, test or all (default: the dataset's training set)")
     info.set_defaults(handler=_cmd_scene_info)
 
-    render = commands.add_parser("render", help="render views to PNGs",
-                                 description="Render the procedural Waldo room's training views.")
-    render.add_argument("source", help="procedural or procedural:SEED")
+    from waldo_jax.nerf.commands import add_commands
+
+    add_commands(commands)  # train
+
+    render = commands.add_parser(
+        "render", help="render views to PNGs",
+        description="Render the procedural Waldo room's training views (SOURCE = procedural[:SEED]), or "
+                    "poses with a trained field (SOURCE = a run directory of `waldo train`, with --poses).")
+    render.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or RUN_DIR")
     render.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
-    render.add_argument("--seed", type=int, default=None, help="room seed (default 0)")
-    render.add_argument("--views", type=int, default=24, help="number of training views (default 24)")
-    render.add_argument("--resolution", type=int, default=128, help="image side in pixels (default 128)")
-    render.add_argument("--samples", type=int, default=128, help="samples per ray (default 128)")
+    render.add_argument("--poses", default=None, metavar="FILE|train",
+                        help="RUN_DIR only: a transforms.json-like file, or 'train' for the training poses")
+    render.add_argument("--resolution", type=int, default=None,
+                        help="procedural: image side (default 128); RUN_DIR: longer side (default: camera's)")
+    render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default 0)")
+    render.add_argument("--views", type=int, default=24, help="procedural: number of training views (default 24)")
+    render.add_argument("--samples", type=int, default=128, help="procedural: samples per ray (default 128)")
     render.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     render.set_defaults(handler=_cmd_render)
     return parser

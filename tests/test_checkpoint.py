@@ -1,0 +1,278 @@
+"""Tests of checkpoints (waldo_jax.nerf.checkpoint) and the `waldo train` / `waldo render` handlers.
+
+A synthetic 3-view scene and a tiny field keep these independent of the data folder and fast.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import waldo_jax  # noqa: F401  (XLA flags before the first computation)
+
+import imageio.v3 as iio
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from waldo_jax.cameras import look_at
+from waldo_jax.errors import WaldoError
+from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
+from waldo_jax.nerf import checkpoint as ckpt
+from waldo_jax.cli import build_parser
+from waldo_jax.nerf.train import TrainConfig, make_sampler, occupancy_available
+from waldo_jax.types import Intrinsics, Scene
+
+BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+FIELD = NGPFieldConfig(aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**10, F=2, N_min=4, N_max=32),
+                       density_hidden=(16,), color_hidden=(16,))
+
+
+def _config(sampler: str = "dense") -> TrainConfig:
+    return TrainConfig(field=FIELD, steps=10, sampler=sampler, occupancy_resolution=8, num_samples=16,
+                       samples_per_batch=256, eval_samples=16, eval_ray_chunk=64)
+
+
+def _scene() -> Scene:
+    origins = np.array([[0.0, 0.5, 4.0], [4.0, 0.3, 0.0], [-2.0, 3.0, 2.5]], np.float32)
+    c2w = np.stack([np.asarray(look_at(o, np.zeros(3), np.array([0.0, 1.0, 0.0]))) for o in origins])
+    return Scene(
+        images=np.random.default_rng(0).uniform(size=(3, 6, 8, 3)).astype(np.float32),
+        c2w=c2w.astype(np.float32),
+        intrinsics=Intrinsics.create(8, 6, 9.5, 9.25, 4.1, 2.9, [0.01, -0.002, 0.0005, 0.0]),
+        aabb=np.asarray(BOX, np.float32),
+        near=2.0,
+        far=6.0,
+        file_names=("train/r_0.png", "train/r_1.png", "train/r_2.png"),
+        format="blender",
+        name="synthetic",
+        split="train",
+        path="/data/synthetic",
+        alphas=np.ones((3, 6, 8), np.float32),
+        background=np.ones(3, np.float32),
+        metadata={"scene_file": ["transforms_train.json"], "downscale": np.float64(1.0)},
+    )
+
+
+def _params(seed: int = 0):
+    params = init_field(jax.random.key(seed), FIELD)
+    # Values whose bits a lossy round trip would change: NaN payload, -0.0, inf, a subnormal.
+    special = jnp.array([[jnp.nan, -0.0], [jnp.inf, 1e-45]], jnp.float32)
+    params["hash"] = params["hash"].at[:2].set(special)
+    return params
+
+
+def _occupancy(config: TrainConfig):
+    params = init_field(jax.random.key(0), FIELD)
+    grid = make_sampler(config).init(jax.random.key(1), params)
+    density = jax.random.uniform(jax.random.key(2), grid.density.shape)
+    return grid.replace(density=density, bitfield=density > 0.5)
+
+
+def _bytes(tree):
+    return [(np.asarray(x).dtype.str, np.asarray(x).shape, np.asarray(x).tobytes()) for x in jax.tree.leaves(tree)]
+
+
+@pytest.fixture()
+def saved(tmp_path):
+    path = tmp_path / "run" / ckpt.CHECKPOINT_NAME
+    path.parent.mkdir()
+    ckpt.save_checkpoint(path, _params(), _config(), _scene(), info={"psnr_test": 31.5})
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# Round trip.
+
+
+@pytest.mark.parametrize("sampler", ["dense"] + (["occupancy"] if occupancy_available() else []))
+def test_round_trip_is_bit_exact(tmp_path, sampler):
+    config = _config(sampler)
+    params = _params()
+    occupancy = _occupancy(config) if sampler == "occupancy" else None
+    scene = _scene()
+    path = ckpt.save_checkpoint(tmp_path / "model.ckpt", params, config, scene, occupancy,
+                                info={"steps": 10, "psnr_test": float("nan")})
+    loaded = ckpt.load_checkpoint(path)
+    assert _bytes(loaded.params) == _bytes(params)
+    assert jax.tree.structure(loaded.params) == jax.tree.structure(params)
+    if occupancy is None:
+        assert loaded.occupancy is None
+    else:
+        assert _bytes(loaded.occupancy) == _bytes(occupancy)
+        assert type(loaded.occupancy) is type(occupancy)
+        assert loaded.occupancy.resolution == occupancy.resolution
+    assert loaded.config == config
+    assert loaded.format_version == ckpt.FORMAT_VERSION
+    record = loaded.scene
+    assert record.intrinsics.to_dict() == scene.intrinsics.to_dict()
+    assert record.c2w.tobytes() == scene.c2w.tobytes()
+    assert record.aabb.tobytes() == scene.aabb.tobytes()
+    assert (record.near, record.far) == (scene.near, scene.far)
+    assert record.file_names == scene.file_names
+    assert (record.path, record.format, record.name, record.split) == (scene.path, "blender", "synthetic", "train")
+    np.testing.assert_array_equal(record.background, scene.background)
+    assert record.metadata == {"scene_file": ["transforms_train.json"], "downscale": 1.0}
+    assert loaded.info["steps"] == 10 and np.isnan(loaded.info["psnr_test"])
+    # A run directory works as well as the file.
+    assert _bytes(ckpt.load_checkpoint(_dir_with(tmp_path, path)).params) == _bytes(params)
+
+
+def _dir_with(tmp_path, path):
+    run = tmp_path / "rundir"
+    run.mkdir(exist_ok=True)
+    (run / ckpt.CHECKPOINT_NAME).write_bytes(path.read_bytes())
+    return run
+
+
+# ----------------------------------------------------------------------------------------------
+# Damaged and incompatible files.
+
+
+@pytest.mark.parametrize("where", [0.0, 0.01, 0.3, 0.6, 0.999])
+def test_flipped_byte_is_reported_naming_the_file(saved, where):
+    raw = bytearray(saved.read_bytes())
+    index = min(len(raw) - 1, int(where * len(raw)))
+    raw[index] ^= 0x5A
+    saved.write_bytes(bytes(raw))
+    with pytest.raises(ckpt.CheckpointError, match="corrupt|not a waldo_jax checkpoint|truncated") as info:
+        ckpt.load_checkpoint(saved)
+    assert str(saved) in str(info.value)
+
+
+@pytest.mark.parametrize("keep", [0, 5, 30, 0.5, -1])
+def test_truncated_file_is_reported_naming_the_file(saved, keep):
+    raw = saved.read_bytes()
+    length = keep if isinstance(keep, int) and keep >= 0 else (len(raw) - 1 if keep == -1 else int(keep * len(raw)))
+    saved.write_bytes(raw[:length])
+    with pytest.raises(ckpt.CheckpointError, match="truncated") as info:
+        ckpt.load_checkpoint(saved)
+    assert str(saved) in str(info.value)
+
+
+def test_wrong_format_version_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setattr(ckpt, "FORMAT_VERSION", 99)
+    path = ckpt.save_checkpoint(tmp_path / "future.ckpt", _params(), _config(), _scene())
+    monkeypatch.undo()
+    with pytest.raises(ckpt.CheckpointError, match=r"format_version 99.*reads version 1") as info:
+        ckpt.load_checkpoint(path)
+    assert str(path) in str(info.value)
+
+
+def test_shape_mismatch_with_the_stored_config_names_the_array(tmp_path):
+    bigger = NGPFieldConfig(aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**11, F=2, N_min=4, N_max=64),
+                            density_hidden=(16,), color_hidden=(16,))
+    params = init_field(jax.random.key(0), bigger)
+    path = ckpt.save_checkpoint(tmp_path / "mismatch.ckpt", params, _config(), _scene())
+    with pytest.raises(ckpt.CheckpointError, match=r"incompatible.*params/hash") as info:
+        ckpt.load_checkpoint(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_file_and_other_files_are_reported(tmp_path):
+    with pytest.raises(ckpt.CheckpointError, match="no such checkpoint"):
+        ckpt.load_checkpoint(tmp_path / "absent.ckpt")
+    other = tmp_path / "notes.txt"
+    other.write_text("hello, this is not a checkpoint at all")
+    with pytest.raises(ckpt.CheckpointError, match="not a waldo_jax checkpoint"):
+        ckpt.load_checkpoint(other)
+
+
+# ----------------------------------------------------------------------------------------------
+# Atomic writes.
+
+
+def test_write_leaves_no_temporary_file(tmp_path):
+    ckpt.save_checkpoint(tmp_path / "a.ckpt", _params(), _config(), _scene())
+    ckpt.save_checkpoint(tmp_path / "a.ckpt", _params(1), _config(), _scene())  # overwrite
+    assert sorted(os.listdir(tmp_path)) == ["a.ckpt"]
+    assert _bytes(ckpt.load_checkpoint(tmp_path / "a.ckpt").params) == _bytes(_params(1))
+
+
+def test_failed_write_keeps_the_old_file_and_cleans_up(saved, monkeypatch):
+    before = saved.read_bytes()
+
+    def failing_replace(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ckpt.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="No space left"):
+        ckpt.save_checkpoint(saved, _params(1), _config(), _scene())
+    monkeypatch.undo()
+    assert saved.read_bytes() == before
+    assert sorted(os.listdir(saved.parent)) == [saved.name]
+
+
+# ----------------------------------------------------------------------------------------------
+# Command handlers.
+
+
+def _parse(argv):
+    return build_parser().parse_args(argv)
+
+
+def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "keep.txt").write_text("earlier results")
+    args = _parse(["train", str(tmp_path / "no-scene-needed"), "--out", str(run), "--steps", "3"])
+    with pytest.raises(WaldoError, match=r"not empty.*--force") as info:
+        args.handler(args)
+    assert str(run) in str(info.value)
+    assert sorted(os.listdir(run)) == ["keep.txt"]
+    # With --force the run dir is accepted and the next problem (the missing scene) is reported.
+    forced = _parse(["train", str(tmp_path / "no-scene-needed"), "--out", str(run), "--force"])
+    with pytest.raises(WaldoError, match="no-scene-needed"):
+        forced.handler(forced)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--preset", "best"], "unknown preset 'best'"),
+    (["--steps", "0"], "--steps must be a positive integer"),
+    (["--downscale", "-2"], "--downscale must be a positive number"),
+])
+def test_train_rejects_bad_arguments(tmp_path, argv, message):
+    args = _parse(["train", str(tmp_path), "--out", str(tmp_path / "run")] + argv)
+    with pytest.raises(WaldoError, match=message):
+        args.handler(args)
+
+
+def test_render_writes_pngs_of_train_poses_and_a_poses_file(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    scene = _scene()
+    ckpt.save_checkpoint(run / ckpt.CHECKPOINT_NAME, init_field(jax.random.key(0), FIELD), _config(), scene)
+
+    args = _parse(["render", str(run), "--poses", "train", "--out", str(tmp_path / "train_views")])
+    assert args.handler(args) == 0
+    files = sorted(os.listdir(tmp_path / "train_views"))
+    assert files == ["0000.png", "0001.png", "0002.png"]
+    assert iio.imread(tmp_path / "train_views" / "0000.png").shape == (6, 8, 3)
+
+    poses = {"w": 20, "h": 10, "fl_x": 18.0, "frames": [
+        {"file_path": "a.png", "transform_matrix": np.asarray(scene.c2w[1], np.float64).tolist()},
+        {"file_path": "b.png", "transform_matrix": np.asarray(scene.c2w[2], np.float64).tolist()},
+    ]}
+    (tmp_path / "poses.json").write_text(json.dumps(poses))
+    args = _parse(["render", str(run), "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "novel"),
+                   "--resolution", "12"])
+    assert args.handler(args) == 0
+    assert sorted(os.listdir(tmp_path / "novel")) == ["0000.png", "0001.png"]
+    assert iio.imread(tmp_path / "novel" / "0001.png").shape == (6, 12, 3)  # longer side 12, aspect 2:1
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"frames": [{"transform_matrix": [[1, 0], [0, 1]]}]}))
+    args = _parse(["render", str(run), "--poses", str(bad), "--out", str(tmp_path / "x")])
+    with pytest.raises(WaldoError, match=r"bad.json.*frame 0.*shape \[2, 2\]"):
+        args.handler(args)
+    args = _parse(["render", str(tmp_path / "nothing"), "--poses", "train", "--out", str(tmp_path / "y")])
+    with pytest.raises(WaldoError, match="does not exist"):
+        args.handler(args)
+    # Earlier renders are never overwritten silently; a run needs --poses.
+    args = _parse(["render", str(run), "--poses", "train", "--out", str(tmp_path / "train_views")])
+    with pytest.raises(WaldoError, match="not empty"):
+        args.handler(args)
+    args = _parse(["render", str(run), "--out", str(tmp_path / "z")])
+    with pytest.raises(WaldoError, match="--poses"):
+        args.handler(args)

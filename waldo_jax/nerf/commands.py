@@ -1,0 +1,283 @@
+"""The `waldo train` and `waldo render` commands.
+
+    waldo train SCENE_PATH --out RUN_DIR [--steps N] [--downscale K] [--seed S]
+                [--preset fast|quality] [--sampler auto|dense|occupancy] [--force] [--quiet]
+    waldo render RUN_DIR --poses FILE|train --out DIR [--resolution R]
+
+`add_commands(subparsers)` registers both on an argparse subparsers object; each parser gets
+`handler=<function>` as its default (the convention of `waldo_jax.cli`). A handler takes the parsed
+`argparse.Namespace`, returns the exit status 0 and raises `WaldoError` (one clear line, naming the
+offending path or value) on bad input.
+
+A run directory holds `checkpoint.ckpt` (see `waldo_jax.nerf.checkpoint`) and `train.json` (the
+statistics of the run). `--force` overwrites those two files in a non-empty run directory and leaves
+any other file there alone.
+
+Poses files for `render`: a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio
+transforms: OpenGL camera-to-world in the scene's own world frame, as the training poses). Intrinsics
+come from the file when it has a focal length (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`,
+with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`), else from the checkpoint; `--resolution` then rescales them
+so that the longer side has R pixels. nerfstudio viewer camera paths (`camera_path`) are refused:
+they live in nerfstudio's normalised world, which the scene loader does not reproduce.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+
+from waldo_jax import io
+from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.types import Intrinsics
+
+__all__ = ["TRAIN_JSON", "add_commands", "cmd_render", "cmd_train"]
+
+TRAIN_JSON = "train.json"
+_SAMPLER_CHOICES = ("auto", "dense", "occupancy")
+
+
+def add_commands(subparsers) -> None:
+    """Registers `train` on an argparse subparsers object (function as `handler`).
+
+    `waldo render RUN_DIR --poses ...` is part of `waldo_jax.cli`'s `render` command, which
+    dispatches to `cmd_render` for run directories.
+    """
+    p = subparsers.add_parser(
+        "train", help="train an Instant-NGP field on a scene",
+        description="Train an Instant-NGP field on a scene's training split and report the held-out PSNR "
+                    "on its test split (Blender: transforms_test.json; other formats: every 8th image).")
+    p.add_argument("scene_path", metavar="SCENE_PATH", help="scene folder or scene file")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory to write")
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--downscale", type=float, default=None, help="load images downscaled K times")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--preset", default="fast", help="fast or quality (default fast)")
+    p.add_argument("--sampler", default="auto",
+                   help="auto (occupancy grid when available), dense or occupancy")
+    p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=cmd_train)
+
+
+
+# ----------------------------------------------------------------------------------------------
+# train
+
+
+def _load_splits(scene_path: str, downscale: Optional[float]):
+    """(train scene, test scene or None) with the format's own hold-out."""
+    from waldo_jax.scenes import load_scene
+
+    train_scene = load_scene(scene_path, downscale=downscale, split="train")
+    test_scene = None
+    splits = ("test", "val") if train_scene.format == "blender" else ("test",)
+    for split in splits:
+        try:
+            test_scene = load_scene(scene_path, downscale=downscale, split=split)
+            break
+        except SceneFormatError as e:
+            problem = str(e)
+    if test_scene is None:
+        warnings.warn(f"{scene_path}: no held-out views ({problem}); psnr_test will be null", stacklevel=2)
+    return train_scene, test_scene
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """`waldo train`: trains, writes RUN_DIR/checkpoint.ckpt and RUN_DIR/train.json."""
+    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
+    from waldo_jax.nerf.train import PRESETS, TrainConfig, occupancy_available, train
+
+    if args.preset not in PRESETS:
+        raise WaldoError(f"unknown preset {args.preset!r}: expected one of {', '.join(PRESETS)}")
+    if args.sampler not in _SAMPLER_CHOICES:
+        raise WaldoError(f"unknown sampler {args.sampler!r}: expected one of {', '.join(_SAMPLER_CHOICES)}")
+    if args.steps is not None and args.steps < 1:
+        raise WaldoError(f"--steps must be a positive integer, got {args.steps}")
+    if args.downscale is not None and not (math.isfinite(args.downscale) and args.downscale > 0):
+        raise WaldoError(f"--downscale must be a positive number, got {args.downscale}")
+    if args.sampler == "occupancy" and not occupancy_available():
+        raise WaldoError("--sampler occupancy needs waldo_jax.nerf.occupancy, which is not available")
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.force:  # refuse before the (slow) scene load
+        io.prepare_output_dir(out, force=False)
+
+    import jax
+
+    train_scene, test_scene = _load_splits(args.scene_path, args.downscale)
+    out = io.prepare_output_dir(out, force=args.force)
+    overrides: Dict[str, Any] = {}
+    if args.steps is not None:
+        overrides["steps"] = args.steps
+    sampler = args.sampler
+    if sampler == "auto":
+        sampler = "occupancy" if occupancy_available() else "dense"
+    overrides["sampler"] = sampler
+    config = TrainConfig.preset(args.preset, train_scene, **overrides)
+    result = train(jax.random.key(args.seed), train_scene, config, test_scene, progress=not args.quiet)
+
+    last = next((h for h in reversed(result.history) if "loss" in h), {})
+    stats = {
+        "psnr_test": result.psnr_test,
+        "steps": result.steps,
+        "seconds": round(result.seconds, 3),
+        "compile_seconds": round(result.compile_seconds, 3),
+        "rays_per_second": round(result.rays_per_second, 1),
+        "device": result.device,
+        "n_train": result.n_train,
+        "n_test": result.n_test,
+        "preset": args.preset,
+        "sampler": config.sampler,
+        "seed": args.seed,
+        "scene_path": str(Path(args.scene_path).resolve()),
+        "scene_format": train_scene.format,
+        "downscale": train_scene.metadata.get("downscale"),
+        "image_size": [train_scene.width, train_scene.height],
+        "train_loss": last.get("loss"),
+        "train_psnr": last.get("psnr"),
+        "checkpoint": CHECKPOINT_NAME,
+        "config": config.to_dict(),
+        "hparams": {f.name: float(getattr(result.hparams, f.name)) for f in dataclasses.fields(result.hparams)},
+        "history": result.history,
+    }
+    save_checkpoint(out / CHECKPOINT_NAME, result.params, config, train_scene, result.occupancy,
+                    info={k: v for k, v in stats.items() if k != "history"})
+    io.write_json(out / TRAIN_JSON, stats)
+    psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
+    print(f"trained {result.steps} steps in {result.seconds:.1f} s ({result.rays_per_second:,.0f} rays/s, "
+          f"{result.device}); held-out PSNR {psnr}; wrote {out / CHECKPOINT_NAME}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------
+# render
+
+
+def _number(d: Dict[str, Any], key: str, path: Path) -> Optional[float]:
+    value = d.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise WaldoError(f"{path}: {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
+    """A validated [4, 4] camera-to-world matrix (a [3, 4] one gets the (0, 0, 0, 1) row)."""
+    try:
+        m = np.asarray(matrix, np.float64)
+    except (TypeError, ValueError):
+        raise WaldoError(f"{path}: {what} is not a matrix of numbers") from None
+    if m.shape == (16,):
+        m = m.reshape(4, 4)
+    if m.shape == (3, 4):
+        m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
+    if m.shape != (4, 4):
+        raise WaldoError(f"{path}: {what} has shape {list(m.shape)}, expected 4x4")
+    if not np.all(np.isfinite(m)):
+        raise WaldoError(f"{path}: {what} has non-finite values")
+    rotation = m[:3, :3]
+    if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > 1e-3 or np.linalg.det(rotation) < 0:
+        raise WaldoError(f"{path}: {what} is not a rigid camera-to-world matrix")
+    return m
+
+
+def _file_intrinsics(meta: Dict[str, Any], path: Path, fallback: Intrinsics) -> Intrinsics:
+    """Intrinsics of a transforms file, or `fallback` when it has no focal length."""
+    w = _number(meta, "w", path)
+    h = _number(meta, "h", path)
+    fl_x, fl_y = _number(meta, "fl_x", path), _number(meta, "fl_y", path)
+    angle_x, angle_y = _number(meta, "camera_angle_x", path), _number(meta, "camera_angle_y", path)
+    if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
+        return fallback
+    if w is None or h is None:
+        # A focal length without an image size: assume the checkpoint's size.
+        w = w or (h * fallback.width / fallback.height if h else float(fallback.width))
+        h = h or (w * fallback.height / fallback.width)
+    if fl_x is None and angle_x is not None:
+        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
+    if fl_y is None and angle_y is not None:
+        fl_y = 0.5 * h / math.tan(0.5 * angle_y)
+    fl_x = fl_x if fl_x is not None else fl_y
+    fl_y = fl_y if fl_y is not None else fl_x
+    if not (fl_x > 0 and fl_y > 0 and w >= 1 and h >= 1):
+        raise WaldoError(f"{path}: invalid camera (fl_x={fl_x}, fl_y={fl_y}, w={w}, h={h})")
+    distortion = [_number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
+    return Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, _number(meta, "cx", path),
+                             _number(meta, "cy", path), distortion)
+
+
+def _read_poses(path: Path, fallback: Intrinsics) -> Tuple[np.ndarray, Intrinsics]:
+    """[P, 4, 4] poses and intrinsics of a transforms-like file."""
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise WaldoError(f"{path}: no such poses file (or pass --poses train)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise WaldoError(f"{path}: cannot read poses file ({e})") from None
+    except json.JSONDecodeError as e:
+        raise WaldoError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    if not isinstance(meta, dict):
+        raise WaldoError(f"{path}: expected a JSON object with a 'frames' list")
+    if isinstance(meta.get("frames"), list):
+        frames = meta["frames"]
+        if not frames:
+            raise WaldoError(f"{path}: 'frames' is empty")
+        poses = []
+        for i, frame in enumerate(frames):
+            if not isinstance(frame, dict) or "transform_matrix" not in frame:
+                raise WaldoError(f"{path}: frame {i} has no 'transform_matrix'")
+            poses.append(_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
+        return np.stack(poses).astype(np.float32), _file_intrinsics(meta, path, fallback)
+    if "camera_path" in meta:
+        # nerfstudio's viewer writes camera paths in its own normalised world (after its dataparser's
+        # orientation and scale), not in the frame of the scene's transforms.json that training used.
+        raise WaldoError(
+            f"{path}: a nerfstudio camera path is in nerfstudio's normalised world frame, not the scene's; "
+            "pass a transforms.json-like file with frames[].transform_matrix in the scene's own frame")
+    raise WaldoError(f"{path}: no 'frames' list with transform_matrix entries (transforms.json format)")
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """`waldo render`: renders poses with a trained field to DIR/0000.png, DIR/0001.png, ..."""
+    import jax
+
+    from waldo_jax.nerf.checkpoint import load_checkpoint
+    from waldo_jax.nerf.train import render_trained
+
+    if args.poses is None:
+        raise WaldoError("rendering a trained run needs --poses FILE (a transforms.json) or --poses train")
+    run = Path(args.run_dir)
+    if not run.exists():
+        raise WaldoError(f"run directory {run} does not exist")
+    checkpoint = load_checkpoint(run)
+    scene = checkpoint.scene
+    if args.poses == "train":
+        c2w, intrinsics = np.asarray(scene.c2w, np.float32), scene.intrinsics
+    else:
+        c2w, intrinsics = _read_poses(Path(args.poses), scene.intrinsics)
+    if args.resolution is not None:
+        if args.resolution < 1:
+            raise WaldoError(f"--resolution must be a positive integer, got {args.resolution}")
+        intrinsics = intrinsics.with_max_side(args.resolution)
+    out = io.prepare_output_dir(args.out, force=getattr(args, "force", False))
+
+    background = scene.background if scene.background is not None else np.zeros(3, np.float32)
+    print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
+    start = time.perf_counter()
+    rendered = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, c2w, intrinsics,
+                              scene.near, scene.far, background, aabb=scene.aabb)
+    images = np.asarray(jax.device_get(rendered.rgb))
+    seconds = time.perf_counter() - start
+    for i, image in enumerate(images):
+        io.save_png(out / f"{i:04d}.png", image)
+    print(f"wrote {len(images)} PNGs to {out} in {seconds:.1f} s")
+    return 0
