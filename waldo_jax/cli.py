@@ -17,7 +17,6 @@ import json
 import sys
 import time
 import warnings
-from pathlib import Path
 from typing import List, Optional
 
 from waldo_jax.errors import WaldoError

@@ -531,7 +531,7 @@ def march_ray(grid: OccupancyGrid, origin: Array, direction: Array, t_start: Arr
     return t, delta, mask
 
 
-def _ray_interval(grid: OccupancyGrid, origin: Array, direction: Array, config: RenderConfig) -> Tuple[Array, Array]:
+def ray_interval(grid: OccupancyGrid, origin: Array, direction: Array, config: RenderConfig) -> Tuple[Array, Array]:
     """[near, far] clipped to the render box (when used) and to the grid's outer box."""
     t_start, t_end = config.near, config.far
     if config.use_aabb:
@@ -562,7 +562,7 @@ def render_ray_marched(field: Field, params, grid: OccupancyGrid, origin: Array,
       (`RenderOutput` with rgb [3], depth [], acc [], num_evaluations int32 []): the field evaluations
       an early-stopping marcher needs, valid samples whose transmittance is >= min_transmittance.
     """
-    t_start, t_end = _ray_interval(grid, origin, direction, render_config)
+    t_start, t_end = ray_interval(grid, origin, direction, render_config)
     t, delta, mask = march_ray(grid, origin, direction, t_start, t_end, march_config, key)  # [S] each
     points = origin + t[:, None] * direction  # [S, 3]
     sigma, rgb = jax.vmap(field, in_axes=(None, 0, None))(params, points, direction)  # [S], [S, 3]
@@ -639,7 +639,7 @@ def render_rays_packed(field: Field, params, grid: OccupancyGrid, origins: Array
     def render_chunk(chunk_origins, chunk_directions, chunk_keys):
         num_rays = chunk_origins.shape[0]
         budget = num_rays * num_slots_per_ray
-        t_start, t_end = jax.vmap(lambda o, d: _ray_interval(grid, o, d, render_config))(chunk_origins, chunk_directions)
+        t_start, t_end = jax.vmap(lambda o, d: ray_interval(grid, o, d, render_config))(chunk_origins, chunk_directions)
         t, delta, mask = jax.vmap(
             lambda o, d, a, b, k: march_ray(grid, o, d, a, b, march_config, k),
             in_axes=(0, 0, 0, 0, None if chunk_keys is None else 0),

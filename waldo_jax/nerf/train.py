@@ -51,7 +51,7 @@ from waldo_jax.cameras import camera_rays, pixel_directions
 from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.field import NGPFieldConfig, init_field, make_density, make_field, make_field_batch
 from waldo_jax.nerf.hashgrid import HashGridConfig
-from waldo_jax.render import (RenderConfig, composite, ray_aabb_interval, render_ray, render_views,
+from waldo_jax.render import (RenderConfig, composite, render_ray, render_views,
                               volume_weights)
 from waldo_jax.types import Array, Intrinsics, PRNGKey, RenderOutput, Scene
 
@@ -474,16 +474,6 @@ def occupancy_available() -> bool:
     return all(hasattr(occupancy, name) for name in needed)
 
 
-def _ray_interval(grid, origin: Array, direction: Array, render_config: RenderConfig) -> Tuple[Array, Array]:
-    """[near, far] of one ray clipped to the render box (when used) and to the grid's outer box."""
-    t_start, t_end = render_config.near, render_config.far
-    if render_config.use_aabb:
-        t_enter, t_exit = ray_aabb_interval(origin, direction, render_config.aabb)
-        t_start, t_end = jnp.maximum(t_start, t_enter), jnp.minimum(t_end, t_exit)
-    t_enter, t_exit = ray_aabb_interval(origin, direction, jnp.asarray(grid.outer_aabb))
-    return jnp.maximum(t_start, t_enter), jnp.minimum(t_end, t_exit)
-
-
 class _OccupancySampler:
     """Instant-NGP's occupancy grid and ray marching (`waldo_jax.nerf.occupancy`), with packed samples.
 
@@ -551,7 +541,7 @@ class _OccupancySampler:
         march_config = self.march_config(num_samples)
 
         def one(o, d, k):
-            t_start, t_end = _ray_interval(grid, o, d, render_config)
+            t_start, t_end = self.occupancy.ray_interval(grid, o, d, render_config)
             return self.occupancy.march_ray(grid, o, d, t_start, t_end, march_config, k)
 
         keys = None if key is None else jax.random.split(key, origins.shape[0])

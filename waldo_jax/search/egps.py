@@ -32,14 +32,13 @@ makes each operator testable from plain uniforms.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any, Tuple
+from typing import Tuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import ChildrenConfig, SearchMethod
 from waldo_jax.search.population import Population, uniform_rows
 from waldo_jax.types import Array, Pose, PRNGKey
 
@@ -79,25 +78,8 @@ class Params:
     rank_bias: Array = flax.struct.field(default_factory=lambda: jnp.asarray(1.0, jnp.float32))
 
 
-@dataclasses.dataclass(frozen=True)
-class Config:
-    """Static settings of EGPS.
-
-    Attributes:
-      children_per_epoch: children bred per epoch.
-    """
-
-    children_per_epoch: int
-
-    def __post_init__(self):
-        if self.children_per_epoch < 1:
-            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
-
-    @classmethod
-    def create(cls, children_per_epoch: int, **options: Any) -> "Config":
-        """EGPS has no static options; those of other methods are ignored."""
-        del options
-        return cls(children_per_epoch=int(children_per_epoch))
+# EGPS's only static setting is children_per_epoch.
+Config = ChildrenConfig
 
 
 def parent_weights(fitness: Array, rank_bias: Array) -> Tuple[Array, Array]:

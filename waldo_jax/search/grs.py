@@ -13,14 +13,13 @@ GRS ignores scores: it only needs the training slots of the population.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any, Tuple
+from typing import Tuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import ChildrenConfig, SearchMethod
 from waldo_jax.search.population import Population, draw_index, uniform_rows
 from waldo_jax.types import Array, Pose, PRNGKey
 
@@ -32,25 +31,8 @@ class Params:
     """GRS has no numeric hyper-parameters; the empty pytree keeps the interface uniform."""
 
 
-@dataclasses.dataclass(frozen=True)
-class Config:
-    """Static settings of GRS.
-
-    Attributes:
-      children_per_epoch: poses drawn per epoch.
-    """
-
-    children_per_epoch: int
-
-    def __post_init__(self):
-        if self.children_per_epoch < 1:
-            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
-
-    @classmethod
-    def create(cls, children_per_epoch: int, **options: Any) -> "Config":
-        """GRS has no options; those of other methods are ignored."""
-        del options
-        return cls(children_per_epoch=int(children_per_epoch))
+# GRS's only static setting is children_per_epoch.
+Config = ChildrenConfig
 
 
 def origin_bounds(population: Population) -> Tuple[Array, Array]:

@@ -17,7 +17,28 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
-__all__ = ["SearchMethod"]
+__all__ = ["ChildrenConfig", "SearchMethod"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ChildrenConfig:
+    """Static settings of a method whose only static setting is its child count (GRS, EGPS).
+
+    Attributes:
+      children_per_epoch: poses proposed per epoch.
+    """
+
+    children_per_epoch: int
+
+    def __post_init__(self):
+        if self.children_per_epoch < 1:
+            raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
+
+    @classmethod
+    def create(cls, children_per_epoch: int, **options: Any) -> "ChildrenConfig":
+        """Ignores the options of other methods (e.g. PIBS's top_c)."""
+        del options
+        return cls(children_per_epoch=int(children_per_epoch))
 
 
 @dataclasses.dataclass(frozen=True)
