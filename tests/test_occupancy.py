@@ -451,7 +451,7 @@ def test_packed_rendering_matches_per_ray_marching_within_its_budget():
     grid = _marked_grid(BALL["center"][0], float(BALL["radius"][0]))
     origins, directions = _camera_rays()
     reference, reference_evaluations = RENDER_MARCHED(ball_field, BALL, grid, origins, directions, RENDER_CONFIG, MARCH)
-    t_start, t_end = jax.vmap(lambda o, d: occ._ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
+    t_start, t_end = jax.vmap(lambda o, d: occ.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
     counts = np.asarray(MARCH_RAYS(grid, origins, directions, t_start, t_end, MARCH, None)[2]).sum(1)
     # 4 slots per ray: 1024 field evaluations for the 256 rays, fewer than their valid samples.
     packed = MARCH.replace(packed_samples_per_ray=4)
@@ -510,7 +510,7 @@ def _ray_batch():
     origins = jnp.concatenate([origins, jnp.broadcast_to(origins[:1], (2, 3))])
     directions = jnp.concatenate([directions, miss_dirs])
     geometry = occ.init_occupancy(BOX, resolution=G)  # the interval only depends on the grid's box
-    t_enter, t_exit = jax.vmap(lambda o, d: occ._ray_interval(geometry, o, d, RENDER_CONFIG))(origins, directions)
+    t_enter, t_exit = jax.vmap(lambda o, d: occ.ray_interval(geometry, o, d, RENDER_CONFIG))(origins, directions)
     return origins, directions, t_enter, t_exit
 
 

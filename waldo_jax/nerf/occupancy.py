@@ -84,6 +84,7 @@ __all__ = [
     "mark_all_occupied",
     "occupancy_thresholds",
     "render_ray_marched",
+    "ray_interval",
     "render_rays_marched",
     "render_rays_packed",
     "update_occupancy",
