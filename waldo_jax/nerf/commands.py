@@ -82,7 +82,9 @@ def _load_splits(scene_path: str, downscale: Optional[float]):
     splits = ("test", "val") if train_scene.format == "blender" else ("test",)
     for split in splits:
         try:
-            test_scene = load_scene(scene_path, downscale=downscale, split=split)
+            with warnings.catch_warnings():  # the train split already warned about skipped frames
+                warnings.simplefilter("ignore", UserWarning)
+                test_scene = load_scene(scene_path, downscale=downscale, split=split)
             break
         except SceneFormatError as e:
             problem = str(e)
