@@ -34,7 +34,7 @@ def main(run_dir: str, test_index: int = 1) -> None:
     mse = float(np.mean((render - test.images[test_index]) ** 2))
     psnr = -10 * np.log10(mse)
     sheet = contact_sheet([train.images[0], test.images[test_index], render], columns=3,
-                          labels=["training view", "held-out photo", f"NeRF render {psnr:.1f} dB"], min_cell=135)
+                          labels=["training view", "held-out photo", f"render {psnr:.1f} dB"], min_cell=135)
     save_png(OUT, sheet)
     print(f"wrote {OUT} (held-out view {test.file_names[test_index]}, PSNR {psnr:.2f} dB)")
 
