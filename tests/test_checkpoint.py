@@ -21,7 +21,7 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
 from waldo_jax.nerf import checkpoint as ckpt
 from waldo_jax.cli import build_parser
-from waldo_jax.nerf.train import TrainConfig, make_sampler, occupancy_available
+from waldo_jax.nerf.train import TrainConfig, make_sampler
 from waldo_jax.types import Intrinsics, Scene
 
 BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
@@ -86,7 +86,7 @@ def saved(tmp_path):
 # Round trip.
 
 
-@pytest.mark.parametrize("sampler", ["dense"] + (["occupancy"] if occupancy_available() else []))
+@pytest.mark.parametrize("sampler", ["dense", "occupancy"])
 def test_round_trip_is_bit_exact(tmp_path, sampler):
     config = _config(sampler)
     params = _params()

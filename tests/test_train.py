@@ -42,7 +42,7 @@ def _tiny_config(scene, sampler: str, **overrides) -> tr.TrainConfig:
 
 
 def _samplers():
-    return ["dense"] + (["occupancy"] if tr.occupancy_available() else [])
+    return ["dense", "occupancy"]
 
 
 def _leaves_bytes(tree):
@@ -168,7 +168,6 @@ def test_rays_cover_all_training_images(lego_small):
 # The occupancy sampler's packing against the occupancy module's own per-ray renderer.
 
 
-@pytest.mark.skipif(not tr.occupancy_available(), reason="waldo_jax.nerf.occupancy not available")
 def test_packed_rendering_matches_per_ray_marching(lego_small):
     from waldo_jax.nerf import occupancy as occ
     from waldo_jax.nerf.field import init_field

@@ -62,7 +62,7 @@ def add_commands(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--preset", default="fast", help="fast or quality (default fast)")
     p.add_argument("--sampler", default="auto",
-                   help="auto (occupancy grid when available), dense or occupancy")
+                   help="auto (= occupancy, the default), dense or occupancy")
     p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_train)
@@ -96,7 +96,7 @@ def _load_splits(scene_path: str, downscale: Optional[float]):
 def cmd_train(args: argparse.Namespace) -> int:
     """`waldo train`: trains, writes RUN_DIR/checkpoint.ckpt and RUN_DIR/train.json."""
     from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-    from waldo_jax.nerf.train import PRESETS, TrainConfig, occupancy_available, train
+    from waldo_jax.nerf.train import PRESETS, TrainConfig, train
 
     if args.preset not in PRESETS:
         raise WaldoError(f"unknown preset {args.preset!r}: expected one of {', '.join(PRESETS)}")
@@ -106,8 +106,6 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise WaldoError(f"--steps must be a positive integer, got {args.steps}")
     if args.downscale is not None and not (math.isfinite(args.downscale) and args.downscale > 0):
         raise WaldoError(f"--downscale must be a positive number, got {args.downscale}")
-    if args.sampler == "occupancy" and not occupancy_available():
-        raise WaldoError("--sampler occupancy needs waldo_jax.nerf.occupancy, which is not available")
     out = Path(args.out)
     if out.is_dir() and any(out.iterdir()) and not args.force:  # refuse before the (slow) scene load
         io.prepare_output_dir(out, force=False)
@@ -119,10 +117,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides: Dict[str, Any] = {}
     if args.steps is not None:
         overrides["steps"] = args.steps
-    sampler = args.sampler
-    if sampler == "auto":
-        sampler = "occupancy" if occupancy_available() else "dense"
-    overrides["sampler"] = sampler
+    overrides["sampler"] = "occupancy" if args.sampler == "auto" else args.sampler
     config = TrainConfig.preset(args.preset, train_scene, **overrides)
     result = train(jax.random.key(args.seed), train_scene, config, test_scene, progress=not args.quiet)
 

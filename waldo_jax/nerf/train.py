@@ -51,6 +51,7 @@ from waldo_jax.cameras import camera_rays, pixel_directions
 from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.field import NGPFieldConfig, init_field, make_density, make_field, make_field_batch
 from waldo_jax.nerf.hashgrid import HashGridConfig
+from waldo_jax.nerf import occupancy
 from waldo_jax.render import (RenderConfig, composite, render_ray, render_views,
                               volume_weights)
 from waldo_jax.types import Array, Intrinsics, PRNGKey, RenderOutput, Scene
@@ -68,7 +69,6 @@ __all__ = [
     "init_train_state",
     "make_sampler",
     "make_train_step",
-    "occupancy_available",
     "render_trained",
     "run_chunk",
     "train",
@@ -226,7 +226,7 @@ class TrainConfig:
         aabb = np.asarray(scene.aabb, np.float64).reshape(2, 3)
         aabb_scale = float(scene.metadata.get("aabb_scale", 1) or 1)
         paper_n_max = int(round(2048 * aabb_scale))
-        sampler = "occupancy" if occupancy_available() else "dense"
+        sampler = "occupancy"
         synthetic = scene.format in ("blender", "procedural")
         base_diagonal = float(np.linalg.norm(aabb[1] - aabb[0])) / aabb_scale
         values: Dict[str, Any] = dict(aabb_scale=aabb_scale, sampler=sampler, preset_name=name,
@@ -463,17 +463,6 @@ class _DenseSampler:
         return render_views(self.field, params, c2w, intrinsics, render_config)
 
 
-def occupancy_available() -> bool:
-    """True when `waldo_jax.nerf.occupancy` exists and exposes what the occupancy sampler needs."""
-    try:
-        from waldo_jax.nerf import occupancy
-    except ImportError:
-        return False
-    needed = ("OccupancyGrid", "OccupancyConfig", "MarchConfig", "init_occupancy", "update_occupancy",
-              "march_ray")
-    return all(hasattr(occupancy, name) for name in needed)
-
-
 class _OccupancySampler:
     """Instant-NGP's occupancy grid and ray marching (`waldo_jax.nerf.occupancy`), with packed samples.
 
@@ -491,13 +480,6 @@ class _OccupancySampler:
     """
 
     def __init__(self, config: TrainConfig):
-        if not occupancy_available():
-            raise TrainConfigError(
-                "sampler 'occupancy' needs waldo_jax.nerf.occupancy (OccupancyGrid, update_occupancy, "
-                "march_ray, ...), which is not available; use sampler='dense'")
-        from waldo_jax.nerf import occupancy
-
-        self.occupancy = occupancy
         self.config = config
         self.field = make_field(config.field)
         self.field_batch = make_field_batch(config.field)
@@ -516,23 +498,23 @@ class _OccupancySampler:
 
     def init(self, key: PRNGKey, params):
         """All cells occupied, zero densities (nothing is skipped before the first update)."""
-        return self.occupancy.init_occupancy(self.base_aabb, self.config.aabb_scale,
+        return occupancy.init_occupancy(self.base_aabb, self.config.aabb_scale,
                                              resolution=self.config.occupancy_resolution)
 
     def _occupancy_config(self, grid):
-        return self.occupancy.OccupancyConfig.create(
+        return occupancy.OccupancyConfig.create(
             grid, steps_per_diagonal=self.config.steps_per_diagonal, warmup_steps=self.config.occupancy_warmup,
             decay=self.config.occupancy_decay)
 
     def march_config(self, num_samples: int):
         """The march: K candidates (enough to cross the whole grid), at most min(num_samples, K) kept."""
-        return self.occupancy.MarchConfig.create(
+        return occupancy.MarchConfig.create(
             max_steps=self.max_steps, max_samples=min(num_samples, self.max_steps),
             steps_per_diagonal=self.config.steps_per_diagonal, cone_angle=self.config.cone_angle)
 
     def update(self, key: PRNGKey, grid, params, step: Array):
         """Instant-NGP's decay / sample / threshold update of the grid from the current densities."""
-        return self.occupancy.update_occupancy(key, grid, self.density, jax.lax.stop_gradient(params), step,
+        return occupancy.update_occupancy(key, grid, self.density, jax.lax.stop_gradient(params), step,
                                                self._occupancy_config(grid))
 
     def _march(self, grid, origins: Array, directions: Array, render_config: RenderConfig, num_samples: int,
@@ -541,8 +523,8 @@ class _OccupancySampler:
         march_config = self.march_config(num_samples)
 
         def one(o, d, k):
-            t_start, t_end = self.occupancy.ray_interval(grid, o, d, render_config)
-            return self.occupancy.march_ray(grid, o, d, t_start, t_end, march_config, k)
+            t_start, t_end = occupancy.ray_interval(grid, o, d, render_config)
+            return occupancy.march_ray(grid, o, d, t_start, t_end, march_config, k)
 
         keys = None if key is None else jax.random.split(key, origins.shape[0])
         return jax.vmap(one, in_axes=(0, 0, None if keys is None else 0))(origins, directions, keys)
