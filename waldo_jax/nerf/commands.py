@@ -13,31 +13,28 @@ A run directory holds `checkpoint.ckpt` (see `waldo_jax.nerf.checkpoint`) and `t
 statistics of the run). `--force` overwrites those two files in a non-empty run directory and leaves
 any other file there alone.
 
-Poses files for `render`: a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio
-transforms: OpenGL camera-to-world in the scene's own world frame, as the training poses). Intrinsics
-come from the file when it has a focal length (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`,
-with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`), else from the checkpoint; `--resolution` then rescales them
-so that the longer side has R pixels. nerfstudio viewer camera paths (`camera_path`) are refused:
-they live in nerfstudio's normalised world, which the scene loader does not reproduce.
+Poses files for `render` are read by `waldo_jax.scenes.read_poses_file`: a JSON object with
+`frames[].transform_matrix` (instant-ngp / nerfstudio transforms: OpenGL camera-to-world in the
+scene's own world frame, as the training poses). Intrinsics come from the file when it has a focal
+length, else from the checkpoint; `--resolution` then rescales them so that the longer side has R
+pixels. nerfstudio viewer camera paths (`camera_path`) are refused.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Optional
 
 import numpy as np
 
 from waldo_jax import io
 from waldo_jax.errors import SceneFormatError, WaldoError
-from waldo_jax.types import Intrinsics
 
 __all__ = ["TRAIN_JSON", "add_commands", "cmd_render", "cmd_train"]
 
@@ -158,97 +155,13 @@ def cmd_train(args: argparse.Namespace) -> int:
 # render
 
 
-def _number(d: Dict[str, Any], key: str, path: Path) -> Optional[float]:
-    value = d.get(key)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise WaldoError(f"{path}: {key!r} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
-    """A validated [4, 4] camera-to-world matrix (a [3, 4] one gets the (0, 0, 0, 1) row)."""
-    try:
-        m = np.asarray(matrix, np.float64)
-    except (TypeError, ValueError):
-        raise WaldoError(f"{path}: {what} is not a matrix of numbers") from None
-    if m.shape == (16,):
-        m = m.reshape(4, 4)
-    if m.shape == (3, 4):
-        m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
-    if m.shape != (4, 4):
-        raise WaldoError(f"{path}: {what} has shape {list(m.shape)}, expected 4x4")
-    if not np.all(np.isfinite(m)):
-        raise WaldoError(f"{path}: {what} has non-finite values")
-    rotation = m[:3, :3]
-    if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > 1e-3 or np.linalg.det(rotation) < 0:
-        raise WaldoError(f"{path}: {what} is not a rigid camera-to-world matrix")
-    return m
-
-
-def _file_intrinsics(meta: Dict[str, Any], path: Path, fallback: Intrinsics) -> Intrinsics:
-    """Intrinsics of a transforms file, or `fallback` when it has no focal length."""
-    w = _number(meta, "w", path)
-    h = _number(meta, "h", path)
-    fl_x, fl_y = _number(meta, "fl_x", path), _number(meta, "fl_y", path)
-    angle_x, angle_y = _number(meta, "camera_angle_x", path), _number(meta, "camera_angle_y", path)
-    if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
-        return fallback
-    if w is None or h is None:
-        # A focal length without an image size: assume the checkpoint's size.
-        w = w or (h * fallback.width / fallback.height if h else float(fallback.width))
-        h = h or (w * fallback.height / fallback.width)
-    if fl_x is None and angle_x is not None:
-        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
-    if fl_y is None and angle_y is not None:
-        fl_y = 0.5 * h / math.tan(0.5 * angle_y)
-    fl_x = fl_x if fl_x is not None else fl_y
-    fl_y = fl_y if fl_y is not None else fl_x
-    if not (fl_x > 0 and fl_y > 0 and w >= 1 and h >= 1):
-        raise WaldoError(f"{path}: invalid camera (fl_x={fl_x}, fl_y={fl_y}, w={w}, h={h})")
-    distortion = [_number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
-    return Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, _number(meta, "cx", path),
-                             _number(meta, "cy", path), distortion)
-
-
-def _read_poses(path: Path, fallback: Intrinsics) -> Tuple[np.ndarray, Intrinsics]:
-    """[P, 4, 4] poses and intrinsics of a transforms-like file."""
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise WaldoError(f"{path}: no such poses file (or pass --poses train)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise WaldoError(f"{path}: cannot read poses file ({e})") from None
-    except json.JSONDecodeError as e:
-        raise WaldoError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
-    if not isinstance(meta, dict):
-        raise WaldoError(f"{path}: expected a JSON object with a 'frames' list")
-    if isinstance(meta.get("frames"), list):
-        frames = meta["frames"]
-        if not frames:
-            raise WaldoError(f"{path}: 'frames' is empty")
-        poses = []
-        for i, frame in enumerate(frames):
-            if not isinstance(frame, dict) or "transform_matrix" not in frame:
-                raise WaldoError(f"{path}: frame {i} has no 'transform_matrix'")
-            poses.append(_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
-        return np.stack(poses).astype(np.float32), _file_intrinsics(meta, path, fallback)
-    if "camera_path" in meta:
-        # nerfstudio's viewer writes camera paths in its own normalised world (after its dataparser's
-        # orientation and scale), not in the frame of the scene's transforms.json that training used.
-        raise WaldoError(
-            f"{path}: a nerfstudio camera path is in nerfstudio's normalised world frame, not the scene's; "
-            "pass a transforms.json-like file with frames[].transform_matrix in the scene's own frame")
-    raise WaldoError(f"{path}: no 'frames' list with transform_matrix entries (transforms.json format)")
-
-
 def cmd_render(args: argparse.Namespace) -> int:
     """`waldo render`: renders poses with a trained field to DIR/0000.png, DIR/0001.png, ..."""
     import jax
 
     from waldo_jax.nerf.checkpoint import load_checkpoint
     from waldo_jax.nerf.train import render_trained
+    from waldo_jax.scenes import read_poses_file
 
     if args.poses is None:
         raise WaldoError("rendering a trained run needs --poses FILE (a transforms.json) or --poses train")
@@ -260,7 +173,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.poses == "train":
         c2w, intrinsics = np.asarray(scene.c2w, np.float32), scene.intrinsics
     else:
-        c2w, intrinsics = _read_poses(Path(args.poses), scene.intrinsics)
+        poses_path = Path(args.poses)
+        if not poses_path.exists():
+            raise WaldoError(f"{poses_path}: no such poses file (or pass --poses train)")
+        c2w, intrinsics, _ = read_poses_file(poses_path, scene.intrinsics)
     if args.resolution is not None:
         if args.resolution < 1:
             raise WaldoError(f"--resolution must be a positive integer, got {args.resolution}")

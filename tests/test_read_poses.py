@@ -1,0 +1,120 @@
+"""`scenes.read_poses_file`: the cameras of a transforms.json-like file, with clear errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import waldo_jax  # noqa: F401
+from waldo_jax.errors import SceneFormatError
+from waldo_jax.scenes import read_poses_file
+from waldo_jax.types import Intrinsics
+
+DEFAULT = Intrinsics.create(40, 30, 35.0, 35.0)
+
+
+def _rotation_y(angle):
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _c2w(angle, origin):
+    m = np.eye(4)
+    m[:3, :3] = _rotation_y(angle)
+    m[:3, 3] = origin
+    return m
+
+
+def _write(tmp_path, meta, name="poses.json"):
+    path = tmp_path / name
+    path.write_text(json.dumps(meta))
+    return path
+
+
+def test_valid_file_gives_poses_intrinsics_and_names(tmp_path):
+    a, b = _c2w(0.3, [1.0, 2.0, 3.0]), _c2w(-1.2, [0.0, -1.0, 4.0])
+    path = _write(tmp_path, {
+        "w": 20, "h": 10, "fl_x": 18.0, "cx": 9.0, "k1": 0.01,
+        "frames": [
+            {"file_path": "images/a.png", "transform_matrix": a.tolist()},
+            {"transform_matrix": b[:3].tolist()},  # 3x4: the bottom row is added
+        ],
+    })
+    c2w, intrinsics, names = read_poses_file(path, DEFAULT)
+    assert c2w.dtype == np.float32 and c2w.shape == (2, 4, 4)
+    np.testing.assert_allclose(c2w[0], a, atol=1e-6)
+    np.testing.assert_allclose(c2w[1], b, atol=1e-6)
+    assert names == ["images/a.png", None]
+    assert (intrinsics.width, intrinsics.height) == (20, 10)
+    assert float(intrinsics.fx) == pytest.approx(18.0) and float(intrinsics.fy) == pytest.approx(18.0)
+    assert float(intrinsics.cx) == pytest.approx(9.0)
+    assert float(np.asarray(intrinsics.distortion)[0]) == pytest.approx(0.01)
+
+
+def test_file_without_focal_length_uses_the_default_camera(tmp_path):
+    path = _write(tmp_path, {"frames": [{"transform_matrix": np.eye(4).reshape(-1).tolist()}]})  # 16 numbers
+    c2w, intrinsics, _ = read_poses_file(path, DEFAULT)
+    np.testing.assert_array_equal(c2w[0], np.eye(4))
+    assert intrinsics is DEFAULT
+
+
+def test_camera_angle_and_missing_size_follow_the_default_camera(tmp_path):
+    path = _write(tmp_path, {"camera_angle_x": 1.0, "frames": [{"transform_matrix": np.eye(4).tolist()}]})
+    _, intrinsics, _ = read_poses_file(path, DEFAULT)
+    assert (intrinsics.width, intrinsics.height) == (DEFAULT.width, DEFAULT.height)
+    assert float(intrinsics.fx) == pytest.approx(0.5 * DEFAULT.width / math.tan(0.5))
+
+
+def test_missing_transform_matrix_names_the_file_and_frame(tmp_path):
+    path = _write(tmp_path, {"frames": [{"transform_matrix": np.eye(4).tolist()}, {"file_path": "b.png"}]})
+    with pytest.raises(SceneFormatError, match=r"poses\.json: frame 1 has no 'transform_matrix'") as info:
+        read_poses_file(path, DEFAULT)
+    assert info.value.path == str(path)
+
+
+@pytest.mark.parametrize("matrix, problem", [
+    ([[1, 0], [0, 1]], r"frame 0 transform_matrix has shape \[2, 2\], expected 4x4"),
+    ([[1, 0, 0, 0]] * 3, "not a rigid camera-to-world matrix"),
+    ([[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "non-finite"),
+    ([["a", 0, 0, 0]] * 4, "not a matrix of numbers"),
+])
+def test_bad_matrix_is_refused_naming_the_problem(tmp_path, matrix, problem):
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps({"frames": [{"transform_matrix": matrix}]}))
+    with pytest.raises(SceneFormatError, match=r"bad\.json: .*" + problem):
+        read_poses_file(path, DEFAULT)
+
+
+def test_mirrored_rotation_is_refused(tmp_path):
+    m = np.diag([1.0, 1.0, -1.0, 1.0])  # orthonormal but det -1
+    path = _write(tmp_path, {"frames": [{"transform_matrix": m.tolist()}]})
+    with pytest.raises(SceneFormatError, match="not a rigid"):
+        read_poses_file(path, DEFAULT)
+
+
+def test_nerfstudio_camera_path_is_refused(tmp_path):
+    path = _write(tmp_path, {"camera_type": "perspective", "render_height": 10, "render_width": 20,
+                             "camera_path": [{"camera_to_world": np.eye(4).reshape(-1).tolist(), "fov": 50}]},
+                  name="render-path.json")
+    with pytest.raises(SceneFormatError, match=r"render-path\.json: a nerfstudio camera path"):
+        read_poses_file(path, DEFAULT)
+
+
+@pytest.mark.parametrize("content, problem", [
+    (None, "no such poses file"),
+    ("{not json", "malformed JSON at line 1"),
+    ("[1, 2]", "expected a JSON object"),
+    ('{"frames": []}', "'frames' is empty"),
+    ('{"cameras": []}', "no 'frames' list"),
+    ('{"fl_x": -3, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "invalid camera"),
+    ('{"fl_x": true, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
+     "'fl_x' must be a finite number"),
+])
+def test_unusable_files_are_refused_naming_the_file(tmp_path, content, problem):
+    path = tmp_path / "poses.json"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(SceneFormatError, match=problem) as info:
+        read_poses_file(path, DEFAULT)
+    assert str(path) in str(info.value)
