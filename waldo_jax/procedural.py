@@ -450,6 +450,26 @@ def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Ar
     return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
 
 
+def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float) -> Tuple[Array, Array]:
+    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it."""
+    c2w = jnp.asarray(c2w, jnp.float32)
+    camera = c2w[:3, 3]
+    to_camera = camera - room.waldo_points  # [M, 3]
+    dist2 = jnp.sum(to_camera**2, axis=-1)
+    cos = jnp.sum(room.waldo_normals * to_camera, axis=-1) / jnp.sqrt(dist2 + 1e-12)
+    weight = room.waldo_areas * jnp.maximum(cos, 0.0) / jnp.maximum(dist2, 1e-6)  # [M] solid angles
+
+    uv, depth = project_points(c2w, intrinsics, room.waldo_points)
+    in_frame = (depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0) & (
+        uv[:, 1] <= intrinsics.height)
+
+    starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
+    hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
+        room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
+    seen = in_frame & ~jnp.any(hits, axis=-1)
+    return jnp.sum(jnp.where(seen, weight, 0.0)), jnp.sum(weight)
+
+
 def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
     """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
 
@@ -469,23 +489,24 @@ def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: 
       visibility [] in [0, 1]: 0 when Waldo is behind the camera, out of frame or hidden; 1 when
       all of Waldo is in frame with nothing in between.
     """
-    c2w = jnp.asarray(c2w, jnp.float32)
-    camera = c2w[:3, 3]
-    to_camera = camera - room.waldo_points  # [M, 3]
-    dist2 = jnp.sum(to_camera**2, axis=-1)
-    cos = jnp.sum(room.waldo_normals * to_camera, axis=-1) / jnp.sqrt(dist2 + 1e-12)
-    weight = room.waldo_areas * jnp.maximum(cos, 0.0) / jnp.maximum(dist2, 1e-6)  # [M]
+    seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near)
+    return jnp.where(facing > 0.0, seen / jnp.maximum(facing, 1e-30), 0.0)
 
-    uv, depth = project_points(c2w, intrinsics, room.waldo_points)
-    in_frame = (depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0) & (
-        uv[:, 1] <= intrinsics.height)
 
-    starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
-    hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
-        room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
-    seen = in_frame & ~jnp.any(hits, axis=-1)
-    total = jnp.sum(weight)
-    return jnp.where(total > 0.0, jnp.sum(jnp.where(seen, weight, 0.0)) / jnp.maximum(total, 1e-30), 0.0)
+def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
+    """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
+
+    The seen solid angle of `waldo_visibility` times the pixels per steradian at the image centre
+    (fx * fy), over the image's pixel count. It is largest when Waldo is close, unoccluded and
+    whole in frame: moving closer enlarges him until the frame starts to cut him. Like the paper's
+    salient-pixel criterion, but exact.
+
+    Returns:
+      coverage [] in [0, 1] (clipped; the small-angle pixel estimate can overshoot near the border).
+    """
+    seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near)
+    pixels = seen * intrinsics.fx * intrinsics.fy
+    return jnp.clip(pixels / (intrinsics.width * intrinsics.height), 0.0, 1.0)
 
 
 @jax.jit

@@ -281,17 +281,21 @@ def _init(poses: Pose, c2w: Array, scores: Array, config: ExploreConfig) -> Popu
     return init_population(poses, scores, config.capacity(n_train), config.direction, train_c2w=c2w)
 
 
-def _report(method_name: str, epochs: int, top_n: int, epoch, best, mean_top, scored, failed) -> None:
-    """Host-side progress line (one per epoch and seed)."""
-    for values in zip(*(np.atleast_1d(np.asarray(v)) for v in (epoch, best, mean_top, scored, failed))):
-        e, b, m, s, f = values
-        print(f"[explore {method_name}] epoch {int(e)}/{epochs}: best {float(b):.6g}, "
+def _report(method_name: str, epochs: int, top_n: int, runs: int, run, epoch, best, mean_top, scored, failed) -> None:
+    """Host-side progress line (one per epoch and run; under vmap the callback runs once per run)."""
+    for r, e, b, m, s, f in zip(*(np.atleast_1d(np.asarray(v)) for v in (run, epoch, best, mean_top, scored, failed))):
+        label = f" run {int(r) + 1}/{runs}" if runs > 1 else ""
+        print(f"[explore {method_name}{label}] epoch {int(e)}/{epochs}: best {float(b):.6g}, "
               f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}", flush=True)
 
 
 def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, population: Population, epoch: Array, params,
-                method: SearchMethod, method_config, config: ExploreConfig) -> Population:
-    """One epoch of Algorithm 1: propose, score, write. epoch is 1-based (int32, may be traced)."""
+                method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0,
+                runs: int = 1) -> Population:
+    """One epoch of Algorithm 1: propose, score, write. epoch is 1-based (int32, may be traced).
+
+    run / runs only label the progress line (run r of a vmapped batch of `runs` seeds).
+    """
     n = config.children_per_epoch
     epoch_key = jax.random.fold_in(key, epoch)
     children, mask, population = method.propose(epoch_key, population, params, method_config, epoch)
@@ -302,8 +306,9 @@ def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, population: Popul
     if config.progress:
         curves = epoch_metrics(population, config.epochs, config.top_n)
         jax.debug.callback(
-            lambda *a: _report(method.name, config.epochs, config.top_n, *a),
-            epoch, curves.best[epoch], curves.mean_top_n[epoch], curves.num_scored[epoch], curves.num_failed[epoch])
+            lambda *a: _report(method.name, config.epochs, config.top_n, runs, *a),
+            run, epoch, curves.best[epoch], curves.mean_top_n[epoch], curves.num_scored[epoch],
+            curves.num_failed[epoch])
     return population
 
 
@@ -323,11 +328,11 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
 
 
 def _search(key: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
-            method: SearchMethod, method_config, config: ExploreConfig) -> Result:
+            method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0, runs: int = 1) -> Result:
     population = _init(poses, c2w, scores, config)
 
     def body(population, epoch):
-        return _epoch_step(key, score_fn, population, epoch, params, method, method_config, config), None
+        return _epoch_step(key, score_fn, population, epoch, params, method, method_config, config, run, runs), None
 
     population, _ = jax.lax.scan(body, population, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
     return _finish(population, config)
@@ -335,8 +340,9 @@ def _search(key: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, para
 
 def _search_seeds(keys: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
                   method: SearchMethod, method_config, config: ExploreConfig) -> SeedsResult:
-    results = jax.vmap(lambda key: _search(key, score_fn, poses, c2w, scores, params, method, method_config, config))(
-        keys)
+    runs = keys.shape[0]
+    results = jax.vmap(lambda key, run: _search(key, score_fn, poses, c2w, scores, params, method, method_config,
+                                                config, run, runs))(keys, jnp.arange(runs, dtype=jnp.int32))
     return SeedsResult(results=results, cvir_mean=jnp.mean(results.cvir), cvir_std=jnp.std(results.cvir),
                        mcvir_mean=jnp.mean(results.mcvir), mcvir_std=jnp.std(results.mcvir))
 

@@ -1,0 +1,110 @@
+"""The `waldo explore` command (and the argument checks `waldo demo` shares).
+
+    waldo explore SOURCE --criterion NAME --method grs|pibs|egps --budget low|high --seed N
+                  [--seeds K] [--resolution R] --out DIR
+
+SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`; see
+`waldo_jax.exploration` for what is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Optional
+
+from waldo_jax.errors import WaldoError
+
+__all__ = ["add_explore_command", "cmd_explore", "explore_config_from_args"]
+
+
+def add_explore_command(subparsers) -> None:
+    """Registers `explore` on an argparse subparsers object (function as `handler`)."""
+    from waldo_jax.criteria import CRITERIA
+    from waldo_jax.search import METHODS
+
+    p = subparsers.add_parser(
+        "explore", help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS)",
+        description="Run one of the paper's searches (Algorithm 1) on SOURCE: start from the scored training "
+                    "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
+                    "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.")
+    p.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or a RUN_DIR of waldo train")
+    p.add_argument("--criterion", default="waldo_oracle",
+                   help=f"one of {', '.join(sorted(CRITERIA))} (default waldo_oracle, procedural room only)")
+    p.add_argument("--method", default="egps", help=f"one of {', '.join(METHODS)} (default egps)")
+    p.add_argument("--budget", default="low", help="low (250-300 images in total) or high (900-1000); default low")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seeds", type=int, default=1, help="run K seeds (seed, seed+1, ...) in one vmapped call")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="longer image side of the renders (default: procedural 64, runs: the training size)")
+    p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    p.add_argument("--epochs", type=int, default=5, help="epochs (default 5, as the paper)")
+    p.add_argument("--children-per-epoch", type=int, default=None,
+                   help="poses per epoch (default: derived from the budget and the number of training views)")
+    p.add_argument("--top-k", type=int, default=10, help="views returned (default 10)")
+    p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired (default 5)")
+    p.add_argument("--pibs-fallback", default="none", help="PIBS once its pairs run out: none or grs (default none)")
+    p.add_argument("--initial", default="images",
+                   help="score the initial population on the real training 'images' (default, as the paper) "
+                        "or on 'renders' at the training poses")
+    p.add_argument("--views", type=int, default=24, help="procedural: number of training views (default 24)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    p.add_argument("--quiet", action="store_true", help="no per-epoch progress lines")
+    p.set_defaults(handler=cmd_explore)
+
+
+def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = None):
+    """An `ExploreConfig` from parsed arguments; bad values raise `WaldoError` naming the flag."""
+    from waldo_jax.search import BUDGETS, METHODS, ExploreConfig
+
+    method = args.method if method is None else method
+    if method not in METHODS:
+        raise WaldoError(f"unknown --method {method!r}: expected one of {', '.join(METHODS)}")
+    if args.budget not in BUDGETS:
+        raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(BUDGETS)}")
+    for flag, value, minimum in (("--epochs", args.epochs, 1), ("--top-k", args.top_k, 1), ("--top-c", args.top_c, 2),
+                                 ("--seeds", args.seeds, 1)):
+        if value < minimum:
+            raise WaldoError(f"{flag} must be >= {minimum}, got {value}")
+    if args.children_per_epoch is not None and args.children_per_epoch < 1:
+        raise WaldoError(f"--children-per-epoch must be >= 1, got {args.children_per_epoch}")
+    if args.pibs_fallback not in ("none", "grs"):
+        raise WaldoError(f"unknown --pibs-fallback {args.pibs_fallback!r}: expected none or grs")
+    try:
+        return ExploreConfig(method=method, epochs=args.epochs, children_per_epoch=args.children_per_epoch,
+                             budget=args.budget, top_k=args.top_k, top_c=args.top_c, pibs_fallback=args.pibs_fallback,
+                             progress=not args.quiet)
+    except ValueError as e:
+        raise WaldoError(str(e)) from None
+
+
+def cmd_explore(args: argparse.Namespace) -> int:
+    """`waldo explore`: runs the search and writes its files into --out."""
+    from waldo_jax import io
+    from waldo_jax.criteria import CriterionContext, make_criterion
+    from waldo_jax.exploration import INITIAL_MODES, run_explore, write_outputs
+    from waldo_jax.sources import load_source
+
+    config = explore_config_from_args(args)
+    if args.initial not in INITIAL_MODES:
+        raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")
+    out = io.prepare_output_dir(args.out, force=args.force)  # refuse early, before any slow work
+    start = time.perf_counter()
+    source = load_source(args.source, args.resolution, args.views)
+    criterion = make_criterion(args.criterion, CriterionContext(room=source.room, source=source.spec))
+    try:
+        config.resolve(source.n_train)
+    except ValueError as e:
+        raise WaldoError(f"{source.spec}: {e}") from None
+    setup = time.perf_counter() - start
+    run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
+                      setup_seconds=setup)
+    results = write_outputs(run, out)
+    spread = (f" (mean over {args.seeds} seeds: CVIR {results['cvir_mean']:.1f} +/- {results['cvir_std']:.1f} %, "
+              f"mCVIR {results['mcvir_mean']:.1f} +/- {results['mcvir_std']:.1f} %)" if args.seeds > 1 else "")
+    best = results["topk"][0]["score"] if results["topk"] else None
+    print(f"{run.config.method.upper()} on {source.name} with {criterion.name}: {results['n_train']} training + "
+          f"{results['n_generated']} generated views; best {best if best is None else format(best, '.4g')}; "
+          f"CVIR {results['cvir']:.1f} %, mCVIR {results['mcvir']:.1f} %{spread}; "
+          f"{run.seconds['total']:.1f} s; wrote {out}")
+    return 0

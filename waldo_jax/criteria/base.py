@@ -1,0 +1,151 @@
+"""The criterion interface: what a search maximises (or minimises), as a pure, batched function.
+
+A `Criterion` scores a population of views in one call inside the search's jit. It is a pytree:
+its numeric `params` (network weights, the procedural room, ...) are leaves, so they are traced
+arguments rather than compile-time constants; everything else (name, direction, the function) is
+static.
+
+Two kinds of input:
+  * `inputs == "images"`: `apply(params, images)` with images float32 [P, H, W, 3] in [0, 1]
+    (resizing to a network's input size and normalisation happen inside `apply`);
+  * `inputs == "poses"`: `apply(params, c2w, intrinsics)` with c2w float32 [P, 4, 4], for oracles
+    that know the scene's geometry and need no render (the procedural room's `waldo_oracle`).
+
+Both return float32 scores [P]; NaN marks a failed score (the search never selects it).
+
+Criteria are built by name from the registry (`waldo_jax.criteria.CRITERIA`) with
+`make_criterion(name, context)`, where `CriterionContext` carries what some criteria need: the
+procedural room, a weights folder, a target image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Dict, Optional, Tuple
+
+import flax.struct
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.errors import WaldoError
+from waldo_jax.types import Array, Intrinsics
+
+__all__ = [
+    "INPUTS",
+    "Criterion",
+    "CriterionContext",
+    "CriterionError",
+    "CriterionSpec",
+    "register",
+    "make_criterion",
+    "CRITERIA",
+]
+
+INPUTS = ("images", "poses")
+
+
+class CriterionError(WaldoError, ValueError):
+    """An unknown criterion name, or a criterion that cannot be built from what was given."""
+
+
+@flax.struct.dataclass
+class Criterion:
+    """A scoring function for a population of views.
+
+    Attributes:
+      params: pytree of arrays the function needs (traced under jit).
+      name: registry name, e.g. "waldo_oracle".
+      direction: "max" when higher scores are better, "min" when lower ones are.
+      value_range: (low, high) of the scores (inf where unbounded), for plots and reports.
+      inputs: "images" or "poses" (see the module docstring).
+      apply: the pure function, `apply(params, images)` or `apply(params, c2w, intrinsics)`.
+      description: one line for reports and `--help`.
+    """
+
+    params: Any
+    name: str = flax.struct.field(pytree_node=False, default="")
+    direction: str = flax.struct.field(pytree_node=False, default="max")
+    value_range: Tuple[float, float] = flax.struct.field(pytree_node=False, default=(-np.inf, np.inf))
+    inputs: str = flax.struct.field(pytree_node=False, default="images")
+    apply: Callable = flax.struct.field(pytree_node=False, default=None)
+    description: str = flax.struct.field(pytree_node=False, default="")
+
+    def score_images(self, images: Array) -> Array:
+        """Scores [P] of images float32 [P, H, W, 3] in [0, 1] (an "images" criterion)."""
+        if self.inputs != "images":
+            raise CriterionError(f"criterion {self.name!r} scores camera poses, not images")
+        images = jnp.asarray(images, jnp.float32)
+        if images.ndim != 4 or images.shape[-1] != 3:
+            raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3], got shape {images.shape}")
+        return jnp.asarray(self.apply(self.params, images), jnp.float32)
+
+    def score_poses(self, c2w: Array, intrinsics: Intrinsics) -> Array:
+        """Scores [P] of cameras c2w [P, 4, 4] with the given intrinsics (a "poses" criterion)."""
+        if self.inputs != "poses":
+            raise CriterionError(f"criterion {self.name!r} scores images: render the poses first")
+        return jnp.asarray(self.apply(self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class CriterionContext:
+    """What building a criterion may need (each criterion takes what it uses and names what is missing).
+
+    Attributes:
+      room: the procedural `WaldoRoom` of the source, for the oracles.
+      weights_dir: folder in the `../shared/weights` layout (default: `WALDO_WEIGHTS`).
+      target: reference image float32 [h, w, 3] of the object to find.
+      source: the SOURCE the search runs on, in words (for error messages).
+    """
+
+    room: Any = None
+    weights_dir: Optional[str] = None
+    target: Optional[np.ndarray] = None
+    source: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class CriterionSpec:
+    """A registry entry: how to build a criterion, and what it is.
+
+    Attributes:
+      name: the registry name.
+      direction: "max" or "min".
+      inputs: "images" or "poses".
+      description: one line.
+      build: `build(context) -> Criterion`; raises `CriterionError` naming anything missing.
+    """
+
+    name: str
+    direction: str
+    inputs: str
+    description: str
+    build: Callable[[CriterionContext], Criterion]
+
+
+CRITERIA: Dict[str, CriterionSpec] = {}
+
+
+def register(spec: CriterionSpec) -> CriterionSpec:
+    """Adds a criterion to the registry (by `spec.name`; a second registration of a name is an error)."""
+    if spec.direction not in ("max", "min"):
+        raise ValueError(f"criterion {spec.name!r}: direction must be 'max' or 'min', got {spec.direction!r}")
+    if spec.inputs not in INPUTS:
+        raise ValueError(f"criterion {spec.name!r}: inputs must be one of {INPUTS}, got {spec.inputs!r}")
+    if spec.name in CRITERIA and CRITERIA[spec.name] is not spec:
+        raise ValueError(f"criterion {spec.name!r} is already registered")
+    CRITERIA[spec.name] = spec
+    return spec
+
+
+def make_criterion(name: str, context: Optional[CriterionContext] = None) -> Criterion:
+    """Builds the registered criterion `name`.
+
+    Raises:
+      CriterionError: unknown name (the message lists the registered ones) or missing context.
+    """
+    if name not in CRITERIA:
+        raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
+    criterion = CRITERIA[name].build(context or CriterionContext())
+    if criterion.name != name or criterion.direction != CRITERIA[name].direction:
+        raise AssertionError(f"criterion {name!r} built with a mismatching name or direction")  # a registry bug
+    return criterion

@@ -1,0 +1,58 @@
+"""Oracle criteria of the procedural Waldo room: exact answers from the analytic geometry, no render.
+
+  * `waldo_oracle`: the share of the image covered by the visible part of Waldo
+    (`waldo_jax.procedural.waldo_coverage`): his un-occluded, in-frame pixels over all pixels. It
+    is the exact counterpart of the paper's BASNet criterion (the number of salient pixels) for
+    a scene where we know which pixels are Waldo, and it is largest for a view that shows all of
+    him, close up and unobstructed, so a search has to trade distance against occlusion and the
+    frame's edges.
+  * `waldo_visible`: the fraction of Waldo's projected area that is visible
+    (`waldo_jax.procedural.waldo_visibility`), whatever his size in the image; "a view in which
+    Waldo is fully visible" has `waldo_visible` >= 0.9.
+
+Both take the room as their params and score camera poses (`inputs == "poses"`).
+"""
+
+from __future__ import annotations
+
+import jax
+
+from waldo_jax.criteria.base import Criterion, CriterionContext, CriterionError, CriterionSpec, register
+from waldo_jax.procedural import waldo_coverage, waldo_visibility
+
+__all__ = ["waldo_oracle", "waldo_visible"]
+
+
+def _coverage(room, c2w, intrinsics):
+    return jax.vmap(waldo_coverage, in_axes=(None, 0, None))(room, c2w, intrinsics)
+
+
+def _visible(room, c2w, intrinsics):
+    return jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics)
+
+
+def _need_room(name: str, context: CriterionContext):
+    if context.room is None:
+        where = f" (source: {context.source})" if context.source else ""
+        raise CriterionError(
+            f"criterion {name!r} needs the procedural Waldo room{where}: use SOURCE procedural[:SEED] "
+            "or a run trained on it")
+    return context.room
+
+
+def waldo_oracle(context: CriterionContext) -> Criterion:
+    """The `waldo_oracle` criterion (visible-Waldo share of the image, direction max, in [0, 1])."""
+    return Criterion(params=_need_room("waldo_oracle", context), name="waldo_oracle", direction="max",
+                     value_range=(0.0, 1.0), inputs="poses", apply=_coverage, description=_ORACLE)
+
+
+def waldo_visible(context: CriterionContext) -> Criterion:
+    """The `waldo_visible` criterion (visible fraction of Waldo, direction max, in [0, 1])."""
+    return Criterion(params=_need_room("waldo_visible", context), name="waldo_visible", direction="max",
+                     value_range=(0.0, 1.0), inputs="poses", apply=_visible, description=_VISIBLE)
+
+
+_ORACLE = "share of the image showing un-occluded Waldo (exact, procedural room)"
+_VISIBLE = "fraction of Waldo in frame and not occluded (exact, procedural room)"
+register(CriterionSpec("waldo_oracle", "max", "poses", _ORACLE, waldo_oracle))
+register(CriterionSpec("waldo_visible", "max", "poses", _VISIBLE, waldo_visible))

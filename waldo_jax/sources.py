@@ -1,0 +1,244 @@
+"""What a search explores: a `Source` = training views + a batched renderer, from a SOURCE string.
+
+SOURCE is what `waldo explore` and `waldo render` accept:
+  * `procedural` or `procedural:SEED`: the procedural Waldo room (`waldo_jax.procedural`), rendered
+    by its analytic field; its training views are the room's training cameras rendered by that
+    same field (they are the "real images" of this scene);
+  * a run directory of `waldo train` (or of `waldo demo`): the trained hash-grid field renders, and
+    the training images are read again from the scene folder the checkpoint names (their file
+    names are in the checkpoint). A run trained on the procedural room keeps the room, so its
+    oracles (`waldo_oracle`) still apply and renders can be compared with the analytic truth.
+
+A `Source`'s renderers are `jax.tree_util.Partial`s c2w [P, 4, 4] -> rgb [P, H, W, 3] whose
+arrays (the room, the field's parameters, the occupancy grid) are traced arguments, so they can be
+called inside the search's jit and compile once per image size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import warnings
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.errors import WaldoError
+from waldo_jax.types import Array, Intrinsics, Scene
+
+__all__ = ["Source", "SourceError", "load_source", "procedural_source", "run_source", "resize_images",
+           "DEFAULT_PROCEDURAL_RESOLUTION", "DEFAULT_PROCEDURAL_VIEWS"]
+
+DEFAULT_PROCEDURAL_RESOLUTION = 64
+DEFAULT_PROCEDURAL_VIEWS = 24
+_ROOM_SAMPLES = 128
+
+
+class SourceError(WaldoError, ValueError):
+    """A SOURCE that cannot be opened (the message names it and says why)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Source:
+    """A scene to explore.
+
+    Attributes:
+      spec: the SOURCE string it came from.
+      kind: "procedural" or "run".
+      name: a short name for reports ("procedural:0", the run folder's name).
+      train_c2w: float32 [N, 4, 4] training poses (OpenGL camera-to-world).
+      intrinsics: the camera of every render of the search (its width/height set the image size).
+      render: c2w [P, 4, 4] -> rgb float32 [P, H, W, 3] in [0, 1] (a `jax.tree_util.Partial`).
+      train_images: float32 [N, H, W, 3] the real training images at `intrinsics`' size, or None
+        when they cannot be read (then `train_images_note` says why).
+      train_names: the N training images' file names.
+      room: the procedural `WaldoRoom`, or None.
+      truth_render: for a NeRF of the procedural room, the analytic renderer (same signature as
+        `render`); None otherwise.
+      info: facts for results files (seed, run directory, held-out PSNR of the run, ...).
+      train_images_note: why `train_images` is None ("" otherwise).
+    """
+
+    spec: str
+    kind: str
+    name: str
+    train_c2w: np.ndarray
+    intrinsics: Intrinsics
+    render: jax.tree_util.Partial
+    train_images: Optional[np.ndarray]
+    train_names: Tuple[str, ...]
+    room: Any = None
+    truth_render: Optional[jax.tree_util.Partial] = None
+    info: Dict[str, Any] = dataclasses.field(default_factory=dict)
+    train_images_note: str = ""
+
+    @property
+    def n_train(self) -> int:
+        return int(self.train_c2w.shape[0])
+
+
+def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Antialiased resize of float images [N, h, w, 3] to [N, height, width, 3] (identity when equal)."""
+    images = np.asarray(images, np.float32)
+    if images.shape[1:3] == (height, width):
+        return images
+    out = jax.image.resize(jnp.asarray(images), (images.shape[0], height, width, images.shape[3]), "linear",
+                           antialias=True)
+    return np.clip(np.asarray(out), 0.0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Renderers (module-level functions: the Partials built from them compile once per shape).
+
+
+def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array) -> Array:
+    from waldo_jax.procedural import room_field
+    from waldo_jax.render import render_views
+
+    return render_views(room_field, room, c2w, intrinsics, render_config).rgb
+
+
+def _render_field(params, occupancy, intrinsics: Intrinsics, render_config, c2w: Array, *, config) -> Array:
+    from waldo_jax.nerf.train import make_sampler
+
+    return make_sampler(config).render_views(params, occupancy, c2w, intrinsics, render_config).rgb
+
+
+def _room_renderer(room, intrinsics: Intrinsics) -> jax.tree_util.Partial:
+    from waldo_jax.procedural import room_render_config
+
+    return jax.tree_util.Partial(_render_room, room, intrinsics, room_render_config(room, num_samples=_ROOM_SAMPLES))
+
+
+@functools.lru_cache(maxsize=None)
+def _field_fn(config):
+    """One function object per training config, so that Partials of equal configs share compilations."""
+    return functools.partial(_render_field, config=config)
+
+
+def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: float, far: float, aabb,
+                   background) -> jax.tree_util.Partial:
+    """The renderer of a trained field (`waldo_jax.nerf.train`'s sampler) as a Partial c2w -> rgb."""
+    from waldo_jax.nerf.train import _render_config
+
+    render_config = _render_config(config, near, far, np.asarray(aabb, np.float32), background, config.eval_samples)
+    params = jax.tree.map(jnp.asarray, params)
+    occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
+    return jax.tree_util.Partial(_field_fn(config), params, occupancy, intrinsics, render_config)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sources.
+
+
+def _parse_procedural(spec: str) -> Optional[int]:
+    from waldo_jax.cli import parse_procedural
+
+    return parse_procedural(spec)
+
+
+def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: int = DEFAULT_PROCEDURAL_VIEWS,
+                      scene: Optional[Scene] = None, room=None) -> Source:
+    """The procedural room `seed` with `views` training views at resolution x resolution.
+
+    `scene` and `room` (from `waldo_jax.procedural.room_scene`) skip building them again.
+    """
+    from waldo_jax.procedural import room_scene
+
+    resolution = DEFAULT_PROCEDURAL_RESOLUTION if resolution is None else int(resolution)
+    if not 8 <= resolution <= 4096:
+        raise SourceError(f"--resolution must be between 8 and 4096, got {resolution}")
+    if views < 1:
+        raise SourceError(f"the number of training views must be >= 1, got {views}")
+    if scene is None or room is None:
+        try:
+            scene, room = room_scene(seed, num_views=views, resolution=resolution, num_samples=_ROOM_SAMPLES)
+        except ValueError as e:
+            raise SourceError(str(e)) from None
+    intrinsics = scene.intrinsics
+    images = scene.images
+    if (scene.width, scene.height) != (resolution, resolution):
+        intrinsics = scene.intrinsics.with_max_side(resolution)
+        images = resize_images(images, intrinsics.width, intrinsics.height)
+    return Source(spec=f"procedural:{seed}", kind="procedural", name=f"procedural:{seed}",
+                  train_c2w=np.asarray(scene.c2w, np.float32), intrinsics=intrinsics,
+                  render=_room_renderer(room, intrinsics), train_images=np.asarray(images, np.float32),
+                  train_names=tuple(scene.file_names), room=room,
+                  info={"procedural_seed": int(seed), "views": int(views)})
+
+
+def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
+    """The run's training images from its scene folder at `intrinsics`' size, or (None, why)."""
+    from waldo_jax.scenes import load_scene
+
+    if not record.path or not Path(record.path).exists():
+        return None, f"the training scene {record.path or '(unnamed)'} is not on this machine"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # skipped frames were reported at training time
+            scene = load_scene(record.path, downscale=record.metadata.get("downscale"), split=record.split or None)
+    except WaldoError as e:
+        return None, f"cannot read the training scene again ({e})"
+    by_name = {name: i for i, name in enumerate(scene.file_names)}
+    missing = [name for name in record.file_names if name not in by_name]
+    if missing:
+        return None, f"{record.path} no longer has the training image {missing[0]!r}"
+    images = scene.images[[by_name[name] for name in record.file_names]]
+    return resize_images(images, intrinsics.width, intrinsics.height), ""
+
+
+def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
+    """A trained run directory (`waldo train` / `waldo demo` output) as a Source.
+
+    Args:
+      run_dir: the folder holding `checkpoint.ckpt`.
+      resolution: longer side of the renders in pixels (default: the training images' size).
+    """
+    from waldo_jax.nerf.checkpoint import load_checkpoint
+
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise SourceError(f"SOURCE {run_dir!r} is neither procedural[:SEED] nor an existing run directory")
+    checkpoint = load_checkpoint(run)
+    record = checkpoint.scene
+    intrinsics = record.intrinsics
+    if resolution is not None:
+        if not 8 <= resolution <= 4096:
+            raise SourceError(f"--resolution must be between 8 and 4096, got {resolution}")
+        intrinsics = intrinsics.with_max_side(int(resolution))
+    background = record.background if record.background is not None else np.zeros(3, np.float32)
+    render = field_renderer(checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near,
+                            record.far, record.aabb, background)
+    info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
+            "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
+    room, truth = None, None
+    if record.format == "procedural":
+        from waldo_jax.procedural import make_room
+
+        seed = int(record.metadata.get("seed", 0))
+        room = make_room(seed)
+        truth = _room_renderer(room, intrinsics)
+        info["procedural_seed"] = seed
+        # The room's training images are its analytic renders: make them again at this size.
+        images = np.asarray(truth(jnp.asarray(record.c2w)), np.float32)
+        note = ""
+    else:
+        images, note = _run_train_images(record, intrinsics)
+    return Source(spec=str(run_dir), kind="run", name=run.resolve().name, train_c2w=np.asarray(record.c2w, np.float32),
+                  intrinsics=intrinsics, render=render, train_images=images, train_names=tuple(record.file_names),
+                  room=room, truth_render=truth, info=info, train_images_note=note)
+
+
+def load_source(spec: str, resolution: Optional[int] = None, views: int = DEFAULT_PROCEDURAL_VIEWS) -> Source:
+    """The Source of a SOURCE string: `procedural[:SEED]` or a run directory.
+
+    Raises:
+      SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint.
+    """
+    seed = _parse_procedural(spec)
+    if seed is not None:
+        return procedural_source(seed, resolution, views)
+    return run_source(spec, resolution)
