@@ -1,0 +1,329 @@
+"""Rendering a trained Instant-NGP field: occupancy-grid marching vs dense sampling, batched vs a loop,
+1 vs several (forced CPU) devices.
+
+From a run directory written by `waldo train` (or `benchmarks/train_quality.py --checkpoint-out`) and
+its scene (for the held-out images), this measures:
+
+  (a) dense vs marched. Marched: `train.render_trained` with the run's occupancy grid (the renderer of
+      `waldo render`). Dense: `render.render_views` of the same field with S stratified-midpoint
+      samples in [near, far] clipped to the scene box, for each S of `--dense-samples`. For each, the
+      held-out PSNR (the run's test split: every 8th view, at the training resolution) and, over the
+      timing poses, seconds, rays/s and field evaluations per ray. Field evaluations: dense = S for
+      every ray; marched = the valid (non-masked) marched samples, counted with
+      `occupancy.march_ray` on exactly the rays the renderer marches, which is what an
+      implementation that evaluates only occupied samples computes. This implementation packs those
+      samples into fixed budgets per chunk of rays (`lax.while_loop` passes); the slots it actually
+      evaluates, padding included, are reported too (`marched_slots_per_ray`), from the same counts
+      and the renderer's packing rule. The dense S "at equal PSNR" is the smallest measured S whose
+      PSNR is within 0.3 dB of the marched one (or above it); none may qualify.
+  (b) batched vs loop: one `render_trained` call for all timing poses vs a Python loop of
+      `render_trained` calls for one pose each (both jitted; compilation excluded).
+  (c) devices: `render.render_views_sharded` in a subprocess with
+      XLA_FLAGS=--xla_force_host_platform_device_count=D, for D = 1 and `--devices`. The marched
+      renderer of a trained run has no sharded path (render_trained is single-device), so this part
+      times the DENSE renderer of the trained field (S = `--shard-samples`, default the equal-PSNR S).
+
+Compilation is excluded everywhere: every timed function runs once first; best and median of
+`--repeats` are reported. The 1-minute load average is recorded before and after, and CPU time used
+by other processes during the run (see train_quality.py); `--out` gets a `_loaded` suffix when the
+machine was shared.
+
+  python benchmarks/render_trained.py /tmp/bench_runs/fox /work/shared/scenes/fox --downscale 8 \
+      --out benchmarks/results/render_trained_fox_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from _common import emit, header  # noqa: E402
+from train_quality import CpuShare, load_splits, loaded_name  # noqa: E402
+from waldo_jax.cameras import camera_rays, slerp_c2w  # noqa: E402
+from waldo_jax.nerf import occupancy  # noqa: E402
+from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
+from waldo_jax.nerf.field import make_field  # noqa: E402
+from waldo_jax.nerf.train import make_sampler, render_trained  # noqa: E402
+from waldo_jax.render import RenderConfig, render_views, render_views_sharded  # noqa: E402
+
+PSNR_TOLERANCE_DB = 0.3
+
+
+def timed(fn, repeats):
+    """(best, median, all) seconds of `fn()` after one untimed call (compilation)."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return min(times), statistics.median(times), times
+
+
+def psnr(rendered, images):
+    """Mean over images of per-image PSNR (dB), as `train.evaluate`."""
+    mse = np.mean((np.asarray(rendered, np.float64) - np.asarray(images, np.float64)) ** 2, axis=(1, 2, 3))
+    return float(np.mean(-10.0 * np.log10(np.maximum(mse, 1e-12))))
+
+
+def timing_poses(train_c2w, test_c2w, count):
+    """`count` poses: the training poses, the held-out poses, then SLERP midpoints of consecutive training
+    poses (novel views), cut to `count`."""
+    poses = [np.asarray(train_c2w, np.float32), np.asarray(test_c2w, np.float32)]
+    have = sum(len(p) for p in poses)
+    if have < count:
+        a, b = jnp.asarray(train_c2w[:-1]), jnp.asarray(train_c2w[1:])
+        mid = np.asarray(jax.vmap(slerp_c2w, in_axes=(0, 0, None))(a, b, 0.5), np.float32)
+        poses.append(mid[: count - have])
+    out = np.concatenate(poses)[:count]
+    if len(out) < count:
+        raise SystemExit(f"only {len(out)} poses available, asked for {count}")
+    return out
+
+
+def marched_counts(grid, config, c2w, intrinsics, render_config):
+    """Valid marched samples of every ray the marched renderer processes, padding rays included.
+
+    Returns int32 [P, num_chunks, chunk] (chunks as `train._marched_views` cuts a view) and the count of
+    real (unpadded) rays per view.
+    """
+    march_config = make_sampler(config).march_config(render_config.num_samples)
+    h, w = intrinsics.height, intrinsics.width
+    num_rays = h * w
+    chunk = max(1, min(config.eval_ray_chunk, num_rays))
+    num_chunks = -(-num_rays // chunk)
+    pad = num_chunks * chunk - num_rays
+
+    def one_ray(o, d):
+        t_start, t_end = occupancy.ray_interval(grid, o, d, render_config)
+        return jnp.sum(occupancy.march_ray(grid, o, d, t_start, t_end, march_config, None)[2], dtype=jnp.int32)
+
+    @jax.jit
+    def counts(m):
+        origins, directions = camera_rays(m, intrinsics)  # [H, W, 3] each
+        origins = jnp.pad(origins.reshape(-1, 3), ((0, pad), (0, 0))).reshape(num_chunks, chunk, 3)
+        directions = jnp.pad(directions.reshape(-1, 3), ((0, pad), (0, 0)), constant_values=1.0 / np.sqrt(3.0))
+        directions = directions.reshape(num_chunks, chunk, 3)
+        return jax.lax.map(lambda od: jax.vmap(one_ray)(od[0], od[1]), (origins, directions))
+
+    return np.stack([np.asarray(counts(jnp.asarray(m))) for m in c2w]), num_rays
+
+
+def packed_slots(counts, budget):
+    """Field-evaluation slots the packing renderer computes: `budget` per pass, passes per chunk as in
+    `_OccupancySampler.render_ray_batch` (rays in order while the running count fits the budget)."""
+    passes = 0
+    for chunk_counts in counts.reshape(-1, counts.shape[-1]):
+        done = np.zeros(chunk_counts.shape, bool)
+        while not done.all():
+            included = ~done & (np.cumsum(np.where(done, 0, chunk_counts)) <= budget)
+            done |= included
+            passes += 1
+    return passes * budget, passes
+
+
+def child(args):
+    """Times render_views_sharded of the dense renderer on this process's devices; prints one JSON line."""
+    checkpoint = load_checkpoint(args.run)
+    scene = checkpoint.scene
+    data = np.load(args.child)
+    c2w, background = data["c2w"], data["background"]
+    intrinsics = scene.intrinsics.downscaled(args.timing_downscale) if args.timing_downscale != 1 else scene.intrinsics
+    field = make_field(checkpoint.config.field)
+    params = jax.device_put(checkpoint.params)
+    config = RenderConfig.create(near=scene.near, far=scene.far, aabb=scene.aabb, background=background,
+                                 num_samples=args.shard_samples)
+    best, median, times = timed(
+        lambda: render_views_sharded(field, params, jnp.asarray(c2w), intrinsics, config).rgb, args.repeats)
+    print(json.dumps({"devices": jax.device_count(), "seconds_best": best, "seconds_median": median,
+                      "seconds_all": times}))
+
+
+def run_child(argv_base, devices, env_flags):
+    env = dict(os.environ, XLA_FLAGS=f"{env_flags} --xla_force_host_platform_device_count={devices}".strip())
+    result = subprocess.run([sys.executable, __file__] + argv_base, env=env, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"sharded child with {devices} devices failed:\n{result.stderr[-4000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", help="run directory with checkpoint.ckpt")
+    parser.add_argument("scene_path", help="the run's scene (for the held-out images)")
+    parser.add_argument("--downscale", type=float, default=None, help="as the run was trained")
+    parser.add_argument("--poses", type=int, default=64, help="timing poses")
+    parser.add_argument("--timing-downscale", type=float, default=1.0,
+                        help="render the timing poses at the training resolution / this (PSNR is always at full)")
+    parser.add_argument("--dense-samples", default="64,128,256,512")
+    parser.add_argument("--shard-samples", type=int, default=None, help="default: the equal-PSNR dense S")
+    parser.add_argument("--devices", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--skip", default="", help="comma-separated parts to skip: loop, shard")
+    parser.add_argument("--load-threshold", type=float, default=1.5)
+    parser.add_argument("--others-threshold", type=float, default=0.5)
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
+    args = parser.parse_args(argv)
+    if args.child:
+        return child(args)
+
+    load_before = os.getloadavg()
+    for out in (args.out, args.out and loaded_name(args.out)):
+        if out and Path(out).exists():
+            raise SystemExit(f"{out} exists: refusing to overwrite an earlier result (choose another --out)")
+    skip = {s.strip() for s in args.skip.split(",") if s.strip()}
+    share = CpuShare()
+    share.start()
+
+    checkpoint = load_checkpoint(args.run)
+    config, scene = checkpoint.config, checkpoint.scene
+    _, test_scene = load_splits(args.scene_path, args.downscale)
+    if (test_scene.width, test_scene.height) != (scene.intrinsics.width, scene.intrinsics.height):
+        raise SystemExit(f"held-out images are {test_scene.width}x{test_scene.height}, the run was trained at "
+                         f"{scene.intrinsics.width}x{scene.intrinsics.height}: pass the run's --downscale")
+    background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
+    params = jax.device_put(checkpoint.params)
+    grid = jax.device_put(checkpoint.occupancy)
+    field = make_field(config.field)
+    c2w = timing_poses(scene.c2w, test_scene.c2w, args.poses)
+    intrinsics = scene.intrinsics
+    timing_intrinsics = intrinsics.downscaled(args.timing_downscale) if args.timing_downscale != 1 else intrinsics
+    rays = args.poses * timing_intrinsics.width * timing_intrinsics.height
+    marched_config = RenderConfig.create(near=scene.near, far=scene.far, aabb=scene.aabb, background=background,
+                                         num_samples=config.eval_samples, ray_chunk=config.eval_ray_chunk,
+                                         pose_chunk=1)
+
+    def marched(poses, intr):
+        return render_trained(params, grid, config, poses, intr, scene.near, scene.far, background,
+                              aabb=scene.aabb).rgb
+
+    def dense(poses, intr, samples):
+        render_config = RenderConfig.create(near=scene.near, far=scene.far, aabb=scene.aabb,
+                                            background=background, num_samples=samples)
+        return render_views(field, params, jnp.asarray(poses), intr, render_config).rgb
+
+    # (a) quality: held-out PSNR of each renderer (training resolution).
+    log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
+    marched_psnr = psnr(jax.device_get(marched(test_scene.c2w, intrinsics)), test_scene.images)
+    log(f"marched held-out PSNR {marched_psnr:.3f} dB")
+    dense_results = []
+    for samples in [int(s) for s in args.dense_samples.split(",") if s.strip()]:
+        value = psnr(jax.device_get(dense(test_scene.c2w, intrinsics, samples)), test_scene.images)
+        dense_results.append({"samples_per_ray": samples, "psnr_test": value})
+        log(f"dense S={samples}: held-out PSNR {value:.3f} dB")
+    equal = [d for d in dense_results if d["psnr_test"] >= marched_psnr - PSNR_TOLERANCE_DB]
+    equal_samples = min(d["samples_per_ray"] for d in equal) if equal else None
+
+    # (a) speed over the timing poses.
+    counts, num_rays = marched_counts(grid, config, c2w, timing_intrinsics, marched_config)
+    real = counts.reshape(len(c2w), -1)[:, :num_rays]
+    marched_evals = int(real.sum())
+    budget = max(make_sampler(config).march_config(config.eval_samples).max_samples, config.eval_ray_chunk * 8)
+    slots, passes = packed_slots(counts, budget)
+    best, median, _ = timed(lambda: marched(c2w, timing_intrinsics), args.repeats)
+    marched_timing = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
+                      "field_evaluations_per_ray": marched_evals / rays,
+                      "field_evaluations_per_s": marched_evals / best,
+                      "marched_slots_per_ray": slots / rays, "packing_passes": passes, "packing_budget": budget,
+                      "slots_per_s": slots / best,
+                      "max_valid_samples_of_a_ray": int(real.max()),
+                      "rays_with_no_sample_fraction": float(np.mean(real == 0))}
+    log(f"marched: {best:.2f} s, {marched_evals / rays:.1f} evaluations/ray, {slots / rays:.1f} slots/ray")
+    dense_timing_samples = sorted({s for s in (equal_samples, args.shard_samples) if s} or
+                                  {dense_results[-1]["samples_per_ray"]})
+    dense_timing = []
+    for samples in dense_timing_samples:
+        best, median, _ = timed(lambda: dense(c2w, timing_intrinsics, samples), args.repeats)
+        dense_timing.append({"samples_per_ray": samples, "seconds_best": best, "seconds_median": median,
+                             "rays_per_s": rays / best, "field_evaluations_per_ray": float(samples),
+                             "field_evaluations_per_s": rays * samples / best})
+        log(f"dense S={samples}: {best:.2f} s")
+
+    # (b) batched vs a loop of per-pose calls (marched renderer).
+    loop = None
+    if "loop" not in skip:
+        best, median, _ = timed(lambda: [marched(c2w[i:i + 1], timing_intrinsics) for i in range(len(c2w))],
+                                args.repeats)
+        loop = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
+                "speedup_batched_over_loop": best / marched_timing["seconds_best"]}
+        log(f"loop of per-pose calls: {best:.2f} s")
+
+    # (c) 1 vs N devices (dense renderer of the trained field; see the module docstring).
+    sharded = None
+    shard_samples = args.shard_samples or equal_samples or dense_timing_samples[-1]
+    if "shard" not in skip:
+        flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
+                         if not f.startswith("--xla_force_host_platform_device_count"))
+        with tempfile.TemporaryDirectory() as tmp:
+            np.savez(Path(tmp) / "poses.npz", c2w=c2w, background=background)
+            base = [args.run, args.scene_path, "--child", str(Path(tmp) / "poses.npz"), "--repeats", str(args.repeats),
+                    "--shard-samples", str(shard_samples), "--timing-downscale", str(args.timing_downscale)]
+            per_devices = [run_child(base, d, flags) for d in sorted({1, args.devices})]
+        for entry in per_devices:
+            entry["rays_per_s"] = rays / entry["seconds_best"]
+            entry["field_evaluations_per_s"] = rays * shard_samples / entry["seconds_best"]
+        sharded = {"renderer": "dense render_views_sharded of the trained field (no sharded marched path exists)",
+                   "samples_per_ray": shard_samples, "by_devices": per_devices,
+                   "speedup": per_devices[0]["seconds_best"] / per_devices[-1]["seconds_best"]}
+        log(f"sharded: {[(e['devices'], round(e['seconds_best'], 2)) for e in per_devices]}")
+
+    cpu = share.stop()
+    load_after = os.getloadavg()
+    loaded = load_before[0] > args.load_threshold or cpu["others_cores"] > args.others_threshold
+    dense_equal = next((d for d in dense_timing if d["samples_per_ray"] == equal_samples), None)
+    result = header("render_trained")
+    result.update({
+        "run": str(Path(args.run).resolve()),
+        "run_info": {k: checkpoint.info.get(k) for k in ("psnr_test", "steps", "seconds", "n_train", "n_test")},
+        "scene_path": str(Path(args.scene_path).resolve()),
+        "training_resolution": [intrinsics.width, intrinsics.height],
+        "timing_resolution": [timing_intrinsics.width, timing_intrinsics.height],
+        "timing_poses": args.poses,
+        "timing_poses_are": "training poses, then held-out poses, then SLERP midpoints of consecutive training poses",
+        "psnr_views": test_scene.n_images,
+        "repeats": args.repeats,
+        "marched": {"psnr_test": marched_psnr, "max_samples_per_ray": config.eval_samples, **marched_timing},
+        "dense_psnr": dense_results,
+        "dense_timing": dense_timing,
+        "equal_psnr": {
+            "rule": f"smallest measured dense S with PSNR >= marched PSNR - {PSNR_TOLERANCE_DB} dB",
+            "dense_samples_per_ray": equal_samples,
+            "evaluation_ratio_dense_over_marched": (
+                None if equal_samples is None else equal_samples / marched_timing["field_evaluations_per_ray"]),
+            "slot_ratio_dense_over_marched_packed": (
+                None if equal_samples is None else equal_samples / marched_timing["marched_slots_per_ray"]),
+            "time_ratio_dense_over_marched": (
+                None if dense_equal is None else dense_equal["seconds_best"] / marched_timing["seconds_best"]),
+            "target": ">= 5x fewer field evaluations at equal PSNR (+/- 0.3 dB)",
+        },
+        "batched_vs_loop": loop,
+        "devices": sharded,
+        "loadavg_start": list(load_before),
+        "loadavg_end": list(load_after),
+        "cpu_during_run": {k: round(v, 3) for k, v in cpu.items()},
+        "loaded": loaded,
+    })
+    out = args.out
+    if out and loaded:
+        out = loaded_name(out)
+        print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
+    emit(result, out)
+
+
+if __name__ == "__main__":
+    main()
