@@ -43,3 +43,22 @@ def test_egps_finds_waldo_better_than_every_training_view():
     rescored = np.asarray(waldo_visibility_batch(room, seeds.results.top_c2w[0], intrinsics))
     np.testing.assert_allclose(rescored, top[0], atol=1e-6)
     assert float(seeds.cvir_mean) > 0.0 and float(seeds.mcvir_mean) > 0.0
+
+
+def test_egps_beats_grs_on_mcvir_at_the_demo_settings():
+    """`waldo demo`'s claim, without its NeRF: room 0, its 32 training cameras, waldo_oracle, 8 seeds."""
+    from waldo_jax.criteria import CriterionContext, make_criterion
+    from waldo_jax.demo import SETTINGS
+    from waldo_jax.exploration import seed_keys
+
+    settings = SETTINGS["full"]
+    room = make_room(0)
+    intrinsics = Intrinsics.from_fov(settings.resolution, settings.resolution, np.radians(60.0))
+    c2w = training_cameras(jax.random.fold_in(jax.random.key(0), 1), room, settings.views, intrinsics)
+    oracle = make_criterion("waldo_oracle", CriterionContext(room=room))
+    score_fn = jax.tree_util.Partial(lambda crit, intr, m: crit.score_poses(m, intr), oracle, intrinsics)
+    initial = Initial(c2w=c2w, scores=np.asarray(oracle.score_poses(jnp.asarray(c2w), intrinsics)))
+    keys = seed_keys(0, settings.seeds)
+    mcvir = {m: float(explore_seeds(keys, score_fn, initial, config=ExploreConfig(method=m, budget="low")).mcvir_mean)
+             for m in ("grs", "egps")}
+    assert mcvir["egps"] > mcvir["grs"] > 0.0, mcvir

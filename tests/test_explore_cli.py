@@ -1,0 +1,134 @@
+"""`waldo explore` and `waldo demo` end to end at tiny settings: files, fields, determinism, errors."""
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from waldo_jax.cli import main
+from waldo_jax.criteria import make_criterion
+from waldo_jax.demo import DemoSettings, run_demo
+from waldo_jax.errors import WaldoError
+from waldo_jax.procedural import make_room, waldo_coverage
+from waldo_jax.sources import procedural_source, run_source
+from waldo_jax.types import Intrinsics
+
+TINY = ["--resolution", "16", "--views", "8", "--epochs", "2", "--children-per-epoch", "6", "--top-k", "4",
+        "--quiet"]
+
+
+def explore(out, *extra):
+    return main(["explore", "procedural:1", "--out", str(out), *TINY, *extra])
+
+
+@pytest.fixture(scope="module")
+def egps_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("explore") / "egps"
+    assert explore(out, "--method", "egps", "--seed", "3") == 0
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_results_json_has_what_the_issue_lists(egps_run):
+    out, r = egps_run
+    for key in ("method", "criterion", "direction", "seed", "budget", "n_train", "n_generated", "scores_train",
+                "scores_generated", "cvir", "mcvir", "topk", "epochs", "seconds"):
+        assert key in r, key
+    assert (r["method"], r["criterion"], r["direction"], r["seed"]) == ("egps", "waldo_oracle", "max", 3)
+    assert r["n_train"] == 8 and len(r["scores_train"]) == 8
+    assert r["n_generated"] == 12 == len(r["scores_generated"]) and r["generated_epochs"] == [1] * 6 + [2] * 6
+    assert len(r["epochs"]) == 3 and r["epochs"][0]["best"] == max(r["scores_train"])
+    scores = [t["score"] for t in r["topk"]]
+    assert len(scores) == 4 and scores == sorted(scores, reverse=True)
+    everything = r["scores_train"] + r["scores_generated"]
+    assert scores[0] == max(everything) == r["epochs"][-1]["best"]
+    # CVIR: % gain of the best over the best training score (the paper's equation).
+    best_train = max(r["scores_train"])
+    assert r["cvir"] == pytest.approx(100.0 * (scores[0] - best_train) / best_train, rel=1e-4)
+
+
+def test_files_are_written_and_consistent(egps_run):
+    out, r = egps_run
+    for name in ("contact_sheet.png", "pose_cloud.png", "poses.json", "topk/00.png", "topk/03.png"):
+        assert (out / name).is_file(), name
+    assert iio.imread(out / "topk" / "00.png").shape == (16, 16, 3)
+    poses = json.loads((out / "poses.json").read_text())
+    assert [f["file_path"] for f in poses["frames"]] == [t["image"] for t in r["topk"]]
+    np.testing.assert_allclose([f["transform_matrix"] for f in poses["frames"]], [t["c2w"] for t in r["topk"]],
+                               atol=1e-6)
+    # The oracle's score of the saved pose is the reported score.
+    room = make_room(1)
+    intr = Intrinsics.from_fov(16, 16, np.radians(60.0))
+    c2w = np.asarray(r["topk"][0]["c2w"], np.float32)
+    assert float(waldo_coverage(room, c2w, intr)) == pytest.approx(r["topk"][0]["score"], rel=1e-4, abs=1e-7)
+
+
+def test_same_seed_same_scores_other_seed_differs(egps_run, tmp_path):
+    _, first = egps_run
+    assert explore(tmp_path / "again", "--method", "egps", "--seed", "3") == 0
+    again = json.loads((tmp_path / "again" / "results.json").read_text())
+    assert again["scores_generated"] == first["scores_generated"]
+    assert [t["c2w"] for t in again["topk"]] == [t["c2w"] for t in first["topk"]]
+    assert explore(tmp_path / "other", "--method", "egps", "--seed", "4") == 0
+    other = json.loads((tmp_path / "other" / "results.json").read_text())
+    assert other["scores_generated"] != first["scores_generated"]
+
+
+def test_several_seeds_report_mean_and_std(tmp_path):
+    assert explore(tmp_path / "seeds", "--method", "grs", "--seed", "5", "--seeds", "3") == 0
+    r = json.loads((tmp_path / "seeds" / "results.json").read_text())
+    assert r["seeds"] == [5, 6, 7] and [p["seed"] for p in r["per_seed"]] == [5, 6, 7]
+    cvirs = [p["cvir"] for p in r["per_seed"]]
+    assert r["cvir_mean"] == pytest.approx(np.mean(cvirs), rel=1e-5)
+    assert r["cvir_std"] == pytest.approx(np.std(cvirs), rel=1e-4, abs=1e-6)
+    assert r["cvir"] == pytest.approx(cvirs[0], rel=1e-6)  # the files show the first seed
+    assert len(set(cvirs)) > 1
+
+
+def test_image_criterion_renders_and_scores(tmp_path):
+    out = tmp_path / "colour"
+    assert explore(out, "--method", "pibs", "--criterion", "colorfulness") == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["initial_scores"] == "images" and r["direction"] == "max"
+    source = procedural_source(1, resolution=16, views=8)
+    crit = make_criterion("colorfulness")
+    np.testing.assert_allclose(r["scores_train"], np.asarray(crit.score_images(source.train_images)), rtol=1e-5)
+    # The saved top view, scored again from its PNG (8-bit), gives the reported score.
+    png = iio.imread(out / r["topk"][0]["image"]).astype(np.float32) / 255.0
+    assert float(crit.score_images(png[None])[0]) == pytest.approx(r["topk"][0]["score"], rel=0.02)
+
+
+def test_errors_are_one_line(tmp_path, capsys):
+    assert explore(tmp_path / "x", "--criterion", "nope") == 1
+    assert "unknown criterion 'nope'" in capsys.readouterr().err
+    assert explore(tmp_path / "y", "--method", "cmaes") == 1
+    assert "unknown --method 'cmaes'" in capsys.readouterr().err
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("earlier run")
+    assert explore(tmp_path / "full") == 1
+    assert "full" in capsys.readouterr().err and (tmp_path / "full" / "keep.txt").read_text() == "earlier run"
+    assert main(["explore", str(tmp_path / "no_such_run"), "--out", str(tmp_path / "z")]) == 1
+    assert "no_such_run" in capsys.readouterr().err
+
+
+def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
+    settings = DemoSettings(views=10, resolution=24, train_steps=20, seeds=2, test_views=2)
+    out = run_demo(tmp_path / "demo", settings=settings, progress=False)
+    report = (out / "report.md").read_text()
+    for method in ("GRS", "PIBS", "EGPS"):
+        assert f"| {method} |" in report
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["methods"]) == {"grs", "pibs", "egps"} and summary["seeds"] == [0, 1]
+    for method in ("grs", "pibs", "egps"):
+        assert (out / method / "results.json").is_file() and (out / method / "pose_cloud.png").is_file()
+    assert (out / "contact_sheet.png").is_file() and (out / "nerf" / "checkpoint.ckpt").is_file()
+    with pytest.raises(WaldoError):
+        run_demo(out, settings=settings, progress=False)
+    # The saved NeRF of the room is a SOURCE: it keeps the room, so the oracle applies.
+    source = run_source(str(out / "nerf"), resolution=16)
+    assert source.room is not None and source.truth_render is not None and source.n_train == 10
+    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "again"), "--resolution", "16",
+                 "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]) == 0
+    again = json.loads((tmp_path / "again" / "results.json").read_text())
+    assert again["source_info"]["procedural_seed"] == 0 and (tmp_path / "again" / "topk" / "00_truth.png").is_file()
+
