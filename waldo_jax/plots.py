@@ -42,10 +42,9 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
       stages: epochs to show, one panel each (-1: the final epoch).
       arrow_length: length of the view-direction lines (default: 4 % of the cloud's extent).
     """
+    # A bare Figure (no pyplot): draws off-screen without switching a notebook's backend.
     import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     c2w = np.asarray(c2w, np.float64)
     scores = np.asarray(scores, np.float64)
@@ -56,9 +55,9 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
     lo, hi = (np.min(scores[finite]), np.max(scores[finite])) if finite.any() else (0.0, 1.0)
     extent = float(np.max(np.ptp(centres, axis=0))) if len(centres) > 1 else 1.0
     arrow = arrow_length if arrow_length is not None else 0.04 * max(extent, 1e-6)
-    cmap = plt.get_cmap("viridis" if direction == "max" else "viridis_r")
+    cmap = matplotlib.colormaps["viridis" if direction == "max" else "viridis_r"]
 
-    fig = plt.figure(figsize=(4.2 * len(stages), 4.4))
+    fig = Figure(figsize=(4.2 * len(stages), 4.4))
     points = centres if marker is None else np.concatenate([centres, np.asarray(marker, np.float64).reshape(1, 3)])
     bounds = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.ones(3))
     for panel, stage in enumerate(stages):
@@ -95,9 +94,8 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
         ax.tick_params(labelsize=6)
         ax.view_init(elev=28, azim=-60)
     if threshold is None and finite.any():
-        mappable = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(lo, hi))
+        mappable = matplotlib.cm.ScalarMappable(cmap=cmap, norm=matplotlib.colors.Normalize(lo, hi))
         fig.colorbar(mappable, ax=fig.axes, shrink=0.6, label="score")
     if title:
         fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=90, bbox_inches="tight")
-    plt.close(fig)
