@@ -6,7 +6,10 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import jax
@@ -62,3 +65,32 @@ def emit(result: dict, out: str | None) -> None:
             raise SystemExit(f"{path} exists: refusing to overwrite an earlier result (choose another --out)")
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text + "\n")
+
+
+def timed(fn, repeats: int):
+    """(best, median, all) seconds of `fn()` over `repeats` runs, after one untimed call (compile, warm-up)."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return min(times), statistics.median(times), times
+
+
+def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
+    """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
+    start = time.perf_counter()
+    load = os.getloadavg()
+    while load[0] > threshold and time.perf_counter() - start < max_wait_s:
+        print(f"load average {load[0]:.2f} > {threshold}: waiting {poll_s:.0f} s", file=sys.stderr, flush=True)
+        time.sleep(poll_s)
+        load = os.getloadavg()
+    return {"loadavg_start": list(load), "waited_s": round(time.perf_counter() - start, 1),
+            "loaded": load[0] > threshold}
+
+
+def loaded_name(out: str) -> str:
+    """`out` with `_loaded` before its suffix (results measured while other jobs shared the machine)."""
+    path = Path(out)
+    return str(path.with_name(path.stem + "_loaded" + path.suffix))

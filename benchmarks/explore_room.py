@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
-from _common import emit, header  # noqa: E402
+from _common import emit, header, loaded_name, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.exploration import run_explore, write_outputs  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig  # noqa: E402
@@ -47,21 +47,8 @@ SOURCE = "procedural"
 TARGET_S = 30.0
 
 
-def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
-    """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
-    start = time.perf_counter()
-    load = os.getloadavg()
-    while load[0] > threshold and time.perf_counter() - start < max_wait_s:
-        print(f"load average {load[0]:.2f} > {threshold}: waiting {poll_s:.0f} s", file=sys.stderr, flush=True)
-        time.sleep(poll_s)
-        load = os.getloadavg()
-    return {"loadavg_start": list(load), "waited_s": round(time.perf_counter() - start, 1),
-            "loaded": load[0] > threshold}
 
 
-def loaded_name(out: str) -> str:
-    path = Path(out)
-    return str(path.with_name(path.stem + "_loaded" + path.suffix))
 
 
 def waldo_command() -> list:

@@ -11,9 +11,7 @@ run once to compile, then timed over `--repeats` runs (best and median reported)
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -23,7 +21,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header  # noqa: E402
+from _common import emit, header, timed  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.procedural import make_room, room_field, room_render_config  # noqa: E402
 from waldo_jax.render import render_view, render_views  # noqa: E402
@@ -38,14 +36,6 @@ def population(key, room, num_poses):
     return jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))
 
 
-def timed(fn, repeats):
-    jax.block_until_ready(fn())  # compile + warm up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
 
 
 def main(argv=None):
@@ -70,8 +60,8 @@ def main(argv=None):
     def loop():
         return [single(room_field, room, c2w[i], intrinsics, config).rgb for i in range(args.poses)]
 
-    batched_best, batched_median = timed(batched, args.repeats)
-    loop_best, loop_median = timed(loop, args.repeats)
+    batched_best, batched_median, _ = timed(batched, args.repeats)
+    loop_best, loop_median, _ = timed(loop, args.repeats)
     # Both paths must agree: the batch is the same computation, only scheduled differently.
     max_diff = float(jnp.max(jnp.abs(batched() - jnp.stack(loop()))))
     rays = args.poses * args.resolution**2

@@ -37,11 +37,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -51,8 +49,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header  # noqa: E402
-from train_quality import CpuShare, load_splits, loaded_name  # noqa: E402
+from _common import emit, header, loaded_name, timed  # noqa: E402
+from train_quality import CpuShare, load_splits  # noqa: E402
 from waldo_jax.cameras import camera_rays, slerp_c2w  # noqa: E402
 from waldo_jax.nerf import occupancy  # noqa: E402
 from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
@@ -63,15 +61,6 @@ from waldo_jax.render import RenderConfig, render_views, render_views_sharded  #
 PSNR_TOLERANCE_DB = 0.3
 
 
-def timed(fn, repeats):
-    """(best, median, all) seconds of `fn()` after one untimed call (compilation)."""
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times), times
 
 
 def psnr(rendered, images):

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -42,7 +41,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header  # noqa: E402
+from _common import emit, header, loaded_name, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig, Initial, explore  # noqa: E402
 
@@ -64,32 +63,10 @@ def training_ring(num_views: int) -> np.ndarray:
     return np.asarray(c2w, np.float32)
 
 
-def timed(fn, repeats: int):
-    """(best, median) seconds of fn() over `repeats` runs, after one untimed call (compile, warm-up)."""
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
 
 
-def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
-    """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
-    start = time.perf_counter()
-    load = os.getloadavg()
-    while load[0] > threshold and time.perf_counter() - start < max_wait_s:
-        print(f"load average {load[0]:.2f} > {threshold}: waiting {poll_s:.0f} s", file=sys.stderr, flush=True)
-        time.sleep(poll_s)
-        load = os.getloadavg()
-    return {"loadavg_start": list(load), "waited_s": round(time.perf_counter() - start, 1),
-            "loaded": load[0] > threshold}
 
 
-def loaded_name(out: str) -> str:
-    path = Path(out)
-    return str(path.with_name(path.stem + "_loaded" + path.suffix))
 
 
 def time_method(name: str, initial: Initial, config: ExploreConfig, repeats: int) -> dict:
@@ -98,8 +75,8 @@ def time_method(name: str, initial: Initial, config: ExploreConfig, repeats: int
     start = time.perf_counter()
     result = jax.block_until_ready(compiled(key))
     first_call = time.perf_counter() - start
-    best, median = timed(lambda: compiled(key), repeats)
-    call_best, call_median = timed(lambda: explore(key, trivial_score, initial, name, config), repeats)
+    best, median, _ = timed(lambda: compiled(key), repeats)
+    call_best, call_median, _ = timed(lambda: explore(key, trivial_score, initial, name, config), repeats)
     slots = config.epochs * config.children_per_epoch
     valid = int(np.sum(np.asarray(result.population.valid))) - len(initial.scores)
     return {
@@ -156,7 +133,7 @@ def time_simple_ga(population_size: int, generations: int, repeats: int) -> dict
         run_jit = jax.jit(run)
         key = jax.random.key(0)
         best_fitness = float(run_jit(key))
-        best, median = timed(lambda: run_jit(key), repeats)
+        best, median, _ = timed(lambda: run_jit(key), repeats)
 
         population0 = jax.random.normal(jax.random.key(1), (population_size, SOLUTION_DIMS))
         state0 = strategy.init(jax.random.key(2), population0, fitness_fn(population0), params)
@@ -168,7 +145,7 @@ def time_simple_ga(population_size: int, generations: int, repeats: int) -> dict
             state, _ = strategy.tell(k_tell, population, fitness_fn(population), state, params)
             return state
 
-        step_best, step_median = timed(lambda: step(key, state0), repeats)
+        step_best, step_median, _ = timed(lambda: step(key, state0), repeats)
     except Exception as e:  # noqa: BLE001  (an API change is a result to record, not a crash)
         return {"available": False, "error": f"{type(e).__name__}: {e}"}
     slots = generations * population_size

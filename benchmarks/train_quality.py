@@ -38,7 +38,7 @@ import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header  # noqa: E402
+from _common import emit, header, loaded_name  # noqa: E402
 from waldo_jax.errors import SceneFormatError  # noqa: E402
 from waldo_jax.nerf.train import (PRESETS, TrainConfig, TrainHParams, evaluate, run_chunk,  # noqa: E402
                                   training_inputs)
@@ -87,9 +87,6 @@ class CpuShare:
         return {"own_cores": own / seconds, "others_cores": max(0.0, busy - own) / seconds, "seconds": seconds}
 
 
-def loaded_name(out: str) -> str:
-    path = Path(out)
-    return str(path.with_name(path.stem + "_loaded" + path.suffix))
 
 
 def main(argv=None):
