@@ -39,6 +39,9 @@ __all__ = [
     "register",
     "make_criterion",
     "CRITERIA",
+    "worst_score",
+    "finite_or_worst",
+    "sanitize_images",
 ]
 
 INPUTS = ("images", "poses")
@@ -84,6 +87,32 @@ class Criterion:
         if self.inputs != "poses":
             raise CriterionError(f"criterion {self.name!r} scores images: render the poses first")
         return jnp.asarray(self.apply(self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+
+
+def worst_score(direction: str, value_range: Tuple[float, float]) -> float:
+    """The finite score a failed view gets: the bad end of `value_range` (which must be finite there)."""
+    worst = value_range[0] if direction == "max" else value_range[1]
+    if not np.isfinite(worst):
+        raise ValueError(f"the bad end of value_range {value_range} (direction {direction}) must be finite")
+    return float(worst)
+
+
+def sanitize_images(images: Array) -> Tuple[Array, Array]:
+    """Images with NaN/inf replaced by 0 and clipped to [0, 1], and a mask [P] of the images that had any.
+
+    Image criteria run on the sanitised images (so no NaN reaches a network) and then give the
+    flagged images the worst score with `finite_or_worst`.
+    """
+    images = jnp.asarray(images, jnp.float32)
+    bad = ~jnp.all(jnp.isfinite(images), axis=tuple(range(1, images.ndim)))  # [P]
+    clean = jnp.clip(jnp.where(jnp.isfinite(images), images, 0.0), 0.0, 1.0)
+    return clean, bad
+
+
+def finite_or_worst(scores: Array, bad: Array, worst: float) -> Array:
+    """Scores [P] with failed views (`bad`, or a non-finite score) set to the finite `worst`."""
+    scores = jnp.asarray(scores, jnp.float32)
+    return jnp.where(bad | ~jnp.isfinite(scores), jnp.float32(worst), scores)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,241 @@
+"""Where criterion weights come from, and the native format they are converted to.
+
+Weights live in a folder with the layout of `../shared/weights` (one sub-folder per model):
+
+  csnet/csnet-L-x1.pth.tar, csnet-L-x1.bin     CSNet-L-x1 saliency (torch pickle + channel splits)
+  cnniqa/CNNIQA-LIVE                           CNNIQA (torch state dict)
+  brisque/brisque_model_live.yml, _range_      BRISQUE SVR (OpenCV FileStorage)
+  niqe/niqe_image_params.mat                   NIQE pristine model (MATLAB v5)
+
+The folder is `--weights DIR`, else `WALDO_WEIGHTS`, else `$WALDO_DATA/weights`.
+
+Reading the original files (torch pickles, YAML, .mat) takes a moment; `waldo weights convert SRC DST`
+writes each model once as `DST/<model>/<model>.npz`, a flat NumPy archive of the converted parameter
+tree (keys are tree paths joined by "/") plus a JSON record with the format version. Loaders look for
+the `.npz` first and fall back to the original files, so `--weights DST` works either way.
+
+Each model registers a `Converter` (`register_converter`): the files it reads and a function from
+the model folder to `(tree, meta)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+from waldo_jax.errors import DataNotFoundError, WaldoError
+
+__all__ = [
+    "NATIVE_FORMAT_VERSION",
+    "WeightsError",
+    "Converter",
+    "CONVERTERS",
+    "register_converter",
+    "resolve_weights_dir",
+    "weights_file",
+    "check_shapes",
+    "save_native",
+    "load_native",
+    "load_model",
+    "convert_all",
+]
+
+NATIVE_FORMAT_VERSION = 1
+_META_KEY = "__waldo_weights__"
+
+
+class WeightsError(WaldoError, ValueError):
+    """Weights that exist but do not fit: a wrong shape, a missing key, a corrupt or foreign file."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Converter:
+    """How to turn a model folder's original files into its parameter tree.
+
+    Attributes:
+      model: the sub-folder name (e.g. "csnet"), also the native file's stem.
+      files: the original file names the model needs, inside the sub-folder.
+      read: `read(model_dir: Path) -> (tree, meta)`, the tree a nested dict of arrays and `meta` a
+        JSON-able dict (e.g. channel splits); raises `WeightsError` naming the first mismatch.
+    """
+
+    model: str
+    files: Tuple[str, ...]
+    read: Callable[[Path], Tuple[Dict[str, Any], Dict[str, Any]]]
+
+
+CONVERTERS: Dict[str, Converter] = {}
+
+
+def register_converter(converter: Converter) -> Converter:
+    """Adds a model's converter (by `converter.model`)."""
+    CONVERTERS[converter.model] = converter
+    return converter
+
+
+def resolve_weights_dir(weights_dir: Optional[str | os.PathLike] = None) -> Path:
+    """`weights_dir`, else `WALDO_WEIGHTS`, else `$WALDO_DATA/weights`; a clear error when none is set."""
+    if weights_dir is not None:
+        return Path(weights_dir).expanduser()
+    from waldo_jax.paths import weights_dir as default_weights_dir
+
+    found = default_weights_dir()
+    if found is None:
+        raise DataNotFoundError(
+            "no weights folder: pass --weights DIR or set WALDO_WEIGHTS (or WALDO_DATA, whose weights/ is used) "
+            "to a folder in the ../shared/weights layout")
+    return found
+
+
+def weights_file(weights_dir: Optional[str | os.PathLike], model: str, filename: str) -> Path:
+    """The path `<weights>/<model>/<filename>`, checked to exist.
+
+    Raises:
+      DataNotFoundError: naming the expected file and how to point at another folder.
+    """
+    path = resolve_weights_dir(weights_dir) / model / filename
+    if not path.is_file():
+        raise DataNotFoundError(
+            f"weights file not found: expected {path} (model {model!r}); pass --weights DIR or set WALDO_WEIGHTS "
+            "to a folder in the ../shared/weights layout")
+    return path
+
+
+def check_shapes(expected: Mapping[str, Sequence[int]], arrays: Mapping[str, np.ndarray], source: str) -> None:
+    """Checks that `arrays` has exactly the keys of `expected`, with those shapes.
+
+    Raises:
+      WeightsError: naming `source` and the first missing, unexpected or mis-shaped key.
+    """
+    for name, shape in expected.items():
+        if name not in arrays:
+            raise WeightsError(f"{source}: missing weight {name!r} (expected shape {tuple(shape)})")
+        if tuple(np.shape(arrays[name])) != tuple(shape):
+            raise WeightsError(f"{source}: weight {name!r} has shape {tuple(np.shape(arrays[name]))}, "
+                               f"expected {tuple(shape)}")
+    extra = sorted(set(arrays) - set(expected))
+    if extra:
+        raise WeightsError(f"{source}: unexpected weight {extra[0]!r} ({len(extra)} unexpected in all)")
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> Dict[str, np.ndarray]:
+    flat = {}
+    for key, value in tree.items():
+        if "/" in str(key):
+            raise ValueError(f"tree key {key!r} contains '/'")
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, path + "/"))
+        else:
+            flat[path] = np.asarray(value)
+    return flat
+
+
+def _unflatten(flat: Mapping[str, np.ndarray]) -> Dict[str, Any]:
+    tree: Dict[str, Any] = {}
+    for path, value in flat.items():
+        node = tree
+        *parents, leaf = path.split("/")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def save_native(path: str | os.PathLike, model: str, tree: Mapping[str, Any], meta: Mapping[str, Any]) -> Path:
+    """Writes a parameter tree as `.npz` (atomically: a temp file renamed into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = json.dumps({"format_version": NATIVE_FORMAT_VERSION, "model": model, "meta": dict(meta)})
+    arrays = _flatten(tree)
+    arrays[_META_KEY] = np.frombuffer(record.encode(), np.uint8)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+    """Reads a `.npz` written by `save_native`; returns `(tree, meta)`.
+
+    Raises:
+      WeightsError: the file is corrupt, of another model, or of another format version.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            flat = {k: np.array(data[k]) for k in data.files}
+    except Exception as exc:  # zip and npy errors come in many types
+        raise WeightsError(f"{path}: not a readable weights archive ({type(exc).__name__}: {exc})") from None
+    if _META_KEY not in flat:
+        raise WeightsError(f"{path}: not a waldo weights archive (no {_META_KEY} record)")
+    record = json.loads(flat.pop(_META_KEY).tobytes().decode())
+    if record.get("format_version") != NATIVE_FORMAT_VERSION:
+        raise WeightsError(f"{path}: weights format version {record.get('format_version')!r}, this waldo_jax "
+                           f"reads version {NATIVE_FORMAT_VERSION}: convert the original files again")
+    if record.get("model") != model:
+        raise WeightsError(f"{path}: holds weights of {record.get('model')!r}, expected {model!r}")
+    return _unflatten(flat), record.get("meta", {})
+
+
+def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+    """A model's `(tree, meta)`: from `<weights>/<model>/<model>.npz` if present, else its original files.
+
+    Raises:
+      DataNotFoundError: neither the native file nor the original files are there (names the files).
+      WeightsError: a file is there but does not fit.
+    """
+    converter = CONVERTERS[model]
+    root = resolve_weights_dir(weights_dir)
+    native = root / model / f"{model}.npz"
+    if native.is_file():
+        return load_native(native, model)
+    for filename in converter.files:
+        weights_file(root, model, filename)
+    return converter.read(root / model)
+
+
+def convert_all(src: str | os.PathLike, dst: str | os.PathLike,
+                models: Optional[Sequence[str]] = None) -> Dict[str, Path]:
+    """Converts every model of `src` (or the named `models`) to `dst/<model>/<model>.npz`.
+
+    Models whose original files are all absent from `src` are skipped when `models` is None.
+
+    Returns:
+      `{model: written path}`.
+
+    Raises:
+      WaldoError: unknown model name; DataNotFoundError / WeightsError from the readers.
+    """
+    src, dst = Path(src), Path(dst)
+    if not src.is_dir():
+        raise DataNotFoundError(f"weights folder not found: {src}")
+    if models is None:
+        chosen = [m for m, c in CONVERTERS.items() if any((src / m / f).is_file() for f in c.files)]
+        if not chosen:
+            raise DataNotFoundError(f"{src}: no model files found; expected sub-folders {', '.join(sorted(CONVERTERS))}")
+    else:
+        unknown = [m for m in models if m not in CONVERTERS]
+        if unknown:
+            raise WaldoError(f"unknown model {unknown[0]!r}; choose from {', '.join(sorted(CONVERTERS))}")
+        chosen = list(models)
+    written = {}
+    for model in chosen:
+        converter = CONVERTERS[model]
+        for filename in converter.files:
+            weights_file(src, model, filename)
+        tree, meta = converter.read(src / model)
+        written[model] = save_native(dst / model / f"{model}.npz", model, tree, meta)
+    return written

@@ -1,0 +1,283 @@
+"""Reading PyTorch checkpoints without PyTorch: legacy and zip-format torch pickles to NumPy.
+
+`torch.save` has written two formats:
+
+  * **legacy** (before torch 1.6, and `_use_new_zipfile_serialization=False`): five pickles in a row
+    (magic number, protocol version 1001, system info, the object, the list of storage keys), then
+    for each storage key in that order its raw little-endian bytes after an int64 element count;
+  * **zip** (torch >= 1.6): an archive `<root>/data.pkl` holding the object, and one file
+    `<root>/data/<key>` of raw bytes per storage.
+
+In both, a tensor in the object pickle is a call `torch._utils._rebuild_tensor_v2(storage,
+storage_offset, size, stride, requires_grad, backward_hooks, ...)`, and the storage is a persistent
+id `('storage', <torch.FloatStorage>, key, location, numel)`. The unpickler below maps the torch
+classes it needs to small stand-ins and builds each tensor as a NumPy view of its storage, so no
+torch import and no arbitrary code: any other global is refused.
+
+`read_torch_file(path)` returns the unpickled object with tensors as `np.ndarray`; `state_dict(obj)`
+finds the `{name: ndarray}` inside the usual wrappers (`{"state_dict": ...}`, `{"model": ...}`) and
+strips a `module.` prefix left by `DataParallel`.
+"""
+
+from __future__ import annotations
+
+import collections
+import io
+import os
+import pickle
+import struct
+import zipfile
+from pathlib import Path
+from typing import Any, Callable, Dict, Tuple
+
+import numpy as np
+
+from waldo_jax.errors import WaldoError
+
+__all__ = ["TorchPickleError", "read_torch_file", "state_dict"]
+
+_LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
+_LEGACY_PROTOCOL = 1001
+
+_STORAGE_DTYPES = {
+    "DoubleStorage": np.float64,
+    "FloatStorage": np.float32,
+    "HalfStorage": np.float16,
+    "BFloat16Storage": None,  # no NumPy dtype: read as uint16 and widened below
+    "LongStorage": np.int64,
+    "IntStorage": np.int32,
+    "ShortStorage": np.int16,
+    "CharStorage": np.int8,
+    "ByteStorage": np.uint8,
+    "BoolStorage": np.bool_,
+}
+
+
+class TorchPickleError(WaldoError, ValueError):
+    """A file that is not a readable torch checkpoint (truncated, corrupt, or using unsupported types)."""
+
+
+class _StorageType:
+    """Stand-in for `torch.FloatStorage` and friends: remembers the dtype."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.bfloat16 = name == "BFloat16Storage"
+        self.dtype = np.dtype(np.uint16 if self.bfloat16 else _STORAGE_DTYPES[name])
+
+
+class _Storage:
+    """A storage's element type and its flat data (filled in after the object pickle, for legacy files)."""
+
+    def __init__(self, storage_type: _StorageType, key: str, numel: int):
+        self.type = storage_type
+        self.key = key
+        self.numel = numel
+        self.data: np.ndarray | None = None
+
+
+class _LazyTensor:
+    """A tensor whose storage bytes are not read yet (legacy files put them after the pickle)."""
+
+    def __init__(self, storage: _Storage, offset: int, size: Tuple[int, ...], stride: Tuple[int, ...]):
+        self.storage, self.offset, self.size, self.stride = storage, offset, tuple(size), tuple(stride)
+
+    def materialise(self) -> np.ndarray:
+        data = self.storage.data
+        if data is None:
+            raise TorchPickleError(f"storage {self.storage.key!r} has no data in the file")
+        itemsize = data.dtype.itemsize
+        needed = self.offset + sum((n - 1) * s for n, s in zip(self.size, self.stride)) + 1 if all(self.size) else 0
+        if needed > data.size:
+            raise TorchPickleError(
+                f"tensor of size {self.size} at offset {self.offset} overruns its storage of {data.size} elements")
+        array = np.lib.stride_tricks.as_strided(
+            data[self.offset:], shape=self.size, strides=tuple(s * itemsize for s in self.stride), writeable=False)
+        array = np.array(array)  # own, contiguous copy
+        if self.storage.type.bfloat16:
+            array = (array.astype(np.uint32) << 16).view(np.float32)
+        return array
+
+
+def _rebuild_tensor(storage, storage_offset, size, stride, *unused):
+    return _LazyTensor(storage, storage_offset, size, stride)
+
+
+def _rebuild_parameter(data, requires_grad=None, backward_hooks=None, *unused):
+    return data
+
+
+_ALLOWED_GLOBALS: Dict[Tuple[str, str], Callable[..., Any]] = {
+    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
+    ("torch._utils", "_rebuild_tensor"): _rebuild_tensor,
+    ("torch._utils", "_rebuild_parameter"): _rebuild_parameter,
+    ("torch._utils", "_rebuild_parameter_with_state"): _rebuild_parameter,
+    ("collections", "OrderedDict"): collections.OrderedDict,
+    ("builtins", "set"): set,
+    ("builtins", "frozenset"): frozenset,
+    ("builtins", "slice"): slice,
+}
+
+
+class _Unpickler(pickle.Unpickler):
+    def __init__(self, file, storages: Dict[str, _Storage], path: str):
+        super().__init__(file, encoding="latin1")
+        self._storages = storages
+        self._path = path
+
+    def find_class(self, module: str, name: str):
+        if module == "torch" and name in _STORAGE_DTYPES:
+            return _StorageType(name)
+        if (module, name) in _ALLOWED_GLOBALS:
+            return _ALLOWED_GLOBALS[(module, name)]
+        if module == "torch" and name.endswith("Tensor") or module == "argparse" and name == "Namespace":
+            return _Opaque(f"{module}.{name}")
+        raise TorchPickleError(f"{self._path}: refusing to unpickle {module}.{name} (not a plain tensor checkpoint)")
+
+    def persistent_load(self, pid):
+        if not isinstance(pid, tuple) or not pid or pid[0] != "storage":
+            raise TorchPickleError(f"{self._path}: unknown persistent id {pid!r}")
+        storage_type, key, numel = pid[1], str(pid[2]), int(pid[4])
+        if not isinstance(storage_type, _StorageType):
+            raise TorchPickleError(f"{self._path}: unsupported storage type {storage_type!r}")
+        if key not in self._storages:
+            self._storages[key] = _Storage(storage_type, key, numel)
+        return self._storages[key]
+
+
+class _Opaque:
+    """A harmless stand-in for objects that checkpoints carry beside the weights (e.g. argparse args)."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __call__(self, *args, **kwargs):
+        return self
+
+    def __setstate__(self, state):
+        self.state = state
+
+    def __repr__(self):
+        return f"<{self.name}>"
+
+
+def _materialise(obj: Any) -> Any:
+    if isinstance(obj, _LazyTensor):
+        return obj.materialise()
+    if isinstance(obj, collections.OrderedDict):
+        return collections.OrderedDict((k, _materialise(v)) for k, v in obj.items())
+    if isinstance(obj, dict):
+        return {k: _materialise(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_materialise(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_materialise(v) for v in obj)
+    return obj
+
+
+def _read_legacy(raw: bytes, path: str) -> Any:
+    f = io.BytesIO(raw)
+    storages: Dict[str, _Storage] = {}
+    magic = pickle.load(f)
+    if magic != _LEGACY_MAGIC:
+        raise TorchPickleError(f"{path}: not a torch checkpoint (bad magic number)")
+    protocol = pickle.load(f)
+    if protocol != _LEGACY_PROTOCOL:
+        raise TorchPickleError(f"{path}: unsupported legacy torch protocol {protocol!r}")
+    sys_info = pickle.load(f)
+    if not sys_info.get("little_endian", True):
+        raise TorchPickleError(f"{path}: big-endian torch checkpoints are not supported")
+    obj = _Unpickler(f, storages, path).load()
+    keys = pickle.load(f)
+    for key in keys:
+        storage = storages.get(str(key))
+        if storage is None:
+            raise TorchPickleError(f"{path}: storage {key!r} listed but never referenced")
+        header = f.read(8)
+        if len(header) != 8:
+            raise TorchPickleError(f"{path}: truncated (storage {key!r} header missing)")
+        (count,) = struct.unpack("<q", header)
+        nbytes = count * storage.type.dtype.itemsize
+        data = f.read(nbytes)
+        if count != storage.numel or len(data) != nbytes:
+            raise TorchPickleError(f"{path}: truncated or corrupt (storage {key!r}: expected {storage.numel} "
+                                   f"elements, header says {count}, {len(data)} of {nbytes} bytes present)")
+        storage.data = np.frombuffer(data, dtype=storage.type.dtype.newbyteorder("<"))
+    return obj
+
+
+def _read_zip(path: str) -> Any:
+    storages: Dict[str, _Storage] = {}
+    with zipfile.ZipFile(path) as archive:
+        names = archive.namelist()
+        pickles = [n for n in names if n.endswith("data.pkl")]
+        if len(pickles) != 1:
+            raise TorchPickleError(f"{path}: a zip torch checkpoint holds one */data.pkl, found {len(pickles)}")
+        root = pickles[0][: -len("data.pkl")]
+        obj = _Unpickler(io.BytesIO(archive.read(pickles[0])), storages, path).load()
+        for key, storage in storages.items():
+            member = f"{root}data/{key}"
+            try:
+                data = archive.read(member)
+            except KeyError:
+                raise TorchPickleError(f"{path}: storage file {member} is missing") from None
+            nbytes = storage.numel * storage.type.dtype.itemsize
+            if len(data) < nbytes:
+                raise TorchPickleError(f"{path}: storage {member} has {len(data)} bytes, expected {nbytes}")
+            storage.data = np.frombuffer(data[:nbytes], dtype=storage.type.dtype.newbyteorder("<"))
+    return obj
+
+
+def read_torch_file(path: str | os.PathLike) -> Any:
+    """Reads a file written by `torch.save` (legacy or zip format) without importing torch.
+
+    Args:
+      path: the checkpoint file.
+
+    Returns:
+      The saved object, with every tensor (and `nn.Parameter`) as a NumPy array of its dtype and shape.
+
+    Raises:
+      DataNotFoundError: the file does not exist.
+      TorchPickleError: the file is not a torch checkpoint, is truncated or corrupt, or pickles
+        objects other than tensors and plain containers.
+    """
+    from waldo_jax.errors import DataNotFoundError
+
+    path = os.fspath(path)
+    if not Path(path).is_file():
+        raise DataNotFoundError(f"torch checkpoint not found: {path}")
+    try:
+        if zipfile.is_zipfile(path):
+            obj = _read_zip(path)
+        else:
+            obj = _read_legacy(Path(path).read_bytes(), path)
+    except TorchPickleError:
+        raise
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            struct.error, zipfile.BadZipFile) as exc:
+        raise TorchPickleError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+    return _materialise(obj)
+
+
+def state_dict(obj: Any, path: str = "checkpoint") -> Dict[str, np.ndarray]:
+    """The `{name: ndarray}` of a loaded checkpoint.
+
+    Accepts a bare state dict or one wrapped as `{"state_dict": ...}` / `{"model": ...}` /
+    `{"net": ...}`; drops a leading `module.` (from `DataParallel`) and non-array entries.
+
+    Raises:
+      TorchPickleError: no dict of arrays is found (the message names `path`).
+    """
+    if isinstance(obj, dict):
+        for wrapper in ("state_dict", "model", "net", "model_state_dict"):
+            if wrapper in obj and isinstance(obj[wrapper], dict):
+                obj = obj[wrapper]
+                break
+    if not isinstance(obj, dict):
+        raise TorchPickleError(f"{path}: expected a state dict, found {type(obj).__name__}")
+    tensors = {(k[len("module."):] if k.startswith("module.") else k): v
+               for k, v in obj.items() if isinstance(v, np.ndarray)}
+    if not tensors:
+        raise TorchPickleError(f"{path}: the state dict holds no tensors")
+    return tensors
