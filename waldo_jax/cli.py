@@ -7,6 +7,8 @@ Commands:
   waldo render RUN_DIR --poses FILE|train --out DIR    render poses with a trained field
   waldo explore SOURCE --criterion NAME --method M     search a scene (GRS / PIBS / EGPS), write results
   waldo demo [--out DIR] [--quick]                     the room end to end: train, search, report
+  waldo score --criterion NAME IMAGE... [--json]        score image files with a criterion
+  waldo weights convert SRC DST                        criterion weights to the native .npz format
 
 Bad input (a missing file, a malformed scene, an existing output folder) prints one line
 `waldo: error: ...` on stderr and exits with status 1, without a traceback.
@@ -162,6 +164,11 @@ def build_parser() -> argparse.ArgumentParser:
     from waldo_jax.commands_explore import add_explore_command
 
     add_explore_command(commands)
+
+    from waldo_jax.commands_criteria import add_score_command, add_weights_command
+
+    add_score_command(commands)
+    add_weights_command(commands)
 
     demo = commands.add_parser(
         "demo", help="the procedural Waldo room end to end: train a NeRF, run GRS/PIBS/EGPS, write a report",

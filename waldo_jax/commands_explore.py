@@ -20,7 +20,7 @@ __all__ = ["add_explore_command", "cmd_explore", "explore_config_from_args"]
 
 def add_explore_command(subparsers) -> None:
     """Registers `explore` on an argparse subparsers object (function as `handler`)."""
-    from waldo_jax.criteria import CRITERIA
+    from waldo_jax.commands_criteria import add_criterion_arguments
     from waldo_jax.search import METHODS
 
     p = subparsers.add_parser(
@@ -29,8 +29,7 @@ def add_explore_command(subparsers) -> None:
                     "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
                     "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.")
     p.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or a RUN_DIR of waldo train")
-    p.add_argument("--criterion", default="waldo_oracle",
-                   help=f"one of {', '.join(sorted(CRITERIA))} (default waldo_oracle, procedural room only)")
+    add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help=f"one of {', '.join(METHODS)} (default egps)")
     p.add_argument("--budget", default="low", help="low (250-300 images in total) or high (900-1000); default low")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -81,7 +80,7 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
 def cmd_explore(args: argparse.Namespace) -> int:
     """`waldo explore`: runs the search and writes its files into --out."""
     from waldo_jax import io
-    from waldo_jax.criteria import CriterionContext, make_criterion
+    from waldo_jax.commands_criteria import criterion_from_args
     from waldo_jax.exploration import INITIAL_MODES, run_explore, write_outputs
     from waldo_jax.sources import load_source
 
@@ -91,7 +90,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     out = io.prepare_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
     source = load_source(args.source, args.resolution, args.views)
-    criterion = make_criterion(args.criterion, CriterionContext(room=source.room, source=source.spec))
+    criterion = criterion_from_args(args, room=source.room, source=source.spec)
     try:
         config.resolve(source.n_train)
     except ValueError as e:

@@ -176,10 +176,12 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
     t_train = time.perf_counter()
 
     config = nerf["config"]
-    render = field_renderer(nerf["result"].params, nerf["result"].occupancy, config, scene.intrinsics, scene.near,
-                            scene.far, scene.aabb, scene.background)
+    renderer_args = (nerf["result"].params, nerf["result"].occupancy, config, scene.intrinsics, scene.near,
+                     scene.far, scene.aabb, scene.background)
+    render, render_rgba = field_renderer(*renderer_args), field_renderer(*renderer_args, rgba=True)
     source = Source(spec=str(out / "nerf"), kind="run", name=f"NeRF of procedural:{seed}",
-                    train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, train_images=scene.images,
+                    train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, render_rgba=render_rgba,
+                    train_images=scene.images,
                     train_names=scene.file_names, room=room, truth_render=_room_renderer(room, scene.intrinsics),
                     info={"procedural_seed": seed, "run_dir": str(out / "nerf"), "psnr_test": nerf["stats"]["psnr_test"]})
     criterion = make_criterion("waldo_oracle", CriterionContext(room=room, source=source.spec))

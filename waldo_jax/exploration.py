@@ -56,7 +56,16 @@ def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partia
     """c2w [P, 4, 4] -> scores [P]: render with the source and score, or score the poses directly."""
     if criterion.inputs == "poses":
         return jax.tree_util.Partial(_score_posed, criterion, source.intrinsics)
-    return jax.tree_util.Partial(_score_rendered, source.render, criterion)
+    return jax.tree_util.Partial(_score_rendered, _renderer(source, criterion), criterion)
+
+
+def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
+    """The source's renderer for the criterion: colour, or colour + opacity for a "renders" criterion."""
+    if criterion.inputs != "renders":
+        return source.render
+    if source.render_rgba is None:
+        raise WaldoError(f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give")
+    return source.render_rgba
 
 
 def initial_scores(source: Source, criterion: Criterion, initial: str = "images") -> tuple[np.ndarray, str]:
@@ -71,7 +80,7 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
             raise WaldoError(f"cannot score the real training images of {source.spec}: {source.train_images_note}; "
                              "use --initial renders to score renders at the training poses instead")
         return np.asarray(criterion.score_images(source.train_images), np.float32), "images"
-    return np.asarray(criterion.score_images(source.render(train_c2w)), np.float32), "renders"
+    return np.asarray(criterion.score_images(_renderer(source, criterion)(train_c2w)), np.float32), "renders"
 
 
 def seed_keys(seed: int, count: int):

@@ -60,6 +60,8 @@ class Source:
         `render`); None otherwise.
       info: facts for results files (seed, run directory, held-out PSNR of the run, ...).
       train_images_note: why `train_images` is None ("" otherwise).
+      render_rgba: as `render` but returning rgba [P, H, W, 4] with the accumulated opacity as alpha,
+        for criteria that guard against empty views; None when the source cannot give opacity.
     """
 
     spec: str
@@ -74,6 +76,7 @@ class Source:
     truth_render: Optional[jax.tree_util.Partial] = None
     info: Dict[str, Any] = dataclasses.field(default_factory=dict)
     train_images_note: str = ""
+    render_rgba: Optional[jax.tree_util.Partial] = None
 
     @property
     def n_train(self) -> int:
@@ -94,40 +97,53 @@ def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
 
-def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array) -> Array:
+def _output(out, rgba: bool) -> Array:
+    """rgb [P, H, W, 3], or rgba [P, H, W, 4] with the accumulated opacity as alpha."""
+    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1) if rgba else out.rgb
+
+
+def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgba: bool = False) -> Array:
     from waldo_jax.procedural import room_field
     from waldo_jax.render import render_views
 
-    return render_views(room_field, room, c2w, intrinsics, render_config).rgb
+    return _output(render_views(room_field, room, c2w, intrinsics, render_config), rgba)
 
 
-def _render_field(params, occupancy, intrinsics: Intrinsics, render_config, c2w: Array, *, config) -> Array:
+_render_room_rgba = functools.partial(_render_room, rgba=True)
+
+
+def _render_field(params, occupancy, intrinsics: Intrinsics, render_config, c2w: Array, *, config,
+                  rgba: bool = False) -> Array:
     from waldo_jax.nerf.train import make_sampler
 
-    return make_sampler(config).render_views(params, occupancy, c2w, intrinsics, render_config).rgb
+    return _output(make_sampler(config).render_views(params, occupancy, c2w, intrinsics, render_config), rgba)
 
 
-def _room_renderer(room, intrinsics: Intrinsics) -> jax.tree_util.Partial:
+def _room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
     from waldo_jax.procedural import room_render_config
 
-    return jax.tree_util.Partial(_render_room, room, intrinsics, room_render_config(room, num_samples=_ROOM_SAMPLES))
+    return jax.tree_util.Partial(_render_room_rgba if rgba else _render_room, room, intrinsics,
+                                 room_render_config(room, num_samples=_ROOM_SAMPLES))
 
 
 @functools.lru_cache(maxsize=None)
-def _field_fn(config):
+def _field_fn(config, rgba: bool = False):
     """One function object per training config, so that Partials of equal configs share compilations."""
-    return functools.partial(_render_field, config=config)
+    return functools.partial(_render_field, config=config, rgba=rgba)
 
 
 def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: float, far: float, aabb,
-                   background) -> jax.tree_util.Partial:
-    """The renderer of a trained field (`waldo_jax.nerf.train`'s sampler) as a Partial c2w -> rgb."""
+                   background, rgba: bool = False) -> jax.tree_util.Partial:
+    """The renderer of a trained field (`waldo_jax.nerf.train`'s sampler) as a Partial c2w -> rgb.
+
+    With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity.
+    """
     from waldo_jax.nerf.train import _render_config
 
     render_config = _render_config(config, near, far, np.asarray(aabb, np.float32), background, config.eval_samples)
     params = jax.tree.map(jnp.asarray, params)
     occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
-    return jax.tree_util.Partial(_field_fn(config), params, occupancy, intrinsics, render_config)
+    return jax.tree_util.Partial(_field_fn(config, rgba), params, occupancy, intrinsics, render_config)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,7 +181,8 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
         images = resize_images(images, intrinsics.width, intrinsics.height)
     return Source(spec=f"procedural:{seed}", kind="procedural", name=f"procedural:{seed}",
                   train_c2w=np.asarray(scene.c2w, np.float32), intrinsics=intrinsics,
-                  render=_room_renderer(room, intrinsics), train_images=np.asarray(images, np.float32),
+                  render=_room_renderer(room, intrinsics), render_rgba=_room_renderer(room, intrinsics, rgba=True),
+                  train_images=np.asarray(images, np.float32),
                   train_names=tuple(scene.file_names), room=room,
                   info={"procedural_seed": int(seed), "views": int(views)})
 
@@ -210,8 +227,9 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
             raise SourceError(f"--resolution must be between 8 and 4096, got {resolution}")
         intrinsics = intrinsics.with_max_side(int(resolution))
     background = record.background if record.background is not None else np.zeros(3, np.float32)
-    render = field_renderer(checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near,
-                            record.far, record.aabb, background)
+    renderer_args = (checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near, record.far,
+                     record.aabb, background)
+    render, render_rgba = field_renderer(*renderer_args), field_renderer(*renderer_args, rgba=True)
     info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
             "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
     room, truth = None, None
@@ -228,7 +246,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     else:
         images, note = _run_train_images(record, intrinsics)
     return Source(spec=str(run_dir), kind="run", name=run.resolve().name, train_c2w=np.asarray(record.c2w, np.float32),
-                  intrinsics=intrinsics, render=render, train_images=images, train_names=tuple(record.file_names),
+                  intrinsics=intrinsics, render=render, render_rgba=render_rgba, train_images=images,
+                  train_names=tuple(record.file_names),
                   room=room, truth_render=truth, info=info, train_images_note=note)
 
 

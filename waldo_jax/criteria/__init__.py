@@ -6,10 +6,17 @@ builds one from the registry `CRITERIA` (the names `--criterion` accepts):
   * `waldo_oracle` (poses, max): the share of the image showing un-occluded Waldo, exact, for the
     procedural room;
   * `waldo_visible` (poses, max): the visible fraction of Waldo, exact, for the procedural room;
-  * `colorfulness` (images, max): Hasler and Suesstrunk's colourfulness M.
+  * `colorfulness` (images, max): Hasler and Suesstrunk's colourfulness M;
+  * `composition` (images, max, [1, 5]): rule-based composition from the CSNet saliency map;
+  * `opacity` (renders, max, [0, 1]): mean accumulated opacity, the guard against empty views.
+
+`build_criterion(spec, context, guards)` (in `combine`) adds `weighted:NAME=W,...` and `--guard`
+(`constrained`) on top of the registry.
 """
 
 from waldo_jax.criteria import colorfulness as colorfulness
+from waldo_jax.criteria import combine as combine
+from waldo_jax.criteria import composition as composition
 from waldo_jax.criteria import oracle as oracle
 from waldo_jax.criteria.base import CRITERIA as CRITERIA
 from waldo_jax.criteria.base import Criterion as Criterion
@@ -18,3 +25,6 @@ from waldo_jax.criteria.base import CriterionError as CriterionError
 from waldo_jax.criteria.base import CriterionSpec as CriterionSpec
 from waldo_jax.criteria.base import make_criterion as make_criterion
 from waldo_jax.criteria.base import register as register
+from waldo_jax.criteria.combine import build_criterion as build_criterion
+from waldo_jax.criteria.combine import constrained as constrained
+from waldo_jax.criteria.combine import weighted as weighted

@@ -5,9 +5,12 @@ its numeric `params` (network weights, the procedural room, ...) are leaves, so 
 arguments rather than compile-time constants; everything else (name, direction, the function) is
 static.
 
-Two kinds of input:
+Three kinds of input:
   * `inputs == "images"`: `apply(params, images)` with images float32 [P, H, W, 3] in [0, 1]
     (resizing to a network's input size and normalisation happen inside `apply`);
+  * `inputs == "renders"`: `apply(params, rgba)` with rgba float32 [P, H, W, 4]: the colour and the
+    renderer's accumulated opacity, for guards against empty views (`opacity`) and combinations that
+    hold one; photographs (training images, files) have opacity 1;
   * `inputs == "poses"`: `apply(params, c2w, intrinsics)` with c2w float32 [P, 4, 4], for oracles
     that know the scene's geometry and need no render (the procedural room's `waldo_oracle`).
 
@@ -42,9 +45,10 @@ __all__ = [
     "worst_score",
     "finite_or_worst",
     "sanitize_images",
+    "with_opacity",
 ]
 
-INPUTS = ("images", "poses")
+INPUTS = ("images", "renders", "poses")
 
 
 class CriterionError(WaldoError, ValueError):
@@ -60,8 +64,9 @@ class Criterion:
       name: registry name, e.g. "waldo_oracle".
       direction: "max" when higher scores are better, "min" when lower ones are.
       value_range: (low, high) of the scores (inf where unbounded), for plots and reports.
-      inputs: "images" or "poses" (see the module docstring).
-      apply: the pure function, `apply(params, images)` or `apply(params, c2w, intrinsics)`.
+      inputs: "images", "renders" or "poses" (see the module docstring).
+      apply: the pure function, `apply(params, images)`, `apply(params, rgba)` or
+        `apply(params, c2w, intrinsics)`.
       description: one line for reports and `--help`.
     """
 
@@ -74,13 +79,20 @@ class Criterion:
     description: str = flax.struct.field(pytree_node=False, default="")
 
     def score_images(self, images: Array) -> Array:
-        """Scores [P] of images float32 [P, H, W, 3] in [0, 1] (an "images" criterion)."""
-        if self.inputs != "images":
+        """Scores [P] of images float32 [P, H, W, 3] in [0, 1] (photographs: opacity 1).
+
+        Also takes rgba renders [P, H, W, 4]; an "images" criterion ignores their opacity and a
+        "renders" criterion given colour alone treats every pixel as opaque.
+        """
+        if self.inputs == "poses":
             raise CriterionError(f"criterion {self.name!r} scores camera poses, not images")
         images = jnp.asarray(images, jnp.float32)
-        if images.ndim != 4 or images.shape[-1] != 3:
-            raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3], got shape {images.shape}")
-        return jnp.asarray(self.apply(self.params, images), jnp.float32)
+        if images.ndim != 4 or images.shape[-1] not in (3, 4):
+            raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), "
+                                 f"got shape {images.shape}")
+        if self.inputs == "images":
+            return jnp.asarray(self.apply(self.params, images[..., :3]), jnp.float32)
+        return jnp.asarray(self.apply(self.params, with_opacity(images)), jnp.float32)
 
     def score_poses(self, c2w: Array, intrinsics: Intrinsics) -> Array:
         """Scores [P] of cameras c2w [P, 4, 4] with the given intrinsics (a "poses" criterion)."""
@@ -95,6 +107,14 @@ def worst_score(direction: str, value_range: Tuple[float, float]) -> float:
     if not np.isfinite(worst):
         raise ValueError(f"the bad end of value_range {value_range} (direction {direction}) must be finite")
     return float(worst)
+
+
+def with_opacity(images: Array) -> Array:
+    """rgba [P, H, W, 4]: `images` as given if they have 4 channels, else colour with opacity 1."""
+    images = jnp.asarray(images, jnp.float32)
+    if images.shape[-1] == 4:
+        return images
+    return jnp.concatenate([images, jnp.ones_like(images[..., :1])], axis=-1)
 
 
 def sanitize_images(images: Array) -> Tuple[Array, Array]:

@@ -1,0 +1,176 @@
+"""The artefact guard (`opacity`), `constrained`, `weighted`, the CLI spec parser, and composition rules."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import waldo_jax  # noqa: F401
+from waldo_jax.cli import main
+from waldo_jax.criteria import (Criterion, CriterionContext, CriterionError, build_criterion, constrained,
+                                make_criterion, weighted)
+from waldo_jax.criteria.combine import parse_guard
+from waldo_jax.criteria.composition import composition_from_map, composition_terms
+
+
+def _rgba(colors, alphas, size=8):
+    """Renders [P, size, size, 4] with flat colours [P, 3] and opacities [P]."""
+    colors = np.asarray(colors, np.float32)[:, None, None, :] * np.ones((1, size, size, 1), np.float32)
+    alphas = np.asarray(alphas, np.float32)[:, None, None, None] * np.ones((1, size, size, 1), np.float32)
+    return np.concatenate([colors, alphas], axis=-1)
+
+
+def _brightness(direction="max", value_range=(0.0, 1.0)):
+    """A toy image criterion: the mean intensity."""
+    return Criterion(params=(), name="bright", direction=direction, value_range=value_range, inputs="images",
+                     apply=lambda p, images: jnp.mean(images, axis=(1, 2, 3)), description="mean intensity")
+
+
+def test_opacity_is_the_mean_alpha_and_photographs_are_opaque():
+    op = make_criterion("opacity")
+    assert op.inputs == "renders" and op.direction == "max"
+    renders = _rgba([[1, 0, 0], [0, 1, 0], [0, 0, 1]], [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(op.score_images(renders), [0.0, 0.5, 1.0], atol=1e-6)
+    half = renders.copy()
+    half[1, :4, :, 3] = 1.0
+    half[1, 4:, :, 3] = 0.0
+    assert float(op.score_images(half)[1]) == pytest.approx(0.5)
+    np.testing.assert_array_equal(op.score_images(renders[..., :3]), [1.0, 1.0, 1.0])  # no alpha: a photograph
+    nan = renders.copy()
+    nan[2, 0, 0, 0] = np.nan
+    assert float(op.score_images(nan)[2]) == 0.0
+
+
+def test_constrained_gives_the_worst_score_where_the_guard_fails():
+    guarded = constrained(_brightness(), make_criterion("opacity"), 0.9)
+    assert guarded.name == "bright|opacity>=0.9" and guarded.inputs == "renders"
+    renders = _rgba([[0.8] * 3, [0.6] * 3, [0.9] * 3], [1.0, 0.95, 0.2])
+    np.testing.assert_allclose(guarded.score_images(renders), [0.8, 0.6, 0.0], atol=1e-6)
+    # a "min" primary gets its upper bound; a "min" guard passes below the threshold
+    low = constrained(_brightness("min"), make_criterion("opacity"), 0.9)
+    np.testing.assert_allclose(low.score_images(renders), [0.8, 0.6, 1.0], atol=1e-6)
+    dark_guard = constrained(_brightness(), _brightness("min"), 0.7)
+    np.testing.assert_allclose(dark_guard.score_images(renders[..., :3]), [0.0, 0.6, 0.0], atol=1e-6)
+    assert dark_guard.inputs == "images"
+    with pytest.raises(CriterionError, match="no finite worst score"):
+        constrained(_brightness(value_range=(-np.inf, 1.0)), make_criterion("opacity"), 0.5)
+
+
+def test_weighted_normalises_by_value_range_and_direction():
+    a = _brightness(value_range=(0.0, 1.0))
+    b = _brightness("min", value_range=(0.0, 2.0))  # lower is better: 0 -> 1, 2 -> 0
+    combined = weighted([a, b], [3.0, 1.0])
+    assert combined.direction == "max" and combined.value_range == (0.0, 1.0)
+    images = np.stack([np.full((4, 4, 3), v, np.float32) for v in (0.0, 0.5, 1.0)])
+    expected = [0.75 * v + 0.25 * (1 - v / 2) for v in (0.0, 0.5, 1.0)]
+    np.testing.assert_allclose(combined.score_images(images), expected, atol=1e-6)
+    # the weights are leaves of the params: a sweep can vmap over them
+    sweep = jax.vmap(lambda w: combined.apply((combined.params[0], w), jnp.asarray(_rgba([[0.5] * 3], [1.0]))))
+    out = sweep(jnp.array([[1.0, 0.0], [0.0, 1.0]]))
+    np.testing.assert_allclose(out[:, 0], [0.5, 0.75], atol=1e-6)
+    with pytest.raises(CriterionError, match="not finite at both ends"):
+        weighted([a, make_criterion("colorfulness")], [1, 1])
+    with pytest.raises(CriterionError, match="one weight per criterion"):
+        weighted([a], [1, 2])
+    with pytest.raises(CriterionError, match="not all 0"):
+        weighted([a, b], [0, 0])
+
+
+def test_combinations_refuse_pose_oracles():
+    from waldo_jax.procedural import make_room
+
+    oracle = make_criterion("waldo_oracle", CriterionContext(room=make_room(0)))
+    with pytest.raises(CriterionError, match="scores poses"):
+        constrained(oracle, make_criterion("opacity"), 0.5)
+
+
+def test_build_criterion_parses_the_command_line_forms():
+    c = build_criterion("colorfulness", guards=["opacity:0.9"])
+    assert c.name == "colorfulness|opacity>=0.9" and c.inputs == "renders"
+    w = build_criterion("weighted:opacity=2,opacity")
+    assert w.name == "weighted:opacity=2,opacity=1"
+    assert parse_guard("opacity:0.25") == ("opacity", 0.25)
+    for bad in ("opacity", "opacity:x", ":0.5", "opacity:nan"):
+        with pytest.raises(CriterionError, match="bad --guard"):
+            parse_guard(bad)
+    with pytest.raises(CriterionError, match="unknown criterion 'nope'"):
+        build_criterion("weighted:nope=1")
+    with pytest.raises(CriterionError, match="bad weight 'x'"):
+        build_criterion("weighted:opacity=x")
+
+
+def test_guarded_criterion_runs_inside_a_jitted_search_step():
+    """The combined criterion is a pytree whose static side hashes: one trace for two calls."""
+    guarded = constrained(_brightness(), make_criterion("opacity"), 0.9)
+    traces = []
+
+    @jax.jit
+    def step(criterion, rgba):
+        traces.append(1)
+        return criterion.apply(criterion.params, rgba)
+
+    renders = jnp.asarray(_rgba([[0.5] * 3, [0.7] * 3], [1.0, 0.1]))
+    step(guarded, renders)
+    again = constrained(_brightness(), make_criterion("opacity"), 0.5)  # new threshold: a traced leaf
+    np.testing.assert_allclose(step(again, renders), [0.5, 0.0], atol=1e-6)
+    assert len(traces) <= 2  # toy criteria are new lambdas; the guard machinery adds no retrace
+    np.testing.assert_allclose(step(guarded, renders), [0.5, 0.0], atol=1e-6)
+
+
+def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    paths = []
+    for i, (rgb, alpha) in enumerate([((255, 0, 0), 255), ((0, 0, 0), 0), ((40, 40, 40), 255)]):
+        image = np.zeros((6, 5 + i, 4), np.uint8)  # three sizes: three batched calls
+        image[..., :3] = rgb
+        image[..., 3] = alpha
+        paths.append(tmp_path / f"{i}.png")
+        iio.imwrite(paths[-1], image)
+    assert main(["score", "--criterion", "opacity", *map(str, paths), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out == {"criterion": "opacity", "direction": "max", "scores": [1.0, 0.0, 1.0]}
+    assert main(["score", "--criterion", "colorfulness", str(paths[0]), str(paths[2])]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("# colorfulness (higher is better)")
+    assert float(lines[1].split()[0]) == pytest.approx(0.3 * np.hypot(255, 127.5), rel=1e-5) and abs(float(lines[2].split()[0])) < 1e-3  # red vs grey
+    assert main(["score", "--criterion", "colorfulness", str(tmp_path / "missing.png")]) == 1
+    assert "image not found" in capsys.readouterr().err
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    assert main(["score", "--criterion", "colorfulness", str(tmp_path / "junk.png")]) == 1
+    assert "junk.png: not a readable image" in capsys.readouterr().err
+    assert main(["score", "--criterion", "waldo_oracle", str(paths[0])]) == 1
+    assert "needs the procedural Waldo room" in capsys.readouterr().err
+
+
+def _blob_map(cx, cy, radius=0.15, size=96):
+    ys, xs = (np.mgrid[0:size, 0:size] + 0.5) / size
+    return ((xs - cx) ** 2 + (ys - cy) ** 2 <= radius**2).astype(np.float32)
+
+
+def test_composition_prefers_power_points_to_corners_and_edges():
+    power = float(composition_from_map(_blob_map(1 / 3, 1 / 3)))
+    corner = float(composition_from_map(_blob_map(0.15, 0.15)))
+    edge = float(composition_from_map(_blob_map(0.5, 0.15)))
+    centre = float(composition_from_map(_blob_map(0.5, 0.5)))
+    assert 1.0 <= corner < edge < power <= 5.0
+    assert corner < centre < power
+    for cx, cy in [(1 / 3, 2 / 3), (2 / 3, 1 / 3), (2 / 3, 2 / 3)]:  # the four power points are equivalent
+        assert float(composition_from_map(_blob_map(cx, cy))) == pytest.approx(power, abs=1e-5)
+
+
+def test_composition_terms_on_analytic_maps():
+    terms = {k: float(v) for k, v in composition_terms(_blob_map(1 / 3, 1 / 3)).items()}
+    assert terms["thirds"] == pytest.approx(1.0, abs=1e-3)
+    assert terms["balance"] == pytest.approx(np.exp(-(2 * (1 / 6) ** 2) / (2 * 0.25**2)), abs=2e-3)
+    assert terms["emphasis"] == 1.0  # area pi 0.15^2 = 0.07, inside [0.05, 0.5]
+    assert float(composition_terms(_blob_map(0.5, 0.5))["symmetry"]) == pytest.approx(1.0, abs=1e-6)
+    empty = {k: float(v) for k, v in composition_terms(np.zeros((32, 32), np.float32)).items()}
+    assert empty["emphasis"] == 0.0 and empty["symmetry"] == 0.0
+    full = composition_terms(np.ones((32, 32), np.float32))
+    assert float(full["emphasis"]) == 0.0  # a view that is all "subject" has no subject
+    assert float(composition_from_map(np.zeros((32, 32), np.float32))) < float(composition_from_map(_blob_map(0.5, 0.5)))

@@ -1,0 +1,255 @@
+"""Weights: the torch pickle reader (legacy and zip, written here without torch), the native store,
+`waldo weights convert`."""
+
+from __future__ import annotations
+
+import collections
+import io
+import json
+import pickle
+import struct
+import zipfile
+
+import numpy as np
+import pytest
+
+import waldo_jax  # noqa: F401  (before jax: XLA flags)
+from waldo_jax.cli import main
+from waldo_jax.errors import DataNotFoundError
+from waldo_jax.weights import (TorchPickleError, WeightsError, check_shapes, load_native, read_torch_file,
+                               save_native, state_dict)
+from waldo_jax.weights.store import convert_all
+
+from conftest import require_weights
+
+
+# --- writing torch checkpoints without torch ------------------------------------------------------
+# A tensor pickles as REDUCE(torch._utils._rebuild_tensor_v2, (storage, offset, size, stride,
+# requires_grad, hooks)), its storage as a persistent id ("storage", torch.FloatStorage, key,
+# location, numel). The pure-Python pickler lets us emit those globals by name.
+
+class _Global:
+    def __init__(self, module, name):
+        self.module, self.name = module, name
+
+    def __call__(self):  # pickle wants a callable in REDUCE; never called here
+        raise NotImplementedError
+
+
+_REBUILD = _Global("torch._utils", "_rebuild_tensor_v2")
+_STORAGE_NAMES = {np.dtype(np.float32): "FloatStorage", np.dtype(np.int64): "LongStorage",
+                  np.dtype(np.float64): "DoubleStorage", np.dtype(np.float16): "HalfStorage"}
+
+
+class _FakeStorage:
+    def __init__(self, key, array):
+        self.key, self.array = key, np.ascontiguousarray(array).ravel()
+
+
+class _FakeTensor:
+    def __init__(self, storage, offset, shape, stride):
+        self.storage, self.offset, self.shape, self.stride = storage, offset, shape, stride
+
+
+class _TorchPickler(pickle._Pickler):
+    def reducer_override(self, obj):
+        if isinstance(obj, _FakeTensor):
+            return _REBUILD, (obj.storage, obj.offset, obj.shape, obj.stride, False, collections.OrderedDict())
+        return NotImplemented
+
+    def save(self, obj, save_persistent_id=True):
+        if isinstance(obj, _Global):
+            self.write(pickle.GLOBAL + f"{obj.module}\n{obj.name}\n".encode())
+            return
+        super().save(obj, save_persistent_id)
+
+    def persistent_id(self, obj):
+        if isinstance(obj, _FakeStorage):
+            storage_type = _Global("torch", _STORAGE_NAMES[obj.array.dtype])
+            return ("storage", storage_type, obj.key, "cpu", obj.array.size)
+        return None
+
+
+def _tensors(arrays):
+    """One storage and one contiguous fake tensor per array."""
+    storages, obj = [], collections.OrderedDict()
+    for i, (name, array) in enumerate(arrays.items()):
+        storage = _FakeStorage(str(i), array)
+        storages.append(storage)
+        strides = tuple(s // array.itemsize for s in np.require(array, requirements="C").strides)
+        obj[name] = _FakeTensor(storage, 0, array.shape, strides)
+    return storages, obj
+
+
+def _dumps(obj):
+    buffer = io.BytesIO()
+    _TorchPickler(buffer, protocol=2).dump(obj)
+    return buffer.getvalue()
+
+
+def write_legacy(path, arrays, wrap=True):
+    storages, tensors = _tensors(arrays)
+    obj = {"epoch": 3, "state_dict": tensors} if wrap else tensors
+    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
+             pickle.dumps({"protocol_version": 1001, "little_endian": True}, protocol=2), _dumps(obj),
+             pickle.dumps([s.key for s in storages], protocol=2)]
+    for s in storages:
+        parts.append(struct.pack("<q", s.array.size) + s.array.astype(s.array.dtype.newbyteorder("<")).tobytes())
+    path.write_bytes(b"".join(parts))
+
+
+def write_zip(path, arrays):
+    storages, tensors = _tensors(arrays)
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("archive/data.pkl", _dumps(tensors))
+        archive.writestr("archive/version", "3\n")
+        for s in storages:
+            archive.writestr(f"archive/data/{s.key}", s.array.tobytes())
+
+
+ARRAYS = {
+    "conv.weight": np.arange(2 * 3 * 3 * 3, dtype=np.float32).reshape(2, 3, 3, 3) / 7,
+    "conv.bias": np.array([0.5, -1.25], np.float32),
+    "bn.num_batches_tracked": np.array(12, np.int64),
+    "fc.weight": np.random.default_rng(0).normal(size=(4, 5)).astype(np.float64),
+}
+
+
+@pytest.mark.parametrize("writer", [write_legacy, write_zip], ids=["legacy", "zip"])
+def test_reader_round_trips_tensors_bit_exactly(tmp_path, writer):
+    path = tmp_path / "model.pth"
+    writer(path, ARRAYS)
+    got = state_dict(read_torch_file(path))
+    assert list(got) == list(ARRAYS)
+    for name, array in ARRAYS.items():
+        assert got[name].dtype == array.dtype and got[name].shape == array.shape
+        np.testing.assert_array_equal(got[name], array)
+
+
+def test_reader_honours_offsets_and_strides(tmp_path):
+    """A transposed view at an offset into a shared storage (as torch saves `w.t()` or a slice)."""
+    base = np.arange(30, dtype=np.float32)
+    storage = _FakeStorage("0", base)
+    obj = collections.OrderedDict(
+        t=_FakeTensor(storage, 2, (4, 3), (1, 4)),  # columns of a 3x4 block starting at element 2
+        tail=_FakeTensor(storage, 20, (10,), (1,)))
+    path = tmp_path / "views.pth"
+    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
+             pickle.dumps({"little_endian": True}, protocol=2), _dumps(obj), pickle.dumps(["0"], protocol=2),
+             struct.pack("<q", base.size) + base.tobytes()]
+    path.write_bytes(b"".join(parts))
+    got = read_torch_file(path)
+    np.testing.assert_array_equal(got["t"], base[2:14].reshape(3, 4).T)
+    np.testing.assert_array_equal(got["tail"], base[20:30])
+
+
+def test_reader_refuses_code_and_reports_corruption(tmp_path):
+    evil = tmp_path / "evil.pth"
+    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
+             pickle.dumps({"little_endian": True}, protocol=2), b"cos\nsystem\n(S'true'\ntR."]
+    evil.write_bytes(b"".join(parts))
+    with pytest.raises(TorchPickleError, match="refusing to unpickle os.system"):
+        read_torch_file(evil)
+
+    good = tmp_path / "good.pth"
+    write_legacy(good, ARRAYS)
+    raw = good.read_bytes()
+    truncated = tmp_path / "truncated.pth"
+    truncated.write_bytes(raw[:-10])
+    with pytest.raises(TorchPickleError, match="truncated.pth.*truncated or corrupt"):
+        read_torch_file(truncated)
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_bytes(b"\x00" * 100)
+    with pytest.raises(TorchPickleError, match="garbage.pth"):
+        read_torch_file(garbage)
+    with pytest.raises(DataNotFoundError, match="nope.pth"):
+        read_torch_file(tmp_path / "nope.pth")
+
+
+def test_reader_reads_the_real_checkpoints():
+    csnet = state_dict(read_torch_file(require_weights("csnet/csnet-L-x1.pth.tar")))
+    assert len(csnet) == 739
+    counted = sum(v.size for k, v in csnet.items() if not k.endswith("num_batches_tracked"))
+    assert counted == 97_921  # the count ../shared/README.md gives (weights + BN statistics)
+    cnniqa = state_dict(read_torch_file(require_weights("cnniqa/CNNIQA-LIVE")))
+    assert {k: v.shape for k, v in cnniqa.items()} == {
+        "conv1.weight": (50, 1, 7, 7), "conv1.bias": (50,), "fc1.weight": (800, 100), "fc1.bias": (800,),
+        "fc2.weight": (800, 800), "fc2.bias": (800,), "fc3.weight": (1, 800), "fc3.bias": (1,)}
+    assert all(np.all(np.isfinite(v)) for v in cnniqa.values())
+
+
+def test_check_shapes_names_the_first_mismatch():
+    arrays = {"a": np.zeros((2, 3)), "b": np.zeros(4)}
+    check_shapes({"a": (2, 3), "b": (4,)}, arrays, "x.pth")
+    with pytest.raises(WeightsError, match=r"x.pth: weight 'a' has shape \(2, 3\), expected \(3, 2\)"):
+        check_shapes({"a": (3, 2), "b": (4,)}, arrays, "x.pth")
+    with pytest.raises(WeightsError, match="missing weight 'c'"):
+        check_shapes({"a": (2, 3), "b": (4,), "c": (1,)}, arrays, "x.pth")
+    with pytest.raises(WeightsError, match="unexpected weight 'b'"):
+        check_shapes({"a": (2, 3)}, arrays, "x.pth")
+
+
+def test_native_store_round_trip_and_errors(tmp_path):
+    tree = {"layer": {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.ones(3, np.float32)},
+            "gamma": np.float32(0.05)}
+    path = save_native(tmp_path / "m" / "m.npz", "m", tree, {"splits": [[1, 2], [3]]})
+    got, meta = load_native(path, "m")
+    assert meta == {"splits": [[1, 2], [3]]}
+    np.testing.assert_array_equal(got["layer"]["w"], tree["layer"]["w"])
+    assert got["gamma"].dtype == np.float32 and got["gamma"] == np.float32(0.05)
+    with pytest.raises(WeightsError, match="holds weights of 'm', expected 'other'"):
+        load_native(path, "other")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(path.read_bytes()[:50])
+    with pytest.raises(WeightsError, match="bad.npz: not a readable weights archive"):
+        load_native(bad, "m")
+    np.savez(tmp_path / "foreign.npz", a=np.zeros(2))
+    with pytest.raises(WeightsError, match="not a waldo weights archive"):
+        load_native(tmp_path / "foreign.npz", "m")
+
+
+def test_weights_convert_cli_writes_loadable_files(tmp_path, capsys):
+    import waldo_jax.criteria  # noqa: F401  (registers converters)
+    from waldo_jax.weights import CONVERTERS, load_model
+
+    src = require_weights("cnniqa/CNNIQA-LIVE").parent.parent
+    dst = tmp_path / "converted"
+    models = sorted(CONVERTERS)
+    assert main(["weights", "convert", str(src), str(dst)]) == 0
+    out = capsys.readouterr().out
+    assert f"converted {len(models)} model(s)" in out
+    for model in models:
+        native, native_meta = load_model(model, dst)
+        original, original_meta = CONVERTERS[model].read(src / model)
+        assert json.dumps(native_meta, sort_keys=True) == json.dumps(original_meta, sort_keys=True)
+        flat_native = dict(_flat(native))
+        flat_original = dict(_flat(original))
+        assert flat_native.keys() == flat_original.keys()
+        for key in flat_native:
+            np.testing.assert_array_equal(flat_native[key], flat_original[key])
+    # never overwrite silently
+    assert main(["weights", "convert", str(src), str(dst)]) == 1
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert main(["weights", "convert", str(src), str(dst), "--force", "--model", models[0]]) == 0
+    with pytest.raises(DataNotFoundError, match=f"expected {tmp_path}/{models[0]}/"):
+        convert_all(tmp_path, tmp_path / "out", [models[0]])
+
+
+def test_missing_weights_name_the_expected_file(tmp_path):
+    from waldo_jax.criteria import CriterionContext, make_criterion
+
+    import waldo_jax.criteria  # noqa: F401
+    from waldo_jax.weights import CONVERTERS
+
+    for model in CONVERTERS:
+        name = {"csnet": "saliency", "cnniqa": "iqa_cnn"}.get(model, model)
+        with pytest.raises(DataNotFoundError, match=f"expected {tmp_path}/{model}/"):
+            make_criterion(name, CriterionContext(weights_dir=str(tmp_path)))
+
+
+def _flat(tree, prefix=""):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _flat(value, f"{prefix}{key}/")
+    else:
+        yield prefix, np.asarray(tree)

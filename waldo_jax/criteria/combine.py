@@ -1,0 +1,213 @@
+"""The artefact guard and criterion combinations.
+
+The paper names empty views as a failure mode of NeRF scene-space search: a camera that looks into
+free space (or out of the scene's bounds) renders the background, and a criterion can like that
+view (an empty image may be "high quality", a flat sky may be "salient"). The renderer knows: the
+accumulated opacity of a ray is ~0 where it met nothing. Three tools:
+
+  * `opacity` (renders, max, [0, 1]): the mean accumulated opacity of the view. Photographs
+    count as fully opaque.
+  * `constrained(primary, guard, threshold)`: the primary score where the guard passes (a "max"
+    guard at or above `threshold`, a "min" guard at or below it), the primary's worst score
+    elsewhere. On the command line: `--criterion saliency --guard opacity:0.9`.
+  * `weighted(parts, weights)`: sum_i w_i * n_i(s_i) / sum_i w_i, where n_i maps criterion i's
+    `value_range` linearly onto [0, 1] with 1 the good end (flipped for "min" criteria) and clips.
+    Direction max, range [0, 1]. On the command line: `--criterion weighted:saliency=0.7,iqa_cnn=0.3`.
+
+Combinations take "images" and "renders" criteria (pose oracles score no image). The combined
+criterion is a "renders" criterion when any part is one, so the search renders opacity only when
+it is used. Child parameters stay leaves of the combined criterion's params (traced under jit);
+the weights are leaves too, so a sweep can vmap over them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Optional, Sequence, Tuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, finite_or_worst,
+                                     make_criterion, register, worst_score)
+from waldo_jax.types import Array
+
+__all__ = ["opacity", "mean_opacity", "constrained", "weighted", "build_criterion", "parse_guard"]
+
+
+def mean_opacity(rgba: Array) -> Array:
+    """Mean accumulated opacity [P] of renders rgba [P, H, W, 4]; 0 for a render holding NaN."""
+    alpha = rgba[..., 3]
+    bad = ~jnp.all(jnp.isfinite(rgba), axis=(1, 2, 3))
+    return finite_or_worst(jnp.mean(jnp.clip(alpha, 0.0, 1.0), axis=(1, 2)), bad, 0.0)
+
+
+def _opacity_apply(params, rgba: Array) -> Array:
+    del params
+    return mean_opacity(rgba)
+
+
+_OPACITY_DESCRIPTION = "mean accumulated opacity of the render (empty views score ~0; photographs 1)"
+
+
+def opacity(context: Optional[CriterionContext] = None) -> Criterion:
+    """The `opacity` criterion: mean accumulated opacity of the render, direction max, in [0, 1]."""
+    del context
+    return Criterion(params=(), name="opacity", direction="max", value_range=(0.0, 1.0), inputs="renders",
+                     apply=_opacity_apply, description=_OPACITY_DESCRIPTION)
+
+
+register(CriterionSpec("opacity", "max", "renders", _OPACITY_DESCRIPTION, opacity))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Part:
+    """The static side of a criterion inside a combination (hashable: it is part of a jit cache key)."""
+
+    apply: Callable
+    inputs: str
+    direction: str
+    value_range: Tuple[float, float]
+
+    @classmethod
+    def of(cls, criterion: Criterion) -> "_Part":
+        if criterion.inputs == "poses":
+            raise CriterionError(f"criterion {criterion.name!r} scores poses, not views: it cannot be combined")
+        return cls(criterion.apply, criterion.inputs, criterion.direction, tuple(criterion.value_range))
+
+    def scores(self, params, rgba: Array) -> Array:
+        return self.apply(params, rgba[..., :3] if self.inputs == "images" else rgba)
+
+    def normalised(self, params, rgba: Array) -> Array:
+        low, high = self.value_range
+        unit = (self.scores(params, rgba) - low) / (high - low)
+        return jnp.clip(unit if self.direction == "max" else 1.0 - unit, 0.0, 1.0)
+
+
+def _inputs(parts: Sequence[_Part]) -> str:
+    return "renders" if any(p.inputs == "renders" for p in parts) else "images"
+
+
+@dataclasses.dataclass(frozen=True)
+class _ConstrainedApply:
+    primary: _Part
+    guard: _Part
+    worst: float
+
+    def __call__(self, params, rgba: Array) -> Array:
+        primary_params, guard_params, threshold = params
+        score = self.primary.scores(primary_params, rgba)
+        guard = self.guard.scores(guard_params, rgba)
+        passes = guard >= threshold if self.guard.direction == "max" else guard <= threshold
+        return finite_or_worst(jnp.where(passes, score, self.worst), jnp.zeros(score.shape, bool), self.worst)
+
+
+def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Criterion:
+    """`primary` where `guard` passes `threshold`, else the primary's worst score.
+
+    Args:
+      primary: the criterion to optimise ("images" or "renders").
+      guard: the criterion that must pass ("images" or "renders"), e.g. `opacity`.
+      threshold: a "max" guard passes at or above it, a "min" guard at or below it.
+
+    Returns:
+      A criterion named "PRIMARY|GUARD>=THRESHOLD" (or "<=") with the primary's direction and range.
+    """
+    parts = (_Part.of(primary), _Part.of(guard))
+    try:
+        worst = worst_score(primary.direction, primary.value_range)
+    except ValueError:
+        raise CriterionError(f"criterion {primary.name!r} has no finite worst score to give a view that fails "
+                             f"the guard (value range {primary.value_range})") from None
+    relation = ">=" if guard.direction == "max" else "<="
+    name = f"{primary.name}|{guard.name}{relation}{threshold:g}"
+    params = (primary.params, guard.params, jnp.float32(threshold))
+    return Criterion(params=params, name=name, direction=primary.direction, value_range=primary.value_range,
+                     inputs=_inputs(parts), apply=_ConstrainedApply(parts[0], parts[1], worst),
+                     description=f"{primary.description}; the worst score where {guard.name} {relation} "
+                                 f"{threshold:g} fails")
+
+
+@dataclasses.dataclass(frozen=True)
+class _WeightedApply:
+    parts: Tuple[_Part, ...]
+
+    def __call__(self, params, rgba: Array) -> Array:
+        part_params, weights = params
+        units = jnp.stack([p.normalised(q, rgba) for p, q in zip(self.parts, part_params)])  # [K, P]
+        return jnp.sum(weights[:, None] * units, axis=0)
+
+
+def weighted(criteria: Sequence[Criterion], weights: Sequence[float]) -> Criterion:
+    """The weighted mean of criteria normalised to [0, 1] by their value ranges (1 = good end).
+
+    Raises:
+      CriterionError: no criteria, a length mismatch, a negative or all-zero weight, or a criterion
+        whose value range is not finite at both ends (it cannot be normalised).
+    """
+    if not criteria or len(criteria) != len(weights):
+        raise CriterionError(f"weighted needs one weight per criterion, got {len(criteria)} criteria and "
+                             f"{len(weights)} weights")
+    w = np.asarray(weights, np.float64)
+    if np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
+        raise CriterionError(f"weighted: weights must be finite, >= 0 and not all 0, got {list(weights)}")
+    for c in criteria:
+        low, high = c.value_range
+        if not (np.isfinite(low) and np.isfinite(high) and high > low):
+            raise CriterionError(f"criterion {c.name!r} cannot be weighted: its value range {c.value_range} is "
+                                 "not finite at both ends")
+    parts = tuple(_Part.of(c) for c in criteria)
+    name = "weighted:" + ",".join(f"{c.name}={x:g}" for c, x in zip(criteria, weights))
+    params = (tuple(c.params for c in criteria), jnp.asarray(w / w.sum(), jnp.float32))
+    return Criterion(params=params, name=name, direction="max", value_range=(0.0, 1.0), inputs=_inputs(parts),
+                     apply=_WeightedApply(parts),
+                     description="weighted mean of " + ", ".join(c.name for c in criteria) + " normalised to [0, 1]")
+
+
+def parse_guard(spec: str) -> Tuple[str, float]:
+    """`NAME:THRESHOLD` -> (name, threshold), with a clear error."""
+    name, sep, value = spec.rpartition(":")
+    try:
+        threshold = float(value)
+    except ValueError:
+        threshold = None
+    if not sep or not name or threshold is None or not np.isfinite(threshold):
+        raise CriterionError(f"bad --guard {spec!r}: expected NAME:THRESHOLD, e.g. opacity:0.9")
+    return name, threshold
+
+
+def _parse_weighted(spec: str, context: CriterionContext) -> Criterion:
+    body = spec[len("weighted:"):]
+    criteria, weights = [], []
+    for item in filter(None, body.split(",")):
+        name, sep, value = item.partition("=")
+        try:
+            weight = float(value) if sep else 1.0
+        except ValueError:
+            raise CriterionError(f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT") from None
+        criteria.append(build_criterion(name.strip(), context))
+        weights.append(weight)
+    if not criteria:
+        raise CriterionError(f"bad criterion {spec!r}: expected weighted:NAME=WEIGHT,NAME=WEIGHT")
+    return weighted(criteria, weights)
+
+
+def build_criterion(spec: str, context: Optional[CriterionContext] = None, guards: Sequence[str] = ()) -> Criterion:
+    """The criterion the command line names.
+
+    Args:
+      spec: a registered name (`saliency`), or `weighted:NAME=W,NAME=W,...`.
+      context: what building needs (room, weights folder, target image).
+      guards: `NAME:THRESHOLD` strings, applied in order with `constrained`.
+
+    Raises:
+      CriterionError: an unknown name or a malformed spec (the message says which).
+    """
+    context = context or CriterionContext()
+    spec = spec.strip()
+    criterion = _parse_weighted(spec, context) if spec.startswith("weighted:") else make_criterion(spec, context)
+    for guard_spec in guards:
+        name, threshold = parse_guard(guard_spec)
+        criterion = constrained(criterion, make_criterion(name, context), threshold)
+    return criterion
+

@@ -1,0 +1,96 @@
+"""Photo composition in [1, 5] from a saliency map (a documented stand-in for SAMP-Net).
+
+The paper scores composition with SAMP-Net (Zhang et al., "Image composition assessment with
+saliency-augmented multi-pattern pooling", BMVC 2021), whose mean opinion scores lie in [1, 5]. Its
+weights cannot be had here, so `composition` scores the classic rules that composition-aware
+cropping and aesthetics work measures on a saliency map (Liu et al., "Optimizing photo composition",
+Eurographics 2010; Datta et al., ECCV 2006), computed on the CSNet saliency map S [H, W] in [0, 1]
+with pixel centres at normalised coordinates (x, y) in (0, 1)^2 and salient mass m = sum S:
+
+  * thirds:   c = sum S (x, y) / m is the salient centroid; d its distance to the nearest of the four
+              power points (1/3 or 2/3, 1/3 or 2/3); thirds = exp(-d^2 / (2 * 0.15^2)). 1 on a power
+              point, 0.29 at the centre, ~0 in a corner.
+  * balance:  the visual mass should not pile up on one side: balance = exp(-|c - (1/2, 1/2)|^2 /
+              (2 * 0.25^2)). Together with thirds it favours power points over edges and corners.
+  * symmetry: left-right mirror agreement of the map: 1 - sum |S - S_mirrored| / (2 m).
+  * emphasis: the subject should be neither lost nor overwhelming: with a = the share of pixels with
+              S > 0.5, emphasis = 1 for a in [0.05, 0.5], a / 0.05 below, max(0, 1 - (a - 0.5) / 0.5)
+              above. An empty (no salient pixel) view scores 0 here.
+
+  composition = 1 + 4 * (0.4 thirds + 0.2 balance + 0.1 symmetry + 0.3 emphasis), in [1, 5].
+
+The weights put the rule of thirds first (the most studied rule), subject emphasis second (it keeps
+empty or cluttered views low, the failure mode the paper names) and balance and symmetry after.
+A view whose map has no mass takes the centre as its centroid. NaN images score 1 (the worst).
+This is not SAMP-Net and its numbers are not comparable to the paper's; it is deterministic,
+documented and cheap (the saliency network dominates the cost).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
+                                     sanitize_images)
+from waldo_jax.types import Array
+
+__all__ = ["WEIGHTS", "composition_terms", "composition_from_map", "composition"]
+
+WEIGHTS = {"thirds": 0.4, "balance": 0.2, "symmetry": 0.1, "emphasis": 0.3}
+_THIRDS_SIGMA = 0.15
+_BALANCE_SIGMA = 0.25
+_AREA_RANGE = (0.05, 0.5)
+
+
+def composition_terms(saliency: Array) -> dict:
+    """The four rule scores of one saliency map [H, W] in [0, 1], each [] in [0, 1]."""
+    saliency = jnp.clip(jnp.asarray(saliency, jnp.float32), 0.0, 1.0)
+    height, width = saliency.shape
+    ys = (jnp.arange(height, dtype=jnp.float32) + 0.5) / height  # [H]
+    xs = (jnp.arange(width, dtype=jnp.float32) + 0.5) / width  # [W]
+    mass = jnp.sum(saliency)
+    has_mass = mass > 1e-6
+    safe_mass = jnp.where(has_mass, mass, 1.0)
+    cx = jnp.where(has_mass, jnp.sum(saliency * xs[None, :]) / safe_mass, 0.5)
+    cy = jnp.where(has_mass, jnp.sum(saliency * ys[:, None]) / safe_mass, 0.5)
+
+    power = jnp.array([1.0 / 3.0, 2.0 / 3.0], jnp.float32)
+    d2 = jnp.min((cx - power[:, None]) ** 2 + (cy - power[None, :]) ** 2)
+    thirds = jnp.exp(-d2 / (2 * _THIRDS_SIGMA**2))
+    balance = jnp.exp(-((cx - 0.5) ** 2 + (cy - 0.5) ** 2) / (2 * _BALANCE_SIGMA**2))
+    mirror_gap = jnp.sum(jnp.abs(saliency - saliency[:, ::-1]))
+    symmetry = jnp.where(has_mass, 1.0 - mirror_gap / (2.0 * safe_mass), 0.0)
+
+    area = jnp.mean((saliency > 0.5).astype(jnp.float32))
+    low, high = _AREA_RANGE
+    emphasis = jnp.where(area < low, area / low, jnp.clip(1.0 - (area - high) / high, 0.0, 1.0))
+    return {"thirds": thirds, "balance": balance, "symmetry": jnp.clip(symmetry, 0.0, 1.0), "emphasis": emphasis}
+
+
+def composition_from_map(saliency: Array) -> Array:
+    """The composition score [] in [1, 5] of one saliency map [H, W] (see the module docstring)."""
+    terms = composition_terms(saliency)
+    return 1.0 + 4.0 * sum(WEIGHTS[name] * terms[name] for name in WEIGHTS)
+
+
+def _apply(params, images: Array) -> Array:
+    from waldo_jax.criteria.csnet import saliency_maps
+
+    clean, bad = sanitize_images(images)
+    scores = jax.vmap(composition_from_map)(saliency_maps(params, clean))
+    return finite_or_worst(scores, bad, 1.0)
+
+
+_DESCRIPTION = "photo composition in [1, 5] from the CSNet saliency map: thirds, balance, symmetry, emphasis"
+
+
+def composition(context: CriterionContext) -> Criterion:
+    """The `composition` criterion (direction max, [1, 5]); loads CSNet from `context.weights_dir`."""
+    from waldo_jax.criteria.csnet import load_params
+
+    return Criterion(params=load_params(context.weights_dir), name="composition", direction="max",
+                     value_range=(1.0, 5.0), inputs="images", apply=_apply, description=_DESCRIPTION)
+
+
+register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition))
