@@ -23,7 +23,7 @@ Sampling is deterministic (bin midpoints) unless a PRNG key is passed (stratifie
 from __future__ import annotations
 
 import functools
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import flax.struct
 import jax
@@ -46,6 +46,7 @@ __all__ = [
     "render_view",
     "render_views",
     "render_views_sharded",
+    "shard_over_poses",
     "pose_mesh",
 ]
 
@@ -320,16 +321,59 @@ def pose_mesh(devices=None) -> Mesh:
     return Mesh(np.asarray(devices), ("poses",))
 
 
-@functools.partial(jax.jit, static_argnames=("field", "mesh"))
-def _render_views_sharded(field, params, c2w, pose_keys, intrinsics, config, mesh):
+@functools.lru_cache(maxsize=None)
+def _sharded(render_fn: Callable, mesh: Mesh) -> Callable:
+    """jit(shard_map(render_fn)): replicated first argument, poses split over the mesh axis "poses"."""
     spec = PartitionSpec("poses")
-    local = functools.partial(_render_posed, field, intrinsics=intrinsics, config=config)
-    return jax.shard_map(
-        lambda p, c, k: local(p, c, k),
-        mesh=mesh,
-        in_specs=(PartitionSpec(), spec, None if pose_keys is None else spec),
-        out_specs=spec,
-    )(params, c2w, pose_keys)
+    # check_vma=False: renderers carry fresh (device-invariant) zeros through while_loops whose
+    # bodies make them pose-varying; every output is per-pose, so no replication check is needed.
+    return jax.jit(jax.shard_map(render_fn, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec,
+                                 check_vma=False))
+
+
+def shard_over_poses(render_fn: Callable, replicated, c2w: Array, mesh: Optional[Mesh] = None, per_pose=None):
+    """Runs a population renderer with the poses split over the devices of `mesh`.
+
+    `render_fn(replicated, (c2w_local, per_pose_local))` must render the poses it is given (any
+    count) and return a pytree of arrays with the pose axis first; `replicated` (params, grid,
+    intrinsics, config, ...) is copied to every device. The poses (and `per_pose`, e.g. sampling
+    keys, a pytree with the pose axis first) are padded to a multiple of the mesh size with copies
+    of the last pose, split, and the padding is cropped from the result. `render_fn` must be the
+    same function object across calls to reuse the compilation.
+
+    Multi-host: call `jax.distributed.initialize()` on every host first and pass a mesh over
+    `jax.devices()` (all hosts' devices); every host then calls this function with the same
+    arguments (SPMD), and the returned arrays are global `jax.Array`s sharded over the hosts.
+
+    Args:
+      render_fn: the renderer (static).
+      replicated: pytree copied to every device.
+      c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
+      mesh: a one-axis mesh named "poses" (default: `pose_mesh()` over the local devices).
+      per_pose: optional pytree of per-pose arrays [P, ...] split like the poses.
+
+    Returns:
+      `render_fn`'s output for the P poses, sharded over the mesh.
+    """
+    mesh = pose_mesh() if mesh is None else mesh
+    num_poses = c2w.shape[0]
+    pad = (-num_poses) % mesh.size
+    c2w = _pad_poses(jnp.asarray(c2w, jnp.float32)[:, :3, :4], pad)
+    per_pose = jax.tree.map(lambda a: _pad_poses(a, pad), per_pose)
+    out = _sharded(render_fn, mesh)(replicated, (c2w, per_pose))
+    return jax.tree.map(lambda a: a[:num_poses], out) if pad else out
+
+
+@functools.lru_cache(maxsize=None)
+def _posed_local(field: Field) -> Callable:
+    """`_render_posed` of `field` in the `shard_over_poses` calling convention (one object per field)."""
+
+    def local(replicated, posed):
+        params, intrinsics, config = replicated
+        c2w, pose_keys = posed
+        return _render_posed(field, params, c2w, pose_keys, intrinsics, config)
+
+    return local
 
 
 def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
@@ -339,11 +383,8 @@ def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsic
     The poses are padded to a multiple of the mesh size and sharded over the mesh axis "poses"
     (`jax.sharding`); the params are replicated; each device renders its share with the same
     chunked code as `render_views`, so the images equal the single-device ones (per-pose sampling
-    keys are drawn before the split). On one device this is `render_views`.
-
-    Multi-host: call `jax.distributed.initialize()` on every host first and pass a mesh over
-    `jax.devices()` (all hosts' devices); every host then calls this function with the same
-    arguments (SPMD), and the returned arrays are global `jax.Array`s sharded over the hosts.
+    keys are drawn before the split). On one device this is `render_views`. For multi-host use see
+    `shard_over_poses`.
 
     Args:
       field, params, c2w, intrinsics, config, key: as for `render_views`.
@@ -352,12 +393,5 @@ def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsic
     Returns:
       `RenderOutput` with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W], sharded over the mesh.
     """
-    mesh = pose_mesh() if mesh is None else mesh
-    num_poses = c2w.shape[0]
-    pad = (-num_poses) % mesh.size
-    c2w = _pad_poses(jnp.asarray(c2w, jnp.float32)[:, :3, :4], pad)
-    pose_keys = _pose_keys(key, num_poses)
-    if pose_keys is not None:
-        pose_keys = _pad_poses(pose_keys, pad)
-    out = _render_views_sharded(field, params, c2w, pose_keys, intrinsics, config, mesh)
-    return jax.tree.map(lambda a: a[:num_poses], out) if pad else out
+    return shard_over_poses(_posed_local(field), (params, intrinsics, config), c2w, mesh,
+                            per_pose=_pose_keys(key, c2w.shape[0]))

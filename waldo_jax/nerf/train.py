@@ -52,8 +52,8 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.field import NGPFieldConfig, init_field, make_density, make_field, make_field_batch
 from waldo_jax.nerf.hashgrid import HashGridConfig
 from waldo_jax.nerf import occupancy
-from waldo_jax.render import (RenderConfig, composite, render_ray, render_views,
-                              volume_weights)
+from waldo_jax.render import (RenderConfig, composite, render_ray, render_views, render_views_sharded,
+                              shard_over_poses, volume_weights)
 from waldo_jax.types import Array, Intrinsics, PRNGKey, RenderOutput, Scene
 
 __all__ = [
@@ -429,6 +429,8 @@ def _check_scene(scene: Scene, what: str) -> None:
 #   render_rays(key, params, state, origins [R, 3], directions [R, 3], background [R, 3], render_config)
 #       -> (RenderOutput [R], included bool [R])                   (rays that count in the loss)
 #   render_views(params, state, c2w [P, 4, 4], intrinsics, render_config) -> RenderOutput [P, H, W]
+#   render_views_sharded(params, state, c2w, intrinsics, render_config, mesh) -> the same, poses split
+#       over the devices of a one-axis mesh "poses" (`render.shard_over_poses`)
 
 
 class _DenseSampler:
@@ -461,6 +463,11 @@ class _DenseSampler:
                      render_config: RenderConfig) -> RenderOutput:
         """Renders P views [P, 4, 4] deterministically (bin midpoints), S = render_config.num_samples."""
         return render_views(self.field, params, c2w, intrinsics, render_config)
+
+    def render_views_sharded(self, params, state, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
+                             mesh=None) -> RenderOutput:
+        """`render_views` with the poses split over the devices of `mesh` (the same images)."""
+        return render_views_sharded(self.field, params, c2w, intrinsics, render_config, mesh=mesh)
 
 
 class _OccupancySampler:
@@ -592,6 +599,12 @@ class _OccupancySampler:
         """Renders P views [P, 4, 4] (midpoint samples), at most render_config.num_samples per ray."""
         return _marched_views(self.config, render_config.num_samples)(params, grid, c2w, intrinsics, render_config)
 
+    def render_views_sharded(self, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
+                             mesh=None) -> RenderOutput:
+        """`render_views` with the poses split over the devices of `mesh` (the same images)."""
+        return shard_over_poses(_marched_local(self.config, render_config.num_samples),
+                                (params, grid, intrinsics, render_config), c2w, mesh)
+
 
 def _march_steps(base_diagonal: float, cascades: int, resolution: int, steps_per_diagonal: float,
                  cone_angle: float, cap: int = 8192) -> int:
@@ -609,6 +622,23 @@ def _march_steps(base_diagonal: float, cascades: int, resolution: int, steps_per
 @functools.lru_cache(maxsize=None)
 def _marched_views(config: TrainConfig, num_samples: int) -> Callable:
     """Jitted renderer of P views with the occupancy sampler (cached per config and sample count)."""
+    return jax.jit(_marched_views_fn(config, num_samples))
+
+
+@functools.lru_cache(maxsize=None)
+def _marched_local(config: TrainConfig, num_samples: int) -> Callable:
+    """The marched renderer in `render.shard_over_poses`' calling convention (one object per config)."""
+    views = _marched_views_fn(config, num_samples)
+
+    def local(replicated, posed):
+        params, grid, intrinsics, render_config = replicated
+        return views(params, grid, posed[0], intrinsics, render_config)
+
+    return local
+
+
+def _marched_views_fn(config: TrainConfig, num_samples: int) -> Callable:
+    """The (unjitted) renderer of P views with the occupancy sampler."""
     sampler = make_sampler(config)
     # Each pass costs the whole budget: ~8 samples per ray suits sparse grids (a converged object
     # has ~10 per ray), and rays with more samples (a still-full grid) just take more passes.
@@ -635,7 +665,7 @@ def _marched_views(config: TrainConfig, num_samples: int) -> Callable:
 
         return jax.lax.map(one_view, jnp.asarray(c2w, jnp.float32)[:, :3, :4])
 
-    return jax.jit(views)
+    return views
 
 
 @functools.lru_cache(maxsize=None)
@@ -813,8 +843,11 @@ def _render_config(config: TrainConfig, near: float, far: float, aabb, backgroun
 
 
 def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
-                   far: float, background=(1.0, 1.0, 1.0), aabb=None) -> RenderOutput:
+                   far: float, background=(1.0, 1.0, 1.0), aabb=None, mesh=None) -> RenderOutput:
     """Renders P views of a trained field in one call, with the config's sampler.
+
+    With more than one local device (or a `mesh`), the poses are split over the devices
+    (`render.shard_over_poses`); the images are the same as on one device.
 
     Args:
       params: the field's parameters.
@@ -825,6 +858,7 @@ def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: 
       near, far: ray bounds (world units).
       background: colour [3] behind the volume.
       aabb: [2, 3] sampling box (default: the field's box).
+      mesh: a one-axis mesh named "poses" to shard over (default: all local devices if more than one).
 
     Returns:
       RenderOutput with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W] (device arrays).
@@ -832,7 +866,10 @@ def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: 
     aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
     render_config = _render_config(config, near, far, aabb, background, config.eval_samples)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))
-    return make_sampler(config).render_views(params, sampler_state, c2w, intrinsics, render_config)
+    sampler = make_sampler(config)
+    if mesh is None and jax.local_device_count() == 1:
+        return sampler.render_views(params, sampler_state, c2w, intrinsics, render_config)
+    return sampler.render_views_sharded(params, sampler_state, c2w, intrinsics, render_config, mesh)
 
 
 def _eval_background(scene: Scene) -> np.ndarray:
