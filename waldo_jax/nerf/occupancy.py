@@ -44,24 +44,34 @@ cell are compacted (cumsum + scatter) into the first S = `max_samples` slots, in
 Names: `t` sample distances along unit directions, `delta` bin lengths (the quadrature step, 0 for
 masked samples), `mask` valid samples, `sigma` densities, `w` weights, K candidates, S samples.
 
-Transmittance early stop. NGP stops marching a ray once its transmittance falls below 1e-4. With fixed
-shapes nothing can stop computing, but after compaction the S evaluations of a ray are all spent in
-occupied space; `render_ray_marched` additionally drops samples whose transmittance before them is
-below `min_transmittance` (weight 0, their colour does not matter) and does not count them as field
-evaluations, which is what an early-stopping implementation would have evaluated.
+Transmittance early stop. NGP stops marching a ray once its transmittance falls below 1e-4
+(`min_transmittance`). `render_samples_early_stop` (and `render_rays_early_stop` over a flat batch)
+does this with fixed shapes: a `lax.while_loop` whose every pass evaluates the field at a static budget
+B of slots, into which the next segment of samples of each live ray is packed (segments of
+clip(B // live rays, 1, `max_segment`) samples: NGP's compaction rounds, which lengthen as rays
+retire). Each ray carries its optical depth and its sums of w * rgb, w * t and w between passes, so
+its weights are exactly those of the full composite; it retires when its transmittance is below
+`min_transmittance` or its samples run out, and its later samples are never evaluated. The result
+differs from the composite of all S samples only by the ignored tail: colour by at most the
+transmittance left at retirement (< min_transmittance) times max |rgb - background|.
+`render_ray_marched` instead evaluates all S samples and gives weight 0 to those behind which the
+transmittance is below `min_transmittance`, counting as evaluations what an early-stopping marcher
+would have evaluated (differentiable, for training-style use).
 
-Cost. `render_rays_marched` (vmap of `render_ray_marched`) still evaluates the field at all S slots of
+Cost. `render_rays_marched` (vmap of `render_ray_marched`) evaluates the field at all S slots of
 every ray, so it saves time only through a smaller S than a dense renderer needs. `render_rays_packed`
-does what NGP's compacted batches do: the valid samples of a chunk of rays are packed into a fixed
-budget of `packed_samples_per_ray` slots per ray, so the field cost follows the occupied space.
-Marching itself costs K grid lookups per ray (no field evaluations).
+does what NGP's compacted training batches do: the valid samples of a chunk of rays are packed into a
+fixed budget of `packed_samples_per_ray` slots per ray, so the field cost follows the occupied space.
+`render_rays_early_stop` packs only the samples up to each ray's termination, pass after pass, so the
+cost follows the visible occupied space. Marching itself costs K grid lookups per ray (no field
+evaluations).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, Optional, Tuple
+from typing import Callable, NamedTuple, Optional, Tuple
 
 import flax.struct
 import jax
@@ -85,8 +95,10 @@ __all__ = [
     "occupancy_thresholds",
     "render_ray_marched",
     "ray_interval",
+    "render_rays_early_stop",
     "render_rays_marched",
     "render_rays_packed",
+    "render_samples_early_stop",
     "update_occupancy",
 ]
 
@@ -216,13 +228,17 @@ class MarchConfig:
       steps_per_diagonal: dt_min = base-box diagonal / steps_per_diagonal (NGP: 1024).
       cone_angle: steps grow as dt = clip(t * cone_angle, dt_min, dt_max); 0 gives constant steps
         (NGP: 0 for synthetic scenes, 1/256 for real ones).
-      min_transmittance: samples behind which the transmittance is below this get weight 0 and are not
-        counted as evaluations (NGP's early ray termination: 1e-4).
+      max_segment: `render_rays_early_stop`: the most samples a live ray takes in one pass (static;
+        None: no cap beyond S). Each pass gives every live ray min(budget // live rays, max_segment).
+      min_transmittance: NGP's early ray termination (1e-4): `render_rays_early_stop` retires a ray
+        once its transmittance falls below this; `render_ray_marched` gives weight 0 to the samples
+        behind which it is below this and does not count them as evaluations. 0 never stops.
     """
 
     max_steps: int = flax.struct.field(pytree_node=False, default=1024)
     max_samples: int = flax.struct.field(pytree_node=False, default=256)
     packed_samples_per_ray: int = flax.struct.field(pytree_node=False, default=64)
+    max_segment: Optional[int] = flax.struct.field(pytree_node=False, default=None)
     steps_per_diagonal: Array = float(NGP_STEPS_PER_DIAGONAL)
     cone_angle: Array = 0.0
     min_transmittance: Array = 1e-4
@@ -230,13 +246,15 @@ class MarchConfig:
     @classmethod
     def create(cls, max_steps: int = 1024, max_samples: int = 256, packed_samples_per_ray: int = 64,
                steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL, cone_angle: float = 0.0,
-               min_transmittance: float = 1e-4) -> "MarchConfig":
+               min_transmittance: float = 1e-4, max_segment: Optional[int] = None) -> "MarchConfig":
         """A validated config with float32 leaves."""
         if min(max_steps, max_samples, packed_samples_per_ray) < 1:
             raise ValueError(
                 f"max_steps, max_samples and packed_samples_per_ray must be >= 1, got "
                 f"{max_steps}, {max_samples}, {packed_samples_per_ray}"
             )
+        if max_segment is not None and max_segment < 1:
+            raise ValueError(f"max_segment must be None or >= 1, got {max_segment}")
         if steps_per_diagonal <= 0 or cone_angle < 0 or min_transmittance < 0:
             raise ValueError(
                 f"need steps_per_diagonal > 0, cone_angle >= 0, min_transmittance >= 0; got "
@@ -246,6 +264,7 @@ class MarchConfig:
             max_steps=int(max_steps),
             max_samples=int(max_samples),
             packed_samples_per_ray=int(packed_samples_per_ray),
+            max_segment=None if max_segment is None else int(max_segment),
             steps_per_diagonal=jnp.float32(steps_per_diagonal),
             cone_angle=jnp.float32(cone_angle),
             min_transmittance=jnp.float32(min_transmittance),
@@ -584,7 +603,10 @@ def _composite_samples(sigma: Array, rgb: Array, t: Array, delta: Array, mask: A
 
 def _map_ray_chunks(render_chunk, origins: Array, directions: Array, chunk: int, key: Optional[PRNGKey]):
     """Pads rays [R, 3] to whole chunks, applies `render_chunk(origins, directions, keys)` to each chunk
-    under `lax.map` (keys: one per ray, or None) and crops the [R, ...] results."""
+    under `lax.map` (keys: one per ray, or None) and crops the [R, ...] results.
+
+    Per-ray results (leading axis the chunk's rays) come back as [R, ...]; per-chunk scalars as
+    [num_chunks]."""
     num_rays = origins.shape[0]
     chunk = max(1, min(chunk, num_rays))
     num_chunks = -(-num_rays // chunk)
@@ -595,7 +617,8 @@ def _map_ray_chunks(render_chunk, origins: Array, directions: Array, chunk: int,
     directions = directions.reshape(num_chunks, chunk, 3)
     keys = None if key is None else jax.random.split(key, num_chunks * chunk).reshape(num_chunks, chunk)
     out = jax.lax.map(lambda args: render_chunk(*args), (origins, directions, keys))
-    return jax.tree.map(lambda a: a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays], out)
+    return jax.tree.map(lambda a: a if a.ndim == 1 else a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays],
+                        out)
 
 
 def render_rays_marched(field: Field, params, grid: OccupancyGrid, origins: Array, directions: Array,
@@ -669,5 +692,168 @@ def render_rays_packed(field: Field, params, grid: OccupancyGrid, origins: Array
         )(sigma_rays, rgb_rays, t, jnp.where(evaluated, delta, 0.0), evaluated)
         dropped = counts - jnp.sum(evaluated, axis=1, dtype=jnp.int32)  # [N]
         return out, evaluations, dropped
+
+    return _map_ray_chunks(render_chunk, origins, directions, render_config.ray_chunk, key)
+
+
+
+# --------------------------------------------------------------------------------------------------
+# Early ray termination
+
+
+class _MarchState(NamedTuple):
+    """What `render_samples_early_stop` carries from pass to pass (N rays)."""
+
+    next_sample: Array  # int32 [N], samples [0, next_sample) of each ray are composited
+    alive: Array  # bool [N], rays with samples left and transmittance >= min_transmittance
+    optical_depth: Array  # float32 [N], sum of sigma * delta over the composited samples
+    rgb: Array  # float32 [N, 3], sum of w * rgb
+    depth: Array  # float32 [N], sum of w * t
+    acc: Array  # float32 [N], sum of w
+    evaluations: Array  # int32 [N], field evaluations spent on each ray
+    passes: Array  # int32 [], passes run
+
+
+def _segmented_cumsum(values: Array, head: Array) -> Array:
+    """Inclusive sums of values [B, C] along B, restarting at every slot where head [B] is True."""
+
+    def combine(a, b):
+        (sum_a, head_a), (sum_b, head_b) = a, b
+        return jnp.where(head_b[:, None], sum_b, sum_a + sum_b), head_a | head_b
+
+    return jax.lax.associative_scan(combine, (values, head))[0]
+
+
+def render_samples_early_stop(field: Field, params, origins: Array, directions: Array, t: Array, delta: Array,
+                              mask: Array, background: Array, min_transmittance: Array, budget: int,
+                              max_segment: Optional[int] = None) -> Tuple[RenderOutput, Array, Array]:
+    """Composites N rays' marched samples front to back in passes of `budget` field evaluations, retiring
+    each ray once its transmittance falls below `min_transmittance` (NGP's early ray termination).
+
+    Pass after pass (a `lax.while_loop`; every shape fixed), each live ray asks for its next
+    min(segment, samples left) samples, segment = clip(budget // live rays, 1, max_segment) (NGP's
+    compaction rounds: few live rays take long segments, so a pass stays full); the requests are
+    packed ray after ray into the `budget` slots (the ray at the end of the budget gets part of its
+    request, later rays wait for the next pass) and the field runs on the slots only. Each ray carries
+    its optical depth and its sums of w * rgb, w * t and w from pass to pass, so its weights are those
+    of `render.volume_weights` over all its samples: w_j = exp(-sum_{k<j} sigma_k delta_k) *
+    (1 - exp(-sigma_j delta_j)). A ray retires when it has no samples left or when exp(-optical depth)
+    < min_transmittance; its remaining samples are never evaluated. Against the full composite of
+    every sample, the colour then differs by sum_tail w (rgb - background), at most the transmittance
+    left at retirement (< min_transmittance) times max |rgb - background|; acc by at most that
+    transmittance, depth by at most it times the largest t. min_transmittance = 0 composites every
+    sample.
+
+    For evaluation and rendering (`lax.while_loop` has no reverse-mode derivative).
+
+    Args:
+      field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])`.
+      params: its parameters.
+      origins, directions: [N, 3] (unit directions).
+      t, delta: [N, S] sample distances and bin lengths (`march_ray`). mask: bool [N, S], a prefix per ray.
+      background: colour [3] or [N, 3].
+      min_transmittance: float [], the retirement threshold.
+      budget: B, field evaluations per pass (static, >= 1).
+      max_segment: most samples a ray takes per pass (static; None: S).
+
+    Returns:
+      (`RenderOutput` with rgb [N, 3], depth [N], acc [N]; evaluations int32 [N], the samples evaluated
+      for each ray; passes int32 [], each of which evaluated the field at B slots).
+    """
+    num_rays, num_samples = t.shape
+    if budget < 1:
+        raise ValueError(f"budget must be >= 1, got {budget}")
+    if max_segment is not None and max_segment < 1:
+        raise ValueError(f"max_segment must be None or >= 1, got {max_segment}")
+    max_segment = num_samples if max_segment is None else min(max_segment, num_samples)
+    counts = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N], mask is a prefix
+    background = jnp.broadcast_to(jnp.asarray(background, jnp.float32), (num_rays, 3))  # [N, 3]
+    min_transmittance = jnp.asarray(min_transmittance, jnp.float32)
+    slot = jnp.arange(budget, dtype=jnp.int32)  # [B]
+    field_batch = jax.vmap(field, in_axes=(None, 0, 0))
+
+    def one_pass(state: _MarchState) -> _MarchState:
+        live = jnp.sum(state.alive, dtype=jnp.int32)  # []
+        segment = jnp.clip(budget // jnp.maximum(live, 1), 1, max_segment)  # []
+        request = jnp.where(state.alive, jnp.minimum(segment, counts - state.next_sample), 0)  # [N]
+        starts = jnp.cumsum(request) - request  # [N]
+        granted = jnp.clip(budget - starts, 0, request)  # [N], the ray at the end of the budget is cut
+        ends = starts + granted  # [N], non-decreasing
+
+        # Slot b holds sample next_sample[r] + b - starts[r] of the ray r with starts[r] <= b < ends[r].
+        ray = jnp.searchsorted(ends, slot, side="right").astype(jnp.int32)  # [B], N past the last
+        used = ray < num_rays  # [B]
+        ray = jnp.minimum(ray, num_rays - 1)  # [B]
+        index = jnp.clip(state.next_sample[ray] + slot - starts[ray], 0, num_samples - 1)  # [B]
+        t_slot = t[ray, index]  # [B]
+        delta_slot = jnp.where(used, delta[ray, index], 0.0)  # [B]
+        points = origins[ray] + t_slot[:, None] * directions[ray]  # [B, 3]
+        sigma, rgb = field_batch(params, points, directions[ray])  # [B], [B, 3]
+        sigma = jnp.clip(jnp.nan_to_num(sigma, nan=0.0, posinf=MAX_DENSITY, neginf=0.0), 0.0, MAX_DENSITY)
+        optical = jnp.where(used, sigma, 0.0) * delta_slot  # [B]
+        rgb = jnp.where(used[:, None], jnp.nan_to_num(rgb), 0.0)  # [B, 3]
+
+        # Optical depth before each slot: the ray's carried depth plus the exclusive sum in its segment.
+        head = slot == starts[ray]  # [B], the first slot of each ray's segment
+        inclusive = _segmented_cumsum(optical[:, None], head)[:, 0]  # [B]
+        exclusive = jnp.where(head, 0.0, jnp.concatenate([jnp.zeros((1,), jnp.float32), inclusive[:-1]]))  # [B]
+        w = jnp.exp(-(state.optical_depth[ray] + exclusive)) * -jnp.expm1(-optical)  # [B]
+        sums = _segmented_cumsum(jnp.concatenate([w[:, None] * rgb, (w * t_slot)[:, None], w[:, None]], axis=1),
+                                 head)  # [B, 5]
+
+        # A ray's segment sums sit at its last slot.
+        got = granted > 0  # [N]
+        last = jnp.clip(ends - 1, 0, budget - 1)  # [N]
+        segment_sums = jnp.where(got[:, None], sums[last], 0.0)  # [N, 5]
+        optical_depth = state.optical_depth + jnp.where(got, inclusive[last], 0.0)  # [N]
+        next_sample = state.next_sample + granted  # [N]
+        alive = state.alive & (next_sample < counts) & (jnp.exp(-optical_depth) >= min_transmittance)  # [N]
+        return _MarchState(
+            next_sample=next_sample,
+            alive=alive,
+            optical_depth=optical_depth,
+            rgb=state.rgb + segment_sums[:, :3],
+            depth=state.depth + segment_sums[:, 3],
+            acc=state.acc + segment_sums[:, 4],
+            evaluations=state.evaluations + granted,
+            passes=state.passes + 1,
+        )
+
+    zeros = jnp.zeros((num_rays,), jnp.float32)
+    start = _MarchState(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=counts > 0, optical_depth=zeros,
+                        rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
+                        evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0))
+    final = jax.lax.while_loop(lambda state: jnp.any(state.alive), one_pass, start)
+    rgb = final.rgb + (1.0 - final.acc)[:, None] * background  # [N, 3]
+    return RenderOutput(rgb=rgb, depth=final.depth, acc=final.acc), final.evaluations, final.passes
+
+
+def render_rays_early_stop(field: Field, params, grid: OccupancyGrid, origins: Array, directions: Array,
+                           render_config: RenderConfig, march_config: MarchConfig,
+                           key: Optional[PRNGKey] = None) -> Tuple[RenderOutput, Array, Array]:
+    """Renders a flat batch of rays [R, 3] with early ray termination (`render_samples_early_stop`).
+
+    Chunks of N = `render_config.ray_chunk` rays are marched (`march_ray`) and composited in passes of
+    B = N * `march_config.packed_samples_per_ray` field evaluations, with segments of at most
+    `march_config.max_segment` samples, until every ray of the chunk has no samples left or its
+    transmittance is below `march_config.min_transmittance`. Unlike `render_rays_packed` no sample
+    is dropped: a chunk takes as many passes as it needs. Not differentiable (`lax.while_loop`); not
+    jitted (wrap it in `jax.jit` with `field` static).
+
+    Returns:
+      (`RenderOutput` with rgb [R, 3], depth [R], acc [R]; evaluations int32 [R], the field evaluations
+      spent on each ray; passes int32 [num_chunks], the passes of each chunk, each costing B slots).
+    """
+
+    def render_chunk(chunk_origins, chunk_directions, chunk_keys):
+        budget = chunk_origins.shape[0] * march_config.packed_samples_per_ray
+        t_start, t_end = jax.vmap(lambda o, d: ray_interval(grid, o, d, render_config))(chunk_origins, chunk_directions)
+        t, delta, mask = jax.vmap(
+            lambda o, d, a, b, k: march_ray(grid, o, d, a, b, march_config, k),
+            in_axes=(0, 0, 0, 0, None if chunk_keys is None else 0),
+        )(chunk_origins, chunk_directions, t_start, t_end, chunk_keys)  # [N, S] each
+        return render_samples_early_stop(field, params, chunk_origins, chunk_directions, t, delta, mask,
+                                         render_config.background, march_config.min_transmittance, budget,
+                                         march_config.max_segment)
 
     return _map_ray_chunks(render_chunk, origins, directions, render_config.ray_chunk, key)

@@ -481,7 +481,12 @@ class _OccupancySampler:
         budget; the rest are left out of this step's loss (`included`). As with Instant-NGP's
         dynamic batch size, the rays trained per step adapt to the scene (few while the grid is
         still full, many once it is sparse) at a fixed cost per step;
-      * views: a `lax.while_loop` packs rays chunk after chunk until every ray is rendered.
+      * views: Instant-NGP's early ray termination. A `lax.while_loop` packs the next segment of
+        samples of every live ray into a fixed budget per pass, composites front to back carrying
+        each ray's colour, depth, opacity and optical depth, and retires a ray once its
+        transmittance is below 1e-4 (`occupancy.render_samples_early_stop`): nothing behind an
+        opaque surface is evaluated. Training keeps the full composite of every kept sample (its
+        results, and gradients through the tail, are unchanged).
     The weights and composite are those of `render.volume_weights` / `render.composite`; masked
     samples have zero length (delta = 0) and so zero weight.
     """
@@ -567,37 +572,64 @@ class _OccupancySampler:
                                   self.config.samples_per_batch)
         return out, included
 
+    def render_ray_batch_counted(self, params, grid, origins: Array, directions: Array, background: Array,
+                                 render_config: RenderConfig, num_samples: int, budget: int,
+                                 active: Optional[Array] = None,
+                                 max_segment: Optional[int] = None) -> Tuple[RenderOutput, Array, Array]:
+        """Renders EVERY ray of a batch [N, 3] deterministically, `budget` field evaluations per pass,
+        with Instant-NGP's early ray termination (`occupancy.render_samples_early_stop`).
+
+        Each ray is marched (at most min(num_samples, K) samples in occupied cells); pass after pass,
+        the next segment of samples of every live ray is packed into the budget and composited front
+        to back, and a ray retires once its transmittance is below the march's min_transmittance
+        (1e-4) or its samples run out, so nothing behind an opaque surface is evaluated. The colour
+        differs from the composite of all samples by less than 1e-4 times max |rgb - background|.
+
+        Args:
+          params: the field's parameters. grid: the occupancy grid.
+          origins, directions: [N, 3]. background: [N, 3].
+          render_config: near, far and box. num_samples: the per-ray cap on marched samples.
+          budget: field evaluations per pass (static, >= 1).
+          active: bool [N], rays to render (default all); the others get no sample (background).
+          max_segment: most samples a ray takes per pass (static; None: no cap).
+
+        Returns:
+          (`RenderOutput` with rgb [N, 3], depth [N], acc [N]; evaluations int32 [N], the field
+          evaluations spent on each ray; passes int32 [], each evaluating `budget` slots).
+        """
+        march_config = self.march_config(num_samples)
+        t, delta, mask = self._march(grid, origins, directions, render_config, num_samples, None)  # [N, S] each
+        if active is not None:
+            mask = mask & active[:, None]
+        return occupancy.render_samples_early_stop(self.field, params, origins, directions, t, delta, mask, background,
+                                                   march_config.min_transmittance, budget, max_segment)
+
     def render_ray_batch(self, params, grid, origins: Array, directions: Array, background: Array,
                          render_config: RenderConfig, num_samples: int, budget: int) -> RenderOutput:
-        """Renders EVERY ray of a batch [N, 3] deterministically, packing `budget` samples per pass.
-
-        `budget` must hold one ray's samples (min(num_samples, K)), so every pass makes progress.
-        """
-        if budget < self.march_config(num_samples).max_samples:
-            raise ValueError(f"budget {budget} is smaller than the samples of one ray "
-                             f"({self.march_config(num_samples).max_samples})")
-        t, delta, mask = self._march(grid, origins, directions, render_config, num_samples, None)
-        counts = jnp.sum(mask, axis=-1, dtype=jnp.int32)  # [N]
-        num_rays = origins.shape[0]
-        empty = RenderOutput(rgb=jnp.zeros((num_rays, 3)), depth=jnp.zeros((num_rays,)), acc=jnp.zeros((num_rays,)))
-
-        def pending(carry):
-            return ~jnp.all(carry[0])
-
-        def one_pass(carry):
-            done, out = carry
-            # Each ray has at most S <= budget samples, so the first pending ray always fits.
-            included = ~done & (jnp.cumsum(jnp.where(done, 0, counts)) <= budget)  # [N]
-            new = self._render_packed(params, origins, directions, background, t, delta, mask, included, budget)
-            out = jax.tree.map(lambda a, b: jnp.where(included.reshape((-1,) + (1,) * (a.ndim - 1)), b, a), out, new)
-            return done | included, out
-
-        return jax.lax.while_loop(pending, one_pass, (jnp.zeros((num_rays,), bool), empty))[1]
+        """`render_ray_batch_counted` without the counts: the rendered rays [N]."""
+        return self.render_ray_batch_counted(params, grid, origins, directions, background, render_config,
+                                             num_samples, budget)[0]
 
     def render_views(self, params, grid, c2w: Array, intrinsics: Intrinsics,
                      render_config: RenderConfig) -> RenderOutput:
-        """Renders P views [P, 4, 4] (midpoint samples), at most render_config.num_samples per ray."""
+        """Renders P views [P, 4, 4] (midpoint samples, early ray termination), at most
+        render_config.num_samples per ray."""
+        return self.render_views_counted(params, grid, c2w, intrinsics, render_config)[0]
+
+    def render_views_counted(self, params, grid, c2w: Array, intrinsics: Intrinsics,
+                             render_config: RenderConfig) -> Tuple[RenderOutput, Array, Array]:
+        """`render_views` and what it cost (for benchmarks).
+
+        Returns:
+          (the same `RenderOutput` [P, H, W]; evaluations int32 [P, H, W], the field evaluations spent on
+          each pixel's ray; passes int32 [P, num_chunks], the passes of each chunk of
+          `config.eval_ray_chunk` rays, each evaluating `view_budget()` slots).
+        """
         return _marched_views(self.config, render_config.num_samples)(params, grid, c2w, intrinsics, render_config)
+
+    def view_budget(self) -> int:
+        """Field evaluations (slots) per pass of `render_views`, for each chunk of `config.eval_ray_chunk` rays."""
+        return self.config.eval_ray_chunk * _VIEW_SAMPLES_PER_RAY_PER_PASS
 
     def render_views_sharded(self, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
                              mesh=None) -> RenderOutput:
@@ -619,10 +651,18 @@ def _march_steps(base_diagonal: float, cascades: int, resolution: int, steps_per
     return steps
 
 
+# Views: field evaluations per ray of a chunk in one pass. Each pass costs the whole budget; with early
+# termination a converged field needs a few dozen samples per ray, so passes of 8 per ray leave little
+# of the last pass unused, and the few rays that need many samples take long segments once the others
+# have retired.
+_VIEW_SAMPLES_PER_RAY_PER_PASS = 8
+
+
 @functools.lru_cache(maxsize=None)
 def _marched_views(config: TrainConfig, num_samples: int) -> Callable:
-    """Jitted renderer of P views with the occupancy sampler (cached per config and sample count)."""
-    return jax.jit(_marched_views_fn(config, num_samples))
+    """Jitted renderer of P views with the occupancy sampler, with its counts (cached per config and
+    sample count; `render_views` drops the counts, so both share one compilation)."""
+    return jax.jit(_marched_views_fn(config, num_samples, counted=True))
 
 
 @functools.lru_cache(maxsize=None)
@@ -637,12 +677,14 @@ def _marched_local(config: TrainConfig, num_samples: int) -> Callable:
     return local
 
 
-def _marched_views_fn(config: TrainConfig, num_samples: int) -> Callable:
-    """The (unjitted) renderer of P views with the occupancy sampler."""
+def _marched_views_fn(config: TrainConfig, num_samples: int, counted: bool = False) -> Callable:
+    """The (unjitted) renderer of P views with the occupancy sampler and early ray termination.
+
+    views(params, grid, c2w [P, 4, 4], intrinsics, render_config) -> RenderOutput [P, H, W], or with
+    `counted` (RenderOutput, evaluations int32 [P, H, W], passes int32 [P, num_chunks]).
+    """
     sampler = make_sampler(config)
-    # Each pass costs the whole budget: ~8 samples per ray suits sparse grids (a converged object
-    # has ~10 per ray), and rays with more samples (a still-full grid) just take more passes.
-    budget = max(sampler.march_config(num_samples).max_samples, config.eval_ray_chunk * 8)
+    budget = sampler.view_budget()
 
     def views(params, grid, c2w, intrinsics, render_config):
         h, w = intrinsics.height, intrinsics.width
@@ -650,6 +692,11 @@ def _marched_views_fn(config: TrainConfig, num_samples: int) -> Callable:
         chunk = max(1, min(config.eval_ray_chunk, num_rays))
         num_chunks = -(-num_rays // chunk)
         pad = num_chunks * chunk - num_rays
+        # Padding rays (cropped below) are not marched: they cost no field evaluation.
+        active = (jnp.arange(num_chunks * chunk) < num_rays).reshape(num_chunks, chunk)
+
+        def crop(a):  # [num_chunks, chunk, ...] -> [H, W, ...]
+            return a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays].reshape((h, w) + a.shape[2:])
 
         def one_view(m):
             origins, directions = camera_rays(m, intrinsics)  # [H, W, 3] each
@@ -657,13 +704,14 @@ def _marched_views_fn(config: TrainConfig, num_samples: int) -> Callable:
             directions = jnp.pad(directions.reshape(-1, 3), ((0, pad), (0, 0)), constant_values=1.0 / math.sqrt(3.0))
             directions = directions.reshape(num_chunks, chunk, 3)
             background = jnp.broadcast_to(render_config.background, (chunk, 3))
-            out = jax.lax.map(lambda od: sampler.render_ray_batch(params, grid, od[0], od[1], background,
-                                                                  render_config, num_samples, budget),
-                              (origins, directions))
-            return jax.tree.map(lambda a: a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays]
-                                .reshape((h, w) + a.shape[2:]), out)
+            out, evaluations, passes = jax.lax.map(
+                lambda args: sampler.render_ray_batch_counted(params, grid, args[0], args[1], background,
+                                                              render_config, num_samples, budget, args[2]),
+                (origins, directions, active))
+            return jax.tree.map(crop, out), crop(evaluations), passes
 
-        return jax.lax.map(one_view, jnp.asarray(c2w, jnp.float32)[:, :3, :4])
+        out, evaluations, passes = jax.lax.map(one_view, jnp.asarray(c2w, jnp.float32)[:, :3, :4])
+        return (out, evaluations, passes) if counted else out
 
     return views
 
