@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from waldo_jax.cli import main
-from waldo_jax.criteria import make_criterion
+from waldo_jax.criteria import CRITERIA, make_criterion
 from waldo_jax.demo import DemoSettings, run_demo
 from waldo_jax.errors import WaldoError
 from waldo_jax.procedural import make_room, waldo_coverage
@@ -132,3 +132,27 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     again = json.loads((tmp_path / "again" / "results.json").read_text())
     assert again["source_info"]["procedural_seed"] == 0 and (tmp_path / "again" / "topk" / "00_truth.png").is_file()
 
+
+
+@pytest.mark.parametrize("criterion", ["saliency", "iqa_cnn", "niqe", "brisque", "composition", "waldo"])
+def test_explore_accepts_each_criterion(tmp_path, criterion):
+    """Every criterion of the issue runs inside the search's jit (with the opacity guard), and the
+    scores of the training views in results.json are the criterion's own."""
+    from conftest import require_weights
+
+    if criterion != "waldo":
+        require_weights({"saliency": "csnet", "composition": "csnet", "iqa_cnn": "cnniqa"}.get(criterion, criterion))
+    extra = []
+    source = procedural_source(1, resolution=16, views=8)
+    if criterion == "waldo":  # a crop of a training view as the reference image
+        target = tmp_path / "target.png"
+        iio.imwrite(target, (np.clip(source.train_images[0, 4:12, 4:12], 0, 1) * 255).astype(np.uint8))
+        extra = ["--target", str(target)]
+    out = tmp_path / criterion
+    resolution = ["--resolution", "96"] if criterion in ("niqe", "brisque") else []  # whole 96 px patches
+    assert explore(out, "--method", "egps", "--criterion", criterion, "--guard", "opacity:0.5", *extra,
+                   *resolution) == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["criterion"] == f"{criterion}|opacity>=0.5"
+    assert r["direction"] == CRITERIA[criterion].direction
+    assert r["n_generated"] == 12 and np.all(np.isfinite(r["scores_generated"]))

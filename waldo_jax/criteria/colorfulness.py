@@ -3,7 +3,8 @@
 M = sigma_rgyb + 0.3 * mu_rgyb on 0..255 RGB, with rg = R - G and yb = (R + G) / 2 - B:
 sigma_rgyb = sqrt(var(rg) + var(yb)), mu_rgyb = sqrt(mean(rg)^2 + mean(yb)^2). In their study,
 M ~ 0 is "not colourful", 33 "moderately", 59 "quite", 82 "highly" and above 109 "extremely"
-colourful. A cheap, classic, no-weights image criterion (direction max).
+colourful. A cheap, classic, no-weights image criterion (direction max); an image holding NaN
+scores 0.
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.criteria.base import Criterion, CriterionContext, CriterionSpec, register
+from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
+                                     sanitize_images)
 from waldo_jax.types import Array
 
 __all__ = ["colorfulness_image", "colorfulness"]
@@ -29,7 +31,8 @@ def colorfulness_image(image: Array) -> Array:
 
 def _apply(params, images: Array) -> Array:
     del params
-    return jax.vmap(colorfulness_image)(images)
+    clean, bad = sanitize_images(images)
+    return finite_or_worst(jax.vmap(colorfulness_image)(clean), bad, 0.0)
 
 
 def colorfulness(context: CriterionContext) -> Criterion:
