@@ -1,0 +1,176 @@
+"""`benchmarks/paper_tables.py --quick` end to end (tiny settings) and its table / JSON helpers.
+
+One run (module fixture) of the procedural room, plus fox when `$WALDO_DATA` has it, with the cheap
+image criterion `colorfulness` (no weights) and two methods: the JSON's structure and its numbers'
+consistency (CVIR recomputed from the stored best and best-training scores, means and stds from the
+per-seed values), the printed tables, the Waldo-room table, the figures, the paper values' labels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import require_scene
+from waldo_jax import paths
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import paper_tables  # noqa: E402
+import paper_values  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+METHODS = ["grs", "egps"]
+SEEDS = 2
+
+
+def _fox_available() -> bool:
+    data = paths.data_dir()
+    return data is not None and (data / "scenes" / "fox").exists()
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("paper")
+    scenes = "room,fox" if _fox_available() else "room"
+    argv = ["--quick", "--scenes", scenes, "--criteria", "colorfulness", "--methods", ",".join(METHODS),
+            "--seeds", str(SEEDS), "--resolution", "24", "--train-steps", "20", "--room-steps", "30",
+            "--room-views", "12", "--room-resolution", "32", "--downscale", "fox=32",
+            "--runs", str(tmp / "runs"), "--out", str(tmp / "paper.json")]
+    returned = paper_tables.main(argv)
+    data = json.loads(Path(returned["out"]).read_text())
+    return {"data": data, "scenes": scenes.split(","), "tmp": tmp, "argv": argv}
+
+
+def _close(a, b, tol=1e-3):
+    return a is not None and b is not None and math.isclose(a, b, rel_tol=tol, abs_tol=tol)
+
+
+def test_json_names_device_commit_date_and_settings(quick):
+    data = quick["data"]
+    assert data["benchmark"] == "paper_tables" and data["commit"] and data["date"]
+    assert data["device"]["platform"] and "loaded" in data and "loadavg_start" in data
+    s = data["settings"]
+    assert s["quick"] and s["seeds"] == SEEDS and s["methods"] == METHODS and s["budgets"] == ["low"]
+    assert s["children_override"] == {"low": 8} and s["epochs"] == 5 and s["top_k"] == 10
+    assert set(data["nerfs"]) == set(quick["scenes"]) and "incomplete" not in data
+    for scene, nerf in data["nerfs"].items():
+        assert not nerf["reused"] and nerf["train"]["steps"] == (30 if scene == "room" else 20)
+        assert max(nerf["render_size"]) == 24
+    assert data["seconds"]["total"] > 0 and set(data["seconds"]["train"]) == set(quick["scenes"])
+
+
+def test_cvir_and_mcvir_recompute_from_stored_scores(quick):
+    data = quick["data"]
+    cells = data["results"]["colorfulness"]["scenes"]
+    sign = 1.0 if data["results"]["colorfulness"]["direction"] == "max" else -1.0
+    assert set(cells) == set(quick["scenes"])
+    for scene, by_budget in cells.items():
+        for method in METHODS:
+            cell = by_budget["low"][method]
+            assert cell["children_per_epoch"] == 8 and cell["n_total"] == cell["n_train"] + 5 * 8
+            assert [s["seed"] for s in cell["per_seed"]] == [0, 1]
+            for s in cell["per_seed"]:
+                assert 0 < s["n_generated"] <= 5 * 8
+                assert _close(s["cvir"], 100 * sign * (s["best"] - s["best_train"]) / abs(s["best_train"]))
+                assert _close(s["mcvir"], 100 * sign * (s["mean_top_n"] - s["mean_top_n_train"])
+                              / abs(s["mean_top_n_train"]))
+                curve = [sign * v for v in s["best_per_epoch"]]
+                assert len(curve) == 6 and all(b >= a for a, b in zip(curve, curve[1:]))  # never worse
+                assert s["best_per_epoch"][0] == s["best_train"] and s["cvir"] >= 0
+            cvirs = [s["cvir"] for s in cell["per_seed"]]
+            assert _close(cell["cvir_mean"], statistics.fmean(cvirs))
+            assert _close(cell["cvir_std"], statistics.pstdev(cvirs))
+            assert _close(cell["mcvir_mean"], statistics.fmean(s["mcvir"] for s in cell["per_seed"]))
+
+
+def test_tables_have_the_papers_layout(quick, capsys):
+    table = quick["data"]["tables"]["colorfulness"]
+    assert table["columns"] == quick["scenes"]
+    assert [(r["budget"], r["method"]) for r in table["rows"]] == [("low", m) for m in METHODS]
+    for row in table["rows"]:
+        assert set(row["cells"]) == set(quick["scenes"]) and "±" in row["cells"]["room"]["cvir"]
+    lines = [line for line in table["text"].splitlines() if line.startswith("| low*")]
+    assert len(lines) == len(METHODS) and table["text"].count("room CVIR | room mCVIR") == 1
+    assert table["paper_rows"] == [] and "has no table for colorfulness" in table["text"]
+
+
+def test_waldo_room_table_from_the_exact_oracle(quick):
+    data = quick["data"]
+    rows = data["waldo"]["waldo_oracle"]["low"]
+    assert set(rows) == set(METHODS)
+    for row in rows.values():
+        assert row["seeds"] == SEEDS and 0.0 <= row["found_share"] <= 1.0 and row["goal"] == 0.9
+        assert len(row["per_seed"]) == SEEDS and 0.0 <= row["best_training_visibility"] <= 1.0
+        for s in row["per_seed"]:
+            assert 0.0 <= s["best_visibility"] <= 1.0 and 0 < s["n_generated"] <= 40
+            if s["renders_to_goal"] is None:
+                assert s["best_visibility"] < 0.9
+            else:
+                assert 1 <= s["renders_to_goal"] <= s["n_generated"] and s["best_visibility"] >= 0.9
+        reached = [s for s in row["per_seed"] if s["renders_to_goal"] is not None]
+        assert row["found_share"] == len(reached) / SEEDS
+        assert (row["renders_to_goal_mean"] is None) == (not reached)
+        assert _close(row["best_visibility_mean"], statistics.fmean(s["best_visibility"] for s in row["per_seed"]))
+    assert len(data["waldo_table"]["rows"]) == len(METHODS) and "Waldo room" in data["waldo_table"]["text"]
+
+
+def test_figures_are_written(quick):
+    data = quick["data"]
+    names = {Path(p).name for p in data["figures"]}
+    for scene in quick["scenes"]:
+        assert f"{scene}_colorfulness_views.png" in names and f"{scene}_colorfulness_egps_cloud.png" in names
+    assert "room_waldo_oracle_views.png" in names
+    for path in data["figures"]:
+        assert Path(path).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_fox_is_in_the_quick_run(quick):
+    require_scene("fox")
+    data = quick["data"]
+    assert "fox" in data["results"]["colorfulness"]["scenes"] and data["nerfs"]["fox"]["train"]["n_train"] > 0
+    assert data["nerfs"]["fox"]["train"]["image_size"][1] <= 1920 // 32 + 1
+
+
+def test_output_is_never_overwritten(tmp_path):
+    first = tmp_path / "a.json"
+    assert paper_tables.unique_path(first) == first
+    first.write_text("{}")
+    assert paper_tables.unique_path(first) == tmp_path / "a-2.json"
+    (tmp_path / "a-2.json").write_text("{}")
+    assert paper_tables.unique_path(first) == tmp_path / "a-3.json"
+
+
+def test_paper_values_are_labelled_and_well_formed():
+    for criterion, network in (("saliency", "BASNet"), ("composition", "SAMP-Net"), ("iqa_cnn", "CONTRIQUE")):
+        label = paper_values.label(criterion)
+        assert network in label and "Instant-NGP" in label and paper_values.SOURCE_URL in label
+        described = paper_values.describe([criterion])["criteria"][criterion]
+        entry = paper_values.TABLES[paper_values.table_for(criterion)]
+        assert described["available"] == any(entry["values"].get(s) for s in paper_values.SCENES)
+        assert described["available"] or "not transcribed" in described["note"]
+        for scene, budgets in entry["values"].items():  # whatever is transcribed is a complete cell
+            assert scene in paper_values.SCENES and set(budgets) <= {"low", "high"}
+            for methods in budgets.values():
+                assert set(methods) <= {"grs", "pibs", "egps"}
+                assert all(len(cell) == 2 and all(np.isfinite(cell)) for cell in methods.values())
+    assert paper_values.lookup("colorfulness", "fox", "low", "egps") is None
+
+
+def test_paper_rows_are_printed_beside_ours_and_labelled(monkeypatch):
+    monkeypatch.setitem(paper_values.TABLES["saliency"], "values", {"fox": {"low": {"egps": (12.5, 3.25)}}})
+    cell = {"cvir_mean": 10.0, "cvir_std": 1.0, "mcvir_mean": 5.0, "mcvir_std": 0.5}
+    cells = {"fox": {"low": {m: cell for m in ("grs", "egps")}}, "face": {"low": {"grs": cell}}}
+    table = paper_tables.criterion_table("saliency", cells, ["fox", "face"], ["low"], ["grs", "egps"], {}, 3)
+    assert len(table["rows"]) == 2 and table["rows"][1]["cells"]["face"] == {"cvir": "-", "mcvir": "-"}
+    (paper,) = table["paper_rows"]
+    assert (paper["method"], paper["cells"]["fox"]) == ("egps", {"cvir": "12.5", "mcvir": "3.2"})
+    assert "BASNet" in paper["label"] and "Instant-NGP" in paper["label"]
+    assert "| low | EGPS (paper) | 12.5 | 3.2 |  |  |" in table["text"] and "BASNet" in table["text"]
