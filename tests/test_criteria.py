@@ -26,7 +26,7 @@ def test_registry_names_and_errors():
     with pytest.raises(CriterionError, match="needs the procedural Waldo room.*fox"):
         make_criterion("waldo_oracle", CriterionContext(source="fox"))
     for name, spec in CRITERIA.items():
-        assert spec.direction in ("max", "min") and spec.inputs in ("images", "poses"), name
+        assert spec.direction in ("max", "min") and spec.inputs in ("images", "renders", "poses"), name
 
 
 def test_oracle_criteria_score_poses_like_the_oracle(bare_room):
