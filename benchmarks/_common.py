@@ -94,3 +94,19 @@ def loaded_name(out: str) -> str:
     """`out` with `_loaded` before its suffix (results measured while other jobs shared the machine)."""
     path = Path(out)
     return str(path.with_name(path.stem + "_loaded" + path.suffix))
+
+
+def emit_with_load(result: dict, out: str | None, quiet: dict, load_threshold: float) -> None:
+    """Adds the load record of `wait_for_quiet` (start, end, verdict) to `result` and emits it,
+    under `loaded_name(out)` when the machine was shared."""
+    result.update({
+        "loadavg_start": quiet["loadavg_start"],
+        "loadavg_end": list(os.getloadavg()),
+        "waited_for_load_s": quiet["waited_s"],
+        "loaded": quiet["loaded"],
+        "loaded_rule": f"loaded = 1-min load average still > {load_threshold} after waiting up to 5 min",
+    })
+    if out and quiet["loaded"]:
+        out = loaded_name(out)
+        print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
+    emit(result, out)

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
-from _common import emit, header, loaded_name, wait_for_quiet  # noqa: E402
+from _common import emit_with_load, header, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.exploration import run_explore, write_outputs  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig  # noqa: E402
@@ -115,7 +115,6 @@ def main(argv=None):
                 print(f"{criterion} {method}: cli {entry['cli']['wall_s']:.1f} s, in-process cold "
                       f"{entry['in_process_cold']['seconds']['total']:.1f} s, warm "
                       f"{entry['in_process_warm']['seconds']['total']:.1f} s", file=sys.stderr, flush=True)
-    load_end = list(os.getloadavg())
 
     cli_walls = [e["cli"]["wall_s"] for c in runs.values() for e in c.values()]
     result = header("explore_room")
@@ -132,17 +131,8 @@ def main(argv=None):
                   "in_process seconds: setup = load_source (room + training renders), search = initial scores + "
                   "compiled search, render_topk = top-k renders, write_outputs = PNGs, pose cloud, JSON; "
                   "cold = first call in this process (compiles), warm = repeated call"),
-        "loadavg_start": quiet["loadavg_start"],
-        "loadavg_end": load_end,
-        "waited_for_load_s": quiet["waited_s"],
-        "loaded": quiet["loaded"],
-        "loaded_rule": f"loaded = 1-min load average still > {args.load_threshold} after waiting up to 5 min",
     })
-    out = args.out
-    if out and quiet["loaded"]:
-        out = loaded_name(out)
-        print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
-    emit(result, out)
+    emit_with_load(result, args.out, quiet, args.load_threshold)
 
 
 if __name__ == "__main__":

@@ -327,16 +327,6 @@ def summarise(run) -> Dict[str, Any]:
     }
 
 
-def jitted(criterion):
-    """The criterion with its `apply` under `jax.jit`.
-
-    `run_explore` scores the training images eagerly (outside the search's jit); for a network such as
-    CSNet that is ~10x slower than compiled (measured: 16 images at 16 px, 22 s eager vs 2.6 s jitted
-    on the 2-core CPU). Jitted once per (scene, criterion), the six cells of that pair share it.
-    """
-    return criterion.replace(apply=jax.jit(criterion.apply))
-
-
 def explore_cell(source, criterion, method: str, budget: str, args, children: Dict[str, float]):
     from waldo_jax.exploration import run_explore
     from waldo_jax.search import ExploreConfig
@@ -618,7 +608,7 @@ def main(argv=None) -> Dict[str, Any]:
             context = CriterionContext(room=source.room, weights_dir=args.weights, source=source.spec)
             explore_s = 0.0
             for criterion_name in criteria:
-                criterion = jitted(build_criterion(criterion_name, context))
+                criterion = build_criterion(criterion_name, context)
                 record = result["results"][criterion_name]
                 record.update({"direction": criterion.direction, "description": criterion.description,
                                "paper_table": paper_values.table_for(criterion_name)})
@@ -641,7 +631,7 @@ def main(argv=None) -> Dict[str, Any]:
             if scene == ROOM and waldo_criteria:
                 t_waldo = time.perf_counter()
                 for criterion_name in waldo_criteria:
-                    criterion = jitted(build_criterion(criterion_name, context))
+                    criterion = build_criterion(criterion_name, context)
                     by_budget = result["waldo"].setdefault(criterion_name, {})
                     figure_runs = {}
                     for budget in budgets:

@@ -29,7 +29,6 @@ writes `--out` with a `_loaded` suffix.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -41,7 +40,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header, loaded_name, timed, wait_for_quiet  # noqa: E402
+from _common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig, Initial, explore  # noqa: E402
 
@@ -186,7 +185,6 @@ def main(argv=None):
         methods[name] = time_method(name, initial, config, args.repeats)
         print(f"{name}: {methods[name]['us_per_pose_best']:.2f} us/pose", file=sys.stderr, flush=True)
     simple_ga = time_simple_ga(args.children, args.epochs, args.repeats)
-    load_end = list(os.getloadavg())
 
     result = header("search_overhead")
     result.update({
@@ -203,17 +201,8 @@ def main(argv=None):
         "egps_vs_simple_ga_per_generation": (
             methods["egps"]["us_per_epoch_best"] / simple_ga["us_per_generation_best"]
             if "egps" in methods and simple_ga.get("available") else None),
-        "loadavg_start": quiet["loadavg_start"],
-        "loadavg_end": load_end,
-        "waited_for_load_s": quiet["waited_s"],
-        "loaded": quiet["loaded"],
-        "loaded_rule": f"loaded = 1-min load average still > {args.load_threshold} after waiting up to 5 min",
     })
-    out = args.out
-    if out and quiet["loaded"]:
-        out = loaded_name(out)
-        print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
-    emit(result, out)
+    emit_with_load(result, args.out, quiet, args.load_threshold)
 
 
 if __name__ == "__main__":
