@@ -140,7 +140,8 @@ def _parse_args(argv) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny settings (room + fox, see the docstring)")
     parser.add_argument("--scenes", default=None, help=f"comma list (default {DEFAULTS['scenes']})")
-    parser.add_argument("--criteria", default=None, help=f"comma list (default {DEFAULTS['criteria']})")
+    parser.add_argument("--criteria", default=None,
+                        help=f"comma list (default {DEFAULTS['criteria']}); 'none' for the Waldo-room table only")
     parser.add_argument("--methods", default=None, help="comma list of grs, pibs, egps (default all)")
     parser.add_argument("--budgets", default=None, help="comma list of low, high (default both)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per cell, one vmapped call (default 5)")
@@ -173,6 +174,8 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--out", default=None,
                         help="JSON path (default benchmarks/results/paper_tables_<platform>.json; quick: runs/)")
     parser.add_argument("--progress", action="store_true", help="training progress bars")
+    parser.add_argument("--tables-from", default=None, metavar="JSON",
+                        help="only print the tables of an earlier run's JSON (also an incomplete one) and exit")
     args = parser.parse_args(argv)
     mode = dict(DEFAULTS, **QUICK) if args.quick else DEFAULTS
     for name, value in mode.items():
@@ -553,13 +556,46 @@ def _settings(args, scenes, criteria, methods, budgets, children, downscale) -> 
     }
 
 
+def tables_from(path: Path) -> str:
+    """The tables (Markdown) of a JSON written by this script, over the scenes it completed.
+
+    An interrupted run (`incomplete` in its JSON) keeps every finished cell; its tables show the
+    scenes that have cells and say that the run is incomplete.
+    """
+    try:
+        data = json.loads(Path(path).read_text())
+        settings = data["settings"]
+    except (OSError, json.JSONDecodeError, KeyError) as error:
+        raise SystemExit(f"{path}: not a paper_tables JSON ({error})") from None
+    budgets, methods = settings["budgets"], settings["methods"]
+    children = {k: float(v) for k, v in settings.get("children_override", {}).items()}
+    texts = []
+    if data.get("incomplete"):
+        texts.append(f"**Incomplete run** ({data['incomplete']}): only the scenes with results are shown.\n")
+    for criterion, record in data["results"].items():
+        cells = record.get("scenes", {})
+        scenes = [s for s in settings["scenes"] if s in cells]
+        if scenes:
+            texts.append(criterion_table(criterion, cells, scenes, budgets, methods, children,
+                                         settings["seeds"])["text"] + "\n")
+    waldo = data.get("waldo") or {}
+    complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
+    if waldo and complete:
+        texts.append(waldo_table(waldo, budgets, methods, children)["text"])
+    return "\n".join(texts)
+
+
 def main(argv=None) -> Dict[str, Any]:
     args = _parse_args(argv)
+    if args.tables_from:
+        text = tables_from(Path(args.tables_from))
+        print(text)
+        return {"tables_text": text}
     from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion
     from waldo_jax.sources import run_source
 
     scenes = _names(args.scenes, REAL_SCENES + (ROOM,), "scene")
-    criteria = _names(args.criteria, what="criterion")
+    criteria = [] if args.criteria == "none" else _names(args.criteria, what="criterion")
     methods = _names(args.methods, METHODS, "method")
     budgets = _names(args.budgets, BUDGETS, "budget")
     waldo_criteria = [] if args.no_waldo or ROOM not in scenes else _names(args.waldo_criteria, what="criterion")

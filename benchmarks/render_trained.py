@@ -20,6 +20,8 @@ its scene (for the held-out images), this measures:
       baseline is therefore also measured: S uniform samples per ray with the density zeroed outside
       the occupied cells (`--masked-samples`; every sample still evaluated), i.e. the same volume
       without empty-space skipping and early termination; `equal_psnr_occupied` compares with it.
+      `--step-scales` renders the held-out views again with a coarser marching step (PSNR and
+      evaluations per ray), to see how much of the marched cost the step size alone sets.
   (b) batched vs loop: one `render_trained` call for all timing poses vs a Python loop of
       `render_trained` calls for one pose each (both jitted; compilation excluded).
   (c) devices: `train.render_trained` (the marched renderer; with several devices it splits the poses
@@ -39,6 +41,7 @@ machine was shared.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -151,6 +154,8 @@ def main(argv=None):
     parser.add_argument("--dense-samples", default="128,256,512,1024", help="plain dense S values (PSNR)")
     parser.add_argument("--masked-samples", default="256,512,1024",
                         help="dense S values with the density zeroed outside the occupied cells (PSNR)")
+    parser.add_argument("--step-scales", default="",
+                        help="also render the held-out views with the marching step x each of these (e.g. 2,4)")
     parser.add_argument("--dense-repeats", type=int, default=1, help="timed repeats of the dense renderers")
     parser.add_argument("--shard-samples", type=int, default=None,
                         help="also time the dense renderer at S samples on 1 and N devices (default: not)")
@@ -210,6 +215,20 @@ def main(argv=None):
     marched_psnr = psnr(out.rgb, test_scene.images)
     psnr_evaluations_per_ray = float(np.mean(np.asarray(psnr_evaluations, np.float64)))
     log(f"marched held-out PSNR {marched_psnr:.3f} dB, {psnr_evaluations_per_ray:.1f} evaluations/ray")
+    coarser = []
+    for scale in [float(v) for v in args.step_scales.split(",") if v.strip()]:
+        scaled = dataclasses.replace(config, steps_per_diagonal=config.steps_per_diagonal / scale)
+        scaled_sampler = make_sampler(scaled)
+        out_s, evals_s, passes_s = jax.device_get(scaled_sampler.render_views_counted(
+            params, grid, jnp.asarray(test_scene.c2w), intrinsics,
+            _render_config(scaled, scene.near, scene.far, scene.aabb, background, scaled.eval_samples)))
+        coarser.append({"step_scale": scale, "steps_per_diagonal": scaled.steps_per_diagonal,
+                        "psnr_test": psnr(out_s.rgb, test_scene.images),
+                        "field_evaluations_per_ray": float(np.mean(np.asarray(evals_s, np.float64))),
+                        "marched_slots_per_ray": float(np.asarray(passes_s, np.int64).sum() * scaled_sampler.view_budget()
+                                                       / np.asarray(evals_s).size)})
+        log(f"marched, step x{scale:g}: {coarser[-1]['psnr_test']:.3f} dB, "
+            f"{coarser[-1]['field_evaluations_per_ray']:.1f} evaluations/ray")
     dense_results = []
     for samples in [int(s) for s in args.dense_samples.split(",") if s.strip()]:
         value = psnr(jax.device_get(dense(test_scene.c2w, intrinsics, samples)), test_scene.images)
@@ -314,6 +333,9 @@ def main(argv=None):
         "repeats": args.repeats,
         "marched": {"psnr_test": marched_psnr, "max_samples_per_ray": config.eval_samples,
                     "field_evaluations_per_ray_psnr_views": psnr_evaluations_per_ray, **marched_timing},
+        "marched_coarser_steps": coarser,
+        "marched_coarser_steps_are": ("the same run rendered with its marching step (base diagonal / "
+                                      "steps_per_diagonal) multiplied by step_scale, on the held-out views"),
         "dense_psnr": dense_results,
         "dense_timing": dense_timing,
         "dense_occupied_psnr": masked_results,

@@ -46,7 +46,7 @@ def quick(tmp_path_factory):
             "--runs", str(tmp / "runs"), "--out", str(tmp / "paper.json")]
     returned = paper_tables.main(argv)
     data = json.loads(Path(returned["out"]).read_text())
-    return {"data": data, "scenes": scenes.split(","), "tmp": tmp, "argv": argv}
+    return {"data": data, "scenes": scenes.split(","), "tmp": tmp, "argv": argv, "path": Path(returned["out"])}
 
 
 def _close(a, b, tol=1e-3):
@@ -100,6 +100,24 @@ def test_tables_have_the_papers_layout(quick, capsys):
     lines = [line for line in table["text"].splitlines() if line.startswith("| low*")]
     assert len(lines) == len(METHODS) and table["text"].count("room CVIR | room mCVIR") == 1
     assert table["paper_rows"] == [] and "has no table for colorfulness" in table["text"]
+
+
+def test_tables_from_a_json_reprint_the_run_and_an_interrupted_one(quick, tmp_path):
+    data = quick["data"]
+    text = paper_tables.tables_from(quick["path"])
+    assert data["tables"]["colorfulness"]["text"] in text
+    assert data["waldo_table"]["text"] in text
+    # an interrupted run: the room's cells only, the Waldo table unfinished
+    partial = json.loads(json.dumps(data))
+    partial["incomplete"] = "KeyboardInterrupt: "
+    partial["results"]["colorfulness"]["scenes"] = {"room": data["results"]["colorfulness"]["scenes"]["room"]}
+    for by_budget in partial["waldo"].values():
+        by_budget["low"].pop(METHODS[-1])
+    path = tmp_path / "partial.json"
+    path.write_text(json.dumps(partial))
+    text = paper_tables.tables_from(path)
+    assert "Incomplete run" in text and "room CVIR" in text and "fox CVIR" not in text
+    assert "Waldo room" not in text
 
 
 def test_waldo_room_table_from_the_exact_oracle(quick):
