@@ -90,6 +90,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -585,12 +586,35 @@ def tables_from(path: Path) -> str:
     return "\n".join(texts)
 
 
+def _interrupt_on_signals() -> Dict[int, Any]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt, so a stopped run still writes what it measured.
+
+    A process started in the background by a non-interactive shell inherits SIGINT as *ignored*
+    (Python then installs no KeyboardInterrupt handler), and SIGTERM kills without cleanup; both
+    would lose every finished cell of a multi-hour run. Returns the previous handlers.
+    """
+    def stop(signum, frame):
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    return {signum: signal.signal(signum, stop) for signum in (signal.SIGINT, signal.SIGTERM)}
+
+
 def main(argv=None) -> Dict[str, Any]:
     args = _parse_args(argv)
     if args.tables_from:
         text = tables_from(Path(args.tables_from))
         print(text)
         return {"tables_text": text}
+    previous = _interrupt_on_signals()
+    try:
+        return _run(args)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def _run(args) -> Dict[str, Any]:
+    """The protocol (see the module docstring) for parsed arguments."""
     from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion
     from waldo_jax.sources import run_source
 

@@ -85,7 +85,7 @@ def _part_command(part: str, args) -> list[str] | None:
         extra = [args.run, args.scene, "--poses", "16" if quick else "64", "--timing-downscale", "4",
                  "--repeats", "1" if quick else "2"]
         if quick:
-            extra += ["--dense-samples", "128,256", "--skip", "loop"]
+            extra += ["--dense-samples", "128", "--masked-samples", "128", "--skip", "loop"]
         if args.downscale:
             extra += ["--downscale", str(args.downscale)]
         return ["render_trained.py", *extra]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import statistics
 import sys
 from pathlib import Path
@@ -192,3 +193,17 @@ def test_paper_rows_are_printed_beside_ours_and_labelled(monkeypatch):
     assert (paper["method"], paper["cells"]["fox"]) == ("egps", {"cvir": "12.5", "mcvir": "3.2"})
     assert "BASNet" in paper["label"] and "Instant-NGP" in paper["label"]
     assert "| low | EGPS (paper) | 12.5 | 3.2 |  |  |" in table["text"] and "BASNet" in table["text"]
+
+
+def test_stop_signals_raise_keyboard_interrupt_so_the_json_is_written():
+    saved = {n: signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # as in a background job of a non-interactive shell
+        previous = paper_tables._interrupt_on_signals()
+        assert previous[signal.SIGINT] is signal.SIG_IGN
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            with pytest.raises(KeyboardInterrupt, match=signal.Signals(signum).name):
+                signal.getsignal(signum)(signum, None)
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler)
