@@ -195,6 +195,19 @@ def test_paper_rows_are_printed_beside_ours_and_labelled(monkeypatch):
     assert "| low | EGPS (paper) | 12.5 | 3.2 |  |  |" in table["text"] and "BASNet" in table["text"]
 
 
+def test_a_cell_undefined_for_a_zero_training_score_says_why():
+    seed = {"cvir": None, "mcvir": None, "best_train": 0.0, "best": 0.0625}
+    zero = {"cvir_mean": None, "cvir_std": None, "mcvir_mean": None, "mcvir_std": None, "per_seed": [seed, seed]}
+    fine = {"cvir_mean": 10.0, "cvir_std": 1.0, "mcvir_mean": 5.0, "mcvir_std": 0.5,
+            "per_seed": [{"cvir": 10.0, "mcvir": 5.0, "best_train": 0.5, "best": 0.55}]}
+    cells = {"fern": {"low": {"grs": zero}}, "fox": {"low": {"grs": fine}}}
+    table = paper_tables.criterion_table("saliency", cells, ["fox", "fern"], ["low"], ["grs"], {}, 2)
+    assert "| low | GRS | 10 ± 1 | 5 ± 0 | n/a | n/a |" in table["text"]
+    (note,) = [n for n in table["notes"] if n.startswith("fern:")]
+    assert "best training score is 0.000" in note and "0.062" in note
+    assert not any(n.startswith("fox:") for n in table["notes"])
+
+
 def test_stop_signals_raise_keyboard_interrupt_so_the_json_is_written():
     saved = {n: signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM)}
     try:
