@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import signal
 import statistics
 import sys
@@ -20,6 +21,7 @@ import pytest
 
 from conftest import require_scene
 from waldo_jax import paths
+from waldo_jax.procedural import make_room
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
@@ -139,6 +141,51 @@ def test_waldo_room_table_from_the_exact_oracle(quick):
         assert (row["renders_to_goal_mean"] is None) == (not reached)
         assert _close(row["best_visibility_mean"], statistics.fmean(s["best_visibility"] for s in row["per_seed"]))
     assert len(data["waldo_table"]["rows"]) == len(METHODS) and "Waldo room" in data["waldo_table"]["text"]
+    reference = data["waldo_reference"]
+    assert reference["samples"] == 4096 and 0.0 <= reference["goal_share"] <= 1.0 and reference["goal"] == 0.9
+    assert f"The best reachable: {reference['best']:.0%}" in data["waldo_table"]["text"]
+
+
+def _room_source(room, views=12):
+    """What `reachable_visibility` reads of a Source: the room, its training cameras, the intrinsics."""
+    from types import SimpleNamespace
+
+    import jax
+
+    from waldo_jax.procedural import training_cameras
+    from waldo_jax.types import Intrinsics
+
+    intrinsics = Intrinsics.from_fov(32, 32, np.radians(60.0))
+    c2w = training_cameras(jax.random.key(0), make_room(0), views, intrinsics)
+    return SimpleNamespace(room=room, train_c2w=c2w, n_train=views, intrinsics=intrinsics)
+
+
+def test_reachable_visibility_is_the_rooms_known_answer():
+    # Without crates nothing hides Waldo: some pose in the training cameras' box sees all of him.
+    bare = paper_tables.reachable_visibility(_room_source(make_room(0, num_clutter=0, num_crates=0)), 4096, 0.9)
+    assert bare["best"] > 0.95 and bare["goal_share"] > 0.5
+    low, high = np.asarray(bare["origin_low"]), np.asarray(bare["origin_high"])
+    assert np.all(low <= bare["best_origin"]) and np.all(np.asarray(bare["best_origin"]) <= high)
+    # The default room's pen hides part of him from every origin at the band's heights.
+    pen = paper_tables.reachable_visibility(_room_source(make_room(0)), 4096, 0.9)
+    assert 0.5 < pen["best"] < 0.9 and pen["goal_share"] == 0.0
+    assert pen == paper_tables.reachable_visibility(_room_source(make_room(0)), 4096, 0.9)  # seeded
+    row = {"goal": 0.9, "seeds": 1, "found_share": 0.0, "best_visibility_mean": 0.8, "best_visibility_max": 0.8,
+           "best_scored_visibility_mean": 0.8, "renders_to_goal_mean": None, "cvir_mean": 50.0,
+           "best_training_visibility": 0.4, "n_train": 12}
+    text = paper_tables.waldo_table({"waldo_visible": {"low": {"grs": row}}}, ["low"], ["grs"], {}, pen)["text"]
+    assert "out of reach in this room" in text
+    assert "out of reach" not in paper_tables.waldo_table({"waldo_visible": {"low": {"grs": row}}}, ["low"], ["grs"],
+                                                          {}, bare)["text"]
+
+
+def test_a_reused_room_nerf_must_be_of_the_asked_room(quick, tmp_path):
+    runs = tmp_path / "runs"
+    shutil.copytree(quick["tmp"] / "runs" / "room", runs / paper_tables.room_folder(1))  # a seed-0 room's NeRF
+    with pytest.raises(SystemExit, match="room seed 0, not --room-seed 1"):
+        paper_tables.main(["--quick", "--scenes", "room", "--room-seed", "1", "--criteria", "none",
+                           "--runs", str(runs), "--out", str(tmp_path / "x.json")])
+    assert paper_tables.room_folder(0) == "room" and paper_tables.room_folder(3) == "room_seed3"
 
 
 def test_figures_are_written(quick):
