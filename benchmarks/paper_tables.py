@@ -84,6 +84,14 @@ the compilations, ~30-60 s each on the 2 development cores, set the time more th
   python benchmarks/paper_tables.py --preset quality --downscale fox=2,face=1,garden=1,fern=4 \
       --seeds 5 --resolution 128 --runs runs/paper_nerfs_gpu --out benchmarks/results/paper_tables_gpu.json
 
+  # a long protocol one scene per run (each JSON is written when its run ends, so a stopped session
+  # keeps the finished scenes, and each job is shorter), then one table per
+  # criterion over all of them (the runs must share budgets, methods, seeds, resolution, ...):
+  for scene in fox face fern garden room; do
+    python benchmarks/paper_tables.py --scenes $scene --no-waldo --out runs/paper_$scene.json  # + settings
+  done
+  python benchmarks/paper_tables.py --tables-from runs/paper_{fox,face,fern,garden,room}.json
+
 Flags: `--scenes`, `--criteria`, `--methods`, `--budgets` (comma lists), `--seeds K`, `--seed S`
 (first seed), `--resolution R` (longer side of every render), `--children low=N,high=M` (override
 the budgets' children per epoch; rows are then marked with `*`), `--epochs` (5), `--top-k` (10),
@@ -91,7 +99,7 @@ the budgets' children per epoch; rows are then marked with `*`), `--epochs` (5),
 `--room-resolution R`, `--downscale K | scene=K,...`, `--weights DIR`, `--waldo-criteria`,
 `--visibility-goal`, `--reachable-samples`, `--room-seed`, `--no-waldo`, `--initial images|renders`,
 `--figures DIR`, `--figure-columns`, `--cloud-methods`,
-`--load-threshold` (wait up to 5 minutes for a quiet machine first), `--quick`.
+`--load-threshold` (wait up to 5 minutes for a quiet machine first), `--quick`, `--tables-from JSON...`.
 """
 
 from __future__ import annotations
@@ -188,8 +196,9 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--out", default=None,
                         help="JSON path (default benchmarks/results/paper_tables_<platform>.json; quick: runs/)")
     parser.add_argument("--progress", action="store_true", help="training progress bars")
-    parser.add_argument("--tables-from", default=None, metavar="JSON",
-                        help="only print the tables of an earlier run's JSON (also an incomplete one) and exit")
+    parser.add_argument("--tables-from", default=None, nargs="+", metavar="JSON",
+                        help="only print the tables of earlier runs' JSONs (also incomplete ones; several runs of "
+                             "the same settings, e.g. one per scene, make one table) and exit")
     args = parser.parse_args(argv)
     mode = dict(DEFAULTS, **QUICK) if args.quick else DEFAULTS
     for name, value in mode.items():
@@ -650,32 +659,72 @@ def _settings(args, scenes, criteria, methods, budgets, children, downscale) -> 
     }
 
 
-def tables_from(path: Path) -> str:
-    """The tables (Markdown) of a JSON written by this script, over the scenes it completed.
+# Settings that must agree for runs to share a table (the scenes may differ: one run per scene).
+MERGE_SETTINGS = ("budgets", "methods", "seeds", "first_seed", "resolution", "epochs", "top_k",
+                  "children_override", "initial_scores")
 
+
+def _load_run(path: Path) -> Dict[str, Any]:
+    try:
+        data = json.loads(Path(path).read_text())
+        data["settings"]["scenes"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
+        raise SystemExit(f"{path}: not a paper_tables JSON ({error})") from None
+    return data
+
+
+def _merge_runs(paths: Sequence[Path]) -> Dict[str, Any]:
+    """One run's worth of results from the JSONs of several runs of the same settings (e.g. one per scene).
+
+    Raises SystemExit when a setting of MERGE_SETTINGS differs or two runs hold the same scene of a
+    criterion (which one to print would be a guess).
+    """
+    runs = [_load_run(path) for path in paths]
+    first = runs[0]["settings"]
+    for path, run in zip(paths[1:], runs[1:]):
+        for key in MERGE_SETTINGS:
+            if run["settings"].get(key) != first.get(key):
+                raise SystemExit(f"{path}: {key} = {run['settings'].get(key)!r} differs from {paths[0]} "
+                                 f"({first.get(key)!r}); runs with other settings do not share a table")
+    results: Dict[str, Any] = {}
+    for path, run in zip(paths, runs):
+        for criterion, record in run["results"].items():
+            merged = results.setdefault(criterion, {"scenes": {}})
+            for scene, cells in record.get("scenes", {}).items():
+                if scene in merged["scenes"]:
+                    raise SystemExit(f"{path}: scene {scene!r} of {criterion} is also in an earlier JSON")
+                merged["scenes"][scene] = cells
+    scenes = list(dict.fromkeys(s for run in runs for s in run["settings"]["scenes"]))  # in the files' order
+    incomplete = [f"{path}: {run['incomplete']}" for path, run in zip(paths, runs) if run.get("incomplete")]
+    return {"settings": dict(first, scenes=scenes), "results": results, "incomplete": "; ".join(incomplete),
+            "waldo": [(run.get("waldo") or {}, run.get("waldo_reference")) for run in runs]}
+
+
+def tables_from(paths) -> str:
+    """The tables (Markdown) of one or several JSONs written by this script, over the scenes they completed.
+
+    Several JSONs (runs of the same settings, e.g. one per scene) make one table per criterion.
     An interrupted run (`incomplete` in its JSON) keeps every finished cell; its tables show the
     scenes that have cells and say that the run is incomplete.
     """
-    try:
-        data = json.loads(Path(path).read_text())
-        settings = data["settings"]
-    except (OSError, json.JSONDecodeError, KeyError) as error:
-        raise SystemExit(f"{path}: not a paper_tables JSON ({error})") from None
+    paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
+    data = _merge_runs(paths)
+    settings = data["settings"]
     budgets, methods = settings["budgets"], settings["methods"]
     children = {k: float(v) for k, v in settings.get("children_override", {}).items()}
     texts = []
-    if data.get("incomplete"):
+    if data["incomplete"]:
         texts.append(f"**Incomplete run** ({data['incomplete']}): only the scenes with results are shown.\n")
     for criterion, record in data["results"].items():
-        cells = record.get("scenes", {})
+        cells = record["scenes"]
         scenes = [s for s in settings["scenes"] if s in cells]
         if scenes:
             texts.append(criterion_table(criterion, cells, scenes, budgets, methods, children,
                                          settings["seeds"])["text"] + "\n")
-    waldo = data.get("waldo") or {}
-    complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
-    if waldo and complete:
-        texts.append(waldo_table(waldo, budgets, methods, children, data.get("waldo_reference"))["text"])
+    for waldo, reference in data["waldo"]:
+        complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
+        if waldo and complete:
+            texts.append(waldo_table(waldo, budgets, methods, children, reference)["text"])
     return "\n".join(texts)
 
 
@@ -695,7 +744,7 @@ def _interrupt_on_signals() -> Dict[int, Any]:
 def main(argv=None) -> Dict[str, Any]:
     args = _parse_args(argv)
     if args.tables_from:
-        text = tables_from(Path(args.tables_from))
+        text = tables_from(args.tables_from)
         print(text)
         return {"tables_text": text}
     previous = _interrupt_on_signals()

@@ -123,6 +123,32 @@ def test_tables_from_a_json_reprint_the_run_and_an_interrupted_one(quick, tmp_pa
     assert "Waldo room" not in text
 
 
+def test_tables_from_several_runs_make_one_table(quick, tmp_path):
+    require_scene("fox")
+    data = quick["data"]
+
+    def part(scene, name, **settings):
+        piece = json.loads(json.dumps(data))
+        piece["settings"].update(scenes=[scene], **settings)
+        for record in piece["results"].values():
+            record["scenes"] = {scene: record["scenes"][scene]}
+        if scene != "room":
+            piece.pop("waldo"), piece.pop("waldo_reference")
+        (tmp_path / name).write_text(json.dumps(piece))
+        return tmp_path / name
+
+    fox, room = part("fox", "fox.json"), part("room", "room.json")
+    merged = paper_tables.tables_from([room, fox])  # the columns follow the files' order
+    assert merged == paper_tables.tables_from(quick["path"])
+    swapped = paper_tables.tables_from([fox, room])
+    assert swapped.index("fox CVIR") < swapped.index("room CVIR")
+    assert data["tables"]["colorfulness"]["text"] in merged and data["waldo_table"]["text"] in merged
+    with pytest.raises(SystemExit, match="seeds = 3 differs"):
+        paper_tables.tables_from([fox, part("room", "room3.json", seeds=3)])
+    with pytest.raises(SystemExit, match="scene 'fox' of colorfulness is also in an earlier JSON"):
+        paper_tables.tables_from([fox, fox])
+
+
 def test_waldo_room_table_from_the_exact_oracle(quick):
     data = quick["data"]
     rows = data["waldo"]["waldo_oracle"]["low"]
