@@ -612,12 +612,13 @@ def _reachable_note(reference: Optional[Dict[str, Any]]) -> str:
 
 
 def waldo_table(waldo: Dict[str, Any], budgets, methods, children,
-                reference: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+                reference: Optional[Dict[str, Any]] = None, room_seed: Optional[int] = None) -> Dict[str, Any]:
     """The Waldo-room table per search criterion; `reference`: `reachable_visibility` (the known answer)."""
     lines, rows = [], []
+    room = "Waldo room" if room_seed is None else f"Waldo room procedural:{room_seed}"
     for criterion, by_budget in waldo.items():
         goal = next(iter(next(iter(by_budget.values())).values()))["goal"]
-        lines += [f"### Waldo room, search criterion {criterion} (visibility from the exact oracle)", "",
+        lines += [f"### {room}, search criterion {criterion} (visibility from the exact oracle)", "",
                   f"| poses | method | seeds finding >= {goal:.0%} visible | best visibility (mean / max) | "
                   "visibility of the best-scored view (mean) | renders to first reach it (mean) | CVIR % |",
                   "|---|---|---|---|---|---|---|"]
@@ -697,7 +698,8 @@ def _merge_runs(paths: Sequence[Path]) -> Dict[str, Any]:
     scenes = list(dict.fromkeys(s for run in runs for s in run["settings"]["scenes"]))  # in the files' order
     incomplete = [f"{path}: {run['incomplete']}" for path, run in zip(paths, runs) if run.get("incomplete")]
     return {"settings": dict(first, scenes=scenes), "results": results, "incomplete": "; ".join(incomplete),
-            "waldo": [(run.get("waldo") or {}, run.get("waldo_reference")) for run in runs]}
+            "waldo": [(run.get("waldo") or {}, run.get("waldo_reference"), run["settings"].get("room_seed"))
+                      for run in runs]}
 
 
 def tables_from(paths) -> str:
@@ -721,10 +723,10 @@ def tables_from(paths) -> str:
         if scenes:
             texts.append(criterion_table(criterion, cells, scenes, budgets, methods, children,
                                          settings["seeds"])["text"] + "\n")
-    for waldo, reference in data["waldo"]:
+    for waldo, reference, room_seed in data["waldo"]:
         complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
         if waldo and complete:
-            texts.append(waldo_table(waldo, budgets, methods, children, reference)["text"])
+            texts.append(waldo_table(waldo, budgets, methods, children, reference, room_seed)["text"])
     return "\n".join(texts)
 
 
@@ -866,7 +868,8 @@ def _run(args) -> Dict[str, Any]:
     result["tables"] = {c: criterion_table(c, result["results"][c]["scenes"], scenes, budgets, methods, children,
                                            args.seeds) for c in criteria}
     if result["waldo"]:
-        result["waldo_table"] = waldo_table(result["waldo"], budgets, methods, children, result.get("waldo_reference"))
+        result["waldo_table"] = waldo_table(result["waldo"], budgets, methods, children, result.get("waldo_reference"),
+                                            args.room_seed)
     for table in result["tables"].values():
         print(table["text"] + "\n")
     if result["waldo"]:
