@@ -371,54 +371,15 @@ def explore_cell(source, criterion, method: str, budget: str, args, children: Di
 # Figures.
 
 
-def views_sheet(runs: Dict[str, Any], columns: int) -> np.ndarray:
-    """Best training views, then each method's best views (first seed) with their scores.
-
-    A best view that is a training view is labelled "train": its score is the real image's, its tile
-    the NeRF's render of that pose.
-    """
-    from waldo_jax import io
-    from waldo_jax.exploration import _best_training, _format_score
-
-    first = next(iter(runs.values()))
-    source = first.source
-    best_train = _best_training(first, columns)
-    if source.train_images is not None:
-        train_row, title = [source.train_images[i] for i in best_train], "training"
-    else:  # the images are not on this machine: renders at the training poses
-        train_row = list(np.asarray(source.render(jnp.asarray(source.train_c2w[best_train])), np.float32))
-        title = "training (renders)"
-
-    def row(images, labels):
-        images, labels = list(images)[:columns], list(labels)[:columns]
-        return images + [None] * (columns - len(images)), labels + [None] * (columns - len(labels))
-
-    images, labels = row(train_row, [_format_score(first.scores_train[i]) for i in best_train])
-    titles = [title]
-    for method, run in runs.items():
-        valid = np.asarray(run.result.top_valid)
-        scores = np.asarray(run.result.top_scores)[valid]
-        # A training view among the best keeps its real image's score; the tile shows the NeRF's render.
-        trained = np.asarray(run.result.top_indices)[valid] < source.n_train
-        found = row(run.top_images, [f"#{r + 1} {_format_score(s)}" + (" train" if t else "")
-                                     for r, (s, t) in enumerate(zip(scores, trained))])
-        images, labels = images + found[0], labels + found[1]
-        titles.append(method.upper())
-        if run.top_truth is not None:
-            truth = row(run.top_truth, [None] * len(run.top_truth))
-            images, labels = images + truth[0], labels + truth[1]
-            titles.append(f"{method.upper()} truth")
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)
-
-
 def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str, Any], args, budget: str) -> List[str]:
     """The views sheet and the pose clouds (threshold: the best training score) of one scene and criterion."""
     from waldo_jax import io
+    from waldo_jax.exploration import methods_sheet
     from waldo_jax.plots import pose_cloud
 
     written = []
     path = folder / f"{scene}_{criterion_name}_views.png"
-    io.save_png(path, views_sheet(runs, args.figure_columns))
+    io.save_png(path, methods_sheet(runs, args.figure_columns))
     written.append(str(path))
     for method, run in runs.items():
         if method not in args.cloud_methods:

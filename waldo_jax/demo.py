@@ -155,7 +155,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
       settings: explicit sizes (overrides `quick`).
     """
     from waldo_jax.criteria import CriterionContext, make_criterion
-    from waldo_jax.exploration import run_explore, write_outputs
+    from waldo_jax.exploration import methods_sheet, run_explore, write_outputs
     from waldo_jax.procedural import room_scene, waldo_visibility_batch
     from waldo_jax.search import ExploreConfig
     from waldo_jax.sources import Source, _room_renderer, field_renderer
@@ -208,7 +208,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
 
     # One sheet like the paper's qualitative figures: training views, then each method's best views.
     first = runs["egps"]
-    io.save_png(out / "contact_sheet.png", _stack_sheets(runs, len(first.top_images)))
+    io.save_png(out / "contact_sheet.png", methods_sheet(runs, max(len(first.top_images), 1)))
 
     train_visible = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
     best_train = int(np.nanargmax(first.scores_train))
@@ -235,30 +235,3 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
     return out
 
 
-def _stack_sheets(runs, k: int) -> np.ndarray:
-    """The training row, then per method its best views as the NeRF renders them and as they truly are."""
-    from waldo_jax.exploration import _best_training, _format_score
-
-    first = runs["egps"]
-    columns = max(k, 1)
-
-    def row(images, labels=None):
-        images = list(images)[:columns]
-        labels = list(labels or [None] * len(images))[:columns]
-        return images + [None] * (columns - len(images)), labels + [None] * (columns - len(labels))
-
-    best_train = _best_training(first, columns)
-    images, labels = row([first.source.train_images[i] for i in best_train],
-                         [_format_score(first.scores_train[i]) for i in best_train])
-    titles = ["training"]
-    for method in METHOD_ORDER:
-        run = runs[method]
-        scores = np.asarray(run.result.top_scores)[np.asarray(run.result.top_valid)]
-        found = row(run.top_images, [f"#{r + 1} {_format_score(s)}" for r, s in enumerate(scores)])
-        images, labels = images + found[0], labels + found[1]
-        titles.append(f"{method.upper()} (NeRF)")
-        if run.top_truth is not None:
-            truth = row(run.top_truth)
-            images, labels = images + truth[0], labels + truth[1]
-            titles.append(f"{method.upper()} (truth)")
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)

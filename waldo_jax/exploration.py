@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +38,7 @@ from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_se
 from waldo_jax.sources import Source
 
 __all__ = ["ExploreRun", "INITIAL_MODES", "score_function", "initial_scores", "run_explore", "write_outputs",
-           "seed_keys"]
+           "seed_keys", "contact_sheet", "methods_sheet", "training_tiles"]
 
 INITIAL_MODES = ("images", "renders")
 RESULTS_JSON = "results.json"
@@ -267,6 +267,20 @@ def _best_training(run: ExploreRun, k: int) -> List[int]:
     return [int(i) for i in order[:k]]
 
 
+def training_tiles(run: ExploreRun, indices: Sequence[int]) -> Tuple[List[np.ndarray], str]:
+    """Tiles float32 [H, W, 3] of the training views `indices`, as they were scored, and their row title.
+
+    The training images when the initial scores are theirs (or the poses'); renders at the
+    training poses when the scores are of renders (`initial="renders"`) or the images are not on
+    this machine: a tile always shows what its score was computed on.
+    """
+    source = run.source
+    if source.train_images is not None and run.initial != "renders":
+        return [source.train_images[i] for i in indices], "training"
+    c2w = jnp.asarray(source.train_c2w[np.asarray(indices, dtype=int)])
+    return list(np.asarray(source.render(c2w), np.float32)), "training (renders)"
+
+
 def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
     """uint8 sheet: best training views (first row), best found views (second), analytic truth (third, if any)."""
     from waldo_jax.sources import resize_images
@@ -275,12 +289,8 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
     columns = columns or max(k, 1)
     shape = run.top_images.shape[1:3] if k else (run.source.intrinsics.height, run.source.intrinsics.width)
     best_train = _best_training(run, columns)
-    if run.source.train_images is not None:
-        train_row = [resize_images(run.source.train_images[[i]], shape[1], shape[0])[0] for i in best_train]
-        train_title = "training"
-    else:  # the images are not on this machine: show renders at the training poses
-        train_row = list(np.asarray(run.source.render(jnp.asarray(run.source.train_c2w[best_train])), np.float32))
-        train_title = "training (renders)"
+    tiles, train_title = training_tiles(run, best_train)
+    train_row = [resize_images(tile[None], shape[1], shape[0])[0] for tile in tiles]
     images = train_row + [None] * (columns - len(train_row))
     labels = [_format_score(run.scores_train[i]) for i in best_train] + [None] * (columns - len(best_train))
     found = list(run.top_images) + [None] * (columns - k)
@@ -292,6 +302,41 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
         images += list(run.top_truth) + [None] * (columns - k)
         labels += [None] * columns
         titles.append("analytic truth")
+    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)
+
+
+def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
+    """uint8 sheet comparing methods on one source and criterion: best training views, then each method's best.
+
+    Row 1: the best training views (`training_tiles`) with their scores. Then per method (in the
+    order of `runs`) its top views of the first seed as the source renders them, labelled with rank
+    and score; a top view that is a training pose is marked "train" (its score is the training
+    view's, the tile the render). For a NeRF of the procedural room each method's row is followed
+    by the same views rendered by the analytic room (the truth).
+    """
+    first = next(iter(runs.values()))
+    best_train = _best_training(first, columns)
+
+    def row(images, labels):
+        images, labels = list(images)[:columns], list(labels)[:columns]
+        return images + [None] * (columns - len(images)), labels + [None] * (columns - len(labels))
+
+    tiles, title = training_tiles(first, best_train)
+    images, labels = row(tiles, [_format_score(first.scores_train[i]) for i in best_train])
+    titles = [title]
+    for method, run in runs.items():
+        valid = np.asarray(run.result.top_valid)
+        scores = np.asarray(run.result.top_scores)[valid]
+        trained = np.asarray(run.result.top_indices)[valid] < run.source.n_train
+        found = row(run.top_images, [f"#{r + 1} {_format_score(s)}" + (" train" if t else "")
+                                     for r, (s, t) in enumerate(zip(scores, trained))])
+        images, labels = images + found[0], labels + found[1]
+        if run.top_truth is None:
+            titles.append(method.upper())
+        else:
+            truth = row(run.top_truth, [])
+            images, labels = images + truth[0], labels + truth[1]
+            titles += [f"{method.upper()} (NeRF)", f"{method.upper()} (truth)"]
     return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)
 
 
