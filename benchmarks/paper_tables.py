@@ -73,7 +73,10 @@ the compilations, ~30-60 s each on the 2 development cores, set the time more th
   # saliency score moves in steps of one pixel (CVIR of a seed jumps by hundreds of %) and on fern
   # and garden no training render has a salient pixel (CVIR undefined, the table says why). The
   # 32-pixel, 5-seed run in the README took 152 min on shared cores. Without --children (the
-  # paper's budgets) expect 2-3 hours (an estimate, not measured).
+  # paper's budgets, 32 + 5 x 49 ... 161 + 5 x 184 images) saliency alone took 27 to 37 min per
+  # scene at 32 px with 5 seeds (measured, one scene per run: the loop below and
+  # benchmarks/results/paper_tables_saliency_paper_budget_cpu_*.json), so all three criteria on
+  # all five scenes would take about 8 to 9 hours on these cores (an estimate, not measured).
   python benchmarks/paper_tables.py --children low=8,high=24 --seeds 2 --resolution 16 \
       --train-steps 200 --room-steps 200 --cloud-methods egps --initial renders \
       --runs runs/paper_nerfs_hour --out benchmarks/results/paper_tables_cpu_hour.json
