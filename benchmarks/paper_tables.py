@@ -73,7 +73,7 @@ the compilations, ~30-60 s each on the 2 development cores, set the time more th
   # saliency score moves in steps of one pixel (CVIR of a seed jumps by hundreds of %) and on fern
   # and garden no training render has a salient pixel (CVIR undefined, the table says why). The
   # 32-pixel, 5-seed run in the README took 152 min on shared cores. Without --children (the
-  # paper's budgets, 32 + 5 x 49 ... 161 + 5 x 184 images) saliency alone took 27 to 37 min per
+  # paper's budgets: on fox 43 + 5 x 46 and 43 + 5 x 181 images) saliency alone took 27 to 37 min per
   # scene at 32 px with 5 seeds (measured, one scene per run: the loop below and
   # benchmarks/results/paper_tables_saliency_paper_budget_cpu_*.json), so all three criteria on
   # all five scenes would take about 8 to 9 hours on these cores (an estimate, not measured).
