@@ -5,10 +5,12 @@ compilations, memory and device count are its own) and parsed from the JSON it p
 
   part               script                    what it measures
   render_population  render_population.py     batched vs per-pose loop, dense renderer (Waldo room)
-  render_trained     render_trained.py        occupancy grid vs dense sampling on a trained run (field
-                                              evaluations per ray at equal PSNR), batched vs loop,
-                                              1 vs N forced devices; needs --run and --scene
+  render_trained     render_trained.py        the marched renderer on a trained run: rays/s, field
+                                              evaluations per ray, passes per view, against the field
+                                              alone (render efficiency); needs --run and --scene
   train              train_quality.py         training rays/s and held-out PSNR after a time budget
+  train_step         train_step.py            ms per training step against the field's forward and
+                                              backward pass at the same sample budget
   criteria           criteria_throughput.py   images/s of every image criterion inside one jit
   search_overhead    search_overhead.py       us per generated pose of GRS / PIBS / EGPS without render
                                               or score, vs the paper's 0.7-0.8 ms and vs evosax's
@@ -52,9 +54,9 @@ sys.path.insert(0, str(HERE))
 
 from _common import emit, header, loaded_name  # noqa: E402
 
-PARTS = ("render_population", "render_trained", "train", "criteria", "search_overhead", "explore")
+PARTS = ("render_population", "render_trained", "train", "train_step", "criteria", "search_overhead", "explore")
 BENCHMARK_OF_PART = {"render_population": "render_population", "render_trained": "render_trained",
-                     "train": "train_quality", "criteria": "criteria_throughput",
+                     "train": "train_quality", "train_step": "train_step", "criteria": "criteria_throughput",
                      "search_overhead": "search_overhead", "explore": "explore_room"}
 PART_OF_BENCHMARK = {v: k for k, v in BENCHMARK_OF_PART.items()}
 PAPER_SEARCH_US_PER_POSE = (700.0, 800.0)
@@ -69,26 +71,26 @@ def part_command(part: str, args) -> list[str] | None:
     argv = _part_command(part, args)
     if argv is not None and args.load_threshold is not None:
         flag = "--quiet-load" if part == "criteria" else "--load-threshold"
-        if part != "render_population":  # it has no load rule
-            argv += [flag, str(args.load_threshold)]
+        argv += [flag, str(args.load_threshold)]
     return argv
 
 
 def _part_command(part: str, args) -> list[str] | None:
     quick = args.quick
     if part == "render_population":
-        extra = ["--poses", "16", "--resolution", "32"] if quick else ["--poses", "64", "--resolution", "64"]
+        extra = ["--poses", "16", "--resolutions", "32,64"] if quick else ["--poses", "256", "--resolutions", "64,128,256"]
         return ["render_population.py", *extra]
     if part == "render_trained":
         if not (args.run and args.scene):
-            return None
-        extra = [args.run, args.scene, "--poses", "16" if quick else "64", "--timing-downscale", "4",
-                 "--repeats", "1" if quick else "2"]
-        if quick:
-            extra += ["--dense-samples", "128", "--masked-samples", "128", "--skip", "loop"]
+            return ["render_trained.py", "--quick"] if quick else None
+        extra = [args.run, args.scene, "--poses", "4" if quick else "16", "--repeats", "1" if quick else "3"]
         if args.downscale:
             extra += ["--downscale", str(args.downscale)]
         return ["render_trained.py", *extra]
+    if part == "train_step":
+        if not args.train_scene:
+            return None
+        return ["train_step.py", args.train_scene, "--steps", "200" if quick else "400"]
     if part == "train":
         if not args.train_scene:
             return None
@@ -173,38 +175,37 @@ def _row(part, result, figure, value, unit, note=""):
 def summarise(part: str, r: dict) -> list[dict]:
     rows = []
     if part == "render_population":
-        setting = f"{r['poses']} poses {r['resolution']}^2, S={r['samples_per_ray']}"
-        rows.append(_row(part, r, "dense render, batched", r["batched_rays_per_s"], "rays/s", setting))
-        rows.append(_row(part, r, "dense render, per-pose loop", r["loop_rays_per_s"], "rays/s", setting))
-        rows.append(_row(part, r, "batched / loop", r["speedup_batched_over_loop"], "x", setting))
-    elif part == "render_trained":
-        m, eq = r["marched"], r["equal_psnr"]
-        res = "x".join(str(v) for v in r["timing_resolution"])
-        setting = f"{r['timing_poses']} poses at {res}"
+        for size in r.get("sizes", [r]):  # older results hold one size at the top level
+            setting = f"{r['poses']} poses {size['resolution']}^2, S={r['samples_per_ray']}"
+            rows.append(_row(part, r, "dense render, batched", size["batched_rays_per_s"], "rays/s", setting))
+            rows.append(_row(part, r, "dense render, per-pose loop", size["loop_rays_per_s"], "rays/s", setting))
+            rows.append(_row(part, r, "batched / loop", size["speedup_batched_over_loop"], "x", setting))
+    elif part == "render_trained" and "marched" in r:  # the renderer before the packed one
+        m = r["marched"]
+        setting = f"{r['timing_poses']} poses at {'x'.join(str(v) for v in r['timing_resolution'])}"
         rows.append(_row(part, r, "occupancy-grid render (trained)", m["rays_per_s"], "rays/s", setting))
         rows.append(_row(part, r, "field evaluations per ray, occupancy grid",
                          m.get("field_evaluations_per_ray_psnr_views", m["field_evaluations_per_ray"]),
                          "evals/ray", f"held-out PSNR {m['psnr_test']:.2f} dB"))
-        best_dense = max(r["dense_psnr"], key=lambda d: d["psnr_test"])
-        rows.append(_row(part, r, "dense sampling, best measured PSNR", best_dense["psnr_test"], "dB",
-                         f"S={best_dense['samples_per_ray']}"))
-        ratio = eq.get("evaluation_ratio_dense_over_marched")
-        rows.append(_row(part, r, "dense / occupancy evaluations at equal PSNR (+/-0.3 dB)", ratio, "x",
-                         "no dense S reached the marched PSNR" if ratio is None
-                         else f"dense S={eq['dense_samples_per_ray']}"))
-        occ = r.get("equal_psnr_occupied")
-        if occ is not None:
-            ratio = occ.get("evaluation_ratio_dense_over_marched")
-            rows.append(_row(part, r, "dense (occupied cells only) / occupancy-grid evaluations at equal PSNR",
-                             ratio, "x", "no measured S reached the marched PSNR" if ratio is None
-                             else f"dense S={occ['dense_samples_per_ray']}"))
-        if r.get("batched_vs_loop"):
-            rows.append(_row(part, r, "batched / per-pose loop (trained)",
-                             r["batched_vs_loop"]["speedup_batched_over_loop"], "x", setting))
-        if r.get("devices"):
-            for entry in r["devices"]["by_devices"]:
-                rows.append(_row(part, r, f"occupancy-grid render, {entry['devices']} forced CPU device(s)",
-                                 entry["marched"]["rays_per_s"], "rays/s", setting))
+    elif part == "render_trained":
+        setting = f"{r['timing_poses']} poses at {'x'.join(str(v) for v in r['timing_size'])}"
+        rows.append(_row(part, r, "marched render (trained)", r["rays_per_s"], "rays/s", setting))
+        rows.append(_row(part, r, "field evaluations per ray", r["evaluations_per_ray"], "evals/ray",
+                         f"step x{r['render_step_scale']:g}, held-out PSNR {r['psnr_test']:.2f} dB "
+                         f"({r['psnr_delta_db']:+.2f} dB)"))
+        rows.append(_row(part, r, "field passes per view", r["passes_per_view"], "passes", setting))
+        rows.append(_row(part, r, "field alone", r["field_points_per_s"], "points/s", "as many points, one pass a call"))
+        rows.append(_row(part, r, "render efficiency", r["render_efficiency"], "x",
+                         "rays/s x evaluations/ray / field points/s"))
+        if r.get("speedup_batched_over_loop") is not None:
+            rows.append(_row(part, r, "batched / per-pose loop (trained)", r["speedup_batched_over_loop"], "x", setting))
+    elif part == "train_step":
+        setting = f"{r['scene']} {r['image_size'][0]}x{r['image_size'][1]}, {r['preset']} preset, " \
+                  f"{r['samples_per_batch']} samples"
+        rows.append(_row(part, r, "training step", r["ms_per_step"], "ms", setting))
+        rows.append(_row(part, r, "field forward + backward alone", r["field_fwd_bwd_ms"], "ms", setting))
+        rows.append(_row(part, r, "step / field", r["step_over_field"], "x", setting))
+        rows.append(_row(part, r, "rays per step", r["rays_per_step"], "rays", setting))
     elif part == "train":
         setting = f"{r['scene']} {r['image_size'][0]}x{r['image_size'][1]}, {r['preset']} preset"
         rows.append(_row(part, r, "training", r["rays_per_second"], "rays/s", setting))

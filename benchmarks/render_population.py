@@ -1,11 +1,13 @@
 """Population rendering: one batched `render_views` call vs a Python loop over a jitted single view.
 
-Renders P poses of the procedural Waldo room at R x R with S samples per ray, both ways, and prints
-JSON (rays/s for each, their ratio, device, commit, date). Compilation is excluded: each path is
-run once to compile, then timed over `--repeats` runs (best and median reported).
+Renders P poses of the procedural Waldo room with S samples per ray at each R x R of
+`--resolutions`, both ways, with the backend's default ray chunk (`render.default_ray_chunk`), and
+prints JSON (rays/s for each, `speedup_batched_over_loop` per size, device, commit, date).
+Compilation is excluded: each path runs once to compile, then is timed over `--repeats` runs (best
+and median reported). The batched call renders the P * R * R rays as one flat list in chunks; the
+loop renders each view's R * R rays in the same chunks, one call per pose.
 
-  python benchmarks/render_population.py --poses 64 --resolution 64            # the CPU report
-  python benchmarks/render_population.py --poses 256 --resolution 128           # on a GPU
+  python benchmarks/render_population.py --poses 256 --resolutions 64,128,256      # the issue's sizes
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header, timed  # noqa: E402
+from _common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.procedural import make_room, room_field, room_render_config  # noqa: E402
 from waldo_jax.render import render_view, render_views  # noqa: E402
@@ -36,54 +38,70 @@ def population(key, room, num_poses):
     return jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))
 
 
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--poses", type=int, default=64)
-    parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--samples", type=int, default=64)
-    parser.add_argument("--pose-chunk", type=int, default=None, help="default: render.default_chunks()")
-    parser.add_argument("--ray-chunk", type=int, default=None, help="default: render.default_chunks()")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
-    args = parser.parse_args(argv)
-
-    room = make_room(0)
-    intrinsics = Intrinsics.from_fov(args.resolution, args.resolution, np.radians(60.0))
-    config = room_render_config(room, num_samples=args.samples, pose_chunk=args.pose_chunk, ray_chunk=args.ray_chunk)
-    c2w = population(jax.random.key(0), room, args.poses)
-
-    batched = lambda: render_views(room_field, room, c2w, intrinsics, config).rgb  # noqa: E731
+def measure(room, c2w, resolution: int, samples: int, ray_chunk, repeats: int) -> dict:
+    """Batched vs loop at one resolution."""
+    num_poses = c2w.shape[0]
+    intrinsics = Intrinsics.from_fov(resolution, resolution, np.radians(60.0))
+    config = room_render_config(room, num_samples=samples, ray_chunk=ray_chunk)
     single = jax.jit(render_view, static_argnames=("field",))
 
-    def loop():
-        return [single(room_field, room, c2w[i], intrinsics, config).rgb for i in range(args.poses)]
+    def batched():
+        return render_views(room_field, room, c2w, intrinsics, config).rgb
 
-    batched_best, batched_median, _ = timed(batched, args.repeats)
-    loop_best, loop_median, _ = timed(loop, args.repeats)
+    def loop():
+        return [single(room_field, room, c2w[i], intrinsics, config).rgb for i in range(num_poses)]
+
+    batched_best, batched_median, _ = timed(batched, repeats)
+    loop_best, loop_median, _ = timed(loop, repeats)
     # Both paths must agree: the batch is the same computation, only scheduled differently.
     max_diff = float(jnp.max(jnp.abs(batched() - jnp.stack(loop()))))
-    rays = args.poses * args.resolution**2
-    result = header("render_population")
-    result.update({
-        "poses": args.poses,
-        "resolution": args.resolution,
-        "samples_per_ray": args.samples,
-        "pose_chunk": config.pose_chunk,
+    rays = num_poses * resolution**2
+    return {
+        "resolution": resolution,
         "ray_chunk": config.ray_chunk,
-        "repeats": args.repeats,
         "batched_seconds_best": batched_best,
         "batched_seconds_median": batched_median,
         "loop_seconds_best": loop_best,
         "loop_seconds_median": loop_median,
         "batched_rays_per_s": rays / batched_best,
         "loop_rays_per_s": rays / loop_best,
-        "batched_samples_per_s": rays * args.samples / batched_best,
+        "batched_samples_per_s": rays * samples / batched_best,
         "speedup_batched_over_loop": loop_best / batched_best,
         "max_abs_diff_batched_vs_loop": max_diff,
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--poses", type=int, default=256)
+    parser.add_argument("--resolutions", default="64,128,256")
+    parser.add_argument("--samples", type=int, default=64)
+    parser.add_argument("--ray-chunk", type=int, default=None, help="default: render.default_ray_chunk()")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--load-threshold", type=float, default=1.5)
+    parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
+    args = parser.parse_args(argv)
+    if args.out and Path(args.out).exists():
+        raise SystemExit(f"{args.out} exists: refusing to overwrite an earlier result (choose another --out)")
+
+    quiet = wait_for_quiet(args.load_threshold)
+    room = make_room(0)
+    c2w = population(jax.random.key(0), room, args.poses)
+    sizes = [measure(room, c2w, int(r), args.samples, args.ray_chunk, args.repeats)
+             for r in args.resolutions.split(",") if r.strip()]
+    for size in sizes:
+        print(f"{size['resolution']}^2: batched {size['batched_seconds_best']:.2f} s, loop {size['loop_seconds_best']:.2f} s "
+              f"({size['speedup_batched_over_loop']:.3f}x)", file=sys.stderr)
+    result = header("render_population")
+    result.update({
+        "poses": args.poses,
+        "samples_per_ray": args.samples,
+        "repeats": args.repeats,
+        "sizes": sizes,
+        "speedup_batched_over_loop": {str(s["resolution"]): s["speedup_batched_over_loop"] for s in sizes},
+        "min_speedup_batched_over_loop": min(s["speedup_batched_over_loop"] for s in sizes),
     })
-    emit(result, args.out)
+    emit_with_load(result, args.out, quiet, args.load_threshold)
 
 
 if __name__ == "__main__":

@@ -1,52 +1,43 @@
-"""Rendering a trained Instant-NGP field: occupancy-grid marching vs dense sampling, batched vs a loop,
-1 vs several (forced CPU) devices.
+"""Rendering a trained Instant-NGP field: the marched renderer (`render.marched`) against the field alone.
 
-From a run directory written by `waldo train` (or `benchmarks/train_quality.py --checkpoint-out`) and
-its scene (for the held-out images), this measures:
+From a run directory written by `waldo train` and its scene (for the held-out images), or with
+`--quick` from a small lego_tiny run trained here (about a minute on 2 CPU cores), this measures in
+one process:
 
-  (a) dense vs marched. Marched: `train.render_trained` with the run's occupancy grid (the renderer of
-      `waldo render`). Dense: `render.render_views` of the same field with S stratified-midpoint
-      samples in [near, far] clipped to the scene box, for each S of `--dense-samples`. For each, the
-      held-out PSNR (the run's test split: every 8th view, at the training resolution) and, over the
-      timing poses, seconds, rays/s and field evaluations per ray. Field evaluations: dense = S for
-      every ray; marched = what the renderer itself reports (`_OccupancySampler.render_views_counted`:
-      the field evaluations each ray took before early termination). The renderer packs the live
-      rays' next samples into a fixed budget per `lax.while_loop` pass; the slots it actually
-      evaluates, padding included, are `passes x view_budget()` (`marched_slots_per_ray`). The dense
-      S "at equal PSNR" is the smallest measured S whose PSNR is within 0.3 dB of the marched one (or
-      above it); none may qualify. An occupancy-trained field is fitted only inside the occupied
-      cells (outside them its densities never get a gradient), so plain dense sampling also
-      integrates untrained density there and levels off below the marched PSNR. The fair dense
-      baseline is therefore also measured: S uniform samples per ray with the density zeroed outside
-      the occupied cells (`--masked-samples`; every sample still evaluated), i.e. the same volume
-      without empty-space skipping and early termination; `equal_psnr_occupied` compares with it.
-      `--step-scales` renders the held-out views again with a coarser marching step (PSNR and
-      evaluations per ray), to see how much of the marched cost the step size alone sets.
-  (b) batched vs loop: one `render_trained` call for all timing poses vs a Python loop of
-      `render_trained` calls for one pose each (both jitted; compilation excluded).
-  (c) devices: `train.render_trained` (the marched renderer; with several devices it splits the poses
-      over a one-axis mesh, `render.shard_over_poses`) in a subprocess with
-      XLA_FLAGS=--xla_force_host_platform_device_count=D, for D = 1 and `--devices`; with
-      `--shard-samples S` the dense `render.render_views_sharded` at S samples is timed as well.
+  quality   held-out PSNR (every held-out view at the training resolution) at each marching step of
+            `--step-scales` (x the training step; the quality/speed curve), and at the run's render
+            step (`render_step_scale`, calibrated after training; for a run trained before
+            calibration existed, calibrated here by the same rule, `train.calibrate_render_step`).
+            `psnr_delta_db` = that PSNR minus `--baseline-psnr` (today's renderer on the same run,
+            measured by the caller) or, without it, minus the PSNR at the training step (scale 1).
+  speed     `--poses` poses (training poses, then held-out ones, then SLERP midpoints) at `--size`
+            (default 144x256, W x H, square pixels at the scene's focal length), rendered in one
+            `render_trained` call (compilation excluded, best of `--repeats`): `rays_per_s`,
+            `evaluations_per_ray` (field evaluations the renderer spent), `passes_per_view` (field
+            passes of the call / poses), `slots_used_fraction` (evaluations / slots the passes
+            evaluated, padding included).
+  field     the field alone on the same number of points as that render's evaluations (points in the
+            occupied cells, random directions), in calls of the renderer's largest pass size:
+            `field_points_per_s`. `render_efficiency` = rays_per_s x evaluations_per_ray /
+            field_points_per_s (1: the render costs its field evaluations and nothing more).
+  loop      the same poses as a Python loop of one-pose calls: `speedup_batched_over_loop`.
 
-Compilation is excluded everywhere: every timed function runs once first; best and median of
-`--repeats` are reported. The 1-minute load average is recorded before and after, and CPU time used
-by other processes during the run (see train_quality.py); `--out` gets a `_loaded` suffix when the
-machine was shared.
+The JSON names the device, the commit and the JAX version; its last line is the whole JSON.
 
-  python benchmarks/render_trained.py /tmp/bench_runs/fox /work/shared/scenes/fox --downscale 8 \
+  python benchmarks/render_trained.py RUN ../shared/scenes/fox --downscale 8 --baseline-psnr 23.4746 \\
       --out benchmarks/results/render_trained_fox_cpu.json
+  python benchmarks/render_trained.py --quick
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import os
-import subprocess
+import math
+import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -56,39 +47,16 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header, loaded_name, timed  # noqa: E402
-from train_quality import CpuShare, load_splits  # noqa: E402
+from _common import emit_with_load, header, wait_for_quiet  # noqa: E402
+from train_step import occupied_points  # noqa: E402
+from waldo_jax import paths  # noqa: E402
 from waldo_jax.cameras import slerp_c2w  # noqa: E402
-from waldo_jax.nerf import occupancy  # noqa: E402
+from waldo_jax.nerf import train as tr  # noqa: E402
 from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
-from waldo_jax.nerf.train import _render_config, make_sampler, render_trained  # noqa: E402
-from waldo_jax.render import RenderConfig, render_views, render_views_sharded  # noqa: E402
-
-PSNR_TOLERANCE_DB = 0.3
-
-
-
-
-def psnr(rendered, images):
-    """Mean over images of per-image PSNR (dB), as `train.evaluate`."""
-    mse = np.mean((np.asarray(rendered, np.float64) - np.asarray(images, np.float64)) ** 2, axis=(1, 2, 3))
-    return float(np.mean(-10.0 * np.log10(np.maximum(mse, 1e-12))))
-
-
-def occupancy_masked(field):
-    """`field` with zero density outside the occupied cells of a grid: `masked((params, grid), x, d)`.
-
-    Rendered with S uniform samples this is dense sampling that sees exactly the volume the marched
-    renderer sees (an occupancy-trained field is only fitted inside the occupied cells; outside them
-    its densities are untrained), while still evaluating the field at every one of the S samples.
-    """
-    def masked(state, x, d):
-        params, grid = state
-        sigma, rgb = field(params, x, d)
-        return jnp.where(occupancy.is_occupied(grid, x), sigma, 0.0), rgb
-
-    return masked
+from waldo_jax.render import marched  # noqa: E402
+from waldo_jax.scenes import load_scene  # noqa: E402
+from waldo_jax.types import Intrinsics  # noqa: E402
 
 
 def timing_poses(train_c2w, test_c2w, count):
@@ -106,275 +74,212 @@ def timing_poses(train_c2w, test_c2w, count):
     return out
 
 
-def child(args):
-    """Times the marched renderer (and, with --shard-samples, the dense one) on this process's devices.
-
-    `render_trained` shards over all local devices when there is more than one. Prints one JSON line.
-    """
-    checkpoint = load_checkpoint(args.run)
-    scene, config = checkpoint.scene, checkpoint.config
-    data = np.load(args.child)
-    c2w, background = data["c2w"], data["background"]
-    intrinsics = scene.intrinsics.downscaled(args.timing_downscale) if args.timing_downscale != 1 else scene.intrinsics
-    params = jax.device_put(checkpoint.params)
-    grid = jax.device_put(checkpoint.occupancy)
-    best, median, times = timed(
-        lambda: render_trained(params, grid, config, c2w, intrinsics, scene.near, scene.far, background,
-                               aabb=scene.aabb).rgb, args.repeats)
-    out = {"devices": jax.device_count(), "marched": {"seconds_best": best, "seconds_median": median,
-                                                       "seconds_all": times}}
-    if args.shard_samples:
-        field = make_field(config.field)
-        dense_config = RenderConfig.create(near=scene.near, far=scene.far, aabb=scene.aabb, background=background,
-                                           num_samples=args.shard_samples)
-        best, median, times = timed(
-            lambda: render_views_sharded(field, params, jnp.asarray(c2w), intrinsics, dense_config).rgb,
-            args.repeats)
-        out["dense"] = {"samples_per_ray": args.shard_samples, "seconds_best": best, "seconds_median": median,
-                        "seconds_all": times}
-    print(json.dumps(out))
+def timing_camera(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """A width x height camera with square pixels whose longer side sees what the scene camera's longer side sees."""
+    scale = max(width, height) / max(intrinsics.width, intrinsics.height)
+    focal = float(max(np.asarray(intrinsics.fx), np.asarray(intrinsics.fy))) * scale
+    return Intrinsics.create(width, height, focal, distortion=np.asarray(intrinsics.distortion))
 
 
-def run_child(argv_base, devices, env_flags):
-    env = dict(os.environ, XLA_FLAGS=f"{env_flags} --xla_force_host_platform_device_count={devices}".strip())
-    result = subprocess.run([sys.executable, __file__] + argv_base, env=env, capture_output=True, text=True)
-    if result.returncode != 0:
-        raise SystemExit(f"sharded child with {devices} devices failed:\n{result.stderr[-4000:]}")
-    return json.loads(result.stdout.strip().splitlines()[-1])
+def best_of(fn, repeats):
+    """(best, median) seconds of `fn()` after one untimed call (compilation, warm-up)."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return min(times), statistics.median(times)
+
+
+def field_alone(config, params, grid, count: int, pass_slots: int, packing: marched.Packing, repeats: int) -> dict:
+    """The field on `count` points in occupied cells, in calls of `pass_slots` (as the renderer's passes,
+    each split into `packing.field_chunk` slots like the renderer's), best of `repeats`."""
+    field = make_field(config.field)
+    calls = max(1, math.ceil(count / pass_slots))
+    points = occupied_points(jax.random.key(3), grid, calls * pass_slots).reshape(calls, pass_slots, 3)
+    directions = jax.random.normal(jax.random.key(4), points.shape)
+    directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    chunk = packing.field_chunk or pass_slots
+
+    @jax.jit
+    def run(params, x, d):
+        return jax.lax.map(lambda xd: marched._field_slots(field, params, xd[0], xd[1], chunk), (x, d))
+
+    best, median = best_of(lambda: run(params, jnp.asarray(points), directions), repeats)
+    return {"field_points": calls * pass_slots, "field_calls": calls, "field_seconds_best": best,
+            "field_seconds_median": median, "field_points_per_s": calls * pass_slots / best}
+
+
+def psnr(rendered, images):
+    mse = np.mean((np.asarray(rendered, np.float64) - np.asarray(images, np.float64)) ** 2, axis=(1, 2, 3))
+    return float(np.mean(-10.0 * np.log10(np.maximum(mse, 1e-12))))
+
+
+def quick_run(folder: Path, steps: int) -> tuple:
+    """Trains lego_tiny (fast preset, `steps` steps) into `folder`; returns (run dir, scene path)."""
+    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
+
+    data = paths.data_dir()
+    scene_path = None if data is None else data / "scenes" / "lego_tiny"
+    if scene_path is None or not scene_path.exists():
+        raise SystemExit("--quick needs lego_tiny in $WALDO_DATA/scenes (see ../shared/README.md)")
+    train_scene = load_scene(scene_path, split="train")
+    test_scene = load_scene(scene_path, split="test")
+    config = tr.TrainConfig.preset("fast", train_scene, steps=steps)
+    result = tr.train(jax.random.key(0), train_scene, config, test_scene, progress=False)
+    save_checkpoint(folder / CHECKPOINT_NAME, result.params, result.config, train_scene, result.occupancy,
+                    info={"psnr_test": result.psnr_test, "steps": result.steps, "seconds": result.seconds})
+    return folder, scene_path
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", help="run directory with checkpoint.ckpt")
-    parser.add_argument("scene_path", help="the run's scene (for the held-out images)")
+    parser.add_argument("run", nargs="?", help="run directory with checkpoint.ckpt")
+    parser.add_argument("scene_path", nargs="?", help="the run's scene (for the held-out images)")
+    parser.add_argument("--quick", action="store_true",
+                        help="train lego_tiny here (--quick-steps steps) and measure it: about a minute on 2 CPU cores")
+    parser.add_argument("--quick-steps", type=int, default=200)
     parser.add_argument("--downscale", type=float, default=None, help="as the run was trained")
-    parser.add_argument("--poses", type=int, default=64, help="timing poses")
-    parser.add_argument("--timing-downscale", type=float, default=1.0,
-                        help="render the timing poses at the training resolution / this (PSNR is always at full)")
-    parser.add_argument("--dense-samples", default="128,256,512,1024", help="plain dense S values (PSNR)")
-    parser.add_argument("--masked-samples", default="256,512,1024",
-                        help="dense S values with the density zeroed outside the occupied cells (PSNR)")
-    parser.add_argument("--step-scales", default="",
-                        help="also render the held-out views with the marching step x each of these (e.g. 2,4)")
-    parser.add_argument("--dense-repeats", type=int, default=1, help="timed repeats of the dense renderers")
-    parser.add_argument("--shard-samples", type=int, default=None,
-                        help="also time the dense renderer at S samples on 1 and N devices (default: not)")
-    parser.add_argument("--devices", type=int, default=4)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--skip", default="", help="comma-separated parts to skip: loop, shard, masked-timing")
+    parser.add_argument("--poses", type=int, default=None, help="timing poses (default 16; --quick 2)")
+    parser.add_argument("--size", default="144x256", help="timing image size WxH (default 144x256, fox's timing size)")
+    parser.add_argument("--step-scales", default="1,2,3,4", help="marching steps (x the training step) for the curve")
+    parser.add_argument("--baseline-psnr", type=float, default=None,
+                        help="today's renderer's held-out PSNR on this run (default: this renderer at scale 1)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed repeats (default 3; --quick 1)")
+    parser.add_argument("--skip", default="", help="comma-separated parts to skip: loop, curve")
     parser.add_argument("--load-threshold", type=float, default=1.5)
-    parser.add_argument("--others-threshold", type=float, default=0.5)
-    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
-    if args.child:
-        return child(args)
-
-    load_before = os.getloadavg()
-    for out in (args.out, args.out and loaded_name(args.out)):
-        if out and Path(out).exists():
-            raise SystemExit(f"{out} exists: refusing to overwrite an earlier result (choose another --out)")
+    if not args.quick and (args.run is None or args.scene_path is None):
+        parser.error("give RUN and SCENE_PATH, or --quick")
+    if args.out and Path(args.out).exists():
+        raise SystemExit(f"{args.out} exists: refusing to overwrite an earlier result (choose another --out)")
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
-    share = CpuShare()
-    share.start()
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
 
-    checkpoint = load_checkpoint(args.run)
+    quiet = wait_for_quiet(args.load_threshold)
+    tmp = None
+    if args.quick:
+        tmp = tempfile.TemporaryDirectory()
+        start = time.perf_counter()
+        run, scene_path = quick_run(Path(tmp.name), args.quick_steps)
+        log(f"trained lego_tiny ({args.quick_steps} steps) in {time.perf_counter() - start:.0f} s")
+    else:
+        run, scene_path = Path(args.run), Path(args.scene_path)
+    poses = args.poses or (2 if args.quick else 16)
+    repeats = args.repeats or (1 if args.quick else 3)
+    if args.quick:
+        skip.add("curve")
+
+    checkpoint = load_checkpoint(run)
     config, scene = checkpoint.config, checkpoint.scene
-    _, test_scene = load_splits(args.scene_path, args.downscale)
+    test_scene = load_scene(scene_path, downscale=args.downscale, split="test")
     if (test_scene.width, test_scene.height) != (scene.intrinsics.width, scene.intrinsics.height):
         raise SystemExit(f"held-out images are {test_scene.width}x{test_scene.height}, the run was trained at "
                          f"{scene.intrinsics.width}x{scene.intrinsics.height}: pass the run's --downscale")
     background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
-    params = jax.device_put(checkpoint.params)
-    grid = jax.device_put(checkpoint.occupancy)
-    field = make_field(config.field)
-    c2w = timing_poses(scene.c2w, test_scene.c2w, args.poses)
-    intrinsics = scene.intrinsics
-    timing_intrinsics = intrinsics.downscaled(args.timing_downscale) if args.timing_downscale != 1 else intrinsics
-    rays = args.poses * timing_intrinsics.width * timing_intrinsics.height
+    params, grid = jax.device_put(checkpoint.params), jax.device_put(checkpoint.occupancy)
+    packing = marched.Packing.for_backend()
 
-    def marched(poses, intr):
-        return render_trained(params, grid, config, poses, intr, scene.near, scene.far, background,
-                              aabb=scene.aabb).rgb
+    # Quality: the run's render step (calibrated by the training rule when the run predates it) and the curve.
+    calibrated_here = config.render_step_scale is None
+    curve_calibration = []
+    if calibrated_here:
+        scale, curve_calibration = tr.calibrate_render_step(params, grid, config, test_scene)
+        config = config.replace(render_step_scale=scale)
+    scale = config.render_step_scale
+    curve = []
+    scales = sorted({float(v) for v in args.step_scales.split(",") if v.strip()} | {1.0, scale})
+    for s in ([1.0, scale] if "curve" in skip else scales):
+        if any(c["step_scale"] == s for c in curve):
+            continue
+        result = tr.evaluate(params, grid, config, test_scene, step_scale=s)
+        curve.append({"step_scale": s, "psnr_test": result["psnr"], "evaluations_per_ray": result["evaluations_per_ray"]})
+        log(f"step x{s:g}: held-out PSNR {result['psnr']:.3f} dB, {result['evaluations_per_ray']:.1f} evaluations/ray")
+    at_scale = next(c for c in curve if c["step_scale"] == scale)
+    at_training_step = next(c for c in curve if c["step_scale"] == 1.0)
+    baseline = args.baseline_psnr if args.baseline_psnr is not None else at_training_step["psnr_test"]
 
-    masked_field = occupancy_masked(field)
+    # Speed: one call for all timing poses.
+    c2w = timing_poses(scene.c2w, test_scene.c2w, poses)
+    camera = timing_camera(scene.intrinsics, width, height)
+    rays = poses * width * height
 
-    def dense(poses, intr, samples, masked=False):
-        render_config = RenderConfig.create(near=scene.near, far=scene.far, aabb=scene.aabb,
-                                            background=background, num_samples=samples)
-        if masked:
-            return render_views(masked_field, (params, grid), jnp.asarray(poses), intr, render_config).rgb
-        return render_views(field, params, jnp.asarray(poses), intr, render_config).rgb
+    def render(poses_c2w):
+        return tr.render_trained(params, grid, config, poses_c2w, camera, scene.near, scene.far, background,
+                                 aabb=scene.aabb, packing=packing).rgb
 
-    # (a) quality: held-out PSNR of each renderer (training resolution).
-    log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
-    sampler = make_sampler(config)
-    count_config = _render_config(config, scene.near, scene.far, scene.aabb, background, config.eval_samples)
-    out, psnr_evaluations, _ = jax.device_get(
-        sampler.render_views_counted(params, grid, jnp.asarray(test_scene.c2w), intrinsics, count_config))
-    marched_psnr = psnr(out.rgb, test_scene.images)
-    psnr_evaluations_per_ray = float(np.mean(np.asarray(psnr_evaluations, np.float64)))
-    log(f"marched held-out PSNR {marched_psnr:.3f} dB, {psnr_evaluations_per_ray:.1f} evaluations/ray")
-    coarser = []
-    for scale in [float(v) for v in args.step_scales.split(",") if v.strip()]:
-        scaled = dataclasses.replace(config, steps_per_diagonal=config.steps_per_diagonal / scale)
-        scaled_sampler = make_sampler(scaled)
-        out_s, evals_s, passes_s = jax.device_get(scaled_sampler.render_views_counted(
-            params, grid, jnp.asarray(test_scene.c2w), intrinsics,
-            _render_config(scaled, scene.near, scene.far, scene.aabb, background, scaled.eval_samples)))
-        coarser.append({"step_scale": scale, "steps_per_diagonal": scaled.steps_per_diagonal,
-                        "psnr_test": psnr(out_s.rgb, test_scene.images),
-                        "field_evaluations_per_ray": float(np.mean(np.asarray(evals_s, np.float64))),
-                        "marched_slots_per_ray": float(np.asarray(passes_s, np.int64).sum() * scaled_sampler.view_budget()
-                                                       / np.asarray(evals_s).size)})
-        log(f"marched, step x{scale:g}: {coarser[-1]['psnr_test']:.3f} dB, "
-            f"{coarser[-1]['field_evaluations_per_ray']:.1f} evaluations/ray")
-    dense_results = []
-    for samples in [int(s) for s in args.dense_samples.split(",") if s.strip()]:
-        value = psnr(jax.device_get(dense(test_scene.c2w, intrinsics, samples)), test_scene.images)
-        dense_results.append({"samples_per_ray": samples, "psnr_test": value})
-        log(f"dense S={samples}: held-out PSNR {value:.3f} dB")
-    masked_results = []
-    for samples in [int(s) for s in args.masked_samples.split(",") if s.strip()]:
-        value = psnr(jax.device_get(dense(test_scene.c2w, intrinsics, samples, masked=True)), test_scene.images)
-        masked_results.append({"samples_per_ray": samples, "psnr_test": value})
-        log(f"dense S={samples} inside the occupied cells: held-out PSNR {value:.3f} dB")
-    equal = [d for d in dense_results if d["psnr_test"] >= marched_psnr - PSNR_TOLERANCE_DB]
-    equal_samples = min(d["samples_per_ray"] for d in equal) if equal else None
-    equal_masked = [d for d in masked_results if d["psnr_test"] >= marched_psnr - PSNR_TOLERANCE_DB]
-    equal_masked_samples = min(d["samples_per_ray"] for d in equal_masked) if equal_masked else None
+    counted = jax.device_get(tr.render_trained_counted(params, grid, config, c2w, camera, scene.near, scene.far,
+                                                       background, aabb=scene.aabb, packing=packing))
+    evaluations = int(np.asarray(counted.evaluations, np.int64).sum())
+    passes = int(np.asarray(counted.passes, np.int64).sum())
+    slots = int(np.asarray(counted.slots, np.int64).sum())
+    shape = marched._block_shape(packing, rays, tr.render_setup(config, grid, scene.near, scene.far, scene.aabb,
+                                                                background)[2].max_samples)
+    pass_slots = shape.rows[0] * shape.row_length
+    best, median = best_of(lambda: render(c2w), repeats)
+    speed = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
+             "evaluations_per_ray": evaluations / rays, "passes": passes, "passes_per_view": passes / poses,
+             "blocks": int(np.asarray(counted.passes).size), "rays_per_block": shape.rays,
+             "pass_slots": [r * shape.row_length for r in shape.rows], "slots_evaluated": slots,
+             "slots_used_fraction": evaluations / max(slots, 1),
+             "max_evaluations_of_a_ray": int(np.asarray(counted.evaluations).max()),
+             "rays_with_no_evaluation_fraction": float(np.mean(np.asarray(counted.evaluations) == 0))}
+    log(f"render: {best:.2f} s, {rays / best:,.0f} rays/s, {evaluations / rays:.1f} evaluations/ray, "
+        f"{passes / poses:.2f} passes/view")
+    field = field_alone(config, params, grid, evaluations, pass_slots, packing, repeats)
+    efficiency = speed["rays_per_s"] * speed["evaluations_per_ray"] / field["field_points_per_s"]
+    log(f"field alone: {field['field_points_per_s']:,.0f} points/s; render efficiency {efficiency:.3f}")
 
-    # (a) speed over the timing poses: the renderer's own counts (field evaluations per ray, passes).
-    _, evaluations, passes = jax.device_get(
-        sampler.render_views_counted(params, grid, jnp.asarray(c2w), timing_intrinsics, count_config))
-    evaluations, passes = np.asarray(evaluations, np.int64), np.asarray(passes, np.int64)
-    marched_evals = int(evaluations.sum())
-    budget = sampler.view_budget()
-    slots = int(passes.sum()) * budget
-    best, median, _ = timed(lambda: marched(c2w, timing_intrinsics), args.repeats)
-    marched_timing = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
-                      "field_evaluations_per_ray": marched_evals / rays,
-                      "field_evaluations_per_s": marched_evals / best,
-                      "marched_slots_per_ray": slots / rays, "packing_passes": int(passes.sum()),
-                      "packing_budget": budget, "slots_per_s": slots / best,
-                      "max_evaluations_of_a_ray": int(evaluations.max()),
-                      "median_evaluations_per_ray": float(np.median(evaluations)),
-                      "rays_with_no_evaluation_fraction": float(np.mean(evaluations == 0))}
-    log(f"marched: {best:.2f} s, {marched_evals / rays:.1f} evaluations/ray, {slots / rays:.1f} slots/ray")
-    dense_timing_samples = sorted({s for s in (equal_samples, args.shard_samples) if s} or
-                                  {dense_results[-1]["samples_per_ray"]})
-    dense_timing = []
-    for samples in dense_timing_samples:
-        best, median, _ = timed(lambda: dense(c2w, timing_intrinsics, samples), args.dense_repeats)
-        dense_timing.append({"samples_per_ray": samples, "seconds_best": best, "seconds_median": median,
-                             "rays_per_s": rays / best, "field_evaluations_per_ray": float(samples),
-                             "field_evaluations_per_s": rays * samples / best})
-        log(f"dense S={samples}: {best:.2f} s")
-    masked_timing = None
-    if equal_masked_samples and "masked-timing" not in skip:
-        samples = equal_masked_samples
-        best, median, _ = timed(lambda: dense(c2w, timing_intrinsics, samples, masked=True), args.dense_repeats)
-        masked_timing = {"samples_per_ray": samples, "seconds_best": best, "seconds_median": median,
-                         "repeats": args.dense_repeats, "rays_per_s": rays / best,
-                         "field_evaluations_per_ray": float(samples),
-                         "field_evaluations_per_s": rays * samples / best,
-                         "time_ratio_over_marched": best / marched_timing["seconds_best"]}
-        log(f"dense S={samples} inside the occupied cells: {best:.2f} s")
-
-    # (b) batched vs a loop of per-pose calls (marched renderer).
     loop = None
     if "loop" not in skip:
-        best, median, _ = timed(lambda: [marched(c2w[i:i + 1], timing_intrinsics) for i in range(len(c2w))],
-                                args.repeats)
-        loop = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
-                "speedup_batched_over_loop": best / marched_timing["seconds_best"]}
-        log(f"loop of per-pose calls: {best:.2f} s")
+        loop_best, loop_median = best_of(lambda: [render(c2w[i:i + 1]) for i in range(poses)], repeats)
+        loop = {"seconds_best": loop_best, "seconds_median": loop_median,
+                "speedup_batched_over_loop": loop_best / best}
+        log(f"loop of one-pose calls: {loop_best:.2f} s ({loop_best / best:.2f}x)")
 
-    # (c) 1 vs N devices: the marched renderer (render_trained shards the poses over the local devices),
-    # and the dense one at --shard-samples when given.
-    sharded = None
-    if "shard" not in skip:
-        flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split()
-                         if not f.startswith("--xla_force_host_platform_device_count"))
-        with tempfile.TemporaryDirectory() as tmp:
-            np.savez(Path(tmp) / "poses.npz", c2w=c2w, background=background)
-            base = [args.run, args.scene_path, "--child", str(Path(tmp) / "poses.npz"), "--repeats", str(args.repeats),
-                    "--timing-downscale", str(args.timing_downscale)]
-            if args.shard_samples:
-                base += ["--shard-samples", str(args.shard_samples)]
-            per_devices = [run_child(base, d, flags) for d in sorted({1, args.devices})]
-        for entry in per_devices:
-            entry["marched"]["rays_per_s"] = rays / entry["marched"]["seconds_best"]
-            if "dense" in entry:
-                entry["dense"]["rays_per_s"] = rays / entry["dense"]["seconds_best"]
-        sharded = {"renderer": "train.render_trained (marched; poses split over a one-axis mesh when devices > 1)"
-                               + ("; dense render_views_sharded too" if args.shard_samples else ""),
-                   "by_devices": per_devices,
-                   "speedup_marched": (per_devices[0]["marched"]["seconds_best"]
-                                       / per_devices[-1]["marched"]["seconds_best"]),
-                   "note": "forced host devices share the same CPU cores: this checks the sharded path and its "
-                           "overhead, not a multi-device speedup"}
-        log(f"sharded: {[(e['devices'], round(e['marched']['seconds_best'], 2)) for e in per_devices]}")
-
-    cpu = share.stop()
-    load_after = os.getloadavg()
-    loaded = load_before[0] > args.load_threshold or cpu["others_cores"] > args.others_threshold
-    dense_equal = next((d for d in dense_timing if d["samples_per_ray"] == equal_samples), None)
-    result = header("render_trained")
-    result.update({
-        "run": str(Path(args.run).resolve()),
-        "run_info": {k: checkpoint.info.get(k) for k in ("psnr_test", "steps", "seconds", "n_train", "n_test")},
-        "scene_path": str(Path(args.scene_path).resolve()),
-        "training_resolution": [intrinsics.width, intrinsics.height],
-        "timing_resolution": [timing_intrinsics.width, timing_intrinsics.height],
-        "timing_poses": args.poses,
-        "timing_poses_are": "training poses, then held-out poses, then SLERP midpoints of consecutive training poses",
+    out = header("render_trained")
+    out.update({
+        "run": "lego_tiny trained here (--quick)" if args.quick else str(Path(run).resolve()),
+        "run_info": {k: checkpoint.info.get(k) for k in ("psnr_test", "steps", "seconds")},
+        "scene_path": str(Path(scene_path).resolve()),
+        "training_resolution": [scene.intrinsics.width, scene.intrinsics.height],
+        "timing_size": [width, height],
+        "timing_poses": poses,
         "psnr_views": test_scene.n_images,
-        "repeats": args.repeats,
-        "marched": {"psnr_test": marched_psnr, "max_samples_per_ray": config.eval_samples,
-                    "field_evaluations_per_ray_psnr_views": psnr_evaluations_per_ray, **marched_timing},
-        "marched_coarser_steps": coarser,
-        "marched_coarser_steps_are": ("the same run rendered with its marching step (base diagonal / "
-                                      "steps_per_diagonal) multiplied by step_scale, on the held-out views"),
-        "dense_psnr": dense_results,
-        "dense_timing": dense_timing,
-        "dense_occupied_psnr": masked_results,
-        "dense_occupied_timing": masked_timing,
-        "dense_occupied_is": ("S uniform samples per ray, density zeroed outside the occupied cells (the volume the "
-                              "marched renderer sees), every sample evaluated: the cost without skipping and "
-                              "early termination"),
-        "equal_psnr": {
-            "rule": f"smallest measured dense S with PSNR >= marched PSNR - {PSNR_TOLERANCE_DB} dB",
-            "dense_samples_per_ray": equal_samples,
-            "evaluation_ratio_dense_over_marched": (
-                None if equal_samples is None else equal_samples / psnr_evaluations_per_ray),
-            "evaluation_ratio_is_on": "the held-out views at the training resolution (where the PSNRs are measured)",
-            "slot_ratio_dense_over_marched_packed": (
-                None if equal_samples is None else equal_samples / marched_timing["marched_slots_per_ray"]),
-            "time_ratio_dense_over_marched": (
-                None if dense_equal is None else dense_equal["seconds_best"] / marched_timing["seconds_best"]),
-            "target": ">= 5x fewer field evaluations at equal PSNR (+/- 0.3 dB)",
-        },
-        "equal_psnr_occupied": {
-            "rule": f"smallest measured occupied-cells dense S with PSNR >= marched PSNR - {PSNR_TOLERANCE_DB} dB",
-            "dense_samples_per_ray": equal_masked_samples,
-            "evaluation_ratio_dense_over_marched": (
-                None if equal_masked_samples is None else equal_masked_samples / psnr_evaluations_per_ray),
-            "time_ratio_dense_over_marched": None if masked_timing is None else masked_timing["time_ratio_over_marched"],
-            "target": ">= 5x fewer field evaluations at equal PSNR (+/- 0.3 dB)",
-        },
+        "render_step_scale": scale,
+        "render_step_scale_calibrated_here": calibrated_here,
+        "calibration_curve": curve_calibration,
+        "quality_speed_curve": curve,
+        "psnr_test": at_scale["psnr_test"],
+        "psnr_test_training_step": at_training_step["psnr_test"],
+        "baseline_psnr": baseline,
+        "baseline_is": ("today's renderer on this run (--baseline-psnr)" if args.baseline_psnr is not None
+                        else "this renderer at the training step (scale 1)"),
+        "psnr_delta_db": at_scale["psnr_test"] - baseline,
+        "evaluations_per_ray_psnr_views": at_scale["evaluations_per_ray"],
+        **speed,
+        **field,
+        "render_efficiency": efficiency,
         "batched_vs_loop": loop,
-        "devices": sharded,
-        "loadavg_start": list(load_before),
-        "loadavg_end": list(load_after),
-        "cpu_during_run": {k: round(v, 3) for k, v in cpu.items()},
-        "loaded": loaded,
+        "speedup_batched_over_loop": None if loop is None else loop["speedup_batched_over_loop"],
+        "packing": {"rays_per_block": packing.rays_per_block, "slots_per_ray": packing.slots_per_ray,
+                    "row_length": packing.row_length, "max_rows_per_ray": packing.max_rows_per_ray,
+                    "field_chunk": packing.field_chunk},
+        "definitions": {
+            "evaluations_per_ray": "field evaluations the renderer spent per ray of the timing render",
+            "passes_per_view": "field passes (one per pass of a block) of the timing call / poses",
+            "field_points_per_s": "the field alone on as many points (occupied cells), in calls of the largest pass",
+            "render_efficiency": "rays_per_s * evaluations_per_ray / field_points_per_s",
+            "psnr_delta_db": "held-out PSNR at the run's render step minus baseline_psnr",
+        },
     })
-    out = args.out
-    if out and loaded:
-        out = loaded_name(out)
-        print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
-    emit(result, out)
+    emit_with_load(out, args.out, quiet, args.load_threshold)
+    print(json.dumps(out))
+    if tmp is not None:
+        tmp.cleanup()
 
 
 if __name__ == "__main__":

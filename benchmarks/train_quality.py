@@ -1,12 +1,13 @@
 """Training quality against wall clock: held-out PSNR at a few training-time checkpoints.
 
-Trains an Instant-NGP field on a scene exactly as `waldo train` does (`training_inputs` + the jitted
-`run_chunk` scan, the preset's config; the same key gives the same parameters), and after each chunk
-whose training time crosses one of `--eval-at` seconds, renders the held-out split and records its
-PSNR. Evaluations pause the clock: the seconds reported are training seconds (compilation of the
-first chunk included, as in `waldo train`). Training stops at `--steps` (default: the preset's) or
-once `--seconds` of training have passed, whichever comes first; the learning-rate decay follows
-`--steps`, so choose a step count that fits the budget.
+Trains an Instant-NGP field on a scene exactly as `waldo train` does (`train.train`, the preset's
+config; the same key gives the same parameters), and after each chunk whose training time crosses
+one of `--eval-at` seconds, renders the held-out split and records its PSNR (`train`'s `on_chunk`).
+Evaluations pause the clock: the seconds reported are training seconds (compilation included, as in
+`waldo train`). Training stops at `--steps` (default: the preset's) or once `--seconds` of training
+have passed, whichever comes first; the learning-rate decay follows `--steps`, so choose a step
+count that fits the budget. The final PSNR is rendered as the run renders (its calibrated
+`render_step_scale`), as `waldo train` reports it.
 
 The held-out split is the one `waldo train` uses: Blender's test split, every 8th image otherwise.
 
@@ -36,12 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 
 from _common import emit, header, loaded_name  # noqa: E402
 from waldo_jax.errors import SceneFormatError  # noqa: E402
-from waldo_jax.nerf.train import (PRESETS, TrainConfig, TrainHParams, evaluate, run_chunk,  # noqa: E402
-                                  training_inputs)
+from waldo_jax.nerf.train import PRESETS, TrainConfig, evaluate, train  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 
 
@@ -116,54 +115,38 @@ def main(argv=None):
     train_scene, test_scene = load_splits(args.scene_path, args.downscale)
     overrides = {} if args.steps is None else {"steps": args.steps}
     config = TrainConfig.preset(args.preset, train_scene, **overrides)
-    hparams = TrainHParams.for_config(config)
-    state, train_key, data, _, render_config = training_inputs(jax.random.key(args.seed), train_scene, config,
-                                                               hparams)
     eval_at = sorted(float(s) for s in args.eval_at.split(",") if s.strip())
 
     checkpoints = []
-    chunk_seconds, chunk_rays, chunk_steps = [], [], []
-    train_seconds, eval_seconds = 0.0, 0.0
+    stopped_by = ["steps"]
+
+    def on_chunk(state, entry):
+        done, seconds = entry["step"], entry["seconds"]
+        over_budget = args.seconds is not None and seconds >= args.seconds
+        crossed = [t for t in eval_at if t <= seconds]
+        if crossed and done < config.steps and not over_budget:
+            eval_at[:] = [t for t in eval_at if t > seconds]
+            psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
+            checkpoints.append({"step": done, "train_seconds": round(seconds, 2), "psnr_test": psnr,
+                                "train_psnr_batch": entry["psnr"], "loadavg_1min": os.getloadavg()[0]})
+            print(f"step {done}: {seconds:.0f} s, held-out PSNR {psnr:.2f} dB", file=sys.stderr)
+        if over_budget and done < config.steps:
+            stopped_by[0] = "seconds"
+            return True
+        return False
+
     share = CpuShare()
     share.start()
-    stopped_by = "steps"
-    while int(state.step) < config.steps:
-        start = time.perf_counter()
-        state, metrics = run_chunk(state, train_key, data, hparams, render_config, config, config.steps)
-        metrics = jax.device_get(metrics)  # the host sync of this chunk
-        elapsed = time.perf_counter() - start
-        train_seconds += elapsed
-        chunk_seconds.append(elapsed)
-        chunk_rays.append(int(np.sum(metrics["rays"])))
-        chunk_steps.append(int(np.sum(np.isfinite(metrics["loss"]))))
-        done = int(state.step)
-        over_budget = args.seconds is not None and train_seconds >= args.seconds
-        crossed = [t for t in eval_at if t <= train_seconds]
-        if crossed and done < config.steps and not over_budget:
-            eval_at = [t for t in eval_at if t > train_seconds]
-            start = time.perf_counter()
-            psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
-            eval_seconds += time.perf_counter() - start
-            checkpoints.append({"step": done, "train_seconds": round(train_seconds, 2), "psnr_test": psnr,
-                                "train_psnr_batch": float(np.nanmean(metrics["psnr"])),
-                                "loadavg_1min": os.getloadavg()[0]})
-            print(f"step {done}: {train_seconds:.0f} s, held-out PSNR {psnr:.2f} dB", file=sys.stderr)
-        if over_budget and done < config.steps:
-            stopped_by = "seconds"
-            break
-    cpu = share.stop()
     start = time.perf_counter()
-    final = evaluate(state.params, state.sampler_state, config, test_scene)
-    eval_seconds += time.perf_counter() - start
-    checkpoints.append({"step": int(state.step), "train_seconds": round(train_seconds, 2), "psnr_test": final["psnr"],
-                        "train_psnr_batch": float(np.nanmean(metrics["psnr"])), "loadavg_1min": os.getloadavg()[0]})
+    run = train(jax.random.key(args.seed), train_scene, config, test_scene, progress=False, on_chunk=on_chunk)
+    cpu = share.stop()
+    # Everything in `train` but the training chunks (the evaluations above, the calibration of the render
+    # step, the final evaluation) is evaluation time.
+    eval_seconds = time.perf_counter() - start - run.seconds
+    last = next(h for h in reversed(run.history) if "loss" in h)
+    checkpoints.append({"step": run.steps, "train_seconds": round(run.seconds, 2), "psnr_test": run.psnr_test,
+                        "train_psnr_batch": last["psnr"], "loadavg_1min": os.getloadavg()[0]})
     load_after = os.getloadavg()
-
-    # As `train`: the first chunk compiles; the rate is that of the others.
-    steady_rays = sum(chunk_rays[1:]) if len(chunk_seconds) > 1 else sum(chunk_rays)
-    steady_seconds = sum(chunk_seconds[1:]) if len(chunk_seconds) > 1 else sum(chunk_seconds)
-    steady_steps = sum(chunk_steps[1:]) if len(chunk_seconds) > 1 else sum(chunk_steps)
-    compile_seconds = max(0.0, chunk_seconds[0] - float(np.mean(chunk_seconds[1:]))) if len(chunk_seconds) > 1 else 0.0
     loaded = load_before[0] > args.load_threshold or cpu["others_cores"] > args.others_threshold
 
     result = header("train_quality")
@@ -179,15 +162,17 @@ def main(argv=None):
         "seed": args.seed,
         "budget_seconds": args.seconds,
         "steps_planned": config.steps,
-        "steps": int(state.step),
-        "stopped_by": stopped_by,
-        "seconds": round(train_seconds, 2),
-        "compile_seconds": round(compile_seconds, 2),
+        "steps": run.steps,
+        "stopped_by": stopped_by[0],
+        "seconds": round(run.seconds, 2),
+        "compile_seconds": round(run.compile_seconds, 2),
         "eval_seconds_excluded": round(eval_seconds, 2),
-        "rays_per_second": steady_rays / max(steady_seconds, 1e-9),
-        "steps_per_second": steady_steps / max(steady_seconds, 1e-9),
-        "psnr_test": final["psnr"],
-        "psnr_test_per_image": final["psnr_per_image"],
+        "rays_per_second": run.rays_per_second,
+        "steps_per_second": run.steps / max(run.seconds, 1e-9),
+        "psnr_test": run.psnr_test,
+        "psnr_test_training_step": run.psnr_test_training_step,
+        "render_step_scale": run.config.render_step_scale,
+        "render_step_curve": run.render_step_curve,
         "checkpoints": checkpoints,
         "loadavg_start": list(load_before),
         "loadavg_end": list(load_after),
@@ -196,7 +181,7 @@ def main(argv=None):
         "loaded_rule": (f"loaded = 1-min load average before the run > {args.load_threshold} or other processes "
                         f"used > {args.others_threshold} cores on average during training (from /proc; this "
                         "process's own threads excluded, since a 2-core training run alone reads ~2 in loadavg)"),
-        "config": config.to_dict(),
+        "config": run.config.to_dict(),
     })
     out = args.out
     if out and loaded:
@@ -207,8 +192,8 @@ def main(argv=None):
         from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 
         folder = prepare_output_dir(args.checkpoint_out, force=False)
-        save_checkpoint(folder / CHECKPOINT_NAME, state.params, config, train_scene, state.sampler_state,
-                        info={"psnr_test": final["psnr"], "steps": int(state.step), "seconds": train_seconds,
+        save_checkpoint(folder / CHECKPOINT_NAME, run.params, run.config, train_scene, run.occupancy,
+                        info={"psnr_test": run.psnr_test, "steps": run.steps, "seconds": run.seconds,
                               "n_train": train_scene.n_images, "n_test": test_scene.n_images})
         result["checkpoint_out"] = str(folder)
     emit(result, out)

@@ -31,7 +31,7 @@ FIELD = NGPFieldConfig(aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**10, F=2, N_mi
 
 def _config(sampler: str = "dense") -> TrainConfig:
     return TrainConfig(field=FIELD, steps=10, sampler=sampler, occupancy_resolution=8, num_samples=16,
-                       samples_per_batch=256, eval_samples=16, eval_ray_chunk=64)
+                       samples_per_batch=256, eval_samples=16)
 
 
 def _scene() -> Scene:

@@ -66,28 +66,29 @@ TRAINED_SCRIPT = textwrap.dedent(
     for sampler in ("occupancy", "dense"):
         config = tr.TrainConfig(field=field, steps=1, chunk=1, rays_per_batch=64, num_samples=16,
                                 samples_per_batch=1024, eval_samples=16, occupancy_resolution=16,
-                                steps_per_diagonal=64.0, sampler=sampler, eval_ray_chunk=40)
+                                steps_per_diagonal=64.0, sampler=sampler)
         state = tr.init_train_state(jax.random.key(1), config)
         # a grid with structure: one density update from the random field (warm-up samples every cell)
-        grid = tr.make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, jnp.int32(0))
+        grid = tr.make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, True)
         args = (state.params, grid, config, c2w, intr, 1.0, 12.0)
-        single = tr.render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
-        one = tr.make_sampler(config).render_views(
-            state.params, grid, c2w, intr, tr._render_config(config, 1.0, 12.0, aabb, np.ones(3, np.float32),
-                                                             config.eval_samples))
-        assert len(single.rgb.sharding.device_set) == 4, sampler
+        sharded = tr.render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
+        one = tr.render_trained_counted(*args).output  # the single-device renderer
+        assert len(sharded.rgb.sharding.device_set) == 4, sampler
+        # Each device packs only its own poses' rays into passes: the per-pass sums of a ray may be
+        # split differently, so the images agree to float32 rounding.
         for name in ("rgb", "depth", "acc"):
-            np.testing.assert_array_equal(np.asarray(getattr(one, name)), np.asarray(getattr(single, name)))
+            np.testing.assert_allclose(np.asarray(getattr(one, name)), np.asarray(getattr(sharded, name)),
+                                       atol=2e-6 if name != "depth" else 2e-5)
         assert float(jnp.std(one.rgb)) > 0  # not a blank image
         explicit = tr.render_trained(*args, mesh=pose_mesh(jax.devices()[:2]))
-        np.testing.assert_array_equal(np.asarray(explicit.rgb), np.asarray(one.rgb))
+        np.testing.assert_allclose(np.asarray(explicit.rgb), np.asarray(one.rgb), atol=2e-6)
     print("OK")
     """
 )
 
 
 def test_trained_renderer_sharded_equals_single_device():
-    """`render_trained` (occupancy marching and dense) splits the poses over 4 devices, same images."""
+    """`render_trained` (occupancy marching and dense) splits the poses over 4 devices, the same images."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
     result = subprocess.run([sys.executable, "-c", TRAINED_SCRIPT], env=env, capture_output=True, text=True,
                             timeout=600)

@@ -36,6 +36,7 @@ __all__ = [
     "undistort",
     "pixel_directions",
     "camera_rays",
+    "pixel_ray",
     "project_points",
     "camera_focus",
 ]
@@ -257,6 +258,24 @@ def camera_rays(c2w: Array, intrinsics: Intrinsics) -> Tuple[Array, Array]:
     dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     origins = jnp.broadcast_to(c2w[:3, 3], dirs.shape)
     return origins, dirs
+
+
+def pixel_ray(c2w: Array, intrinsics: Intrinsics, pixel: Array) -> Tuple[Array, Array]:
+    """The ray through the centre of ONE pixel, named by its flat index.
+
+    Args:
+      c2w: [4, 4] or [3, 4] camera-to-world matrix.
+      intrinsics: the camera's `Intrinsics`.
+      pixel: int [], row-major flat index `row * width + col` in [0, height * width).
+
+    Returns:
+      origin: [3], the camera centre. direction: [3], unit, in world coordinates (as `camera_rays`).
+    """
+    c2w = jnp.asarray(c2w, jnp.float32)
+    row, col = pixel // intrinsics.width, pixel % intrinsics.width
+    dir_cam = pixel_directions(intrinsics, col.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5)  # [3]
+    direction = jnp.sum(c2w[:3, :3] * dir_cam[None, :], axis=1)  # [3]
+    return c2w[:3, 3], direction / jnp.linalg.norm(direction)
 
 
 def project_points(c2w: Array, intrinsics: Intrinsics, points: Array) -> Tuple[Array, Array]:

@@ -88,7 +88,10 @@ def _train_nerf(scene, test_scene, settings: DemoSettings, seed: int, out: Path,
 
     config = TrainConfig.preset("fast", scene, steps=settings.train_steps)
     result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
-    stats = {"psnr_test": result.psnr_test, "steps": result.steps, "seconds": round(result.seconds, 3),
+    config = result.config  # with the calibrated render step
+    stats = {"psnr_test": result.psnr_test, "psnr_test_training_step": result.psnr_test_training_step,
+             "render_step_scale": config.render_step_scale, "render_step_curve": result.render_step_curve,
+             "steps": result.steps, "seconds": round(result.seconds, 3),
              "rays_per_second": round(result.rays_per_second, 1), "device": result.device,
              "n_train": result.n_train, "n_test": result.n_test, "preset": "fast", "seed": seed,
              "scene_format": scene.format, "image_size": [scene.width, scene.height], "config": config.to_dict()}

@@ -112,11 +112,11 @@ def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgb
 _render_room_rgba = functools.partial(_render_room, rgba=True)
 
 
-def _render_field(params, occupancy, intrinsics: Intrinsics, render_config, c2w: Array, *, config,
+def _render_field(params, grid, intrinsics: Intrinsics, render_config, march, c2w: Array, *, field,
                   rgba: bool = False) -> Array:
-    from waldo_jax.nerf.train import make_sampler
+    from waldo_jax.render.marched import render_marched
 
-    return _output(make_sampler(config).render_views(params, occupancy, c2w, intrinsics, render_config), rgba)
+    return _output(render_marched(field, params, grid, c2w, intrinsics, render_config, march).output, rgba)
 
 
 def _room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
@@ -127,23 +127,25 @@ def _room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree
 
 
 @functools.lru_cache(maxsize=None)
-def _field_fn(config, rgba: bool = False):
-    """One function object per training config, so that Partials of equal configs share compilations."""
-    return functools.partial(_render_field, config=config, rgba=rgba)
+def _field_fn(field_config, rgba: bool = False):
+    """One function object per field config, so that Partials of equal configs share compilations."""
+    from waldo_jax.nerf.field import make_field
+
+    return functools.partial(_render_field, field=make_field(field_config), rgba=rgba)
 
 
 def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: float, far: float, aabb,
                    background, rgba: bool = False) -> jax.tree_util.Partial:
-    """The renderer of a trained field (`waldo_jax.nerf.train`'s sampler) as a Partial c2w -> rgb.
+    """The renderer of a trained field (`waldo_jax.render.marched`, as `waldo render`) as a Partial c2w -> rgb.
 
     With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity.
     """
-    from waldo_jax.nerf.train import _render_config
+    from waldo_jax.nerf.train import render_setup
 
-    render_config = _render_config(config, near, far, np.asarray(aabb, np.float32), background, config.eval_samples)
     params = jax.tree.map(jnp.asarray, params)
     occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
-    return jax.tree_util.Partial(_field_fn(config, rgba), params, occupancy, intrinsics, render_config)
+    grid, render_config, march = render_setup(config, occupancy, near, far, np.asarray(aabb, np.float32), background)
+    return jax.tree_util.Partial(_field_fn(config.field, rgba), params, grid, intrinsics, render_config, march)
 
 
 # ---------------------------------------------------------------------------------------------

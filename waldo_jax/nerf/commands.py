@@ -117,10 +117,14 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides["sampler"] = "occupancy" if args.sampler == "auto" else args.sampler
     config = TrainConfig.preset(args.preset, train_scene, **overrides)
     result = train(jax.random.key(args.seed), train_scene, config, test_scene, progress=not args.quiet)
+    config = result.config  # with the calibrated render step
 
     last = next((h for h in reversed(result.history) if "loss" in h), {})
     stats = {
         "psnr_test": result.psnr_test,
+        "psnr_test_training_step": result.psnr_test_training_step,
+        "render_step_scale": config.render_step_scale,
+        "render_step_curve": result.render_step_curve,
         "steps": result.steps,
         "seconds": round(result.seconds, 3),
         "compile_seconds": round(result.compile_seconds, 3),

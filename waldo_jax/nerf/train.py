@@ -12,23 +12,29 @@ One training step:
      to be opaque elsewhere;
   3. render the rays with a *sampler* (below), take the loss on rgb (MSE or Huber), and take an Adam
      step (lr 1e-2, betas 0.9 / 0.99, eps 1e-15, L2 weight decay on the MLPs, Instant-NGP's
-     step-wise exponential decay).
+     step-wise exponential decay as an optax schedule).
 
-Samplers are pluggable (`make_sampler`): a sampler is static code plus a pytree state carried in the
-`TrainState`, with `init`, `update` (called every `occupancy_update_every` steps inside the scan, by
-`lax.cond`) and batched renderers for training rays and for whole views:
+Samplers (`make_sampler`) are static code plus a pytree state carried in the `TrainState`:
   * "dense": `render.render_ray` with stratified samples in [near, far] clipped to the aabb (no state);
-  * "occupancy": Instant-NGP's occupancy grid (`occupancy.update_occupancy`, state carried through
-    the scan) and ray marching (`occupancy.march_ray`); the marched samples of the whole batch are
-    packed into a fixed budget of field evaluations (`_OccupancySampler`), so rays through empty
-    space cost no field evaluation and the number of rays trained per step adapts, as in
-    Instant-NGP, while every shape stays fixed.
+  * "occupancy": Instant-NGP's occupancy grid (`render.occupancy`) and ray marching. The marched
+    samples of the batch are packed into `samples_per_batch` field evaluations as rows of
+    `_TRAIN_ROW_LENGTH` samples (`render.packed`): rays enter in their random order while their rows
+    fit, the rest are left out of the loss, and the composite runs on the packed rows (no
+    [rays x samples] array). The rays marched per step adapt to the budget as in Instant-NGP: after
+    each chunk the host picks R from a ladder of powers of two so that about 1.25 budgets of samples
+    are marched (`_next_rays`).
 
-Steps run `chunk` at a time in one `jax.lax.scan` (one dispatch and one host sync per chunk); steps
-past `config.steps` inside the last chunk are skipped with `lax.cond`, so one compiled chunk serves
-any number of steps. Randomness: `key` is split once into the initialisation key (field, sampler
-state) and the training stream; step `i` uses `fold_in(train_stream, i)`, so a chunked run and a
-step-by-step run see the same numbers, and the same key gives bit-identical parameters.
+Steps run in jitted chunks of `lax.scan`s with no host sync inside: a chunk is a scan over *periods*
+of `occupancy_update_every` steps, each an occupancy update (the warm-up kind, every cell, in the
+first chunk; the partial kind after it: the host knows the phase, so no `lax.cond`) and then a scan of
+the period's steps. Steps past `config.steps` in the last chunk are computed and discarded (a select,
+not a branch). The host syncs once per chunk (progress, history, the next R). Randomness: `key` is
+split once into the initialisation key (field, sampler state) and the training stream; step `i` uses
+`fold_in(train_stream, i)`, so the chunking does not change the random numbers, and the same key
+and config give bit-identical parameters on the same backend.
+
+Trained fields are rendered by `waldo_jax.render.marched` (`render_trained`): a dense-trained field
+through a grid whose cells are all occupied.
 
 Names: `R` rays per batch, `S` samples per ray, `N` training images of `H x W` pixels, `P` poses.
 """
@@ -39,7 +45,7 @@ import dataclasses
 import functools
 import math
 import time
-from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import flax.struct
 import jax
@@ -47,13 +53,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from waldo_jax.cameras import camera_rays, pixel_directions
+from waldo_jax.cameras import pixel_directions
 from waldo_jax.errors import WaldoError
-from waldo_jax.nerf.field import NGPFieldConfig, init_field, make_density, make_field, make_field_batch
+from waldo_jax.nerf.field import NGPFieldConfig, init_field, make_density, make_field
 from waldo_jax.nerf.hashgrid import HashGridConfig
-from waldo_jax.nerf import occupancy
-from waldo_jax.render import (RenderConfig, composite, render_ray, render_views, render_views_sharded,
-                              shard_over_poses, volume_weights)
+from waldo_jax.render import marched, occupancy, packed
+from waldo_jax.render.volume import RenderConfig, render_ray
 from waldo_jax.types import Array, Intrinsics, PRNGKey, RenderOutput, Scene
 
 __all__ = [
@@ -67,9 +72,12 @@ __all__ = [
     "TrainState",
     "evaluate",
     "init_train_state",
+    "make_occupancy_update",
     "make_sampler",
     "make_train_step",
+    "render_setup",
     "render_trained",
+    "render_trained_counted",
     "run_chunk",
     "train",
     "training_inputs",
@@ -83,6 +91,20 @@ SAMPLERS = ("dense", "occupancy")
 _DECAY_START_FRACTION = 0.5
 _DECAY_INTERVAL_FRACTION = 0.15
 _DECAY_BASE = 0.33
+
+# Rendering marches with the training step times `TrainConfig.render_step_scale`. Its value comes from
+# each run's own quality/speed curve (`calibrate_render_step`): the largest of these scales whose
+# held-out PSNR is within RENDER_STEP_TOLERANCE_DB of the training step's. Measured on the CPU-trained
+# fox (benchmarks/results/render_trained_fox_*): x2 -0.01 dB, x3 -0.03 dB (70 instead of 203
+# evaluations per ray), x4 -0.09 dB; on lego_tiny x2 already loses 1.4 dB, so no fixed scale serves both.
+RENDER_STEP_CANDIDATES = (2.0, 3.0, 4.0)
+RENDER_STEP_TOLERANCE_DB = 0.05
+# Held-out views rendered per candidate scale (spread over the split).
+_CALIBRATION_VIEWS = 3
+# Samples per packed row in training (`render.packed`): a ray's last row wastes under this many slots.
+_TRAIN_ROW_LENGTH = 1
+# Config keys of older checkpoints that no longer mean anything (ignored by `TrainConfig.from_dict`).
+_OBSOLETE_KEYS = ("eval_ray_chunk",)
 
 
 class TrainConfigError(WaldoError, ValueError):
@@ -119,16 +141,18 @@ class TrainConfig:
       aabb_scale: Instant-NGP's aabb_scale: the occupancy grid's base box is the field's box shrunk
         by it, with 1 + ceil(log2(aabb_scale)) cascades covering the rest.
       steps: optimisation steps.
-      rays_per_batch: R, rays drawn per step. With the occupancy sampler this is the most rays a
-        step can train on: rays enter the batch in random order until their marched samples fill
+      rays_per_batch: R, rays drawn per step (dense). With the occupancy sampler the most rays a step
+        marches: the rays marched adapt to the budget chunk by chunk (a power-of-two fraction of
+        this), and they enter the batch in random order until their packed samples fill
         `samples_per_batch` (Instant-NGP's dynamic batch, with fixed shapes).
       num_samples: samples per training ray: the stratified count (dense) or the most samples one
         ray may keep in occupied space (occupancy; capped at the K candidates that cross the grid,
         so a large value means no cap, as in Instant-NGP).
-      samples_per_batch: occupancy sampler: field evaluations per step (packed across rays).
-      eval_samples: samples per ray when rendering views (held-out PSNR, `waldo render`): the
-        stratified count (dense) or the per-ray cap (occupancy, as num_samples).
-      chunk: steps per `lax.scan` between host syncs (progress bar, history).
+      samples_per_batch: occupancy sampler: field evaluations per step (packed rows across rays).
+      eval_samples: rendering (held-out PSNR, `waldo render`, `waldo explore`): the most samples a
+        ray keeps in occupied space (occupancy), or the samples across the field's box (dense).
+      chunk: steps between host syncs (progress bar, history, the rays marched per step); rounded
+        to whole periods of `occupancy_update_every` steps.
       loss: "mse" or "huber" on rgb.
       sampler: "dense" or "occupancy" (see the module docstring).
       occupancy_resolution: G, cells per side of each occupancy cascade.
@@ -139,7 +163,9 @@ class TrainConfig:
       cone_angle: marching steps grow as t * cone_angle (NGP: 0 for synthetic, 1/256 for real scenes).
       random_background: per-ray random background colour (else the scene's background, or black).
       eval_every: steps between held-out evaluations recorded in the history (0: at the end only).
-      eval_ray_chunk: rays rendered together when rendering views.
+      render_step_scale: rendering marches with the training step (steps_per_diagonal, cone_angle)
+        times this; None: `train` measures the run's quality/speed curve on its held-out views and
+        sets it (`calibrate_render_step`); renders use 1 while it is None.
       preset_name: the preset this config came from ("custom" otherwise), recorded for reports.
     """
 
@@ -161,18 +187,21 @@ class TrainConfig:
     cone_angle: float = 0.0
     random_background: bool = True
     eval_every: int = 0
-    eval_ray_chunk: int = 4096
+    render_step_scale: Optional[float] = None
     preset_name: str = "custom"
 
     def __post_init__(self):
         for name in ("steps", "rays_per_batch", "num_samples", "samples_per_batch", "eval_samples", "chunk",
-                     "occupancy_resolution", "occupancy_update_every", "eval_ray_chunk"):
+                     "occupancy_resolution", "occupancy_update_every"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
         for name in ("eval_every", "occupancy_warmup"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name), minimum=0))
         object.__setattr__(self, "aabb_scale", _positive_float("aabb_scale", self.aabb_scale))
         object.__setattr__(self, "steps_per_diagonal", _positive_float("steps_per_diagonal", self.steps_per_diagonal))
         object.__setattr__(self, "cone_angle", _positive_float("cone_angle", self.cone_angle, allow_zero=True))
+        if self.render_step_scale is not None:
+            object.__setattr__(self, "render_step_scale",
+                               _positive_float("render_step_scale", self.render_step_scale))
         object.__setattr__(self, "occupancy_decay", _positive_float("occupancy_decay", self.occupancy_decay))
         if self.occupancy_decay > 1.0:
             raise TrainConfigError(f"TrainConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")
@@ -198,8 +227,7 @@ class TrainConfig:
         """A named configuration for a scene.
 
         Both presets take the field's box from `scene.aabb`, Instant-NGP's `aabb_scale` from
-        `scene.metadata.get("aabb_scale", 1)`, and the occupancy sampler when
-        `waldo_jax.nerf.occupancy` is available (else the dense one). Cone-angle stepping (1/256) is
+        `scene.metadata.get("aabb_scale", 1)`, and the occupancy sampler. Cone-angle stepping (1/256) is
         used for real captures, constant steps for synthetic (Blender, procedural) scenes.
           * "quality": the paper's setup: hash grid L = 16, T = 2**19, N_max = 2048 * aabb_scale;
             a 128**3 occupancy grid; steps of 1/1024 of the base box's diagonal; 2**18 samples per
@@ -274,7 +302,7 @@ class TrainConfig:
     def from_dict(cls, d: Dict[str, Any]) -> "TrainConfig":
         """Inverse of `to_dict`; raises TrainConfigError naming a missing or invalid entry."""
         try:
-            values = dict(d)
+            values = {k: v for k, v in dict(d).items() if k not in _OBSOLETE_KEYS}
             field = dict(values.pop("field"))
             hashgrid = HashGridConfig(**field.pop("hashgrid"))
             values["field"] = NGPFieldConfig(hashgrid=hashgrid, **field)
@@ -425,31 +453,37 @@ def _check_scene(scene: Scene, what: str) -> None:
 #
 # A sampler is static code (one object per TrainConfig) with a pytree state carried in TrainState:
 #   init(key, params) -> state
-#   update(key, state, params, step) -> state                      (every occupancy_update_every steps)
+#   update(key, state, params, warmup) -> state                    (every occupancy_update_every steps;
+#                                                                   warmup: static, every cell)
 #   render_rays(key, params, state, origins [R, 3], directions [R, 3], background [R, 3], render_config)
-#       -> (RenderOutput [R], included bool [R])                   (rays that count in the loss)
-#   render_views(params, state, c2w [P, 4, 4], intrinsics, render_config) -> RenderOutput [P, H, W]
-#   render_views_sharded(params, state, c2w, intrinsics, render_config, mesh) -> the same, poses split
-#       over the devices of a one-axis mesh "poses" (`render.shard_over_poses`)
+#       -> (RenderOutput [R], included bool [R], stats)            (rays that count in the loss; stats:
+#                                                                   int32 [] "samples" and "rows")
+#   view_grid(state) -> the occupancy grid views are rendered through
+#   view_march(render_config) -> the MarchConfig of views
 
 
 class _DenseSampler:
-    """Stratified samples in [near, far] ∩ aabb (`render.render_ray` with a key); no state."""
+    """Stratified samples in [near, far] ∩ aabb (`render.render_ray` with a key); no state.
+
+    Views are rendered by the marched renderer through a one-cell grid that is always occupied, with
+    `eval_samples` steps across the field's box.
+    """
 
     def __init__(self, config: TrainConfig):
         self.config = config
         self.field = make_field(config.field)
+        self.box = np.asarray(config.field.aabb, np.float64).reshape(2, 3)
 
     def init(self, key: PRNGKey, params) -> None:
         """No state."""
         return None
 
-    def update(self, key: PRNGKey, state, params, step: Array):
+    def update(self, key: PRNGKey, state, params, warmup: bool):
         """No state to update."""
         return state
 
     def render_rays(self, key: PRNGKey, params, state, origins: Array, directions: Array,
-                    background: Array, render_config: RenderConfig) -> Tuple[RenderOutput, Array]:
+                    background: Array, render_config: RenderConfig) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
         """Renders R training rays [R, 3] on per-ray backgrounds [R, 3]; every ray is included."""
         keys = jax.random.split(key, origins.shape[0])
 
@@ -457,263 +491,113 @@ class _DenseSampler:
             return render_ray(self.field, params, o, d, render_config.replace(background=bg), k)
 
         out = jax.vmap(one)(keys, origins, directions, background)
-        return out, jnp.ones(origins.shape[:1], bool)
+        samples = jnp.int32(origins.shape[0] * render_config.num_samples)
+        return out, jnp.ones(origins.shape[:1], bool), {"samples": samples, "rows": samples}
 
-    def render_views(self, params, state, c2w: Array, intrinsics: Intrinsics,
-                     render_config: RenderConfig) -> RenderOutput:
-        """Renders P views [P, 4, 4] deterministically (bin midpoints), S = render_config.num_samples."""
-        return render_views(self.field, params, c2w, intrinsics, render_config)
+    def view_grid(self, state) -> occupancy.OccupancyGrid:
+        """A single always-occupied cell over the field's box."""
+        return occupancy.init_occupancy(self.box, 1.0, resolution=1)
 
-    def render_views_sharded(self, params, state, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
-                             mesh=None) -> RenderOutput:
-        """`render_views` with the poses split over the devices of `mesh` (the same images)."""
-        return render_views_sharded(self.field, params, c2w, intrinsics, render_config, mesh=mesh)
+    def view_march(self, scale: float) -> occupancy.MarchConfig:
+        """eval_samples / scale steps across the box's diagonal."""
+        grid = self.view_grid(None)
+        return occupancy.MarchConfig.for_grid(grid, self.config.eval_samples / scale)
 
 
 class _OccupancySampler:
-    """Instant-NGP's occupancy grid and ray marching (`waldo_jax.nerf.occupancy`), with packed samples.
+    """Instant-NGP's occupancy grid and ray marching (`waldo_jax.render.occupancy`), with packed rows.
 
-    Each ray is marched (`occupancy.march_ray`: candidates every dt, kept where the grid is
-    occupied, compacted to at most S = `num_samples`). The kept samples of the whole batch are then
-    *packed* into a fixed budget of `samples_per_batch` field evaluations, so a ray that crosses
-    empty space costs nothing and the field runs on occupied samples only (Instant-NGP's compaction):
-      * training: rays enter in their (random) order while the running count of samples fits the
-        budget; the rest are left out of this step's loss (`included`). As with Instant-NGP's
-        dynamic batch size, the rays trained per step adapt to the scene (few while the grid is
-        still full, many once it is sparse) at a fixed cost per step;
-      * views: Instant-NGP's early ray termination. A `lax.while_loop` packs the next segment of
-        samples of every live ray into a fixed budget per pass, composites front to back carrying
-        each ray's colour, depth, opacity and optical depth, and retires a ray once its
-        transmittance is below 1e-4 (`occupancy.render_samples_early_stop`): nothing behind an
-        opaque surface is evaluated. Training keeps the full composite of every kept sample (its
-        results, and gradients through the tail, are unchanged).
-    The weights and composite are those of `render.volume_weights` / `render.composite`; masked
-    samples have zero length (delta = 0) and so zero weight.
+    Each ray is marched (`occupancy.march_ray`: candidates every dt, kept where the grid is occupied,
+    compacted to at most S = `num_samples`). The kept samples are laid out as rows of
+    `_TRAIN_ROW_LENGTH` samples in a budget of `samples_per_batch` slots (`render.packed`): rays enter
+    in their (random) order while their rows fit, the others are left out of this step's loss
+    (`included`), and the field runs on the packed slots only. As with Instant-NGP's dynamic batch
+    size, the rays trained per step adapt to the scene (few while the grid is still full, many once
+    it is sparse) at a fixed cost per step. The composite runs on the packed rows (`packed.composite_rows`).
     """
 
     def __init__(self, config: TrainConfig):
         self.config = config
         self.field = make_field(config.field)
-        self.field_batch = make_field_batch(config.field)
         self.density = make_density(config.field)
         aabb = np.asarray(config.field.aabb, np.float64).reshape(2, 3)
         center, half = 0.5 * (aabb[0] + aabb[1]), 0.5 * (aabb[1] - aabb[0]) / config.aabb_scale
         self.base_aabb = np.stack([center - half, center + half])
-        geometry = occupancy.init_occupancy(self.base_aabb, config.aabb_scale, resolution=1)
-        self.cascades = geometry.cascades
-        self.max_steps = _march_steps(geometry.base_diagonal, self.cascades, config.occupancy_resolution,
-                                      config.steps_per_diagonal, config.cone_angle)
-        if config.samples_per_batch < min(config.num_samples, self.max_steps):
+        self.geometry = occupancy.init_occupancy(self.base_aabb, config.aabb_scale, resolution=1)
+        self.march = occupancy.MarchConfig.for_grid(
+            self.geometry.replace(resolution=config.occupancy_resolution), config.steps_per_diagonal,
+            config.cone_angle, max_samples=config.num_samples)
+        self.row_length = _TRAIN_ROW_LENGTH
+        self.rows = config.samples_per_batch // self.row_length
+        self.max_rows_per_ray = -(-self.march.max_samples // self.row_length)
+        if self.rows < self.max_rows_per_ray:
             raise TrainConfigError(
-                f"TrainConfig.samples_per_batch ({config.samples_per_batch}) must be at least the samples one "
-                f"ray may keep, min(num_samples, K) = {min(config.num_samples, self.max_steps)}")
+                f"TrainConfig.samples_per_batch ({config.samples_per_batch}) must hold the samples one ray may "
+                f"keep, min(num_samples, K) = {self.march.max_samples} (in rows of {self.row_length})")
 
     def init(self, key: PRNGKey, params):
         """All cells occupied, zero densities (nothing is skipped before the first update)."""
         return occupancy.init_occupancy(self.base_aabb, self.config.aabb_scale,
-                                             resolution=self.config.occupancy_resolution)
+                                        resolution=self.config.occupancy_resolution)
 
     def _occupancy_config(self, grid):
         return occupancy.OccupancyConfig.create(
             grid, steps_per_diagonal=self.config.steps_per_diagonal, warmup_steps=self.config.occupancy_warmup,
             decay=self.config.occupancy_decay)
 
-    def march_config(self, num_samples: int):
-        """The march: K candidates (enough to cross the whole grid), at most min(num_samples, K) kept."""
-        return occupancy.MarchConfig.create(
-            max_steps=self.max_steps, max_samples=min(num_samples, self.max_steps),
-            steps_per_diagonal=self.config.steps_per_diagonal, cone_angle=self.config.cone_angle)
+    def update(self, key: PRNGKey, grid, params, warmup: bool):
+        """Instant-NGP's decay / sample / threshold update of the grid (`warmup`: every cell)."""
+        return occupancy.update_occupancy_phase(key, grid, self.density, jax.lax.stop_gradient(params),
+                                                self._occupancy_config(grid), warmup)
 
-    def update(self, key: PRNGKey, grid, params, step: Array):
-        """Instant-NGP's decay / sample / threshold update of the grid from the current densities."""
-        return occupancy.update_occupancy(key, grid, self.density, jax.lax.stop_gradient(params), step,
-                                               self._occupancy_config(grid))
-
-    def _march(self, grid, origins: Array, directions: Array, render_config: RenderConfig, num_samples: int,
+    def _march(self, grid, origins: Array, directions: Array, render_config: RenderConfig,
                key: Optional[PRNGKey]) -> Tuple[Array, Array, Array]:
-        """t, delta [N, S] and mask bool [N, S] of N rays (random offsets with a key)."""
-        march_config = self.march_config(num_samples)
+        """t, delta [R, S] and mask bool [R, S] of R rays (random offsets with a key)."""
 
         def one(o, d, k):
             t_start, t_end = occupancy.ray_interval(grid, o, d, render_config)
-            return occupancy.march_ray(grid, o, d, t_start, t_end, march_config, k)
+            return occupancy.march_ray(grid, o, d, t_start, t_end, self.march, k)
 
         keys = None if key is None else jax.random.split(key, origins.shape[0])
         return jax.vmap(one, in_axes=(0, 0, None if keys is None else 0))(origins, directions, keys)
 
-    def _render_packed(self, params, origins: Array, directions: Array, background: Array, t: Array,
-                       delta: Array, mask: Array, included: Array, budget: int) -> RenderOutput:
-        """Composites the rays marked `included` [N] from at most `budget` packed field evaluations.
-
-        The caller guarantees that the included rays' valid samples fit the budget.
-        """
-        num_rays, num_samples = t.shape
-        valid = (mask & included[:, None]).reshape(-1)  # [N * S]
-        slot = jnp.where(valid, jnp.cumsum(valid.astype(jnp.int32)) - 1, budget)  # [N * S]
-        source = jnp.zeros((budget,), jnp.int32).at[slot].set(
-            jnp.arange(num_rays * num_samples, dtype=jnp.int32), mode="drop")  # [B] sample of each slot
-        ray = source // num_samples  # [B]
-        points = origins[ray] + t.reshape(-1)[source][:, None] * directions[ray]  # [B, 3]
-        sigma_packed, rgb_packed = self.field_batch(params, points, directions[ray])  # [B], [B, 3]
-        take = jnp.minimum(slot, budget - 1)  # [N * S]
-        sigma = jnp.where(valid, sigma_packed[take], 0.0).reshape(num_rays, num_samples)  # [N, S]
-        rgb = jnp.where(valid[:, None], jnp.nan_to_num(rgb_packed[take]), 0.0)
-        rgb = rgb.reshape(num_rays, num_samples, 3)  # [N, S, 3]
-        w = jax.vmap(volume_weights)(sigma, delta)  # [N, S]
-        return jax.vmap(composite)(w, rgb, t, background)
-
     def render_rays(self, key: PRNGKey, params, grid, origins: Array, directions: Array, background: Array,
-                    render_config: RenderConfig) -> Tuple[RenderOutput, Array]:
-        """Renders training rays [R, 3]; the leading rays whose samples fit the budget are `included`."""
-        t, delta, mask = self._march(grid, origins, directions, render_config, self.config.num_samples, key)
-        counts = jnp.sum(mask, axis=-1, dtype=jnp.int32)  # [R]
-        included = jnp.cumsum(counts) <= self.config.samples_per_batch  # [R]
-        out = self._render_packed(params, origins, directions, background, t, delta, mask, included,
-                                  self.config.samples_per_batch)
-        return out, included
+                    render_config: RenderConfig) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
+        """Renders training rays [R, 3]; the leading rays whose rows fit the budget are `included`.
 
-    def render_ray_batch_counted(self, params, grid, origins: Array, directions: Array, background: Array,
-                                 render_config: RenderConfig, num_samples: int, budget: int,
-                                 active: Optional[Array] = None,
-                                 max_segment: Optional[int] = None) -> Tuple[RenderOutput, Array, Array]:
-        """Renders EVERY ray of a batch [N, 3] deterministically, `budget` field evaluations per pass,
-        with Instant-NGP's early ray termination (`occupancy.render_samples_early_stop`).
-
-        Each ray is marched (at most min(num_samples, K) samples in occupied cells); pass after pass,
-        the next segment of samples of every live ray is packed into the budget and composited front
-        to back, and a ray retires once its transmittance is below the march's min_transmittance
-        (1e-4) or its samples run out, so nothing behind an opaque surface is evaluated. The colour
-        differs from the composite of all samples by less than 1e-4 times max |rgb - background|.
-
-        Args:
-          params: the field's parameters. grid: the occupancy grid.
-          origins, directions: [N, 3]. background: [N, 3].
-          render_config: near, far and box. num_samples: the per-ray cap on marched samples.
-          budget: field evaluations per pass (static, >= 1).
-          active: bool [N], rays to render (default all); the others get no sample (background).
-          max_segment: most samples a ray takes per pass (static; None: no cap).
-
-        Returns:
-          (`RenderOutput` with rgb [N, 3], depth [N], acc [N]; evaluations int32 [N], the field
-          evaluations spent on each ray; passes int32 [], each evaluating `budget` slots).
+        Stats: "samples", the samples of the included rays (field evaluations that count), and "rows",
+        the rows all R marched rays would need (to size the next chunk's R).
         """
-        march_config = self.march_config(num_samples)
-        t, delta, mask = self._march(grid, origins, directions, render_config, num_samples, None)  # [N, S] each
-        if active is not None:
-            mask = mask & active[:, None]
-        return occupancy.render_samples_early_stop(self.field, params, origins, directions, t, delta, mask, background,
-                                                   march_config.min_transmittance, budget, max_segment)
+        num_rays = origins.shape[0]
+        s = self.row_length
+        t, delta, mask = self._march(grid, origins, directions, render_config, key)  # [R, S] each
+        count = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [R]
+        rows = -(-count // s)  # [R]
+        included = jnp.cumsum(rows) <= self.rows  # [R], the leading rays that fit
+        layout = packed.layout_rows(jnp.where(included, rows, 0), self.rows)
+        index, valid = packed.row_samples(layout, jnp.zeros((num_rays,), jnp.int32), count, s)  # [M, s]
+        owner = layout.owner[:, None]  # [M, 1]
+        index = jnp.minimum(index, self.march.max_samples - 1)
+        t_rows = t[owner, index]  # [M, s]
+        delta_rows = jnp.where(valid, delta[owner, index], 0.0)  # [M, s]
+        ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (self.rows, s, 3))  # [M, s, 3]
+        points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
+        sigma, rgb = jax.vmap(self.field, in_axes=(None, 0, 0))(params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3))
+        sums = packed.composite_rows(sigma.reshape(self.rows, s), rgb.reshape(self.rows, s, 3), t_rows, delta_rows,
+                                     layout, jnp.zeros((num_rays,), jnp.float32), self.max_rows_per_ray)
+        out = RenderOutput(rgb=sums.rgb + (1.0 - sums.acc)[:, None] * background, depth=sums.depth, acc=sums.acc)
+        stats = {"samples": jnp.sum(jnp.where(included, count, 0)), "rows": jnp.sum(rows)}
+        return out, included, stats
 
-    def render_ray_batch(self, params, grid, origins: Array, directions: Array, background: Array,
-                         render_config: RenderConfig, num_samples: int, budget: int) -> RenderOutput:
-        """`render_ray_batch_counted` without the counts: the rendered rays [N]."""
-        return self.render_ray_batch_counted(params, grid, origins, directions, background, render_config,
-                                             num_samples, budget)[0]
+    def view_grid(self, grid) -> occupancy.OccupancyGrid:
+        """The trained grid itself."""
+        return grid
 
-    def render_views(self, params, grid, c2w: Array, intrinsics: Intrinsics,
-                     render_config: RenderConfig) -> RenderOutput:
-        """Renders P views [P, 4, 4] (midpoint samples, early ray termination), at most
-        render_config.num_samples per ray."""
-        return self.render_views_counted(params, grid, c2w, intrinsics, render_config)[0]
-
-    def render_views_counted(self, params, grid, c2w: Array, intrinsics: Intrinsics,
-                             render_config: RenderConfig) -> Tuple[RenderOutput, Array, Array]:
-        """`render_views` and what it cost (for benchmarks).
-
-        Returns:
-          (the same `RenderOutput` [P, H, W]; evaluations int32 [P, H, W], the field evaluations spent on
-          each pixel's ray; passes int32 [P, num_chunks], the passes of each chunk of
-          `config.eval_ray_chunk` rays, each evaluating `view_budget()` slots).
-        """
-        return _marched_views(self.config, render_config.num_samples)(params, grid, c2w, intrinsics, render_config)
-
-    def view_budget(self) -> int:
-        """Field evaluations (slots) per pass of `render_views`, for each chunk of `config.eval_ray_chunk` rays."""
-        return self.config.eval_ray_chunk * _VIEW_SAMPLES_PER_RAY_PER_PASS
-
-    def render_views_sharded(self, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
-                             mesh=None) -> RenderOutput:
-        """`render_views` with the poses split over the devices of `mesh` (the same images)."""
-        return shard_over_poses(_marched_local(self.config, render_config.num_samples),
-                                (params, grid, intrinsics, render_config), c2w, mesh)
-
-
-def _march_steps(base_diagonal: float, cascades: int, resolution: int, steps_per_diagonal: float,
-                 cone_angle: float, cap: int = 8192) -> int:
-    """K, the candidates a ray needs to cross the grid's whole outer box from t = 0 (host-side)."""
-    dt_min = base_diagonal / steps_per_diagonal
-    dt_max = max(dt_min, base_diagonal * 2.0 ** (cascades - 1) / resolution)
-    length = base_diagonal * 2.0 ** (cascades - 1)
-    t, steps = 0.0, 0
-    while t < length and steps < cap:
-        t += min(max(t * cone_angle, dt_min), dt_max)
-        steps += 1
-    return steps
-
-
-# Views: field evaluations per ray of a chunk in one pass. Each pass costs the whole budget; with early
-# termination a converged field needs a few dozen samples per ray, so passes of 8 per ray leave little
-# of the last pass unused, and the few rays that need many samples take long segments once the others
-# have retired.
-_VIEW_SAMPLES_PER_RAY_PER_PASS = 8
-
-
-@functools.lru_cache(maxsize=None)
-def _marched_views(config: TrainConfig, num_samples: int) -> Callable:
-    """Jitted renderer of P views with the occupancy sampler, with its counts (cached per config and
-    sample count; `render_views` drops the counts, so both share one compilation)."""
-    return jax.jit(_marched_views_fn(config, num_samples, counted=True))
-
-
-@functools.lru_cache(maxsize=None)
-def _marched_local(config: TrainConfig, num_samples: int) -> Callable:
-    """The marched renderer in `render.shard_over_poses`' calling convention (one object per config)."""
-    views = _marched_views_fn(config, num_samples)
-
-    def local(replicated, posed):
-        params, grid, intrinsics, render_config = replicated
-        return views(params, grid, posed[0], intrinsics, render_config)
-
-    return local
-
-
-def _marched_views_fn(config: TrainConfig, num_samples: int, counted: bool = False) -> Callable:
-    """The (unjitted) renderer of P views with the occupancy sampler and early ray termination.
-
-    views(params, grid, c2w [P, 4, 4], intrinsics, render_config) -> RenderOutput [P, H, W], or with
-    `counted` (RenderOutput, evaluations int32 [P, H, W], passes int32 [P, num_chunks]).
-    """
-    sampler = make_sampler(config)
-    budget = sampler.view_budget()
-
-    def views(params, grid, c2w, intrinsics, render_config):
-        h, w = intrinsics.height, intrinsics.width
-        num_rays = h * w
-        chunk = max(1, min(config.eval_ray_chunk, num_rays))
-        num_chunks = -(-num_rays // chunk)
-        pad = num_chunks * chunk - num_rays
-        # Padding rays (cropped below) are not marched: they cost no field evaluation.
-        active = (jnp.arange(num_chunks * chunk) < num_rays).reshape(num_chunks, chunk)
-
-        def crop(a):  # [num_chunks, chunk, ...] -> [H, W, ...]
-            return a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays].reshape((h, w) + a.shape[2:])
-
-        def one_view(m):
-            origins, directions = camera_rays(m, intrinsics)  # [H, W, 3] each
-            origins = jnp.pad(origins.reshape(-1, 3), ((0, pad), (0, 0))).reshape(num_chunks, chunk, 3)
-            directions = jnp.pad(directions.reshape(-1, 3), ((0, pad), (0, 0)), constant_values=1.0 / math.sqrt(3.0))
-            directions = directions.reshape(num_chunks, chunk, 3)
-            background = jnp.broadcast_to(render_config.background, (chunk, 3))
-            out, evaluations, passes = jax.lax.map(
-                lambda args: sampler.render_ray_batch_counted(params, grid, args[0], args[1], background,
-                                                              render_config, num_samples, budget, args[2]),
-                (origins, directions, active))
-            return jax.tree.map(crop, out), crop(evaluations), passes
-
-        out, evaluations, passes = jax.lax.map(one_view, jnp.asarray(c2w, jnp.float32)[:, :3, :4])
-        return (out, evaluations, passes) if counted else out
-
-    return views
+    def view_march(self, scale: float) -> occupancy.MarchConfig:
+        """The training march with steps `scale` times longer (NGP's dt_min and cone angle both scaled)."""
+        return occupancy.MarchConfig.for_grid(
+            self.geometry.replace(resolution=self.config.occupancy_resolution), self.config.steps_per_diagonal / scale,
+            self.config.cone_angle * scale, max_samples=self.config.eval_samples)
 
 
 @functools.lru_cache(maxsize=None)
@@ -733,12 +617,13 @@ def _mlp_mask(params) -> Any:
     return {k: jax.tree.map(lambda _: k != "hash", v) for k, v in params.items()}
 
 
-def _optimizer(hparams: TrainHParams, step: Array, params) -> optax.GradientTransformation:
-    """Adam with L2 regularisation on the MLPs and the decayed learning rate of `step`."""
+def make_optimizer(hparams: TrainHParams) -> optax.GradientTransformation:
+    """Adam with L2 regularisation on the MLPs and Instant-NGP's decay as an optax schedule
+    (`hparams.learning_rate_at`, driven by the optimiser's own step count)."""
     return optax.chain(
-        optax.add_decayed_weights(hparams.weight_decay, mask=_mlp_mask(params)),
+        optax.add_decayed_weights(hparams.weight_decay, mask=_mlp_mask),
         optax.scale_by_adam(b1=hparams.beta1, b2=hparams.beta2, eps=hparams.eps),
-        optax.scale(-hparams.learning_rate_at(step)),
+        optax.scale_by_learning_rate(hparams.learning_rate_at),
     )
 
 
@@ -753,20 +638,23 @@ def init_train_state(key: PRNGKey, config: TrainConfig, hparams: Optional[TrainH
     hparams = (hparams or TrainHParams.for_config(config)).as_arrays()
     key_field, key_sampler = jax.random.split(key)
     params = init_field(key_field, config.field)
-    opt_state = _optimizer(hparams, jnp.int32(0), params).init(params)
+    opt_state = make_optimizer(hparams).init(params)
     sampler_state = make_sampler(config).init(key_sampler, params)
     return TrainState(params=params, opt_state=opt_state, sampler_state=sampler_state, step=jnp.int32(0))
 
 
-def _sample_batch(key: PRNGKey, data: TrainData, config: TrainConfig) -> Tuple[Array, Array, Array, Array]:
-    """R rays uniform over all training pixels, with their targets and backgrounds.
+def _sample_batch(key: PRNGKey, data: TrainData, config: TrainConfig,
+                  num_rays: Optional[int] = None) -> Tuple[Array, Array, Array, Array]:
+    """R = `num_rays` (default `config.rays_per_batch`) rays uniform over all training pixels, with their
+    targets and backgrounds.
 
     Returns:
       origins [R, 3], unit directions [R, 3], target rgb [R, 3], background [R, 3].
     """
+    num_rays = config.rays_per_batch if num_rays is None else num_rays
     key_pixel, key_bg = jax.random.split(key)
     n, h, w = data.images.shape[:3]
-    flat = jax.random.randint(key_pixel, (config.rays_per_batch,), 0, n * h * w)  # [R]
+    flat = jax.random.randint(key_pixel, (num_rays,), 0, n * h * w)  # [R]
     image, rest = flat // (h * w), flat % (h * w)
     row, col = rest // w, rest % w
     dirs_cam = jax.vmap(lambda u, v: pixel_directions(data.intrinsics, u, v))(
@@ -777,9 +665,9 @@ def _sample_batch(key: PRNGKey, data: TrainData, config: TrainConfig) -> Tuple[A
     origins = c2w[:, :, 3]  # [R, 3]
     premultiplied = data.images[image, row, col]  # [R, 3]
     if config.random_background:
-        background = jax.random.uniform(key_bg, (config.rays_per_batch, 3))  # [R, 3]
+        background = jax.random.uniform(key_bg, (num_rays, 3))  # [R, 3]
     else:
-        background = jnp.broadcast_to(data.background, (config.rays_per_batch, 3))
+        background = jnp.broadcast_to(data.background, (num_rays, 3))
     if data.alphas is not None:
         alpha = data.alphas[image, row, col][:, None]  # [R, 1]
         target = premultiplied + (1.0 - alpha) * background  # = rgb * a + (1 - a) * bg
@@ -803,145 +691,311 @@ def _psnr(mse: Array) -> Array:
     return -10.0 * jnp.log10(jnp.maximum(mse, jnp.finfo(jnp.float32).tiny))
 
 
-def make_train_step(config: TrainConfig) -> Callable:
-    """The training step for one batch (pure; jit it or scan it).
+def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -> Callable:
+    """The training step for one batch, without the occupancy update (pure; jit it or scan it).
+
+    `train` runs `make_occupancy_update(config, warmup)` before every `occupancy_update_every`-th step
+    (warmup: steps below `occupancy_warmup`, rounded up to whole periods); a Python loop doing the
+    same from `training_inputs` reproduces `train` (see `tests/test_train.py`).
+
+    Args:
+      config: the static training configuration.
+      rays_per_batch: R, rays marched per step (default `config.rays_per_batch`).
 
     Returns:
-      step(state, train_key, data, hparams, render_config) -> (state, metrics): `train_key` is the
-      training stream; step `state.step` uses `fold_in(train_key, state.step)`. `metrics` holds
-      float32 [] `loss` and `psnr` (of the batch MSE, on the composited targets) and int32 [] `rays`,
-      the rays in the loss (all R for the dense sampler).
+      step(state, train_key, data, hparams, render_config) -> (state, metrics): step `state.step`
+      uses `fold_in(train_key, state.step)`. `metrics` holds float32 [] `loss` and `psnr` (of the
+      batch MSE, on the composited targets), int32 [] `rays` (the rays in the loss), `samples` (the
+      field evaluations of those rays) and `rows` (packed rows all R rays would need).
     """
     sampler = make_sampler(config)
+    num_rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
 
     def step(state: TrainState, train_key: PRNGKey, data: TrainData, hparams: TrainHParams,
              render_config: RenderConfig):
         key = jax.random.fold_in(train_key, state.step)
-        key_batch, key_render, key_update = jax.random.split(key, 3)
-        origins, directions, target, background = _sample_batch(key_batch, data, config)
-        sampler_state = jax.lax.cond(
-            state.step % config.occupancy_update_every == 0,
-            lambda s: sampler.update(key_update, s, state.params, state.step),
-            lambda s: s,
-            state.sampler_state,
-        ) if state.sampler_state is not None else None
+        key_batch, key_render, _ = jax.random.split(key, 3)  # the third key is the occupancy update's
+        origins, directions, target, background = _sample_batch(key_batch, data, config, num_rays)
 
         def loss_fn(params):
-            out, included = sampler.render_rays(key_render, params, sampler_state, origins, directions,
-                                                background, render_config)
+            out, included, stats = sampler.render_rays(key_render, params, state.sampler_state, origins,
+                                                       directions, background, render_config)
             loss, mse = _loss(out.rgb - target, included, config, hparams)
-            return loss, (mse, jnp.sum(included, dtype=jnp.int32))
+            return loss, (mse, jnp.sum(included, dtype=jnp.int32), stats)
 
-        (loss, (mse, rays)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-        optimizer = _optimizer(hparams, state.step, state.params)
-        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        (loss, (mse, rays, stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        updates, opt_state = make_optimizer(hparams).update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        new_state = TrainState(params=params, opt_state=opt_state, sampler_state=sampler_state,
-                               step=state.step + 1)
-        return new_state, {"loss": loss, "psnr": _psnr(mse), "rays": rays}
+        new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
+        return new_state, {"loss": loss, "psnr": _psnr(mse), "rays": rays, "samples": stats["samples"],
+                           "rows": stats["rows"]}
 
     return step
 
 
+def make_occupancy_update(config: TrainConfig, warmup: bool) -> Callable:
+    """The occupancy update that precedes every `occupancy_update_every`-th step (pure).
+
+    Returns:
+      update(state, train_key) -> state: the grid updated from `state.params` with the third key of
+      `split(fold_in(train_key, state.step), 3)` (`warmup`, static: every cell is sampled).
+    """
+    sampler = make_sampler(config)
+
+    def update(state: TrainState, train_key: PRNGKey) -> TrainState:
+        key_update = jax.random.split(jax.random.fold_in(train_key, state.step), 3)[2]
+        return state.replace(sampler_state=sampler.update(key_update, state.sampler_state, state.params, warmup))
+
+    return update
+
+
+def _periods(config: TrainConfig, warmup: bool) -> int:
+    """Periods of `occupancy_update_every` steps in a chunk: the warm-up chunk spans the warm-up."""
+    every = config.occupancy_update_every
+    if warmup:
+        return max(1, -(-config.occupancy_warmup // every))
+    return max(1, round(config.chunk / every))
+
+
+def _warmup_steps(config: TrainConfig) -> int:
+    """Steps of the warm-up chunk (0 when there is no warm-up): `occupancy_warmup` rounded up to whole periods."""
+    return _periods(config, True) * config.occupancy_update_every if config.occupancy_warmup > 0 else 0
+
+
+def _select(active: Array, new, old):
+    """`new` where `active`, else `old`, leaf by leaf (a select, not a branch: no host sync)."""
+    return jax.tree.map(lambda a, b: jnp.where(active, a, b), new, old)
+
+
 @functools.lru_cache(maxsize=None)
-def _chunk_fn(config: TrainConfig) -> Callable:
-    """`config.chunk` steps in one `lax.scan`, jitted (cached per config, state donated)."""
-    step = make_train_step(config)
+def _chunk_fn(config: TrainConfig, rays_per_batch: int, warmup: bool) -> Callable:
+    """A chunk of periods (update, then `occupancy_update_every` steps) in one jitted `lax.scan`
+    (cached per config, R and phase; the state is donated)."""
+    step = make_train_step(config, rays_per_batch)
+    update = make_occupancy_update(config, warmup)
 
     def chunk(state, train_key, data, hparams, render_config, total_steps):
-        def body(state, _):
-            active = state.step < total_steps
-            skipped = {"loss": jnp.float32(jnp.nan), "psnr": jnp.float32(jnp.nan), "rays": jnp.int32(0)}
-            new_state, metrics = jax.lax.cond(
-                active,
-                lambda s: step(s, train_key, data, hparams, render_config),
-                lambda s: (s, skipped),
-                state,
-            )
-            return new_state, metrics
+        skipped = {"loss": jnp.float32(jnp.nan), "psnr": jnp.float32(jnp.nan), "rays": jnp.int32(0),
+                   "samples": jnp.int32(0), "rows": jnp.int32(0)}
 
-        return jax.lax.scan(body, state, None, length=config.chunk)
+        def one_step(state, _):
+            new_state, metrics = step(state, train_key, data, hparams, render_config)
+            active = state.step < total_steps
+            return _select(active, new_state, state), _select(active, metrics, skipped)
+
+        def period(state, _):
+            state = _select(state.step < total_steps, update(state, train_key), state)
+            return jax.lax.scan(one_step, state, None, length=config.occupancy_update_every)
+
+        state, metrics = jax.lax.scan(period, state, None, length=_periods(config, warmup))
+        return state, jax.tree.map(lambda m: m.reshape(-1), metrics)
 
     return jax.jit(chunk, donate_argnums=(0,))
 
 
 def run_chunk(state: TrainState, train_key: PRNGKey, data: TrainData, hparams: TrainHParams,
-              render_config: RenderConfig, config: TrainConfig, total_steps: int) -> Tuple[TrainState, Dict]:
-    """Runs `config.chunk` steps (those with step >= total_steps are skipped) in one jitted scan.
+              render_config: RenderConfig, config: TrainConfig, total_steps: int,
+              rays_per_batch: Optional[int] = None, warmup: bool = False) -> Tuple[TrainState, Dict]:
+    """Runs one chunk of whole periods (those steps with step >= total_steps are discarded) in one jitted scan.
 
-    The input state's buffers are donated: do not use `state` afterwards.
+    The input state must start a period (`state.step` a multiple of `occupancy_update_every`); its
+    buffers are donated: do not use `state` afterwards.
 
     Returns:
-      (state, metrics) with metrics {"loss", "psnr"} float32 [chunk] (NaN for skipped steps) and
-      {"rays"} int32 [chunk] (0 for skipped steps).
+      (state, metrics) with metrics {"loss", "psnr"} float32 [steps] (NaN for discarded steps) and
+      {"rays", "samples", "rows"} int32 [steps] (0 for discarded steps).
     """
-    return _chunk_fn(config)(state, train_key, data, hparams.as_arrays(), render_config,
-                             jnp.int32(total_steps))
+    rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
+    return _chunk_fn(config, rays, bool(warmup))(state, train_key, data, hparams.as_arrays(), render_config,
+                                                  jnp.int32(total_steps))
+
+
+def rays_ladder(config: TrainConfig) -> Tuple[int, ...]:
+    """The rays a step may march: `rays_per_batch` halved down to 128 (Instant-NGP's granularity)."""
+    if config.sampler != "occupancy":
+        return (config.rays_per_batch,)
+    rungs = [config.rays_per_batch]
+    while rungs[-1] // 2 >= min(128, config.rays_per_batch) and rungs[-1] % 2 == 0:
+        rungs.append(rungs[-1] // 2)
+    return tuple(sorted(rungs))
+
+
+def _fit_rays(config: TrainConfig, rows_per_ray: float) -> int:
+    """The smallest rung whose rays need 1.25 budgets of rows at `rows_per_ray` (the top rung at most)."""
+    ladder = rays_ladder(config)
+    budget_rows = config.samples_per_batch // _TRAIN_ROW_LENGTH
+    wanted = 1.25 * budget_rows / max(rows_per_ray, 1e-6)
+    return next((r for r in ladder if r >= wanted), ladder[-1])
+
+
+def _first_rays(config: TrainConfig) -> int:
+    """R of the first chunk: the grid is all occupied, so a ray crossing the box keeps about S samples."""
+    if config.sampler != "occupancy":
+        return config.rays_per_batch
+    samples = make_sampler(config).march.max_samples
+    return _fit_rays(config, -(-samples // _TRAIN_ROW_LENGTH) / 2.0)
+
+
+def _next_rays(config: TrainConfig, metrics: Dict[str, np.ndarray], rays: int) -> int:
+    """R of the next chunk from the rows per marched ray of the last chunk's last period (Instant-NGP's
+    dynamic batch size; the last period best predicts the next steps, e.g. after the warm-up)."""
+    if config.sampler != "occupancy":
+        return rays
+    taken = np.flatnonzero(np.isfinite(metrics["loss"]))[-config.occupancy_update_every:]
+    if taken.size == 0:
+        return rays
+    rows_per_ray = float(np.sum(np.asarray(metrics["rows"], np.float64)[taken])) / (rays * taken.size)
+    return _fit_rays(config, rows_per_ray)
 
 
 # ----------------------------------------------------------------------------------------------
 # Rendering and evaluation of a trained field.
 
 
-def _render_config(config: TrainConfig, near: float, far: float, aabb, background, num_samples: int,
-                   pose_chunk: int = 1) -> RenderConfig:
-    return RenderConfig.create(near=near, far=far, aabb=np.asarray(aabb, np.float32).reshape(2, 3),
-                               background=background, num_samples=num_samples,
-                               ray_chunk=config.eval_ray_chunk, pose_chunk=pose_chunk)
+def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aabb, background,
+                 step_scale: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, occupancy.MarchConfig]:
+    """What `render.marched` needs to render a trained field: (grid, render config, march config).
+
+    Args:
+      config: the training config (sampler, steps, eval_samples, render_step_scale).
+      sampler_state: the occupancy grid, or None (dense sampler).
+      near, far: ray bounds (world units). aabb: [2, 3] box to sample in. background: colour [3].
+      step_scale: the marching step over the training step (default `config.render_step_scale`, or 1).
+    """
+    sampler = make_sampler(config)
+    scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
+    scale = float(scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise TrainConfigError(f"the render step scale must be a positive number, got {step_scale!r}")
+    render_config = RenderConfig.create(near=near, far=far, aabb=np.asarray(aabb, np.float32).reshape(2, 3),
+                                        background=background, ray_chunk=1)
+    return sampler.view_grid(sampler_state), render_config, sampler.view_march(scale)
+
+
+def _render_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float, far: float,
+                    background, aabb, mesh, step_scale: Optional[float], packing: Optional[marched.Packing]):
+    """(RenderOutput [P, H, W], evaluations int32 [P, H, W]) on one device, or sharded over several."""
+    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
+    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
+    field = make_field(config.field)
+    c2w = jnp.asarray(np.asarray(c2w, np.float32))
+    if mesh is None and jax.local_device_count() == 1:
+        views = marched.render_marched(field, params, grid, c2w, intrinsics, render_config, march, packing)
+        return views.output, views.evaluations
+    return marched.render_marched_sharded(field, params, grid, c2w, intrinsics, render_config, march, packing, mesh)
+
+
+def render_trained_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
+                           far: float, background=(1.0, 1.0, 1.0), aabb=None, step_scale: Optional[float] = None,
+                           packing: Optional[marched.Packing] = None) -> marched.MarchedViews:
+    """`render_trained` on one device, with what it cost (`render.marched.MarchedViews`: evaluations per
+    pixel, passes per block)."""
+    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
+    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
+    return marched.render_marched(make_field(config.field), params, grid, jnp.asarray(np.asarray(c2w, np.float32)),
+                                  intrinsics, render_config, march, packing)
 
 
 def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
-                   far: float, background=(1.0, 1.0, 1.0), aabb=None, mesh=None) -> RenderOutput:
-    """Renders P views of a trained field in one call, with the config's sampler.
+                   far: float, background=(1.0, 1.0, 1.0), aabb=None, mesh=None, step_scale: Optional[float] = None,
+                   packing: Optional[marched.Packing] = None) -> RenderOutput:
+    """Renders P views of a trained field in one call with the marched renderer (`render.marched`).
 
     With more than one local device (or a `mesh`), the poses are split over the devices
-    (`render.shard_over_poses`); the images are the same as on one device.
+    (`render.marched.render_marched_sharded`).
 
     Args:
       params: the field's parameters.
       sampler_state: the occupancy grid, or None (dense sampler).
-      config: the training config (field, sampler, eval_samples).
+      config: the training config (field, sampler, eval_samples, render_step_scale).
       c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
       intrinsics: shared intrinsics (their width and height set the image size).
       near, far: ray bounds (world units).
       background: colour [3] behind the volume.
       aabb: [2, 3] sampling box (default: the field's box).
       mesh: a one-axis mesh named "poses" to shard over (default: all local devices if more than one).
+      step_scale: the marching step over the training step (default `config.render_step_scale`).
+      packing: the renderer's static sizes (default `render.marched.Packing.for_backend()`).
 
     Returns:
       RenderOutput with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W] (device arrays).
     """
-    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
-    render_config = _render_config(config, near, far, aabb, background, config.eval_samples)
-    c2w = jnp.asarray(np.asarray(c2w, np.float32))
-    sampler = make_sampler(config)
-    if mesh is None and jax.local_device_count() == 1:
-        return sampler.render_views(params, sampler_state, c2w, intrinsics, render_config)
-    return sampler.render_views_sharded(params, sampler_state, c2w, intrinsics, render_config, mesh)
+    return _render_counted(params, sampler_state, config, c2w, intrinsics, near, far, background, aabb, mesh,
+                           step_scale, packing)[0]
 
 
 def _eval_background(scene: Scene) -> np.ndarray:
     return np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
 
 
-def evaluate(params, sampler_state, config: TrainConfig, scene: Scene) -> Dict[str, Any]:
-    """Held-out PSNR: renders every view of `scene` and compares with its images.
+def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scale: Optional[float] = None,
+             views: Optional[Sequence[int]] = None) -> Dict[str, Any]:
+    """Held-out PSNR: renders the views of `scene` (all, or the indices `views`) and compares with its images.
 
     RGBA scenes are compared on the background their images were composited on (`scene.background`);
     opaque ones are rendered on black.
 
     Returns:
       {"psnr": mean of per-image PSNR (dB), "psnr_per_image": list, "mse": mean MSE,
+       "evaluations_per_ray": mean field evaluations per ray, "step_scale": the marching step used,
        "images": float32 [P, H, W, 3] renders (host)}.
     """
     _check_scene(scene, "test scene")
-    out = render_trained(params, sampler_state, config, scene.c2w, scene.intrinsics, scene.near, scene.far,
-                         _eval_background(scene), aabb=scene.aabb)
+    index = np.arange(scene.n_images) if views is None else np.asarray(views, np.int64)
+    c2w = np.asarray(scene.c2w, np.float32)[index]
+    out, evaluations = _render_counted(params, sampler_state, config, c2w, scene.intrinsics, scene.near, scene.far,
+                                       _eval_background(scene), scene.aabb, None, step_scale, None)
     rendered = np.asarray(jax.device_get(out.rgb), np.float32)
-    mse = np.mean((rendered.astype(np.float64) - np.asarray(scene.images, np.float64)) ** 2, axis=(1, 2, 3))
+    images = np.asarray(scene.images, np.float64)[index]
+    mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))
     psnr = -10.0 * np.log10(np.maximum(mse, 1e-12))
+    scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
     return {"psnr": float(np.mean(psnr)), "psnr_per_image": psnr.tolist(), "mse": float(np.mean(mse)),
+            "evaluations_per_ray": float(np.mean(np.asarray(evaluations, np.float64))), "step_scale": float(scale),
             "images": rendered}
+
+
+def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Scene,
+                          reference: Optional[Dict[str, Any]] = None,
+                          candidates: Sequence[float] = RENDER_STEP_CANDIDATES,
+                          tolerance_db: float = RENDER_STEP_TOLERANCE_DB) -> Tuple[float, List[Dict[str, Any]]]:
+    """The marching step to render a trained run with, from its own quality/speed curve.
+
+    Renders up to `_CALIBRATION_VIEWS` held-out views (spread over the split) with the march `scale`
+    times coarser than training, for each scale of `candidates` in increasing order, and keeps the
+    largest whose PSNR on those views is within `tolerance_db` of the training step's (scale 1);
+    stops at the first that is not.
+
+    Args:
+      params, sampler_state, config: the trained run.
+      scene: its held-out views.
+      reference: `evaluate` at scale 1 on all of `scene` (when None, the chosen views are rendered here).
+      candidates: scales to try, increasing.
+      tolerance_db: the PSNR the render may lose.
+
+    Returns:
+      (scale, curve): the chosen scale (1.0 when none qualifies) and one entry per scale tried
+      {"step_scale", "psnr_views", "delta_db", "evaluations_per_ray"}.
+    """
+    count = min(_CALIBRATION_VIEWS, scene.n_images)
+    views = np.unique(np.linspace(0, scene.n_images - 1, count).round().astype(np.int64))
+    if reference is None:
+        reference = evaluate(params, sampler_state, config, scene, step_scale=1.0, views=views)
+        base = reference["psnr"]
+    else:
+        base = float(np.mean(np.asarray(reference["psnr_per_image"])[views]))
+    curve = [{"step_scale": 1.0, "psnr_views": base, "delta_db": 0.0,
+              "evaluations_per_ray": reference["evaluations_per_ray"]}]
+    chosen = 1.0
+    for scale in candidates:
+        result = evaluate(params, sampler_state, config, scene, step_scale=scale, views=views)
+        delta = result["psnr"] - base
+        curve.append({"step_scale": float(scale), "psnr_views": result["psnr"], "delta_db": delta,
+                      "evaluations_per_ray": result["evaluations_per_ray"]})
+        if delta < -tolerance_db:
+            break
+        chosen = float(scale)
+    return chosen, curve
 
 
 # ----------------------------------------------------------------------------------------------
@@ -963,15 +1017,18 @@ def training_inputs(key: PRNGKey, train_scene: Scene, config: TrainConfig,
     """Initial state, training key stream, device data and render config of a run.
 
     `key` is split into the initialisation key and the training stream, exactly as `train` does,
-    so a Python loop over `make_train_step(config)` from these inputs reproduces `train`.
+    so a Python loop over `make_train_step` (with `make_occupancy_update` before every
+    `occupancy_update_every`-th step, and the R of `TrainResult.history`) reproduces `train`.
     """
     _check_scene(train_scene, "training scene")
     hparams = hparams or TrainHParams.for_config(config)
     key_init, key_train = jax.random.split(key)
     state = init_train_state(key_init, config, hparams)
     data = TrainData.from_scene(train_scene)
-    render_config = _render_config(config, train_scene.near, train_scene.far, train_scene.aabb,
-                                   _eval_background(train_scene), config.num_samples)
+    render_config = RenderConfig.create(near=train_scene.near, far=train_scene.far,
+                                        aabb=np.asarray(train_scene.aabb, np.float32).reshape(2, 3),
+                                        background=_eval_background(train_scene), num_samples=config.num_samples,
+                                        ray_chunk=1)
     return TrainInputs(state, key_train, data, hparams.as_arrays(), render_config)
 
 
@@ -981,18 +1038,25 @@ class TrainResult(NamedTuple):
     Attributes:
       params: trained field parameters (device arrays).
       occupancy: the occupancy grid (sampler state), or None for the dense sampler.
-      history: one dict per chunk {"step", "loss", "psnr", "rays", "seconds"} (means over the chunk's
-        steps of the batch loss, PSNR and rays trained; training wall-clock so far), plus
-        {"step", "seconds", "psnr_test"} for held-out evaluations.
-      psnr_test: held-out PSNR (dB) at the end, or None without a test scene.
+      history: one dict per chunk {"step", "loss", "psnr", "rays", "samples", "rays_marched", "warmup",
+        "seconds"} (means over the chunk's steps of the batch loss, PSNR, rays trained and field
+        evaluations that counted; R, the rays marched per step; whether the chunk was the warm-up;
+        training wall-clock so far), plus {"step", "seconds", "psnr_test"} for held-out evaluations.
+      psnr_test: held-out PSNR (dB) at the end, as the run renders (its `config.render_step_scale`),
+        or None without a test scene.
       seconds: wall-clock of the training loop (compilation included, evaluations excluded).
-      compile_seconds: wall-clock of the first chunk beyond the others' mean (≈ compilation).
-      rays_per_second: rays trained per second, after compilation (chunks after the first).
+      compile_seconds: wall-clock of the chunks that compiled a program (one per rung of rays marched
+        and per phase; their training time included).
+      rays_per_second: rays trained per second in the chunks that did not compile.
       steps: steps taken.
-      config: the static configuration.
+      config: the static configuration, with the calibrated `render_step_scale` (see `train`).
       hparams: the numeric hyper-parameters.
       device: the device trained on, in words.
       n_train, n_test: images in the training and test scenes (n_test 0 without a test scene).
+      psnr_test_training_step: `psnr_test` when the run renders with the training step (scale 1), else
+        None (the curve has the training step's PSNR on the calibration views).
+      render_step_curve: `calibrate_render_step`'s curve ([] when the scale was not calibrated).
+      stopped: True when `on_chunk` stopped the run before `config.steps`.
     """
 
     params: Any
@@ -1008,6 +1072,9 @@ class TrainResult(NamedTuple):
     device: str
     n_train: int
     n_test: int
+    psnr_test_training_step: Optional[float] = None
+    render_step_curve: List[Dict[str, Any]] = []
+    stopped: bool = False
 
 
 def _device_name() -> str:
@@ -1017,8 +1084,13 @@ def _device_name() -> str:
 
 
 def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Optional[Scene] = None,
-          progress: bool = True, hparams: Optional[TrainHParams] = None) -> TrainResult:
+          progress: bool = True, hparams: Optional[TrainHParams] = None,
+          on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None) -> TrainResult:
     """Trains an Instant-NGP field on a scene.
+
+    After training, with a `test_scene` and `config.render_step_scale` None, the run's rendering step
+    is calibrated on the held-out views (`calibrate_render_step`) and stored in the returned config;
+    `psnr_test` is measured with it.
 
     Args:
       key: PRNG key (consumed): split into the initialisation and training streams.
@@ -1027,6 +1099,8 @@ def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Opt
       test_scene: held-out views for the final (and `eval_every`) PSNR; None to skip.
       progress: show a tqdm progress bar with the batch loss and PSNR.
       hparams: numeric hyper-parameters (default `TrainHParams.for_config(config)`).
+      on_chunk: called after every chunk with the state and the chunk's history entry; its time is
+        not training time (evaluate there); returning True stops training after that chunk.
 
     Returns:
       A `TrainResult`. Same key, scene and config give bit-identical params on the same device.
@@ -1042,48 +1116,69 @@ def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Opt
     state, key_train, data, _, render_config = training_inputs(key, train_scene, config, hparams)
 
     history: List[Dict[str, Any]] = []
-    n_chunks = -(-config.steps // config.chunk)
-    chunk_seconds: List[float] = []
-    chunk_rays: List[int] = []
+    hparams_arrays = hparams.as_arrays()
+    total = jnp.int32(config.steps)
+    rays = _first_rays(config)
+    done, compile_seconds, steady_seconds, steady_rays, all_rays = 0, 0.0, 0.0, 0, 0
+    stopped = False
     train_seconds = 0.0
     bar = tqdm(total=config.steps, disable=not progress, unit="step", dynamic_ncols=True)
     try:
-        for _ in range(n_chunks):
+        while done < config.steps:
+            warmup = done == 0 and _warmup_steps(config) > 0
+            chunk_fn = _chunk_fn(config, rays, warmup)
+            programs = chunk_fn._cache_size()
             start = time.perf_counter()
-            state, metrics = run_chunk(state, key_train, data, hparams, render_config, config, config.steps)
+            state, metrics = chunk_fn(state, key_train, data, hparams_arrays, render_config, total)
             metrics = jax.device_get(metrics)  # the host sync of this chunk
             elapsed = time.perf_counter() - start
-            chunk_seconds.append(elapsed)
             train_seconds += elapsed
-            done = int(state.step)
             taken = int(np.sum(np.isfinite(metrics["loss"])))
-            chunk_rays.append(int(np.sum(metrics["rays"])))
+            done += taken
+            rays_trained = int(np.sum(metrics["rays"]))
+            all_rays += rays_trained
+            if chunk_fn._cache_size() > programs:  # this call compiled: its time is mostly compilation
+                compile_seconds += elapsed
+            else:
+                steady_seconds += elapsed
+                steady_rays += rays_trained
             entry = {"step": done, "loss": float(np.nanmean(metrics["loss"])),
-                     "psnr": float(np.nanmean(metrics["psnr"])), "rays": chunk_rays[-1] / max(taken, 1),
-                     "seconds": train_seconds}
+                     "psnr": float(np.nanmean(metrics["psnr"])), "rays": rays_trained / max(taken, 1),
+                     "samples": float(np.sum(metrics["samples"])) / max(taken, 1), "rays_marched": rays,
+                     "warmup": warmup, "seconds": train_seconds}
             history.append(entry)
             bar.update(taken)
-            bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}")
+            bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", rays=rays)
+            rays = _next_rays(config, metrics, rays)
             if test_scene is not None and config.eval_every and done < config.steps and (
                     done // config.eval_every) > ((done - taken) // config.eval_every):
                 psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
                 history.append({"step": done, "seconds": train_seconds, "psnr_test": psnr})
                 bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", test=f"{psnr:.2f}")
+            if on_chunk is not None and on_chunk(state, entry) and done < config.steps:
+                stopped = True
+                break
     finally:
         bar.close()
 
-    # The first chunk compiles; the rate is that of the others (all of them for a one-chunk run).
-    if len(chunk_seconds) > 1:
-        steady = float(np.mean(chunk_seconds[1:]))
-        compile_seconds = max(0.0, chunk_seconds[0] - steady)
-        rays_per_second = sum(chunk_rays[1:]) / max(sum(chunk_seconds[1:]), 1e-9)
-    else:
-        compile_seconds = 0.0
-        rays_per_second = sum(chunk_rays) / max(train_seconds, 1e-9)
-    psnr_test = None
+    # Chunks that compiled count as compilation (their steps' own time included: an overestimate by
+    # at most a chunk per compiled program); the rate is that of the others.
+    if steady_seconds > 0:
+        rays_per_second = steady_rays / steady_seconds
+    else:  # every chunk compiled
+        rays_per_second = all_rays / max(train_seconds, 1e-9)
+    psnr_test = psnr_training_step = None
+    curve: List[Dict[str, Any]] = []
     if test_scene is not None:
-        psnr_test = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
-        history.append({"step": int(state.step), "seconds": train_seconds, "psnr_test": psnr_test})
+        scale = config.render_step_scale
+        if scale is None:
+            scale, curve = calibrate_render_step(state.params, state.sampler_state, config, test_scene)
+            config = config.replace(render_step_scale=scale)
+        final = evaluate(state.params, state.sampler_state, config, test_scene)
+        psnr_test = final["psnr"]
+        psnr_training_step = psnr_test if scale == 1.0 else None
+        history.append({"step": int(state.step), "seconds": train_seconds, "psnr_test": psnr_test,
+                        "render_step_scale": scale, "evaluations_per_ray": final["evaluations_per_ray"]})
     return TrainResult(
         params=state.params,
         occupancy=state.sampler_state,
@@ -1098,4 +1193,7 @@ def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Opt
         device=_device_name(),
         n_train=train_scene.n_images,
         n_test=0 if test_scene is None else test_scene.n_images,
+        psnr_test_training_step=psnr_training_step,
+        render_step_curve=curve,
+        stopped=stopped,
     )

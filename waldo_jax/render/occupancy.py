@@ -44,42 +44,23 @@ cell are compacted (cumsum + scatter) into the first S = `max_samples` slots, in
 Names: `t` sample distances along unit directions, `delta` bin lengths (the quadrature step, 0 for
 masked samples), `mask` valid samples, `sigma` densities, `w` weights, K candidates, S samples.
 
-Transmittance early stop. NGP stops marching a ray once its transmittance falls below 1e-4
-(`min_transmittance`). `render_samples_early_stop` (and `render_rays_early_stop` over a flat batch)
-does this with fixed shapes: a `lax.while_loop` whose every pass evaluates the field at a static budget
-B of slots, into which the next segment of samples of each live ray is packed (segments of
-clip(B // live rays, 1, `max_segment`) samples: NGP's compaction rounds, which lengthen as rays
-retire). Each ray carries its optical depth and its sums of w * rgb, w * t and w between passes, so
-its weights are exactly those of the full composite; it retires when its transmittance is below
-`min_transmittance` or its samples run out, and its later samples are never evaluated. The result
-differs from the composite of all S samples only by the ignored tail: colour by at most the
-transmittance left at retirement (< min_transmittance) times max |rgb - background|.
-`render_ray_marched` instead evaluates all S samples and gives weight 0 to those behind which the
-transmittance is below `min_transmittance`, counting as evaluations what an early-stopping marcher
-would have evaluated (differentiable, for training-style use).
-
-Cost. `render_rays_marched` (vmap of `render_ray_marched`) evaluates the field at all S slots of
-every ray, so it saves time only through a smaller S than a dense renderer needs. `render_rays_packed`
-does what NGP's compacted training batches do: the valid samples of a chunk of rays are packed into a
-fixed budget of `packed_samples_per_ray` slots per ray, so the field cost follows the occupied space.
-`render_rays_early_stop` packs only the samples up to each ray's termination, pass after pass, so the
-cost follows the visible occupied space. Marching itself costs K grid lookups per ray (no field
-evaluations).
+Rendering and training with this grid live in `waldo_jax.render.marched`: the marched samples of
+many rays are packed into fixed budgets of field evaluations there (`waldo_jax.render.packed`).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple, Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.render import MAX_DENSITY, RenderConfig, composite, ray_aabb_interval, volume_weights
-from waldo_jax.types import Array, Field, PRNGKey, RenderOutput
+from waldo_jax.render.volume import MAX_DENSITY, RenderConfig, ray_aabb_interval
+from waldo_jax.types import Array, PRNGKey
 
 __all__ = [
     "MAX_CASCADES",
@@ -91,15 +72,12 @@ __all__ = [
     "init_occupancy_for_scene",
     "is_occupied",
     "march_ray",
+    "march_steps",
     "mark_all_occupied",
     "occupancy_thresholds",
-    "render_ray_marched",
     "ray_interval",
-    "render_rays_early_stop",
-    "render_rays_marched",
-    "render_rays_packed",
-    "render_samples_early_stop",
     "update_occupancy",
+    "update_occupancy_phase",
 ]
 
 # Instant-NGP's cap on the number of cascades (NERF_CASCADES).
@@ -221,41 +199,29 @@ class MarchConfig:
     in training) are cut after S samples, as NGP cuts them after its step budget.
 
     Attributes:
-      max_steps: K, candidate bins per ray (static).
+      max_steps: K, candidate bins per ray (static); `march_steps` gives the K that crosses a grid.
       max_samples: S, samples kept per ray, the first S candidates in occupied cells (static).
-      packed_samples_per_ray: `render_rays_packed` evaluates the field at ray_chunk times this many
-        packed samples per chunk of rays, whatever S is (static).
       steps_per_diagonal: dt_min = base-box diagonal / steps_per_diagonal (NGP: 1024).
       cone_angle: steps grow as dt = clip(t * cone_angle, dt_min, dt_max); 0 gives constant steps
         (NGP: 0 for synthetic scenes, 1/256 for real ones).
-      max_segment: `render_rays_early_stop`: the most samples a live ray takes in one pass (static;
-        None: no cap beyond S). Each pass gives every live ray min(budget // live rays, max_segment).
-      min_transmittance: NGP's early ray termination (1e-4): `render_rays_early_stop` retires a ray
-        once its transmittance falls below this; `render_ray_marched` gives weight 0 to the samples
-        behind which it is below this and does not count them as evaluations. 0 never stops.
+      min_transmittance: NGP's early ray termination (1e-4): a renderer stops evaluating a ray once
+        its transmittance falls below this (`waldo_jax.render.marched`). 0 never stops.
     """
 
     max_steps: int = flax.struct.field(pytree_node=False, default=1024)
     max_samples: int = flax.struct.field(pytree_node=False, default=256)
-    packed_samples_per_ray: int = flax.struct.field(pytree_node=False, default=64)
-    max_segment: Optional[int] = flax.struct.field(pytree_node=False, default=None)
     steps_per_diagonal: Array = float(NGP_STEPS_PER_DIAGONAL)
     cone_angle: Array = 0.0
     min_transmittance: Array = 1e-4
 
     @classmethod
-    def create(cls, max_steps: int = 1024, max_samples: int = 256, packed_samples_per_ray: int = 64,
+    def create(cls, max_steps: int = 1024, max_samples: int = 256,
                steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL, cone_angle: float = 0.0,
-               min_transmittance: float = 1e-4, max_segment: Optional[int] = None) -> "MarchConfig":
+               min_transmittance: float = 1e-4) -> "MarchConfig":
         """A validated config with float32 leaves."""
-        if min(max_steps, max_samples, packed_samples_per_ray) < 1:
-            raise ValueError(
-                f"max_steps, max_samples and packed_samples_per_ray must be >= 1, got "
-                f"{max_steps}, {max_samples}, {packed_samples_per_ray}"
-            )
-        if max_segment is not None and max_segment < 1:
-            raise ValueError(f"max_segment must be None or >= 1, got {max_segment}")
-        if steps_per_diagonal <= 0 or cone_angle < 0 or min_transmittance < 0:
+        if min(max_steps, max_samples) < 1:
+            raise ValueError(f"max_steps and max_samples must be >= 1, got {max_steps}, {max_samples}")
+        if not (steps_per_diagonal > 0 and cone_angle >= 0 and min_transmittance >= 0):
             raise ValueError(
                 f"need steps_per_diagonal > 0, cone_angle >= 0, min_transmittance >= 0; got "
                 f"{steps_per_diagonal}, {cone_angle}, {min_transmittance}"
@@ -263,12 +229,34 @@ class MarchConfig:
         return cls(
             max_steps=int(max_steps),
             max_samples=int(max_samples),
-            packed_samples_per_ray=int(packed_samples_per_ray),
-            max_segment=None if max_segment is None else int(max_segment),
             steps_per_diagonal=jnp.float32(steps_per_diagonal),
             cone_angle=jnp.float32(cone_angle),
             min_transmittance=jnp.float32(min_transmittance),
         )
+
+    @classmethod
+    def for_grid(cls, grid: "OccupancyGrid", steps_per_diagonal: float, cone_angle: float = 0.0,
+                 max_samples: Optional[int] = None, min_transmittance: float = 1e-4) -> "MarchConfig":
+        """The march that crosses all of `grid` (K = `march_steps`), keeping at most min(max_samples, K)."""
+        steps = march_steps(grid, steps_per_diagonal, cone_angle)
+        samples = steps if max_samples is None else max(1, min(int(max_samples), steps))
+        return cls.create(max_steps=steps, max_samples=samples, steps_per_diagonal=steps_per_diagonal,
+                          cone_angle=cone_angle, min_transmittance=min_transmittance)
+
+
+def march_steps(grid: "OccupancyGrid", steps_per_diagonal: float, cone_angle: float, cap: int = 8192) -> int:
+    """K, the candidates a ray needs to cross the grid's whole outer box from t = 0 (host-side).
+
+    Follows NGP's stepping dt = clip(t * cone_angle, dt_min, dt_max) over the outer box's diagonal.
+    """
+    dt_min = grid.base_diagonal / float(steps_per_diagonal)
+    dt_max = max(dt_min, grid.base_diagonal * 2.0 ** (grid.cascades - 1) / grid.resolution)
+    length = grid.base_diagonal * 2.0 ** (grid.cascades - 1)
+    t, steps = 0.0, 0
+    while t < length and steps < cap:
+        t += min(max(t * float(cone_angle), dt_min), dt_max)
+        steps += 1
+    return steps
 
 
 def _as_box(aabb) -> Tuple[np.ndarray, np.ndarray]:
@@ -427,7 +415,8 @@ def update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, p
     Pure and jitted (`density_fn` is static: pass the same function object, e.g. `make_density(cfg)`,
     to reuse the compilation; `step` is cast to int32, so Python and JAX integers share it). Both the
     warm-up branch (all C * G**3 cells) and the later branch (2 * M cells per cascade) are compiled;
-    `lax.cond` runs one of them.
+    `lax.cond` runs one of them. Training, which knows the phase of every step on the host, calls
+    `update_occupancy_phase` instead (no `lax.cond`, whose predicate a GPU reads on the host).
 
     Args:
       key: PRNG key (consumed).
@@ -447,18 +436,29 @@ def update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, p
 def _update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step: Array,
                       config: OccupancyConfig) -> OccupancyGrid:
     """`update_occupancy` with a traced int32 step."""
+    return jax.lax.cond(step < config.warmup_steps,
+                        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=True),
+                        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=False),
+                        grid)
+
+
+def update_occupancy_phase(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params,
+                           config: OccupancyConfig, warmup: bool) -> OccupancyGrid:
+    """`update_occupancy` for a phase known on the host: `warmup` (static) samples every cell,
+    otherwise 2 * M cells per cascade. Not jitted (call it inside a traced function).
+
+    The same key gives the same grid as `update_occupancy` at a step of that phase.
+    """
     num_cascades, num_cells = grid.density.shape
     key_warmup, key_partial = jax.random.split(key)
     cascade_ids = jnp.arange(num_cascades, dtype=jnp.int32)  # [C]
-
-    def sample_all(_) -> Array:
+    if warmup:
         cells = jnp.arange(num_cells, dtype=jnp.int32)  # [G**3]
         jitter = jax.random.uniform(key_warmup, (num_cascades, num_cells, 3))  # [C, G**3, 3]
         points = _cell_points(grid, cascade_ids[:, None], cells[None, :], jitter)  # [C, G**3, 3]
         sigma = _evaluate_density(density_fn, params, points.reshape(-1, 3), config.eval_chunk)
-        return sigma.reshape(num_cascades, num_cells)  # [C, G**3]
-
-    def sample_some(_) -> Array:
+        new = sigma.reshape(num_cascades, num_cells)  # [C, G**3]
+    else:
         num_draws = config.samples_per_cascade(grid)
         key_uniform, key_occupied, key_jitter = jax.random.split(key_partial, 3)
         uniform_cells = jax.random.randint(key_uniform, (num_cascades, num_draws), 0, num_cells)  # [C, M]
@@ -468,10 +468,9 @@ def _update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, 
         points = _cell_points(grid, cascade_ids[:, None], cells, jitter)  # [C, 2M, 3]
         sigma = _evaluate_density(density_fn, params, points.reshape(-1, 3), config.eval_chunk)
         sigma = sigma.reshape(cells.shape)  # [C, 2M]
-        # Cells not drawn stay 0 here, so max(decayed, new) keeps their decayed value.
-        return jnp.zeros((num_cascades, num_cells), jnp.float32).at[cascade_ids[:, None], cells].max(sigma)
-
-    new = jax.lax.cond(step < config.warmup_steps, sample_all, sample_some, None)  # [C, G**3]
+        # Cells not drawn stay 0 here, so max(decayed, new) keeps their decayed value. A scatter-max
+        # gives the same result in any order (deterministic on every backend).
+        new = jnp.zeros((num_cascades, num_cells), jnp.float32).at[cascade_ids[:, None], cells].max(sigma)
     density = jnp.maximum(grid.density * config.decay, new)  # [C, G**3]
     grid = grid.replace(density=density)
     bitfield = density > occupancy_thresholds(grid, config)[:, None]  # [C, G**3]
@@ -559,301 +558,3 @@ def ray_interval(grid: OccupancyGrid, origin: Array, direction: Array, config: R
         t_start, t_end = jnp.maximum(t_start, t_enter), jnp.minimum(t_end, t_exit)
     t_enter, t_exit = ray_aabb_interval(origin, direction, jnp.asarray(grid.outer_aabb))
     return jnp.maximum(t_start, t_enter), jnp.minimum(t_end, t_exit)
-
-
-def render_ray_marched(field: Field, params, grid: OccupancyGrid, origin: Array, direction: Array,
-                       render_config: RenderConfig, march_config: MarchConfig,
-                       key: Optional[PRNGKey] = None) -> Tuple[RenderOutput, Array]:
-    """Renders ONE ray with samples only in occupied cells.
-
-    `render_config` gives near/far, the box (when `use_aabb`) and the background; its `num_samples`
-    is not used (`march_config.max_samples` is the budget).
-
-    Args:
-      field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])`.
-      params: its parameters.
-      grid: occupancy grid.
-      origin: [3]. direction: [3] unit direction.
-      render_config: `waldo_jax.render.RenderConfig`.
-      march_config: `MarchConfig`.
-      key: None (deterministic) or a PRNG key (random offset of the samples).
-
-    Returns:
-      (`RenderOutput` with rgb [3], depth [], acc [], num_evaluations int32 []): the field evaluations
-      an early-stopping marcher needs, valid samples whose transmittance is >= min_transmittance.
-    """
-    t_start, t_end = ray_interval(grid, origin, direction, render_config)
-    t, delta, mask = march_ray(grid, origin, direction, t_start, t_end, march_config, key)  # [S] each
-    points = origin + t[:, None] * direction  # [S, 3]
-    sigma, rgb = jax.vmap(field, in_axes=(None, 0, None))(params, points, direction)  # [S], [S, 3]
-    return _composite_samples(sigma, rgb, t, delta, mask, render_config.background, march_config.min_transmittance)
-
-
-def _composite_samples(sigma: Array, rgb: Array, t: Array, delta: Array, mask: Array, background: Array,
-                       min_transmittance: Array) -> Tuple[RenderOutput, Array]:
-    """Volume rendering of ONE ray's marched samples [S]; returns the output and the evaluations it needed."""
-    sigma = jnp.where(mask, sigma, 0.0)  # masked samples have delta 0 too: zero optical depth
-    rgb = jnp.nan_to_num(rgb)  # [S, 3]
-    w = volume_weights(sigma, delta)  # [S]
-    transmittance = 1.0 - (jnp.cumsum(w) - w)  # [S], before each sample (1 - exclusive sum of w)
-    alive = mask & (transmittance >= min_transmittance)  # [S]
-    out = composite(jnp.where(alive, w, 0.0), rgb, t, background)
-    return out, jnp.sum(alive.astype(jnp.int32))
-
-
-def _map_ray_chunks(render_chunk, origins: Array, directions: Array, chunk: int, key: Optional[PRNGKey]):
-    """Pads rays [R, 3] to whole chunks, applies `render_chunk(origins, directions, keys)` to each chunk
-    under `lax.map` (keys: one per ray, or None) and crops the [R, ...] results.
-
-    Per-ray results (leading axis the chunk's rays) come back as [R, ...]; per-chunk scalars as
-    [num_chunks]."""
-    num_rays = origins.shape[0]
-    chunk = max(1, min(chunk, num_rays))
-    num_chunks = -(-num_rays // chunk)
-    pad = num_chunks * chunk - num_rays
-    origins = jnp.pad(origins, ((0, pad), (0, 0))).reshape(num_chunks, chunk, 3)
-    # Padded rays get a valid unit direction so that they render without NaN before being cropped.
-    directions = jnp.pad(directions, ((0, pad), (0, 0)), constant_values=1.0 / math.sqrt(3.0))
-    directions = directions.reshape(num_chunks, chunk, 3)
-    keys = None if key is None else jax.random.split(key, num_chunks * chunk).reshape(num_chunks, chunk)
-    out = jax.lax.map(lambda args: render_chunk(*args), (origins, directions, keys))
-    return jax.tree.map(lambda a: a if a.ndim == 1 else a.reshape((num_chunks * chunk,) + a.shape[2:])[:num_rays],
-                        out)
-
-
-def render_rays_marched(field: Field, params, grid: OccupancyGrid, origins: Array, directions: Array,
-                        render_config: RenderConfig, march_config: MarchConfig,
-                        key: Optional[PRNGKey] = None) -> Tuple[RenderOutput, Array]:
-    """Renders a flat batch of rays [R, 3] with `render_ray_marched`, `render_config.ray_chunk` at a time.
-
-    Rays are padded to whole chunks, vmapped within a chunk and `lax.map`ped over chunks, then cropped.
-    Not jitted: wrap it in `jax.jit` with `field` static (and the configs as ordinary arguments).
-
-    Returns:
-      (`RenderOutput` with rgb [R, 3], depth [R], acc [R], num_evaluations int32 [R]).
-    """
-
-    def render_chunk(chunk_origins, chunk_directions, chunk_keys):
-        return jax.vmap(
-            lambda o, d, k: render_ray_marched(field, params, grid, o, d, render_config, march_config, k),
-            in_axes=(0, 0, None if chunk_keys is None else 0),
-        )(chunk_origins, chunk_directions, chunk_keys)
-
-    return _map_ray_chunks(render_chunk, origins, directions, render_config.ray_chunk, key)
-
-
-def render_rays_packed(field: Field, params, grid: OccupancyGrid, origins: Array, directions: Array,
-                       render_config: RenderConfig, march_config: MarchConfig,
-                       key: Optional[PRNGKey] = None) -> Tuple[RenderOutput, Array, Array]:
-    """Renders a flat batch of rays [R, 3] evaluating the field only at a packed budget of samples.
-
-    `render_rays_marched` evaluates the field at all S slots of every ray, masked or not. Here, as in
-    NGP's compacted batches, the valid samples of a chunk of N = `render_config.ray_chunk` rays are
-    packed one after another (ray by ray, in order) into N * `march_config.packed_samples_per_ray`
-    slots; the field runs on those slots only, and the results are scattered back to [N, S] for the
-    per-ray compositing. When a chunk's valid samples exceed the budget, the last ones (the far end of
-    the chunk's last rays) are dropped (treated as empty) and counted in `num_dropped`.
-
-    Returns:
-      (`RenderOutput` with rgb [R, 3], depth [R], acc [R], num_evaluations int32 [R] as in
-      `render_ray_marched`, num_dropped int32 [R]: valid samples left out of the budget).
-    """
-    num_slots_per_ray = march_config.packed_samples_per_ray
-
-    def render_chunk(chunk_origins, chunk_directions, chunk_keys):
-        num_rays = chunk_origins.shape[0]
-        budget = num_rays * num_slots_per_ray
-        t_start, t_end = jax.vmap(lambda o, d: ray_interval(grid, o, d, render_config))(chunk_origins, chunk_directions)
-        t, delta, mask = jax.vmap(
-            lambda o, d, a, b, k: march_ray(grid, o, d, a, b, march_config, k),
-            in_axes=(0, 0, 0, 0, None if chunk_keys is None else 0),
-        )(chunk_origins, chunk_directions, t_start, t_end, chunk_keys)  # [N, S] each
-        num_samples = t.shape[1]
-        counts = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N]
-        ends = jnp.cumsum(counts)  # [N], valid samples of rays 0..n
-        starts = ends - counts  # [N]
-
-        # Packed slot b holds sample b - starts[r] of the ray r whose range [starts, ends) contains b.
-        slot = jnp.arange(budget, dtype=jnp.int32)  # [B]
-        ray = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), num_rays - 1).astype(jnp.int32)  # [B]
-        used = slot < ends[-1]  # [B]
-        index = jnp.clip(slot - starts[ray], 0, num_samples - 1)  # [B]
-        t_packed = t[ray, index]  # [B]
-        points = chunk_origins[ray] + t_packed[:, None] * chunk_directions[ray]  # [B, 3]
-        sigma, rgb = jax.vmap(field, in_axes=(None, 0, 0))(params, points, chunk_directions[ray])  # [B], [B, 3]
-
-        # Back to [N, S]; unused slots are dropped by the scatter.
-        target_ray = jnp.where(used, ray, num_rays)  # [B]
-        sigma_rays = jnp.zeros((num_rays, num_samples), jnp.float32).at[target_ray, index].set(sigma, mode="drop")
-        rgb_rays = jnp.zeros((num_rays, num_samples, 3), jnp.float32).at[target_ray, index].set(rgb, mode="drop")
-        evaluated = mask & (starts[:, None] + jnp.arange(num_samples) < budget)  # [N, S]
-        out, evaluations = jax.vmap(
-            lambda *args: _composite_samples(*args, render_config.background, march_config.min_transmittance)
-        )(sigma_rays, rgb_rays, t, jnp.where(evaluated, delta, 0.0), evaluated)
-        dropped = counts - jnp.sum(evaluated, axis=1, dtype=jnp.int32)  # [N]
-        return out, evaluations, dropped
-
-    return _map_ray_chunks(render_chunk, origins, directions, render_config.ray_chunk, key)
-
-
-
-# --------------------------------------------------------------------------------------------------
-# Early ray termination
-
-
-class _MarchState(NamedTuple):
-    """What `render_samples_early_stop` carries from pass to pass (N rays)."""
-
-    next_sample: Array  # int32 [N], samples [0, next_sample) of each ray are composited
-    alive: Array  # bool [N], rays with samples left and transmittance >= min_transmittance
-    optical_depth: Array  # float32 [N], sum of sigma * delta over the composited samples
-    rgb: Array  # float32 [N, 3], sum of w * rgb
-    depth: Array  # float32 [N], sum of w * t
-    acc: Array  # float32 [N], sum of w
-    evaluations: Array  # int32 [N], field evaluations spent on each ray
-    passes: Array  # int32 [], passes run
-
-
-def _segmented_cumsum(values: Array, head: Array) -> Array:
-    """Inclusive sums of values [B, C] along B, restarting at every slot where head [B] is True."""
-
-    def combine(a, b):
-        (sum_a, head_a), (sum_b, head_b) = a, b
-        return jnp.where(head_b[:, None], sum_b, sum_a + sum_b), head_a | head_b
-
-    return jax.lax.associative_scan(combine, (values, head))[0]
-
-
-def render_samples_early_stop(field: Field, params, origins: Array, directions: Array, t: Array, delta: Array,
-                              mask: Array, background: Array, min_transmittance: Array, budget: int,
-                              max_segment: Optional[int] = None) -> Tuple[RenderOutput, Array, Array]:
-    """Composites N rays' marched samples front to back in passes of `budget` field evaluations, retiring
-    each ray once its transmittance falls below `min_transmittance` (NGP's early ray termination).
-
-    Pass after pass (a `lax.while_loop`; every shape fixed), each live ray asks for its next
-    min(segment, samples left) samples, segment = clip(budget // live rays, 1, max_segment) (NGP's
-    compaction rounds: few live rays take long segments, so a pass stays full); the requests are
-    packed ray after ray into the `budget` slots (the ray at the end of the budget gets part of its
-    request, later rays wait for the next pass) and the field runs on the slots only. Each ray carries
-    its optical depth and its sums of w * rgb, w * t and w from pass to pass, so its weights are those
-    of `render.volume_weights` over all its samples: w_j = exp(-sum_{k<j} sigma_k delta_k) *
-    (1 - exp(-sigma_j delta_j)). A ray retires when it has no samples left or when exp(-optical depth)
-    < min_transmittance; its remaining samples are never evaluated. Against the full composite of
-    every sample, the colour then differs by sum_tail w (rgb - background), at most the transmittance
-    left at retirement (< min_transmittance) times max |rgb - background|; acc by at most that
-    transmittance, depth by at most it times the largest t. min_transmittance = 0 composites every
-    sample.
-
-    For evaluation and rendering (`lax.while_loop` has no reverse-mode derivative).
-
-    Args:
-      field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])`.
-      params: its parameters.
-      origins, directions: [N, 3] (unit directions).
-      t, delta: [N, S] sample distances and bin lengths (`march_ray`). mask: bool [N, S], a prefix per ray.
-      background: colour [3] or [N, 3].
-      min_transmittance: float [], the retirement threshold.
-      budget: B, field evaluations per pass (static, >= 1).
-      max_segment: most samples a ray takes per pass (static; None: S).
-
-    Returns:
-      (`RenderOutput` with rgb [N, 3], depth [N], acc [N]; evaluations int32 [N], the samples evaluated
-      for each ray; passes int32 [], each of which evaluated the field at B slots).
-    """
-    num_rays, num_samples = t.shape
-    if budget < 1:
-        raise ValueError(f"budget must be >= 1, got {budget}")
-    if max_segment is not None and max_segment < 1:
-        raise ValueError(f"max_segment must be None or >= 1, got {max_segment}")
-    max_segment = num_samples if max_segment is None else min(max_segment, num_samples)
-    counts = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N], mask is a prefix
-    background = jnp.broadcast_to(jnp.asarray(background, jnp.float32), (num_rays, 3))  # [N, 3]
-    min_transmittance = jnp.asarray(min_transmittance, jnp.float32)
-    slot = jnp.arange(budget, dtype=jnp.int32)  # [B]
-    field_batch = jax.vmap(field, in_axes=(None, 0, 0))
-
-    def one_pass(state: _MarchState) -> _MarchState:
-        live = jnp.sum(state.alive, dtype=jnp.int32)  # []
-        segment = jnp.clip(budget // jnp.maximum(live, 1), 1, max_segment)  # []
-        request = jnp.where(state.alive, jnp.minimum(segment, counts - state.next_sample), 0)  # [N]
-        starts = jnp.cumsum(request) - request  # [N]
-        granted = jnp.clip(budget - starts, 0, request)  # [N], the ray at the end of the budget is cut
-        ends = starts + granted  # [N], non-decreasing
-
-        # Slot b holds sample next_sample[r] + b - starts[r] of the ray r with starts[r] <= b < ends[r].
-        ray = jnp.searchsorted(ends, slot, side="right").astype(jnp.int32)  # [B], N past the last
-        used = ray < num_rays  # [B]
-        ray = jnp.minimum(ray, num_rays - 1)  # [B]
-        index = jnp.clip(state.next_sample[ray] + slot - starts[ray], 0, num_samples - 1)  # [B]
-        t_slot = t[ray, index]  # [B]
-        delta_slot = jnp.where(used, delta[ray, index], 0.0)  # [B]
-        points = origins[ray] + t_slot[:, None] * directions[ray]  # [B, 3]
-        sigma, rgb = field_batch(params, points, directions[ray])  # [B], [B, 3]
-        sigma = jnp.clip(jnp.nan_to_num(sigma, nan=0.0, posinf=MAX_DENSITY, neginf=0.0), 0.0, MAX_DENSITY)
-        optical = jnp.where(used, sigma, 0.0) * delta_slot  # [B]
-        rgb = jnp.where(used[:, None], jnp.nan_to_num(rgb), 0.0)  # [B, 3]
-
-        # Optical depth before each slot: the ray's carried depth plus the exclusive sum in its segment.
-        head = slot == starts[ray]  # [B], the first slot of each ray's segment
-        inclusive = _segmented_cumsum(optical[:, None], head)[:, 0]  # [B]
-        exclusive = jnp.where(head, 0.0, jnp.concatenate([jnp.zeros((1,), jnp.float32), inclusive[:-1]]))  # [B]
-        w = jnp.exp(-(state.optical_depth[ray] + exclusive)) * -jnp.expm1(-optical)  # [B]
-        sums = _segmented_cumsum(jnp.concatenate([w[:, None] * rgb, (w * t_slot)[:, None], w[:, None]], axis=1),
-                                 head)  # [B, 5]
-
-        # A ray's segment sums sit at its last slot.
-        got = granted > 0  # [N]
-        last = jnp.clip(ends - 1, 0, budget - 1)  # [N]
-        segment_sums = jnp.where(got[:, None], sums[last], 0.0)  # [N, 5]
-        optical_depth = state.optical_depth + jnp.where(got, inclusive[last], 0.0)  # [N]
-        next_sample = state.next_sample + granted  # [N]
-        alive = state.alive & (next_sample < counts) & (jnp.exp(-optical_depth) >= min_transmittance)  # [N]
-        return _MarchState(
-            next_sample=next_sample,
-            alive=alive,
-            optical_depth=optical_depth,
-            rgb=state.rgb + segment_sums[:, :3],
-            depth=state.depth + segment_sums[:, 3],
-            acc=state.acc + segment_sums[:, 4],
-            evaluations=state.evaluations + granted,
-            passes=state.passes + 1,
-        )
-
-    zeros = jnp.zeros((num_rays,), jnp.float32)
-    start = _MarchState(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=counts > 0, optical_depth=zeros,
-                        rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
-                        evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0))
-    final = jax.lax.while_loop(lambda state: jnp.any(state.alive), one_pass, start)
-    rgb = final.rgb + (1.0 - final.acc)[:, None] * background  # [N, 3]
-    return RenderOutput(rgb=rgb, depth=final.depth, acc=final.acc), final.evaluations, final.passes
-
-
-def render_rays_early_stop(field: Field, params, grid: OccupancyGrid, origins: Array, directions: Array,
-                           render_config: RenderConfig, march_config: MarchConfig,
-                           key: Optional[PRNGKey] = None) -> Tuple[RenderOutput, Array, Array]:
-    """Renders a flat batch of rays [R, 3] with early ray termination (`render_samples_early_stop`).
-
-    Chunks of N = `render_config.ray_chunk` rays are marched (`march_ray`) and composited in passes of
-    B = N * `march_config.packed_samples_per_ray` field evaluations, with segments of at most
-    `march_config.max_segment` samples, until every ray of the chunk has no samples left or its
-    transmittance is below `march_config.min_transmittance`. Unlike `render_rays_packed` no sample
-    is dropped: a chunk takes as many passes as it needs. Not differentiable (`lax.while_loop`); not
-    jitted (wrap it in `jax.jit` with `field` static).
-
-    Returns:
-      (`RenderOutput` with rgb [R, 3], depth [R], acc [R]; evaluations int32 [R], the field evaluations
-      spent on each ray; passes int32 [num_chunks], the passes of each chunk, each costing B slots).
-    """
-
-    def render_chunk(chunk_origins, chunk_directions, chunk_keys):
-        budget = chunk_origins.shape[0] * march_config.packed_samples_per_ray
-        t_start, t_end = jax.vmap(lambda o, d: ray_interval(grid, o, d, render_config))(chunk_origins, chunk_directions)
-        t, delta, mask = jax.vmap(
-            lambda o, d, a, b, k: march_ray(grid, o, d, a, b, march_config, k),
-            in_axes=(0, 0, 0, 0, None if chunk_keys is None else 0),
-        )(chunk_origins, chunk_directions, t_start, t_end, chunk_keys)  # [N, S] each
-        return render_samples_early_stop(field, params, chunk_origins, chunk_directions, t, delta, mask,
-                                         render_config.background, march_config.min_transmittance, budget,
-                                         march_config.max_segment)
-
-    return _map_ray_chunks(render_chunk, origins, directions, render_config.ray_chunk, key)

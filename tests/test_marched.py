@@ -1,0 +1,305 @@
+"""Tests of the renderer of trained fields (waldo_jax.render.marched) and its packed rows (render.packed).
+
+The claim under test: rendering P views through an occupancy grid with packed passes gives, ray by
+ray, the plain composite of the ray's marched samples (`volume.volume_weights` over all of them):
+exactly up to float32 rounding when nothing stops early, and within the ignored tail
+(min_transmittance * max |rgb - background|) with early ray termination, whatever the block size,
+the budget per pass, the row length, the pose count and the field chunking; while evaluating the
+field only at the samples it needs.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import waldo_jax  # noqa: F401  (XLA flags before the first computation)
+
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from waldo_jax.cameras import look_at
+from waldo_jax.render import RenderConfig, marched, occupancy as occ, packed
+from waldo_jax.render.volume import composite, view_rays, volume_weights
+from waldo_jax.types import Intrinsics
+
+BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], np.float32)
+MIN_T = 1e-4
+# Per-ray float32 sums in another order: the tolerance of "exact".
+EXACT = 3e-6
+# The ignored tail's bound, plus that rounding.
+TAIL = 1.0001 * MIN_T + EXACT
+
+# --------------------------------------------------------------------------------------------------
+# An analytic field: params = {"wall": z of a wall, "peak": density behind it, "fog": density inside a
+# ball of radius 0.9, "hole": 1 empties the quadrant x > 0.5, y > 0.5}. One function for all cases.
+
+TRACES = {"field": 0}
+
+
+def density(params, x):
+    behind = (x[2] > params["wall"]).astype(jnp.float32)
+    fog = (jnp.sum(x * x) < 0.81).astype(jnp.float32)
+    hole = params["hole"] * ((x[0] > 0.5) & (x[1] > 0.5)).astype(jnp.float32)
+    return (params["peak"] * behind + params["fog"] * fog) * (1.0 - hole)
+
+
+def field(params, x, d):
+    TRACES["field"] += 1
+    return density(params, x), 0.5 + 0.4 * jnp.sin(jnp.array([3.0, 5.0, 7.0]) * x + jnp.array([0.0, 1.0, 2.0]) + d)
+
+
+def scene_params(wall=0.2, peak=0.0, fog=0.0, hole=0.0):
+    return {k: jnp.float32(v) for k, v in dict(wall=wall, peak=peak, fog=fog, hole=hole).items()}
+
+
+WALL = scene_params(peak=400.0, hole=1.0)  # opaque behind z = 0.2, except an empty quadrant
+FOG = scene_params(fog=0.6)  # transmittance never below 0.3: no ray stops early
+DENSE_FOG = scene_params(fog=8.0)  # transmittance reaches 1e-4 inside the fog: some rays stop there
+
+RENDER_CONFIG = RenderConfig.create(near=0.1, far=8.0, aabb=BOX, background=(0.1, 0.2, 0.3), ray_chunk=1)
+# dt_min = 2 sqrt(3) / 128 = 0.027: up to ~70 samples inside the box.
+MARCH = occ.MarchConfig.create(max_steps=200, max_samples=200, steps_per_diagonal=128, min_transmittance=MIN_T)
+FULL = MARCH.replace(min_transmittance=jnp.float32(0.0))
+INTRINSICS = Intrinsics.from_fov(9, 7, math.radians(60.0))  # 63 rays a view: blocks never divide evenly
+
+
+def cameras(count):
+    """`count` cameras on a circle of radius 3.2 around the box, looking at its centre."""
+    angles = np.linspace(0.3, 2.0, count, dtype=np.float32)
+    origins = np.stack([3.2 * np.sin(angles), 0.4 * np.ones_like(angles), -3.2 * np.cos(angles)], -1)
+    return jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins), jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]))
+
+
+@functools.lru_cache(maxsize=None)
+def grid_for(name):
+    """The grid one warm-up update builds for a field (every cell sampled once)."""
+    params = {"wall": WALL, "fog": FOG, "dense_fog": DENSE_FOG}[name]
+    grid = occ.init_occupancy(BOX, resolution=16)
+    return occ.update_occupancy(jax.random.key(0), grid, density, params, 0, occ.OccupancyConfig.create(grid))
+
+
+def as_numpy(tree):
+    return jax.tree.map(np.asarray, tree)
+
+
+@functools.partial(jax.jit, static_argnames=("field_fn",))
+def reference(field_fn, params, grid, c2w, intrinsics, render_config, march):
+    """The per-ray reference: march each ray, evaluate the field at ALL its samples, composite them
+    with `volume_weights` (no early stop). Returns (RenderOutput [P * H * W], samples per ray)."""
+    ids = jnp.arange(c2w.shape[0] * intrinsics.height * intrinsics.width)
+    origins, directions, _, _ = view_rays(c2w[:, :3, :4], intrinsics, ids)
+
+    def one(o, d):
+        t_start, t_end = occ.ray_interval(grid, o, d, render_config)
+        t, delta, mask = occ.march_ray(grid, o, d, t_start, t_end, march)
+        sigma, rgb = jax.vmap(field_fn, in_axes=(None, 0, None))(params, o + t[:, None] * d, d)
+        w = volume_weights(jnp.where(mask, sigma, 0.0), delta)
+        return composite(w, rgb, t, render_config.background), jnp.sum(mask)
+
+    return jax.vmap(one)(origins, directions)
+
+
+def render(params, grid, c2w, march=MARCH, packing=None, field_fn=field):
+    views = marched.render_marched(field_fn, params, grid, c2w, INTRINSICS, RENDER_CONFIG, march, packing)
+    flat = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
+    return flat, np.asarray(views.evaluations).reshape(-1), np.asarray(views.passes)
+
+
+PACKINGS = [
+    # one block of the whole call, 16 slots a ray and pass, rows of 8 (the CPU defaults, small call)
+    marched.Packing.for_backend("cpu"),
+    # blocks of 40 rays, 4 slots a ray and pass in rows of 2, at most 2 rows a ray: many passes
+    marched.Packing(rays_per_block=40, slots_per_ray=4, row_length=2, max_rows_per_ray=2, field_chunk=0),
+    # single-sample rows, field calls of 7 slots (a chunked field pass with a remainder)
+    marched.Packing(rays_per_block=100, slots_per_ray=3, row_length=1, max_rows_per_ray=8, field_chunk=7),
+]
+
+
+# --------------------------------------------------------------------------------------------------
+# Equal to the per-ray composite
+
+
+@pytest.mark.parametrize("packing", PACKINGS, ids=["cpu-default", "small-blocks", "single-slot-rows"])
+@pytest.mark.parametrize("poses", [1, 3])
+def test_equals_the_per_ray_composite_without_early_stop(packing, poses):
+    c2w = cameras(poses)
+    for name, params in (("fog", FOG), ("wall", WALL)):
+        grid = grid_for(name)
+        out, evaluations, passes = render(params, grid, c2w, FULL, packing)
+        expected, counts = as_numpy(reference(field, params, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
+        np.testing.assert_allclose(out.rgb, expected.rgb, atol=EXACT)
+        np.testing.assert_allclose(out.acc, expected.acc, atol=EXACT)
+        np.testing.assert_allclose(out.depth, expected.depth, atol=EXACT * 8)
+        # Without early stop every marched sample is evaluated once, and nothing else.
+        np.testing.assert_array_equal(evaluations, counts)
+        assert counts.max() > 20 and (counts == 0).any()  # long rays, and rays that miss the box
+
+
+@pytest.mark.parametrize("packing", PACKINGS[:2], ids=["cpu-default", "small-blocks"])
+def test_early_stop_loses_only_the_tail(packing):
+    c2w = cameras(2)
+    for name, params in (("dense_fog", DENSE_FOG), ("wall", WALL)):
+        grid = grid_for(name)
+        out, evaluations, _ = render(params, grid, c2w, MARCH, packing)
+        full, counts = as_numpy(reference(field, params, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
+        assert np.abs(out.rgb - full.rgb).max() <= TAIL  # colours and background in [0, 1]
+        assert np.abs(out.acc - full.acc).max() <= TAIL
+        assert np.all(out.acc <= full.acc + EXACT)  # only the tail is lost
+        # Every sample before the ray's transmittance fell below MIN_T was evaluated, and none past its end.
+        needed = needed_samples(params, grid, c2w)
+        assert np.all(evaluations >= needed - 1) and np.all(evaluations <= counts)
+        stopped = needed < counts
+        assert stopped.sum() > 10
+
+
+def needed_samples(params, grid, c2w):
+    """Per ray, the samples an exact early stop evaluates: up to and including the first after which the
+    transmittance is below MIN_T (float64 optical depths), or all of them."""
+    ids = jnp.arange(c2w.shape[0] * INTRINSICS.height * INTRINSICS.width)
+    origins, directions, _, _ = view_rays(c2w[:, :3, :4], INTRINSICS, ids)
+    t_start, t_end = jax.vmap(lambda o, d: occ.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
+    t, delta, mask = as_numpy(jax.vmap(lambda o, d, a, b: occ.march_ray(grid, o, d, a, b, FULL))(
+        origins, directions, t_start, t_end))
+    points = np.asarray(origins)[:, None] + t[..., None] * np.asarray(directions)[:, None]
+    sigma = np.asarray(jax.vmap(jax.vmap(density, in_axes=(None, 0)), in_axes=(None, 0))(params, jnp.asarray(points)))
+    after = np.exp(-np.cumsum(np.where(mask, sigma.astype(np.float64) * delta, 0.0), axis=1))
+    stopped = mask & (after < MIN_T)
+    return np.where(stopped.any(1), np.argmax(stopped, axis=1) + 1, mask.sum(1))
+
+
+def test_opaque_wall_is_evaluated_only_up_to_the_wall():
+    """Rays hitting the opaque wall stop within a pass of it: a few samples past the wall at most."""
+    c2w = cameras(3)
+    grid = grid_for("wall")
+    packing = marched.Packing(rays_per_block=64, slots_per_ray=4, row_length=2, max_rows_per_ray=2, field_chunk=0)
+    out, evaluations, _ = render(WALL, grid, c2w, MARCH, packing)
+    _, counts = as_numpy(reference(field, WALL, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
+    needed = needed_samples(WALL, grid, c2w)
+    # The wall (density 400, dt 0.027: optical depth 10.8 a sample) stops a ray at its first sample
+    # behind it; a pass hands a ray at most 2 rows of 2 samples, so at most 3 are wasted.
+    hit = (out.acc > 0.9999) & (counts > 30)
+    assert hit.sum() > 10
+    assert np.all(evaluations[hit] <= needed[hit] + 3) and evaluations[hit].mean() < 0.6 * counts[hit].mean()
+
+
+def test_empty_rays_render_the_background_without_evaluations():
+    grid = occ.init_occupancy(BOX, resolution=16).replace(bitfield=jnp.zeros((1, 16**3), bool))
+    out, evaluations, passes = render(WALL, grid, cameras(2))
+    np.testing.assert_array_equal(evaluations, 0)
+    np.testing.assert_allclose(out.rgb, np.broadcast_to(np.asarray(RENDER_CONFIG.background), out.rgb.shape))
+    np.testing.assert_array_equal(out.acc, 0.0)
+    np.testing.assert_array_equal(passes, 0)  # no live ray: not a single field pass
+
+
+def test_passes_are_few_when_the_budget_is_large():
+    """A pass hands every live ray M // live rows, so a block needs about (samples / budget) passes."""
+    grid = grid_for("fog")
+    c2w = cameras(3)
+    _, counts = as_numpy(reference(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
+    packing = marched.Packing(rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32, field_chunk=0)
+    _, evaluations, passes = render(FOG, grid, c2w, FULL, packing)
+    slots = 16 * counts.size
+    assert passes.shape == (1,)  # one block for the 189 rays
+    assert int(passes[0]) <= math.ceil(counts.sum() / slots) + math.ceil(counts.max() / (8 * 32)) + 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Compilation and determinism
+
+
+def test_one_compile_per_pose_count_and_deterministic():
+    grid = grid_for("fog")
+    packing = PACKINGS[1]
+    first = render(FOG, grid, cameras(2), packing=packing)
+    traces = TRACES["field"]
+    size = marched.render_marched._cache_size()
+    again = render(FOG, grid, cameras(2), packing=packing)
+    other = render(DENSE_FOG, grid_for("dense_fog"), cameras(2)[::-1], packing=packing)  # other params, poses, grid
+    assert TRACES["field"] == traces and marched.render_marched._cache_size() == size
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(first[0].rgb, other[0].rgb)
+    render(FOG, grid, cameras(4), packing=packing)  # a new pose count: one more program
+    assert marched.render_marched._cache_size() == size + 1
+
+
+def test_packing_is_validated():
+    with pytest.raises(ValueError, match="multiple of row_length"):
+        marched.Packing(slots_per_ray=6, row_length=4)
+    with pytest.raises(ValueError, match="power of two"):
+        marched.Packing(max_rows_per_ray=3)
+    with pytest.raises(ValueError, match="rays_per_block"):
+        marched.Packing(rays_per_block=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Packed rows
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(0, 5), min_size=1, max_size=12), st.integers(1, 20))
+def test_layout_rows_and_segment_sums_match_numpy(requests, num_rows):
+    rows = np.asarray(requests, np.int32)
+    layout = as_numpy(packed.layout_rows(jnp.asarray(rows), num_rows))
+    start = np.cumsum(rows) - rows
+    granted = np.clip(num_rows - start, 0, rows)
+    np.testing.assert_array_equal(layout.granted, granted)
+    owner = np.full(num_rows, -1)
+    rank = np.zeros(num_rows, np.int64)
+    for ray, (a, n) in enumerate(zip(start, granted)):
+        owner[a:a + n], rank[a:a + n] = ray, np.arange(n)
+    used = owner >= 0
+    np.testing.assert_array_equal(layout.used, used)
+    np.testing.assert_array_equal(layout.owner[used], owner[used])
+    np.testing.assert_array_equal(layout.rank[used], rank[used])
+    np.testing.assert_array_equal(layout.last, np.where(granted > 0, start + granted - 1, num_rows))
+    values = np.arange(1, num_rows + 1, dtype=np.float32) ** 1.5
+    sums = np.asarray(packed.segment_cumsum(jnp.asarray(np.where(used, values, 0.0)), jnp.asarray(layout.rank),
+                                            max(1, int(rows.max()))))
+    for ray, (a, n) in enumerate(zip(start, granted)):
+        np.testing.assert_allclose(sums[a:a + n], np.cumsum(values[a:a + n]), rtol=1e-6)
+
+
+@pytest.mark.parametrize("peak", [1e-6, 1.0, 1e6])
+def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
+    """Rays of up to 9 samples in rows of 2 (a carry from a previous pass on one ray): the composite and
+    its gradient in sigma equal those of `volume_weights` over each ray's samples."""
+    key = jax.random.key(0)
+    counts = np.array([9, 0, 3, 1, 4], np.int32)
+    s, rows = 2, 12
+    sigma_rays = peak * jax.random.uniform(key, (5, 9))
+    t_rays = jnp.cumsum(jnp.full((5, 9), 0.1), axis=1)
+    rgb_rays = jax.random.uniform(jax.random.key(1), (5, 9, 3))
+    carry = jnp.array([0.0, 0.0, 0.7, 0.0, 0.0])
+    layout = packed.layout_rows(jnp.asarray(-(-counts // s)), rows)
+    index, valid = packed.row_samples(layout, jnp.zeros(5, jnp.int32), jnp.asarray(counts), s)
+    index = jnp.minimum(index, 8)
+
+    def packed_colour(sigma_rays):
+        owner = layout.owner[:, None]
+        sums = packed.composite_rows(sigma_rays[owner, index], rgb_rays[owner, index], t_rays[owner, index],
+                                     jnp.where(valid, 0.1, 0.0), layout, carry, 8)
+        return sums.rgb, sums.acc, sums.depth, sums.optical_depth
+
+    def reference_colour(sigma_rays):
+        mask = jnp.arange(9)[None] < counts[:, None]
+        delta = jnp.where(mask, 0.1, 0.0)
+        sigma = jnp.where(mask, sigma_rays, 0.0)
+        w = jax.vmap(volume_weights)(sigma, delta) * jnp.exp(-carry)[:, None]
+        return (jnp.sum(w[..., None] * rgb_rays, 1), jnp.sum(w, 1), jnp.sum(w * t_rays, 1),
+                jnp.sum(sigma * delta, 1))
+
+    for a, b in zip(packed_colour(sigma_rays), reference_colour(sigma_rays)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6, atol=1e-6 * max(1.0, peak * 0.1))
+    weights = jnp.array([1.0, -2.0, 3.0])
+    loss_packed = lambda x: jnp.sum(packed_colour(x)[0] * weights) + jnp.sum(packed_colour(x)[2])  # noqa: E731
+    loss_reference = lambda x: jnp.sum(reference_colour(x)[0] * weights) + jnp.sum(reference_colour(x)[2])  # noqa: E731
+    grad_packed = np.asarray(jax.grad(loss_packed)(sigma_rays))
+    grad_reference = np.asarray(jax.grad(loss_reference)(sigma_rays))
+    assert np.all(np.isfinite(grad_packed))
+    np.testing.assert_allclose(grad_packed, grad_reference, rtol=1e-5, atol=1e-7)

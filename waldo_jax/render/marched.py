@@ -1,0 +1,285 @@
+"""The renderer of trained fields: occupancy-grid marching (Instant-NGP) with packed samples, compaction
+of live rays between passes and early ray termination, for whole populations of poses in one call.
+
+The rays of all P poses of a call (P * H * W) form one flat list, cut into blocks of N rays. A block:
+  1. marches every ray through the occupancy grid (`occupancy.march_ray`: empty space is skipped
+     before the field runs; padding rays get an empty interval), keeping at most S samples per ray;
+  2. runs passes: in each pass the live rays (samples left, transmittance >= `min_transmittance`) are
+     compacted into a budget of M rows of s samples (`packed.layout_rows`), each asking for its next
+     min(M // live, R_max) rows, so a pass stays full as rays retire; the field runs once on the M * s
+     slots (in `field_chunk` pieces where a backend prefers smaller calls), and the rows are
+     composited by plain cumulative sums (`packed.composite_rows`) onto the optical depth and sums
+     each ray carries. Passes come in `pass_levels` sizes, each `level_ratio` times smaller than the
+     one before: a `lax.while_loop` per size, which hands over to the next smaller size once the live
+     rays' remaining samples fit in one of its passes, so the tail of a block (few live rays) does
+     not evaluate mostly empty slots. At most `max_passes` passes in all, a bound no block reaches;
+  3. adds the background: rgb = sum w * c + (1 - acc) * background.
+
+A ray's weights are those of `volume.volume_weights` over its samples up to the pass in which its
+transmittance fell below `min_transmittance` (Instant-NGP: 1e-4): the colour differs from the composite
+of all its samples by at most that transmittance times max |rgb - background|.
+
+Sizes (`Packing`) are per backend: a GPU wants millions of slots per field call, so few passes and
+host reads of the loop predicate per block; a CPU wants field calls that stay in cache.
+
+Names: `N` rays per block, `S` samples per ray, `M` rows per pass, `s` slots per row, `R_max` rows a
+ray may take in one pass, `P` poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+
+from waldo_jax.render import occupancy, packed
+from waldo_jax.render.sharding import shard_over_poses
+from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
+from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
+
+__all__ = ["MarchedViews", "Packing", "render_marched", "render_marched_sharded"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Packing:
+    """Static sizes of the marched renderer (hashable: one compilation per value).
+
+    Attributes:
+      rays_per_block: the most rays marched together, N (a call with fewer rays uses fewer).
+      slots_per_ray: field evaluations per pass per ray of a block: a pass has M * s = N * this slots.
+      row_length: s, samples per packed row (a ray's last row may be partly empty).
+      max_rows_per_ray: R_max, the most rows one ray takes in one pass (a power of two).
+      field_chunk: slots per field call within a pass (0: the whole pass in one call).
+      pass_levels: pass sizes, the first N * slots_per_ray, each next one `level_ratio` times smaller.
+      level_ratio: the ratio of successive pass sizes.
+    """
+
+    rays_per_block: int = 2**15
+    slots_per_ray: int = 16
+    row_length: int = 8
+    max_rows_per_ray: int = 32
+    field_chunk: int = 2**13
+    pass_levels: int = 3
+    level_ratio: int = 4
+
+    def __post_init__(self):
+        for name in ("rays_per_block", "slots_per_ray", "row_length", "max_rows_per_ray", "pass_levels",
+                     "level_ratio"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"Packing.{name} must be a positive int, got {value!r}")
+        if self.slots_per_ray % self.row_length:
+            raise ValueError(f"Packing.slots_per_ray ({self.slots_per_ray}) must be a multiple of row_length "
+                             f"({self.row_length})")
+        if self.max_rows_per_ray & (self.max_rows_per_ray - 1):
+            raise ValueError(f"Packing.max_rows_per_ray must be a power of two, got {self.max_rows_per_ray}")
+        if isinstance(self.field_chunk, bool) or not isinstance(self.field_chunk, int) or self.field_chunk < 0:
+            raise ValueError(f"Packing.field_chunk must be an int >= 0, got {self.field_chunk!r}")
+
+    @classmethod
+    def for_backend(cls, backend: Optional[str] = None, **overrides) -> "Packing":
+        """Sizes for a backend (default: JAX's default backend), with `overrides`.
+
+        GPU/TPU: blocks of 2**18 rays, passes of 2**22 slots in one field call (millions of slots per
+        call: few passes, each fills the device). CPU: blocks of 2**15 rays, passes of 2**19 slots,
+        field calls of 2**13 slots (working sets that stay in cache; `benchmarks/render_trained.py`).
+        """
+        backend = backend or jax.default_backend()
+        values = dict(rays_per_block=2**15, field_chunk=2**13) if backend == "cpu" else dict(
+            rays_per_block=2**18, field_chunk=0)
+        values.update(overrides)
+        return cls(**values)
+
+
+class _BlockShape(NamedTuple):
+    """The static sizes of one call's blocks."""
+
+    rays: int  # N
+    rows: Tuple[int, ...]  # M of each pass level, decreasing
+    row_length: int  # s
+    max_rows_per_ray: int  # R_max
+    max_passes: int
+    field_chunk: int
+
+
+def _block_shape(packing: Packing, total_rays: int, max_samples: int) -> _BlockShape:
+    """Balanced blocks of at most `rays_per_block` rays (the last block is padded, by under 8 rays a block)."""
+    num_blocks = -(-total_rays // packing.rays_per_block)
+    rays = -(-total_rays // num_blocks)
+    rays = -(-rays // 8) * 8
+    first = rays * packing.slots_per_ray // packing.row_length
+    rows = tuple(sorted({max(1, first // packing.level_ratio**level) for level in range(packing.pass_levels)},
+                        reverse=True))
+    rows_per_ray = -(-max_samples // packing.row_length)
+    # Every pass either fills all its rows or gives every live ray all it asked for (>= 1 row), so no
+    # block can need more passes than this, even in passes of the smallest size: no ray is ever cut.
+    max_passes = -(-rays * rows_per_ray // rows[-1]) + rows_per_ray + 1
+    chunk = packing.field_chunk or first * packing.row_length
+    return _BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk)
+
+
+class _Rays(NamedTuple):
+    """What a block carries from pass to pass (N rays)."""
+
+    next_sample: Array  # int32 [N], samples [0, next_sample) are composited
+    alive: Array  # bool [N]
+    optical_depth: Array  # float32 [N], sum of sigma * delta so far
+    rgb: Array  # float32 [N, 3], sum of w * rgb
+    depth: Array  # float32 [N], sum of w * t
+    acc: Array  # float32 [N], sum of w
+    evaluations: Array  # int32 [N], field evaluations spent on each ray
+    passes: Array  # int32 []
+    slots: Array  # int32 [], slots the passes evaluated (padding included)
+
+
+class MarchedViews(NamedTuple):
+    """`render_marched`'s images and what they cost.
+
+    Attributes:
+      output: `RenderOutput` with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W].
+      evaluations: int32 [P, H, W], field evaluations spent on each pixel's ray.
+      passes: int32 [num_blocks], the passes of each block (each one field pass over its level's slots).
+      slots: int32 [num_blocks], the slots the passes of each block evaluated (padding included).
+    """
+
+    output: RenderOutput
+    evaluations: Array
+    passes: Array
+    slots: Array
+
+
+def _field_slots(field: Field, params, points: Array, directions: Array, chunk: int):
+    """sigma [B], rgb [B, 3] at points [B, 3] seen along directions [B, 3], `chunk` slots per call."""
+    if chunk >= points.shape[0]:
+        return jax.vmap(field, in_axes=(None, 0, 0))(params, points, directions)
+    return jax.lax.map(lambda pd: field(params, pd[0], pd[1]), (points, directions), batch_size=chunk)
+
+
+def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
+                  real: Array, render_config: RenderConfig, march: occupancy.MarchConfig, shape: _BlockShape):
+    """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
+    evaluations int32 [N], passes int32 [], slots int32 [])."""
+    num_rays, row_length = shape.rays, shape.row_length
+    num_samples = march.max_samples
+    t_start, t_end = jax.vmap(lambda o, d: occupancy.ray_interval(grid, o, d, render_config))(origins, directions)
+    t_end = jnp.where(real, t_end, t_start)  # padding rays march an empty interval
+    t, delta, mask = jax.vmap(lambda o, d, a, b: occupancy.march_ray(grid, o, d, a, b, march))(
+        origins, directions, t_start, t_end)  # [N, S] each
+    count = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N]
+
+    def one_pass(rows: int, state: _Rays) -> _Rays:
+        live = jnp.sum(state.alive, dtype=jnp.int32)
+        rows_per_ray = jnp.clip(rows // jnp.maximum(live, 1), 1, shape.max_rows_per_ray)  # []
+        need = -(-(count - state.next_sample) // row_length)  # [N]
+        layout = packed.layout_rows(jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0), rows)
+        index, valid = packed.row_samples(layout, state.next_sample, count, row_length)  # [M, s]
+        owner = layout.owner[:, None]  # [M, 1]
+        index = jnp.minimum(index, num_samples - 1)
+        t_rows = t[owner, index]  # [M, s]
+        delta_rows = jnp.where(valid, delta[owner, index], 0.0)  # [M, s]
+        ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (rows, row_length, 3))  # [M, s, 3]
+        points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
+        sigma, rgb = _field_slots(field, params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3), shape.field_chunk)
+        sums = packed.composite_rows(sigma.reshape(rows, row_length), rgb.reshape(rows, row_length, 3), t_rows,
+                                     delta_rows, layout, state.optical_depth, shape.max_rows_per_ray)
+        taken = jnp.minimum(layout.granted * row_length, count - state.next_sample)  # [N]
+        next_sample = state.next_sample + taken
+        optical_depth = state.optical_depth + sums.optical_depth
+        alive = state.alive & (next_sample < count) & (jnp.exp(-optical_depth) >= march.min_transmittance)
+        return _Rays(next_sample=next_sample, alive=alive, optical_depth=optical_depth, rgb=state.rgb + sums.rgb,
+                     depth=state.depth + sums.depth, acc=state.acc + sums.acc,
+                     evaluations=state.evaluations + taken, passes=state.passes + 1,
+                     slots=state.slots + rows * row_length)
+
+    def keep_going(next_slots: int, state: _Rays) -> Array:
+        """Passes of this size go on while rays are live and their remaining samples overflow the next size."""
+        remaining = jnp.sum(jnp.where(state.alive, count - state.next_sample, 0))
+        return jnp.any(state.alive) & (state.passes < shape.max_passes) & (remaining > next_slots)
+
+    zeros = jnp.zeros((num_rays,), jnp.float32)
+    state = _Rays(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=count > 0, optical_depth=zeros,
+                  rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
+                  evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0), slots=jnp.int32(0))
+    # One while loop per pass size; each reads its predicate once per pass of millions of slots on an
+    # accelerator (see `Packing.for_backend`), and the sizes shrink as the block's work runs out.
+    for level, rows in enumerate(shape.rows):
+        next_slots = shape.rows[level + 1] * row_length if level + 1 < len(shape.rows) else -1
+        state = jax.lax.while_loop(functools.partial(keep_going, next_slots), functools.partial(one_pass, rows), state)
+    rgb = state.rgb + (1.0 - state.acc)[:, None] * render_config.background
+    return RenderOutput(rgb=rgb, depth=state.depth, acc=state.acc), state.evaluations, state.passes, state.slots
+
+
+def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
+            march: occupancy.MarchConfig, packing: Packing) -> MarchedViews:
+    """`render_marched` unjitted (for `shard_over_poses`)."""
+    c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
+    num_poses = c2w.shape[0]
+    total = num_poses * intrinsics.height * intrinsics.width
+    shape = _block_shape(packing, total, march.max_samples)
+
+    def block(ids: Array):
+        origins, directions, _, _ = view_rays(c2w, intrinsics, ids)
+        out, evaluations, passes, slots = _render_block(field, params, grid, origins, directions, ids < total,
+                                                        render_config, march, shape)
+        return out, evaluations, jnp.broadcast_to(jnp.stack([passes, slots]), ids.shape + (2,))
+
+    out, evaluations, counts = map_ray_chunks(block, total, shape.rays)
+    # Every ray of a block carries its block's counts; one value per block is kept.
+    counts = jnp.pad(counts, ((0, (-total) % shape.rays), (0, 0)))[:: shape.rays]  # [num_blocks, 2]
+    return MarchedViews(output=jax.tree.map(lambda a: to_images(a, num_poses, intrinsics), out),
+                        evaluations=to_images(evaluations, num_poses, intrinsics), passes=counts[:, 0],
+                        slots=counts[:, 1])
+
+
+@functools.partial(jax.jit, static_argnames=("field", "packing"))
+def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
+                   render_config: RenderConfig, march: occupancy.MarchConfig,
+                   packing: Optional[Packing] = None) -> MarchedViews:
+    """Renders P poses of a field through its occupancy grid in one jitted call (see the module docstring).
+
+    One compilation per (field, packing, grid geometry, march sizes, image size, P).
+
+    Args:
+      field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])` (static).
+      params: its parameters.
+      grid: the occupancy grid (empty cells are never sampled).
+      c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
+      intrinsics: shared intrinsics (their width and height set the image size).
+      render_config: near, far, the box (when `use_aabb`) and the background; its `num_samples` and
+        `ray_chunk` are not used.
+      march: the marching step, cone angle, K candidates and S samples per ray, `min_transmittance`.
+      packing: static sizes (default `Packing.for_backend()`).
+
+    Returns:
+      `MarchedViews`: the images and the evaluations and passes they took.
+    """
+    return _render(field, params, grid, c2w, intrinsics, render_config, march, packing or Packing.for_backend())
+
+
+@functools.lru_cache(maxsize=None)
+def _marched_local(field: Field, packing: Packing) -> Callable:
+    """The marched renderer in `shard_over_poses`' calling convention (one object per field and packing)."""
+
+    def local(replicated, posed):
+        params, grid, intrinsics, render_config, march = replicated
+        views = _render(field, params, grid, posed[0], intrinsics, render_config, march, packing)
+        return views.output, views.evaluations
+
+    return local
+
+
+def render_marched_sharded(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
+                           render_config: RenderConfig, march: occupancy.MarchConfig,
+                           packing: Optional[Packing] = None, mesh=None):
+    """`render_marched` with the poses split over the devices of `mesh` (`sharding.shard_over_poses`).
+
+    Returns:
+      (`RenderOutput` [P, H, W], evaluations int32 [P, H, W]), sharded over the mesh. Each device packs
+      its own poses' rays, so a ray's samples may fall into other passes than on one device: the
+      images agree with `render_marched`'s to float32 rounding of the per-pass sums.
+    """
+    local = _marched_local(field, packing or Packing.for_backend())
+    return shard_over_poses(local, (params, grid, intrinsics, render_config, march), c2w, mesh)
