@@ -78,6 +78,21 @@ def timed(fn, repeats: int):
     return min(times), statistics.median(times), times
 
 
+def timed_alternately(fns: dict, repeats: int) -> dict:
+    """{name: (best, median, all)} seconds of each `fns[name]()` over `repeats` rounds, after one untimed
+    call of each (compile, warm-up). Each round runs every function once, in turn, so a drift in the
+    machine's speed (another job, thermal state) falls on all of them alike: use it to compare."""
+    for fn in fns.values():
+        jax.block_until_ready(fn())
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[name].append(time.perf_counter() - start)
+    return {name: (min(t), statistics.median(t), t) for name, t in times.items()}
+
+
 def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
     """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
     start = time.perf_counter()

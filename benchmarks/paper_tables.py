@@ -273,7 +273,7 @@ def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> 
 
     cmd_train(argparse.Namespace(scene_path=str(scene_path(scene)), out=str(run_dir), steps=args.train_steps,
                                  downscale=downscale, seed=args.seed, preset=args.preset, sampler="auto",
-                                 force=False, quiet=not args.progress))
+                                 force=False, quiet=not args.progress, render_step_scale=None))
 
 
 def _train_room(run_dir: Path, args) -> None:

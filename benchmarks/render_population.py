@@ -3,9 +3,9 @@
 Renders P poses of the procedural Waldo room with S samples per ray at each R x R of
 `--resolutions`, both ways, with the backend's default ray chunk (`render.default_ray_chunk`), and
 prints JSON (rays/s for each, `speedup_batched_over_loop` per size, device, commit, date).
-Compilation is excluded: each path runs once to compile, then is timed over `--repeats` runs (best
-and median reported). The batched call renders the P * R * R rays as one flat list in chunks; the
-loop renders each view's R * R rays in the same chunks, one call per pose.
+Compilation is excluded: each path runs once to compile, then the two are timed alternately,
+`--repeats` runs each (best and median reported). The batched call renders the P * R * R rays as one
+flat list in chunks; the loop renders each view's R * R rays in the same chunks, one call per pose.
 
   python benchmarks/render_population.py --poses 256 --resolutions 64,128,256      # the issue's sizes
 """
@@ -23,7 +23,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
+from _common import emit_with_load, header, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.procedural import make_room, room_field, room_render_config  # noqa: E402
 from waldo_jax.render import render_view, render_views  # noqa: E402
@@ -51,8 +51,9 @@ def measure(room, c2w, resolution: int, samples: int, ray_chunk, repeats: int) -
     def loop():
         return [single(room_field, room, c2w[i], intrinsics, config).rgb for i in range(num_poses)]
 
-    batched_best, batched_median, _ = timed(batched, repeats)
-    loop_best, loop_median, _ = timed(loop, repeats)
+    times = timed_alternately({"batched": batched, "loop": loop}, repeats)
+    batched_best, batched_median, batched_times = times["batched"]
+    loop_best, loop_median, loop_times = times["loop"]
     # Both paths must agree: the batch is the same computation, only scheduled differently.
     max_diff = float(jnp.max(jnp.abs(batched() - jnp.stack(loop()))))
     rays = num_poses * resolution**2
@@ -66,6 +67,8 @@ def measure(room, c2w, resolution: int, samples: int, ray_chunk, repeats: int) -
         "batched_rays_per_s": rays / batched_best,
         "loop_rays_per_s": rays / loop_best,
         "batched_samples_per_s": rays * samples / batched_best,
+        "batched_seconds_all": batched_times,
+        "loop_seconds_all": loop_times,
         "speedup_batched_over_loop": loop_best / batched_best,
         "max_abs_diff_batched_vs_loop": max_diff,
     }

@@ -16,9 +16,8 @@ one process:
             `evaluations_per_ray` (field evaluations the renderer spent), `passes_per_view` (field
             passes of the call / poses), `slots_used_fraction` (evaluations / slots the passes
             evaluated, padding included).
-  field     the field alone on the same number of points as that render's evaluations (points in the
-            occupied cells, random directions), in calls of the renderer's largest pass size:
-            `field_points_per_s`. `render_efficiency` = rays_per_s x evaluations_per_ray /
+  field     the field alone on the very points that render evaluated (each ray's first marched samples,
+            in ray order), in calls of the renderer's largest pass size: `field_points_per_s`. `render_efficiency` = rays_per_s x evaluations_per_ray /
             field_points_per_s (1: the render costs its field evaluations and nothing more).
   loop      the same poses as a Python loop of one-pose calls: `speedup_batched_over_loop`.
 
@@ -34,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
 import sys
 import tempfile
 import time
@@ -47,8 +45,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, wait_for_quiet  # noqa: E402
-from train_step import occupied_points  # noqa: E402
+from _common import emit_with_load, header, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax import paths  # noqa: E402
 from waldo_jax.cameras import slerp_c2w  # noqa: E402
 from waldo_jax.nerf import train as tr  # noqa: E402
@@ -81,34 +78,58 @@ def timing_camera(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics
     return Intrinsics.create(width, height, focal, distortion=np.asarray(intrinsics.distortion))
 
 
-def best_of(fn, repeats):
-    """(best, median) seconds of `fn()` after one untimed call (compilation, warm-up)."""
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
+def render_points(config, params, grid, c2w, camera, scene, background, evaluations: np.ndarray):
+    """The points the renderer evaluated, in ray order: each ray's first `evaluations` marched samples.
+
+    Returns points [E, 3] and unit directions [E, 3] (host arrays), E = evaluations.sum().
+    """
+    from waldo_jax.render import occupancy
+    from waldo_jax.render.volume import view_rays
+
+    grid_, render_config, march = tr.render_setup(config, grid, scene.near, scene.far, scene.aabb, background)
+    c2w = jnp.asarray(np.asarray(c2w, np.float32))[:, :3, :4]
+    evaluations = np.asarray(evaluations, np.int64).reshape(-1)
+
+    @jax.jit
+    def march_block(ids):
+        origins, directions, _, _ = view_rays(c2w, camera, ids)
+        t_start, t_end = jax.vmap(lambda o, d: occupancy.ray_interval(grid_, o, d, render_config))(origins, directions)
+        t, _, _ = jax.vmap(lambda o, d, a, b: occupancy.march_ray(grid_, o, d, a, b, march))(
+            origins, directions, t_start, t_end)
+        return origins, directions, t
+
+    points, directions = [], []
+    block = 2**14
+    for first in range(0, evaluations.size, block):
+        ids = np.arange(first, first + block)
+        o, d, t = (np.asarray(a) for a in march_block(jnp.asarray(np.minimum(ids, evaluations.size - 1))))
+        take = np.arange(t.shape[1])[None, :] < evaluations[np.minimum(ids, evaluations.size - 1)][:, None]
+        take &= (ids < evaluations.size)[:, None]
+        ray, sample = np.nonzero(take)
+        points.append(o[ray] + t[ray, sample, None] * d[ray])
+        directions.append(d[ray])
+    return np.concatenate(points).astype(np.float32), np.concatenate(directions).astype(np.float32)
 
 
-def field_alone(config, params, grid, count: int, pass_slots: int, packing: marched.Packing, repeats: int) -> dict:
-    """The field on `count` points in occupied cells, in calls of `pass_slots` (as the renderer's passes,
-    each split into `packing.field_chunk` slots like the renderer's), best of `repeats`."""
+def field_alone(config, params, points: np.ndarray, directions: np.ndarray, pass_slots: int,
+                packing: marched.Packing):
+    """The field on `points` [E, 3] along `directions` [E, 3] (the render's own samples, in ray order), in
+    calls of `pass_slots` (the renderer's largest pass; the last call padded), each split into
+    `packing.field_chunk` slots like the renderer's passes. Returns (a function that runs it, calls)."""
     field = make_field(config.field)
+    count = points.shape[0]
     calls = max(1, math.ceil(count / pass_slots))
-    points = occupied_points(jax.random.key(3), grid, calls * pass_slots).reshape(calls, pass_slots, 3)
-    directions = jax.random.normal(jax.random.key(4), points.shape)
-    directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    pad = calls * pass_slots - count
+    x = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)]).reshape(calls, pass_slots, 3)
+    d = np.concatenate([directions, np.repeat(directions[-1:], pad, axis=0)]).reshape(calls, pass_slots, 3)
     chunk = packing.field_chunk or pass_slots
 
     @jax.jit
     def run(params, x, d):
         return jax.lax.map(lambda xd: marched._field_slots(field, params, xd[0], xd[1], chunk), (x, d))
 
-    best, median = best_of(lambda: run(params, jnp.asarray(points), directions), repeats)
-    return {"field_points": calls * pass_slots, "field_calls": calls, "field_seconds_best": best,
-            "field_seconds_median": median, "field_points_per_s": calls * pass_slots / best}
+    x, d = jnp.asarray(x), jnp.asarray(d)
+    return (lambda: run(params, x, d)), calls
 
 
 def psnr(rendered, images):
@@ -219,7 +240,17 @@ def main(argv=None):
     shape = marched._block_shape(packing, rays, tr.render_setup(config, grid, scene.near, scene.far, scene.aabb,
                                                                 background)[2].max_samples)
     pass_slots = shape.rows[0] * shape.row_length
-    best, median = best_of(lambda: render(c2w), repeats)
+    points, directions = render_points(config, params, grid, c2w, camera, scene, background, counted.evaluations)
+    field_points = points.shape[0]
+    field_fn, field_calls = field_alone(config, params, points, directions, pass_slots, packing)
+    del points, directions
+    # The batched call, the field alone and the loop of one-pose calls are timed in turn, round by
+    # round, so that a drift in the machine's speed falls on all of them alike.
+    timings = {"batched": lambda: render(c2w), "field": field_fn}
+    if "loop" not in skip:
+        timings["loop"] = lambda: [render(c2w[i:i + 1]) for i in range(poses)]
+    times = timed_alternately(timings, repeats)
+    best, median, _ = times["batched"]
     speed = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
              "evaluations_per_ray": evaluations / rays, "passes": passes, "passes_per_view": passes / poses,
              "blocks": int(np.asarray(counted.passes).size), "rays_per_block": shape.rays,
@@ -229,13 +260,15 @@ def main(argv=None):
              "rays_with_no_evaluation_fraction": float(np.mean(np.asarray(counted.evaluations) == 0))}
     log(f"render: {best:.2f} s, {rays / best:,.0f} rays/s, {evaluations / rays:.1f} evaluations/ray, "
         f"{passes / poses:.2f} passes/view")
-    field = field_alone(config, params, grid, evaluations, pass_slots, packing, repeats)
+    # The padding of the field's last call is evaluated too: count only the render's points.
+    field = {"field_points": field_points, "field_calls": field_calls, "field_seconds_best": times["field"][0],
+             "field_seconds_median": times["field"][1], "field_points_per_s": field_points / times["field"][0]}
     efficiency = speed["rays_per_s"] * speed["evaluations_per_ray"] / field["field_points_per_s"]
     log(f"field alone: {field['field_points_per_s']:,.0f} points/s; render efficiency {efficiency:.3f}")
 
     loop = None
-    if "loop" not in skip:
-        loop_best, loop_median = best_of(lambda: [render(c2w[i:i + 1]) for i in range(poses)], repeats)
+    if "loop" in times:
+        loop_best, loop_median, _ = times["loop"]
         loop = {"seconds_best": loop_best, "seconds_median": loop_median,
                 "speedup_batched_over_loop": loop_best / best}
         log(f"loop of one-pose calls: {loop_best:.2f} s ({loop_best / best:.2f}x)")
@@ -271,7 +304,7 @@ def main(argv=None):
         "definitions": {
             "evaluations_per_ray": "field evaluations the renderer spent per ray of the timing render",
             "passes_per_view": "field passes (one per pass of a block) of the timing call / poses",
-            "field_points_per_s": "the field alone on as many points (occupied cells), in calls of the largest pass",
+            "field_points_per_s": "the field alone on the points the render evaluated, in calls of its largest pass",
             "render_efficiency": "rays_per_s * evaluations_per_ray / field_points_per_s",
             "psnr_delta_db": "held-out PSNR at the run's render step minus baseline_psnr",
         },

@@ -10,6 +10,7 @@ field only at the samples it needs.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -197,15 +198,21 @@ def test_empty_rays_render_the_background_without_evaluations():
 
 
 def test_passes_are_few_when_the_budget_is_large():
-    """A pass hands every live ray M // live rows, so a block needs about (samples / budget) passes."""
+    """A pass hands every live ray M // live rows, so a block of one pass size needs about
+    (samples / budget) passes; smaller pass sizes for the tail evaluate fewer slots for the same work."""
     grid = grid_for("fog")
     c2w = cameras(3)
     _, counts = as_numpy(reference(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
-    packing = marched.Packing(rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32, field_chunk=0)
-    _, evaluations, passes = render(FOG, grid, c2w, FULL, packing)
-    slots = 16 * counts.size
-    assert passes.shape == (1,)  # one block for the 189 rays
-    assert int(passes[0]) <= math.ceil(counts.sum() / slots) + math.ceil(counts.max() / (8 * 32)) + 2
+    one_size = marched.Packing(rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32,
+                               field_chunk=0, pass_levels=1)
+    views = marched.render_marched(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL, one_size)
+    slots = 16 * 192  # one block of the 189 rays, rounded up to 192
+    assert views.passes.shape == (1,)
+    assert int(views.passes[0]) <= math.ceil(counts.sum() / slots) + math.ceil(counts.max() / (8 * 32)) + 2
+    levels = marched.render_marched(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL,
+                                    dataclasses.replace(one_size, pass_levels=3))
+    np.testing.assert_array_equal(np.asarray(levels.evaluations), np.asarray(views.evaluations))
+    assert int(levels.slots[0]) < int(views.slots[0]) and int(levels.slots[0]) < 2 * counts.sum()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -303,3 +310,53 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
     grad_reference = np.asarray(jax.grad(loss_reference)(sigma_rays))
     assert np.all(np.isfinite(grad_packed))
     np.testing.assert_allclose(grad_packed, grad_reference, rtol=1e-5, atol=1e-7)
+
+
+# --------------------------------------------------------------------------------------------------
+# A trained field: lego_tiny
+
+
+@pytest.fixture(scope="module")
+def trained_lego():
+    """lego_tiny trained for 150 steps (a small hash grid): a real field with surfaces and empty space."""
+    import dataclasses
+
+    from conftest import require_scene
+    from waldo_jax.nerf import train as tr
+    from waldo_jax.scenes import load_scene
+
+    scene = load_scene(require_scene("lego_tiny"), split="train", max_images=30)
+    config = tr.TrainConfig.preset("fast", scene, steps=150, render_step_scale=1.0)
+    config = config.replace(field=dataclasses.replace(
+        config.field, hashgrid=dataclasses.replace(config.field.hashgrid, L=8, T=2**14)))
+    result = tr.train(jax.random.key(0), scene, config, progress=False)
+    return scene, result
+
+
+@pytest.mark.parametrize("packing", PACKINGS[:2], ids=["cpu-default", "small-blocks"])
+@pytest.mark.parametrize("poses", [1, 2])
+def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses):
+    from waldo_jax.nerf import train as tr
+    from waldo_jax.nerf.field import make_field
+
+    scene, result = trained_lego
+    grid, render_config, march = tr.render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
+                                                 np.ones(3, np.float32))
+    assert 0.01 < float(jnp.mean(grid.bitfield)) < 0.5  # the trained grid skips empty space
+    field_fn = make_field(result.config.field)
+    c2w = jnp.asarray(scene.c2w[:poses])
+    intrinsics = scene.intrinsics.scaled(20, 20)
+    full = march.replace(min_transmittance=jnp.float32(0.0))
+    views = marched.render_marched(field_fn, result.params, grid, c2w, intrinsics, render_config, full, packing)
+    expected, counts = as_numpy(reference(field_fn, result.params, grid, c2w, intrinsics, render_config, full))
+    out = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
+    np.testing.assert_allclose(out.rgb, expected.rgb, atol=EXACT)
+    np.testing.assert_allclose(out.acc, expected.acc, atol=EXACT)
+    np.testing.assert_array_equal(np.asarray(views.evaluations).reshape(-1), counts)
+    assert out.acc.max() > 0.99 and counts.max() > 10  # opaque surfaces, long rays
+    # With early termination (the renderer's default): within the ignored tail, never more evaluations.
+    views = marched.render_marched(field_fn, result.params, grid, c2w, intrinsics, render_config, march, packing)
+    out = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
+    assert np.abs(out.rgb - expected.rgb).max() <= TAIL
+    evaluations = np.asarray(views.evaluations).reshape(-1)
+    assert np.all(evaluations <= counts)

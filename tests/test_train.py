@@ -71,6 +71,16 @@ def test_fast_preset_reaches_20db_on_lego_tiny():
     assert result.history[-1]["psnr_test"] == result.psnr_test
     losses = [h["loss"] for h in result.history if "loss" in h]
     assert losses[-1] < 0.5 * losses[0]
+    # The run's rendering step comes from its own quality/speed curve on the held-out views: the
+    # largest scale within the tolerance of the training step's PSNR, and the scales tried stop at
+    # the first one that loses more.
+    chosen, curve = result.config.render_step_scale, result.render_step_curve
+    assert curve[0]["step_scale"] == 1.0 and chosen in [c["step_scale"] for c in curve]
+    assert all(c["delta_db"] >= -tr.RENDER_STEP_TOLERANCE_DB for c in curve if c["step_scale"] <= chosen)
+    assert curve[-1]["step_scale"] == chosen or curve[-1]["delta_db"] < -tr.RENDER_STEP_TOLERANCE_DB
+    evaluations = [c["evaluations_per_ray"] for c in curve]
+    assert all(a > b for a, b in zip(evaluations, evaluations[1:]))  # coarser steps, fewer evaluations
+    assert result.history[-1]["render_step_scale"] == chosen
     assert result.rays_per_second > 0 and np.isfinite(result.rays_per_second)
     print(f"lego_tiny fast/test preset: {result.psnr_test:.2f} dB in {seconds:.1f} s "
           f"({result.rays_per_second:.0f} rays/s, sampler {config.sampler})")
@@ -217,6 +227,11 @@ def test_preset_takes_box_and_aabb_scale_from_the_scene(lego_small):
     with pytest.raises(tr.TrainConfigError, match="rays_per_batch"):
         tr.TrainConfig.preset("fast", lego_small, rays_per_batch=0)
     assert tr.TrainConfig.from_dict(quality.to_dict()) == quality
+    # A config written before `render_step_scale` and with the retired `eval_ray_chunk` still loads.
+    old = {k: v for k, v in quality.to_dict().items() if k != "render_step_scale"}
+    assert tr.TrainConfig.from_dict({**old, "eval_ray_chunk": 4096}) == quality
+    with pytest.raises(tr.TrainConfigError, match="render_step_scale"):
+        tr.TrainConfig.preset("fast", lego_small, render_step_scale=0.0)
 
 
 def test_learning_rate_schedule_follows_instant_ngp_decay():

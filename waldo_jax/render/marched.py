@@ -11,8 +11,9 @@ The rays of all P poses of a call (P * H * W) form one flat list, cut into block
      composited by plain cumulative sums (`packed.composite_rows`) onto the optical depth and sums
      each ray carries. Passes come in `pass_levels` sizes, each `level_ratio` times smaller than the
      one before: a `lax.while_loop` per size, which hands over to the next smaller size once the live
-     rays' remaining samples fit in one of its passes, so the tail of a block (few live rays) does
-     not evaluate mostly empty slots. At most `max_passes` passes in all, a bound no block reaches;
+     rays' requests would fill less than `level_fill` of its pass (a ray's first request is its
+     nominal share, `slots_per_ray`), so a block with many empty rays, or its tail of few live rays,
+     does not evaluate mostly empty slots. At most `max_passes` passes in all, a bound no block reaches;
   3. adds the background: rgb = sum w * c + (1 - acc) * background.
 
 A ray's weights are those of `volume.volume_weights` over its samples up to the pass in which its
@@ -55,15 +56,18 @@ class Packing:
       field_chunk: slots per field call within a pass (0: the whole pass in one call).
       pass_levels: pass sizes, the first N * slots_per_ray, each next one `level_ratio` times smaller.
       level_ratio: the ratio of successive pass sizes.
+      level_fill: a pass size is left for the next smaller one when the live rays' requests would fill
+        less than this fraction of its slots.
     """
 
     rays_per_block: int = 2**15
-    slots_per_ray: int = 16
+    slots_per_ray: int = 32
     row_length: int = 8
     max_rows_per_ray: int = 32
     field_chunk: int = 2**13
-    pass_levels: int = 3
-    level_ratio: int = 4
+    pass_levels: int = 4
+    level_ratio: int = 3
+    level_fill: float = 0.8
 
     def __post_init__(self):
         for name in ("rays_per_block", "slots_per_ray", "row_length", "max_rows_per_ray", "pass_levels",
@@ -76,6 +80,8 @@ class Packing:
                              f"({self.row_length})")
         if self.max_rows_per_ray & (self.max_rows_per_ray - 1):
             raise ValueError(f"Packing.max_rows_per_ray must be a power of two, got {self.max_rows_per_ray}")
+        if not 0.0 <= self.level_fill <= 1.0:
+            raise ValueError(f"Packing.level_fill must be in [0, 1], got {self.level_fill!r}")
         if isinstance(self.field_chunk, bool) or not isinstance(self.field_chunk, int) or self.field_chunk < 0:
             raise ValueError(f"Packing.field_chunk must be an int >= 0, got {self.field_chunk!r}")
 
@@ -83,13 +89,16 @@ class Packing:
     def for_backend(cls, backend: Optional[str] = None, **overrides) -> "Packing":
         """Sizes for a backend (default: JAX's default backend), with `overrides`.
 
-        GPU/TPU: blocks of 2**18 rays, passes of 2**22 slots in one field call (millions of slots per
-        call: few passes, each fills the device). CPU: blocks of 2**15 rays, passes of 2**19 slots,
-        field calls of 2**13 slots (working sets that stay in cache; `benchmarks/render_trained.py`).
+        GPU/TPU: blocks of 2**17 rays, so passes of 2**22 slots and 3, 9, 27 times fewer, each in one
+        field call (millions of slots a call: few passes, each fills the device). CPU: blocks of 2**15
+        rays (passes of 2**20 slots and 3, 9, 27 times fewer), field calls of 2**13 slots (working sets
+        that stay in cache; larger calls measured no faster). The pass sizes were chosen on the
+        CPU-trained fox and lego_tiny at 144x256 (`docs/rendering.md`): 32 slots a ray and four sizes
+        keep both under 10 passes per view with about 80 % of the evaluated slots in use.
         """
         backend = backend or jax.default_backend()
         values = dict(rays_per_block=2**15, field_chunk=2**13) if backend == "cpu" else dict(
-            rays_per_block=2**18, field_chunk=0)
+            rays_per_block=2**17, field_chunk=0)
         values.update(overrides)
         return cls(**values)
 
@@ -103,6 +112,8 @@ class _BlockShape(NamedTuple):
     max_rows_per_ray: int  # R_max
     max_passes: int
     field_chunk: int
+    first_rows: int  # rows a ray that has not started may ask for
+    level_fill: float
 
 
 def _block_shape(packing: Packing, total_rays: int, max_samples: int) -> _BlockShape:
@@ -118,7 +129,8 @@ def _block_shape(packing: Packing, total_rays: int, max_samples: int) -> _BlockS
     # block can need more passes than this, even in passes of the smallest size: no ray is ever cut.
     max_passes = -(-rays * rows_per_ray // rows[-1]) + rows_per_ray + 1
     chunk = packing.field_chunk or first * packing.row_length
-    return _BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk)
+    return _BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk,
+                       packing.slots_per_ray // packing.row_length, packing.level_fill)
 
 
 class _Rays(NamedTuple):
@@ -170,11 +182,18 @@ def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: 
         origins, directions, t_start, t_end)  # [N, S] each
     count = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N]
 
-    def one_pass(rows: int, state: _Rays) -> _Rays:
+    def requests(rows: int, state: _Rays) -> Array:
+        """Rows each live ray asks for in a pass of `rows` rows: min(rows // live, R_max, what it has left),
+        and a ray that has not started yet at most its nominal share (`slots_per_ray`): nothing tells
+        yet whether it will stop early."""
         live = jnp.sum(state.alive, dtype=jnp.int32)
         rows_per_ray = jnp.clip(rows // jnp.maximum(live, 1), 1, shape.max_rows_per_ray)  # []
+        rows_per_ray = jnp.where(state.next_sample == 0, jnp.minimum(rows_per_ray, shape.first_rows), rows_per_ray)
         need = -(-(count - state.next_sample) // row_length)  # [N]
-        layout = packed.layout_rows(jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0), rows)
+        return jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0)  # [N]
+
+    def one_pass(rows: int, state: _Rays) -> _Rays:
+        layout = packed.layout_rows(requests(rows, state), rows)
         index, valid = packed.row_samples(layout, state.next_sample, count, row_length)  # [M, s]
         owner = layout.owner[:, None]  # [M, 1]
         index = jnp.minimum(index, num_samples - 1)
@@ -194,10 +213,13 @@ def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: 
                      evaluations=state.evaluations + taken, passes=state.passes + 1,
                      slots=state.slots + rows * row_length)
 
-    def keep_going(next_slots: int, state: _Rays) -> Array:
-        """Passes of this size go on while rays are live and their remaining samples overflow the next size."""
-        remaining = jnp.sum(jnp.where(state.alive, count - state.next_sample, 0))
-        return jnp.any(state.alive) & (state.passes < shape.max_passes) & (remaining > next_slots)
+    def keep_going(rows: int, last: bool, state: _Rays) -> Array:
+        """Passes of this size go on while rays are live and (but for the smallest size) the live rays'
+        requests would fill `level_fill` of the pass; else the next smaller size takes over."""
+        going = jnp.any(state.alive) & (state.passes < shape.max_passes)
+        if last:
+            return going
+        return going & (jnp.sum(requests(rows, state)) >= shape.level_fill * rows)
 
     zeros = jnp.zeros((num_rays,), jnp.float32)
     state = _Rays(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=count > 0, optical_depth=zeros,
@@ -206,8 +228,8 @@ def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: 
     # One while loop per pass size; each reads its predicate once per pass of millions of slots on an
     # accelerator (see `Packing.for_backend`), and the sizes shrink as the block's work runs out.
     for level, rows in enumerate(shape.rows):
-        next_slots = shape.rows[level + 1] * row_length if level + 1 < len(shape.rows) else -1
-        state = jax.lax.while_loop(functools.partial(keep_going, next_slots), functools.partial(one_pass, rows), state)
+        last = level + 1 == len(shape.rows)
+        state = jax.lax.while_loop(functools.partial(keep_going, rows, last), functools.partial(one_pass, rows), state)
     rgb = state.rgb + (1.0 - state.acc)[:, None] * render_config.background
     return RenderOutput(rgb=rgb, depth=state.depth, acc=state.acc), state.evaluations, state.passes, state.slots
 
