@@ -74,6 +74,18 @@ def test_same_seed_same_scores_other_seed_differs(egps_run, tmp_path):
     assert other["scores_generated"] != first["scores_generated"]
 
 
+def test_rendered_criterion_rerun_gives_byte_identical_scores(tmp_path):
+    """Same seed, same results.json scores bit for bit, with a criterion scored on rendered images (the
+    case that differed between two runs on a GPU before determinism was on by default), on whatever
+    backend runs the suite."""
+    runs = []
+    for name in ("first", "second"):
+        assert explore(tmp_path / name, "--method", "egps", "--seed", "5", "--criterion", "colorfulness") == 0
+        r = json.loads((tmp_path / name / "results.json").read_text())
+        runs.append(json.dumps([r["scores_train"], r["scores_generated"], [t["c2w"] for t in r["topk"]]]))
+    assert runs[0] == runs[1]
+
+
 def test_several_seeds_report_mean_and_std(tmp_path):
     assert explore(tmp_path / "seeds", "--method", "grs", "--seed", "5", "--seeds", "3") == 0
     r = json.loads((tmp_path / "seeds" / "results.json").read_text())

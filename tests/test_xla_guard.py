@@ -21,3 +21,31 @@ def test_fused_reduction_ratio_matches_numpy():
     diff = origins[:, None, :] - points[None]
     want = (normals * diff).sum(-1) / np.sqrt((diff**2).sum(-1))
     np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def _flags_after_import(env_changes: dict) -> str:
+    """XLA_FLAGS as a fresh process sees it after `import waldo_jax`, with `env_changes` applied."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "WALDO_DETERMINISTIC")}
+    env.update(env_changes)
+    result = subprocess.run([sys.executable, "-c", "import os, waldo_jax; print(os.environ.get('XLA_FLAGS', ''))"],
+                            env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout.strip()
+
+
+def test_gpu_determinism_is_on_by_default_with_an_opt_out():
+    """A seed fixes a run bit for bit on every backend: the GPU determinism flag is added at import
+    (it changes nothing on a CPU), unless the user opts out or sets it (or its sibling) themselves."""
+    assert "--xla_gpu_deterministic_ops=true" in _flags_after_import({}).split()
+    assert "xla_gpu_deterministic_ops" not in _flags_after_import({"WALDO_DETERMINISTIC": "0"})
+    own = _flags_after_import({"XLA_FLAGS": "--xla_gpu_deterministic_ops=false"})
+    assert own.split().count("--xla_gpu_deterministic_ops=false") == 1 and "=true" not in own
+    sibling = _flags_after_import({"XLA_FLAGS": "--xla_gpu_exclude_nondeterministic_ops=true"})
+    assert "xla_gpu_deterministic_ops" not in sibling
+    # Other flags of the user's are kept.
+    kept = _flags_after_import({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}).split()
+    assert "--xla_force_host_platform_device_count=2" in kept and "--xla_gpu_deterministic_ops=true" in kept

@@ -7,6 +7,15 @@ Turning YNN fusions off (`--xla_cpu_experimental_ynn_fusion_type=`, a flag jaxli
 on) restores exact results; `tests/test_xla_guard.py` checks it. The flag only concerns the CPU
 backend and must be in XLA_FLAGS before JAX creates its CPU client, so import waldo_jax before
 running any JAX computation. A user's own setting of that flag is left alone.
+
+A seed fixes a run bit for bit on every backend. On a GPU, XLA by default lets some operations
+(scatter-adds, reductions through atomics, autotuned algorithms) give different float rounding
+from run to run: the same `waldo explore` run twice on an H100 gave different `scores_generated`.
+`--xla_gpu_deterministic_ops=true` makes them deterministic (the issue that asked for it reported
+28.0 s and 31.2 s for that run on an H100 without and with it: the same within that machine's
+noise; not re-measured here, no GPU was lent); it is added by default. Set `WALDO_DETERMINISTIC=0` in the environment to leave it out (faster on some GPU
+workloads, no longer bit-identical reruns there); a user's own setting of it, or of
+`--xla_gpu_exclude_nondeterministic_ops`, is left alone. It changes nothing on a CPU.
 """
 
 from __future__ import annotations
@@ -15,6 +24,8 @@ import os
 import warnings
 
 _YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
+# XLA flags that make GPU results deterministic; the first is the one added.
+_DETERMINISM_FLAGS = ("--xla_gpu_deterministic_ops", "--xla_gpu_exclude_nondeterministic_ops")
 
 
 def _jaxlib_version() -> tuple:
@@ -35,21 +46,34 @@ def _backends_started() -> bool:
         return False
 
 
+def _wanted_flags(flags: str) -> list:
+    """The flags to add to an XLA_FLAGS value `flags` (those the user has not set)."""
+    wanted = []
+    if _YNN_FLAG not in flags and _jaxlib_version() >= (0, 8, 0):
+        wanted.append(f"{_YNN_FLAG}=")
+    opted_out = os.environ.get("WALDO_DETERMINISTIC", "1").strip().lower() in ("0", "false", "no", "off")
+    if not opted_out and not any(flag in flags for flag in _DETERMINISM_FLAGS):
+        wanted.append(f"{_DETERMINISM_FLAGS[0]}=true")
+    return wanted
+
+
 def apply() -> None:
-    """Adds the YNN-fusion workaround to XLA_FLAGS when the installed jaxlib understands it."""
+    """Adds the YNN-fusion workaround (jaxlib >= 0.8) and GPU determinism to XLA_FLAGS, unless set already."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if _YNN_FLAG in flags or _jaxlib_version() < (0, 8, 0):
+    wanted = _wanted_flags(flags)
+    if not wanted:
         return
     if _backends_started():
         warnings.warn(
-            "waldo_jax was imported after JAX started its backends, so the CPU workaround "
-            f"{_YNN_FLAG}= could not be applied; import waldo_jax before running JAX code "
-            "(or set XLA_FLAGS yourself) to avoid a jaxlib miscompilation on CPU.",
+            "waldo_jax was imported after JAX started its backends, so the XLA flags "
+            f"{' '.join(wanted)} could not be applied; import waldo_jax before running JAX code "
+            "(or set XLA_FLAGS yourself): without them jaxlib 0.10.2 miscompiles some reductions on "
+            "a CPU, and GPU reruns are not bit-identical.",
             RuntimeWarning,
             stacklevel=3,
         )
         return
-    os.environ["XLA_FLAGS"] = f"{flags} {_YNN_FLAG}=".strip()
+    os.environ["XLA_FLAGS"] = " ".join([flags, *wanted]).strip()
 
 
 apply()

@@ -23,7 +23,7 @@ import time
 import warnings
 from typing import List, Optional
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import WaldoError, check_seed
 
 __all__ = ["main", "build_parser", "parse_procedural"]
 
@@ -38,6 +38,7 @@ def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
             spec_seed = int(spec)
         except ValueError:
             raise WaldoError(f"bad source {source!r}: expected procedural or procedural:SEED with an integer SEED")
+        check_seed(spec_seed, f"the seed of source {source!r}")
         if seed is not None and seed != spec_seed:
             raise WaldoError(f"source {source!r} and --seed {seed} disagree")
         return spec_seed
@@ -204,6 +205,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
+            check_seed(args.seed, "--seed", getattr(args, "seeds", 1) or 1)
         return int(args.handler(args) or 0)
     except WaldoError as e:
         print(f"waldo: error: {e}", file=sys.stderr)

@@ -87,7 +87,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     config = explore_config_from_args(args)
     if args.initial not in INITIAL_MODES:
         raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")
-    out = io.prepare_output_dir(args.out, force=args.force)  # refuse early, before any slow work
+    io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
     source = load_source(args.source, args.resolution, args.views)
     criterion = criterion_from_args(args, room=source.room, source=source.spec)
@@ -98,6 +98,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     setup = time.perf_counter() - start
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
                       setup_seconds=setup)
+    out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
     results = write_outputs(run, out)
     spread = (f" (mean over {args.seeds} seeds: CVIR {results['cvir_mean']:.1f} +/- {results['cvir_std']:.1f} %, "
               f"mCVIR {results['mcvir_mean']:.1f} +/- {results['mcvir_std']:.1f} %)" if args.seeds > 1 else "")

@@ -164,7 +164,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
     from waldo_jax.sources import Source, _room_renderer, field_renderer
 
     settings = settings or SETTINGS["quick" if quick else "full"]
-    out = io.prepare_output_dir(default_demo_dir() if out is None else out, force=False)
+    out = io.prepare_output_dir(default_demo_dir() if out is None else out, force=False, can_force=False)
     t0 = time.perf_counter()
     say = print if progress else (lambda *a, **k: None)
     say(f"[demo] rendering {settings.views} training views of procedural:{seed} ...", flush=True)

@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError"]
+__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "MAX_SEED", "check_seed"]
+
+# The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
+# the integer type of JAX keys and of the JSON readers of results.
+MAX_SEED = 2**31 - 1
 
 
 class WaldoError(Exception):
@@ -27,3 +31,15 @@ class SceneFormatError(WaldoError):
 
 class DataNotFoundError(WaldoError, FileNotFoundError):
     """A data or weights file the project expects is missing."""
+
+
+def check_seed(seed, what: str = "--seed", count: int = 1) -> int:
+    """`seed` as an int if it and the `count` seeds from it (seed, seed + 1, ...) lie in [0, MAX_SEED];
+    else a `WaldoError` naming `what` and the limit."""
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise WaldoError(f"{what} must be an integer, got {seed!r}")
+    last = seed + max(int(count), 1) - 1
+    if seed < 0 or last > MAX_SEED:
+        span = f" (with {count} seeds, up to {last})" if count > 1 else ""
+        raise WaldoError(f"{what} must be between 0 and {MAX_SEED}, got {seed}{span}")
+    return seed

@@ -94,18 +94,28 @@ def contact_sheet(
     return np.asarray(sheet)
 
 
-def prepare_output_dir(path: str | os.PathLike, force: bool = False) -> Path:
+def prepare_output_dir(path: str | os.PathLike, force: bool = False, can_force: bool = True) -> Path:
     """Creates an output folder, refusing to reuse a non-empty one unless `force`.
+
+    `can_force` False: the command has no `--force`, and the error does not suggest one.
 
     Raises:
       WaldoError: the folder exists and is not empty (and `force` is False), or it is a file.
     """
+    path = check_output_dir(path, force, can_force)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bool = True) -> Path:
+    """`prepare_output_dir`'s checks without creating anything: call it before slow or fallible work,
+    and `prepare_output_dir` once everything is validated, so a bad argument leaves no empty folder."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise WaldoError(f"{path}: exists and is not a directory")
     if path.is_dir() and any(path.iterdir()) and not force:
-        raise WaldoError(f"{path}: output directory exists and is not empty (choose another --out or pass --force)")
-    path.mkdir(parents=True, exist_ok=True)
+        advice = "choose another --out or pass --force" if can_force else "choose another --out"
+        raise WaldoError(f"{path}: output directory exists and is not empty ({advice})")
     return path
 
 
