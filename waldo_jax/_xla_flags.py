@@ -13,8 +13,9 @@ A seed fixes a run bit for bit on every backend. On a GPU, XLA by default lets s
 from run to run: the same `waldo explore` run twice on an H100 gave different `scores_generated`.
 `--xla_gpu_deterministic_ops=true` makes them deterministic (the issue that asked for it reported
 28.0 s and 31.2 s for that run on an H100 without and with it: the same within that machine's
-noise; not re-measured here, no GPU was lent); it is added by default. Set `WALDO_DETERMINISTIC=0` in the environment to leave it out (faster on some GPU
-workloads, no longer bit-identical reruns there); a user's own setting of it, or of
+noise; not re-measured here, no GPU was lent); it is added by default. Set `WALDO_DETERMINISTIC=0`
+in the environment to leave it out (faster on some GPU workloads, no longer bit-identical reruns
+there); a user's own setting of it, or of
 `--xla_gpu_exclude_nondeterministic_ops`, is left alone. It changes nothing on a CPU.
 """
 
