@@ -56,6 +56,14 @@ def header(name: str) -> dict:
     }
 
 
+def refuse_existing_out(out: str | None) -> None:
+    """Stops before any measurement when `--out` (or its `_loaded` name, which a shared machine gets)
+    already holds an earlier result: results are never overwritten."""
+    for path in (out, out and loaded_name(out)):
+        if path and Path(path).exists():
+            raise SystemExit(f"{path} exists: refusing to overwrite an earlier result (choose another --out)")
+
+
 def emit(result: dict, out: str | None) -> None:
     text = json.dumps(result, indent=2)
     print(text)

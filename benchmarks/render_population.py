@@ -23,7 +23,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, timed_alternately, wait_for_quiet  # noqa: E402
+from _common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.procedural import make_room, room_field, room_render_config  # noqa: E402
 from waldo_jax.render import render_view, render_views  # noqa: E402
@@ -84,8 +84,7 @@ def main(argv=None):
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
-    if args.out and Path(args.out).exists():
-        raise SystemExit(f"{args.out} exists: refusing to overwrite an earlier result (choose another --out)")
+    refuse_existing_out(args.out)
 
     quiet = wait_for_quiet(args.load_threshold)
     room = make_room(0)

@@ -45,7 +45,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, timed_alternately, wait_for_quiet  # noqa: E402
+from _common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax import paths  # noqa: E402
 from waldo_jax.cameras import slerp_c2w  # noqa: E402
 from waldo_jax.nerf import train as tr  # noqa: E402
@@ -174,8 +174,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if not args.quick and (args.run is None or args.scene_path is None):
         parser.error("give RUN and SCENE_PATH, or --quick")
-    if args.out and Path(args.out).exists():
-        raise SystemExit(f"{args.out} exists: refusing to overwrite an earlier result (choose another --out)")
+    refuse_existing_out(args.out)
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     width, height = (int(v) for v in args.size.lower().split("x"))
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731

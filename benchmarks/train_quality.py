@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 import jax  # noqa: E402
 
-from _common import emit, header, loaded_name  # noqa: E402
+from _common import emit, header, loaded_name, refuse_existing_out  # noqa: E402
 from waldo_jax.errors import SceneFormatError  # noqa: E402
 from waldo_jax.nerf.train import PRESETS, TrainConfig, evaluate, train  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
@@ -108,9 +108,7 @@ def main(argv=None):
     load_before = os.getloadavg()
     if args.checkpoint_out and Path(args.checkpoint_out).exists():
         raise SystemExit(f"{args.checkpoint_out} exists: refusing to overwrite a run")
-    for out in (args.out, args.out and loaded_name(args.out)):
-        if out and Path(out).exists():
-            raise SystemExit(f"{out} exists: refusing to overwrite an earlier result (choose another --out)")
+    refuse_existing_out(args.out)
 
     train_scene, test_scene = load_splits(args.scene_path, args.downscale)
     overrides = {} if args.steps is None else {"steps": args.steps}

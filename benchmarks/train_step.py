@@ -28,7 +28,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit, header, wait_for_quiet, emit_with_load  # noqa: E402,F401
+from _common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
 from waldo_jax.nerf.train import PRESETS, TrainConfig, train  # noqa: E402
 from waldo_jax.render import occupancy  # noqa: E402
@@ -82,8 +82,7 @@ def main(argv=None):
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
-    if args.out and Path(args.out).exists():
-        raise SystemExit(f"{args.out} exists: refusing to overwrite an earlier result (choose another --out)")
+    refuse_existing_out(args.out)
 
     quiet = wait_for_quiet(args.load_threshold)
     scene = load_scene(args.scene_path, downscale=args.downscale, split="train")
