@@ -183,6 +183,8 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--room-views", type=int, default=None, help="training views of the room (default 32)")
     parser.add_argument("--room-resolution", type=int, default=None, help="room training image side (default 64)")
     parser.add_argument("--room-seed", type=int, default=0)
+    parser.add_argument("--render-step-scale", type=float, default=None,
+                        help="NeRFs trained here march X times their training step (default: calibrated per run)")
     parser.add_argument("--downscale", default=None, help="K for all real scenes, or scene=K,... (default fox=8, "
                         "face=4, garden=4, fern=8)")
     parser.add_argument("--weights", default=None, help="weights folder (default WALDO_WEIGHTS)")
@@ -273,7 +275,7 @@ def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> 
 
     cmd_train(argparse.Namespace(scene_path=str(scene_path(scene)), out=str(run_dir), steps=args.train_steps,
                                  downscale=downscale, seed=args.seed, preset=args.preset, sampler="auto",
-                                 force=False, quiet=not args.progress, render_step_scale=None))
+                                 force=False, quiet=not args.progress, render_step_scale=args.render_step_scale))
 
 
 def _train_room(run_dir: Path, args) -> None:
@@ -282,7 +284,7 @@ def _train_room(run_dir: Path, args) -> None:
     from waldo_jax.procedural import room_scene
 
     settings = DemoSettings(views=args.room_views, resolution=args.room_resolution, train_steps=args.room_steps,
-                            seeds=args.seeds, test_views=8)
+                            seeds=args.seeds, test_views=8, render_step_scale=args.render_step_scale)
     scene, room = room_scene(args.room_seed, num_views=settings.views, resolution=settings.resolution)
     test_scene = _held_out_scene(room, args.room_seed, settings, scene)
     # _train_nerf writes OUT/nerf: train in a scratch folder beside run_dir, then move it into place.
@@ -615,7 +617,7 @@ def _settings(args, scenes, criteria, methods, budgets, children, downscale) -> 
         "top_k": args.top_k, "children_override": {k: int(v) for k, v in children.items()},
         "runs": args.runs, "preset": args.preset, "train_steps": args.train_steps, "room_steps": args.room_steps,
         "room_views": args.room_views, "room_resolution": args.room_resolution, "room_seed": args.room_seed,
-        "downscale": downscale, "waldo_criteria": [] if args.no_waldo else _names(args.waldo_criteria),
+        "render_step_scale": args.render_step_scale or "calibrated per run", "downscale": downscale, "waldo_criteria": [] if args.no_waldo else _names(args.waldo_criteria),
         "visibility_goal": args.visibility_goal, "reachable_samples": args.reachable_samples,
         "cloud_methods": list(args.cloud_methods),
         "cloud_threshold": "the best training score (green: better than every training view)",

@@ -57,8 +57,9 @@ def _scene() -> Scene:
 
 def _params(seed: int = 0):
     params = init_field(jax.random.key(seed), FIELD)
-    # Values whose bits a lossy round trip would change: NaN payload, -0.0, inf, a subnormal.
-    special = jnp.array([[jnp.nan, -0.0], [jnp.inf, 1e-45]], jnp.float32)
+    # Values whose bits a lossy round trip would change: -0.0, a subnormal, the largest float32 (NaN
+    # and inf go into the occupancy density: a checkpoint refuses non-finite field parameters).
+    special = jnp.array([[3.4028235e38, -0.0], [-3.4028235e38, 1e-45]], jnp.float32)
     params["hash"] = params["hash"].at[:2].set(special)
     return params
 
@@ -67,6 +68,9 @@ def _occupancy(config: TrainConfig):
     params = init_field(jax.random.key(0), FIELD)
     grid = make_sampler(config).init(jax.random.key(1), params)
     density = jax.random.uniform(jax.random.key(2), grid.density.shape)
+    # A NaN payload and inf: stored bit for bit.
+    nan_payload = jnp.asarray(np.array([0x7FC00123], np.uint32).view(np.float32))
+    density = density.reshape(-1).at[:2].set(jnp.concatenate([nan_payload, jnp.array([jnp.inf])])).reshape(density.shape)
     return grid.replace(density=density, bitfield=density > 0.5)
 
 
@@ -277,3 +281,13 @@ def test_render_writes_pngs_of_train_poses_and_a_poses_file(tmp_path, capsys):
     args = _parse(["render", str(run), "--out", str(tmp_path / "z")])
     with pytest.raises(WaldoError, match="--poses"):
         args.handler(args)
+
+
+def test_non_finite_field_parameters_are_refused_naming_the_file(tmp_path):
+    """A diverged training (NaN parameters, valid digest) would render all-white views: refused."""
+    params = init_field(jax.random.key(0), FIELD)
+    params["hash"] = params["hash"].at[3, 1].set(jnp.nan)
+    path = ckpt.save_checkpoint(tmp_path / "diverged.ckpt", params, _config(), _scene())
+    with pytest.raises(ckpt.CheckpointError, match=r"diverged\.ckpt: the field's parameters hold NaN or infinity "
+                                                   r"\(1 arrays, e.g. \['hash'\]\)"):
+        ckpt.load_checkpoint(path)

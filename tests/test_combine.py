@@ -91,8 +91,8 @@ def test_combinations_refuse_pose_oracles():
 def test_build_criterion_parses_the_command_line_forms():
     c = build_criterion("colorfulness", guards=["opacity:0.9"])
     assert c.name == "colorfulness|opacity>=0.9" and c.inputs == "renders"
-    w = build_criterion("weighted:opacity=2,opacity")
-    assert w.name == "weighted:opacity=2,opacity=1"
+    w = build_criterion("weighted:opacity=2,composition=1")
+    assert w.name == "weighted:opacity=2,composition=1"
     assert parse_guard("opacity:0.25") == ("opacity", 0.25)
     for bad in ("opacity", "opacity:x", ":0.5", "opacity:nan"):
         with pytest.raises(CriterionError, match="bad --guard"):
@@ -100,7 +100,18 @@ def test_build_criterion_parses_the_command_line_forms():
     with pytest.raises(CriterionError, match="unknown criterion 'nope'"):
         build_criterion("weighted:nope=1")
     with pytest.raises(CriterionError, match="bad weight 'x'"):
-        build_criterion("weighted:opacity=x")
+        build_criterion("weighted:opacity=x,composition=1")
+    with pytest.raises(CriterionError, match="bad weight ''"):  # every criterion states its weight
+        build_criterion("weighted:opacity,composition=1")
+    with pytest.raises(CriterionError, match="at least two criteria"):
+        build_criterion("weighted:composition=1")
+    with pytest.raises(CriterionError, match="names 'opacity' twice"):
+        build_criterion("weighted:opacity=1,opacity=2")
+    # A guard threshold that fails every view, or passes every view, is refused with the guard's range.
+    for bad, verdict in (("opacity:2", "fails"), ("opacity:-1", "passes"), ("opacity:0", "passes")):
+        with pytest.raises(CriterionError, match=f"lies in \\[0, 1\\], so the threshold {verdict} every view"):
+            build_criterion("colorfulness", guards=[bad])
+    assert build_criterion("colorfulness", guards=["opacity:1"]).name == "colorfulness|opacity>=1"
 
 
 def test_guarded_criterion_runs_inside_a_jitted_search_step():
@@ -126,7 +137,7 @@ def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
 
     paths = []
     for i, (rgb, alpha) in enumerate([((255, 0, 0), 255), ((0, 0, 0), 0), ((40, 40, 40), 255)]):
-        image = np.zeros((6, 5 + i, 4), np.uint8)  # three sizes: three batched calls
+        image = np.zeros((8, 8 + i, 4), np.uint8)  # three sizes: three batched calls
         image[..., :3] = rgb
         image[..., 3] = alpha
         paths.append(tmp_path / f"{i}.png")
@@ -139,7 +150,7 @@ def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
     assert lines[0].startswith("# colorfulness (higher is better)")
     assert float(lines[1].split()[0]) == pytest.approx(0.3 * np.hypot(255, 127.5), rel=1e-5) and abs(float(lines[2].split()[0])) < 1e-3  # red vs grey
     assert main(["score", "--criterion", "colorfulness", str(tmp_path / "missing.png")]) == 1
-    assert "image not found" in capsys.readouterr().err
+    assert "no such image file" in capsys.readouterr().err
     (tmp_path / "junk.png").write_bytes(b"not an image")
     assert main(["score", "--criterion", "colorfulness", str(tmp_path / "junk.png")]) == 1
     assert "junk.png: not a readable image" in capsys.readouterr().err

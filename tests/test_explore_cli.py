@@ -124,7 +124,7 @@ def test_errors_are_one_line(tmp_path, capsys):
 
 
 def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
-    settings = DemoSettings(views=10, resolution=24, train_steps=20, seeds=2, test_views=2)
+    settings = DemoSettings(views=10, resolution=24, train_steps=20, seeds=2, test_views=2, render_step_scale=3.0)
     out = run_demo(tmp_path / "demo", settings=settings, progress=False)
     report = (out / "report.md").read_text()
     for method in ("GRS", "PIBS", "EGPS"):

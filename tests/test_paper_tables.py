@@ -45,7 +45,7 @@ def quick(tmp_path_factory):
     scenes = "room,fox" if _fox_available() else "room"
     argv = ["--quick", "--scenes", scenes, "--criteria", "colorfulness", "--methods", ",".join(METHODS),
             "--seeds", str(SEEDS), "--resolution", "24", "--train-steps", "20", "--room-steps", "30",
-            "--room-views", "12", "--room-resolution", "32", "--downscale", "fox=32",
+            "--room-views", "12", "--room-resolution", "32", "--downscale", "fox=32", "--render-step-scale", "3",
             "--runs", str(tmp / "runs"), "--out", str(tmp / "paper.json")]
     returned = paper_tables.main(argv)
     data = json.loads(Path(returned["out"]).read_text())

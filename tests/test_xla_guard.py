@@ -49,3 +49,23 @@ def test_gpu_determinism_is_on_by_default_with_an_opt_out():
     # Other flags of the user's are kept.
     kept = _flags_after_import({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}).split()
     assert "--xla_force_host_platform_device_count=2" in kept and "--xla_gpu_deterministic_ops=true" in kept
+
+
+def test_matmuls_run_at_full_float32_precision_unless_the_user_chooses():
+    """Criterion scores and geometry must not depend on TF32 on NVIDIA GPUs: after `import waldo_jax`
+    every float32 product lowers with precision HIGHEST (a no-op on a CPU), and the user's own
+    JAX_DEFAULT_MATMUL_PRECISION is kept."""
+    assert jax.config.jax_default_matmul_precision == "highest"
+    x = jnp.ones((4, 8), jnp.float32)
+    text = jax.jit(lambda a: a @ a.T).lower(x).as_text()
+    assert "precision = [HIGHEST, HIGHEST]" in text, text
+
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, JAX_DEFAULT_MATMUL_PRECISION="tensorfloat32")
+    code = "import jax, waldo_jax; print(jax.config.jax_default_matmul_precision)"
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip() == "tensorfloat32"

@@ -1,4 +1,5 @@
-"""XLA settings that waldo_jax needs for correct results; imported first by `waldo_jax/__init__.py`.
+"""Backend settings that waldo_jax needs for correct, reproducible results; imported first by
+`waldo_jax/__init__.py`.
 
 jaxlib 0.10.2 on CPU miscompiles some fused reductions through its YNNPACK fusion: for example
 `jax.vmap(lambda o: jnp.sum(n * (o - p), -1) / jnp.sqrt(jnp.sum((o - p) ** 2, -1)))` over 49 or
@@ -17,6 +18,16 @@ noise; not re-measured here, no GPU was lent); it is added by default. Set `WALD
 in the environment to leave it out (faster on some GPU workloads, no longer bit-identical reruns
 there); a user's own setting of it, or of
 `--xla_gpu_exclude_nondeterministic_ops`, is left alone. It changes nothing on a CPU.
+
+The same scores on every backend: JAX lets float32 matrix products and convolutions run in TF32
+(10-bit mantissa, ~1e-3 relative error) on NVIDIA GPUs by default; 17 tests that compare with
+NumPy were reported failing on an H100, TF32 the likely cause (not yet re-run on a GPU). waldo_jax sets
+`jax_default_matmul_precision` to "highest" (full float32) at import, for every computation: users
+compare criterion scores across machines, camera geometry must be exact, and the hash-grid field's
+products are too small (64-wide layers) for TF32 to matter next to its table gathers. It changes
+nothing on a CPU (bit-identical results). A user's own choice wins: the environment variable
+`JAX_DEFAULT_MATMUL_PRECISION` (e.g. `tensorfloat32` to get TF32 back), or
+`jax.config.update("jax_default_matmul_precision", ...)` after importing waldo_jax.
 """
 
 from __future__ import annotations
@@ -77,4 +88,15 @@ def apply() -> None:
     os.environ["XLA_FLAGS"] = " ".join([flags, *wanted]).strip()
 
 
+def full_precision_matmuls() -> None:
+    """Sets JAX's default matmul/convolution precision to "highest" unless the user has chosen one."""
+    if os.environ.get("JAX_DEFAULT_MATMUL_PRECISION"):
+        return
+    import jax  # importing jax starts no backend; the XLA flags above are already in place
+
+    if jax.config.jax_default_matmul_precision is None:
+        jax.config.update("jax_default_matmul_precision", "highest")
+
+
 apply()
+full_precision_matmuls()

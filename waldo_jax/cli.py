@@ -23,7 +23,7 @@ import time
 import warnings
 from typing import List, Optional
 
-from waldo_jax.errors import WaldoError, check_seed
+from waldo_jax.errors import WaldoError, check_resolution, check_seed
 
 __all__ = ["main", "build_parser", "parse_procedural"]
 
@@ -86,10 +86,13 @@ def _cmd_render_procedural(args, seed: int) -> int:
     args.resolution = resolution
     if args.poses is not None:
         raise WaldoError("--poses is for trained runs; the procedural room renders its own training views")
-    if args.views < 1:
-        raise WaldoError(f"--views must be >= 1, got {args.views}")
-    if not 8 <= args.resolution <= 4096:
-        raise WaldoError(f"--resolution must be between 8 and 4096, got {args.resolution}")
+    from waldo_jax.sources import DEFAULT_PROCEDURAL_VIEWS, check_views
+
+    args.views = check_views(DEFAULT_PROCEDURAL_VIEWS if args.views is None else args.views)
+    check_resolution(args.resolution)
+    args.samples = 128 if args.samples is None else args.samples
+    if not 1 <= args.samples <= 1024:
+        raise WaldoError(f"--samples must be between 1 and 1024, got {args.samples}")
     out = io.prepare_output_dir(args.out, force=args.force)
     start = time.perf_counter()
     try:
@@ -99,8 +102,11 @@ def _cmd_render_procedural(args, seed: int) -> int:
         raise WaldoError(str(e)) from None
     seconds = time.perf_counter() - start
     visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
+    stale = io.stale_files(out, r"view_\d{3,}\.png", scene.file_names)  # --force: an earlier render's views
     for name, image in zip(scene.file_names, scene.images):
         io.save_png(out / name, image)
+    for path in stale:
+        path.unlink()
     labels = [f"{i}: waldo {v:.0%}" for i, v in enumerate(visibility)]
     io.save_png(out / "contact_sheet.png", io.contact_sheet(list(scene.images), labels=labels))
     io.write_transforms(out / "transforms.json", scene.c2w, scene.intrinsics, scene.file_names,
@@ -127,6 +133,10 @@ def _cmd_render(args) -> int:
         return _cmd_render_procedural(args, seed)
     from waldo_jax.nerf.commands import cmd_render
 
+    ignored = [flag for flag, value in (("--seed", args.seed), ("--views", args.views), ("--samples", args.samples))
+               if value is not None]
+    if ignored:
+        raise WaldoError(f"{', '.join(ignored)}: for procedural sources only; {args.source} renders its trained field")
     args.run_dir = args.source
     return cmd_render(args)
 
@@ -193,8 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--resolution", type=int, default=None,
                         help="procedural: image side (default 128); RUN_DIR: longer side (default: camera's)")
     render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default 0)")
-    render.add_argument("--views", type=int, default=24, help="procedural: number of training views (default 24)")
-    render.add_argument("--samples", type=int, default=128, help="procedural: samples per ray (default 128)")
+    render.add_argument("--views", type=int, default=None,
+                        help="procedural only: number of training views (default 24, at most 1000)")
+    render.add_argument("--samples", type=int, default=None,
+                        help="procedural only: samples per ray (default 128, at most 1024)")
     render.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     render.set_defaults(handler=_cmd_render)
     return parser
@@ -204,6 +216,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     """Entry point of `waldo`; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    show = warnings.showwarning
+    # Warnings are one line each, like errors: "waldo: warning: ..." (not Python's file:line form).
+    warnings.showwarning = lambda message, *rest, **kw: print(f"waldo: warning: {message}", file=sys.stderr)
     try:
         if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
             check_seed(args.seed, "--seed", getattr(args, "seeds", 1) or 1)
@@ -211,9 +226,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     except WaldoError as e:
         print(f"waldo: error: {e}", file=sys.stderr)
         return 1
+    except OSError as e:  # the machine refused (disk full, permissions): name the file, no traceback
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("waldo: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = show
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -25,7 +25,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from waldo_jax.errors import DataNotFoundError, WaldoError
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file
 
 __all__ = ["add_criterion_arguments", "criterion_from_args", "read_image", "add_score_command",
            "add_weights_command", "cmd_score", "cmd_weights_convert"]
@@ -48,34 +48,55 @@ def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[s
                         help="reference image of the object to find (criterion waldo)")
 
 
-def read_image(path: str | os.PathLike, keep_alpha: bool = False) -> np.ndarray:
+def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "image file",
+               min_side: int = MIN_RESOLUTION) -> np.ndarray:
     """An image file as float32 [H, W, 3] in [0, 1] ([H, W, 4] with its alpha if `keep_alpha` and it has one).
 
+    Sides must lie in [min_side, MAX_RESOLUTION] (read from the header, before any decoding; a scored
+    image needs MIN_RESOLUTION, a --target crop 2), and every value must be finite.
+
     Raises:
-      DataNotFoundError: no such file. WaldoError: not a readable image.
+      DataNotFoundError: no such file. WaldoError: not a regular file, not a readable image, too
+        small or too large, or with NaN / infinite values (the message names the file).
     """
     import imageio.v3 as iio
+    from PIL import Image
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"image not found: {path}")
+    path = check_input_file(path, what)
+    try:
+        with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
+            width, height = header.size
+    except Exception:  # not a format Pillow knows: imageio may still read it; its size is checked below
+        width = height = None
+    if width is not None:
+        _check_image_size(path, width, height, min_side)
     try:
         with warnings.catch_warnings():  # imageio's plugin probing warns about deprecated plugins on junk files
             warnings.simplefilter("ignore", DeprecationWarning)
             image = np.asarray(iio.imread(path))
-    except Exception as exc:  # imageio raises many types
-        raise WaldoError(f"{path}: not a readable image ({type(exc).__name__}: {exc})") from None
+    except Exception as exc:  # imageio raises many types, some with installation advice on later lines
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise WaldoError(f"{path}: not a readable image ({first[:160]})") from None
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
     if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):
         raise WaldoError(f"{path}: expected a grey, RGB or RGBA image, got an array of shape {image.shape}")
+    _check_image_size(path, image.shape[1], image.shape[0], min_side)
     if image.shape[-1] == 1:
         image = np.repeat(image, 3, axis=-1)
     scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
     image = image.astype(np.float32) / scale
+    if not np.all(np.isfinite(image)):
+        raise WaldoError(f"{path}: the image has {int(np.sum(~np.isfinite(image)))} NaN or infinite values")
     if image.shape[-1] == 4 and not keep_alpha:
         image = image[..., :3]
     return image
+
+
+def _check_image_size(path: Path, width: int, height: int, min_side: int) -> None:
+    if not (min_side <= min(width, height) and max(width, height) <= MAX_RESOLUTION):
+        raise WaldoError(f"{path}: the image is {width}x{height}; sides must lie between {min_side} and "
+                         f"{MAX_RESOLUTION} pixels")
 
 
 def criterion_from_args(args: argparse.Namespace, room=None, source: str = ""):
@@ -85,7 +106,7 @@ def criterion_from_args(args: argparse.Namespace, room=None, source: str = ""):
 
     target = None
     if getattr(args, "target", None):
-        target = read_image(args.target)
+        target = read_image(args.target, what="--target image", min_side=2)
     context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source)
     return build_criterion(args.criterion, context, getattr(args, "guard", []) or [])
 

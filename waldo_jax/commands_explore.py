@@ -46,7 +46,8 @@ def add_explore_command(subparsers) -> None:
     p.add_argument("--initial", default="images",
                    help="score the initial population on the real training 'images' (default, as the paper) "
                         "or on 'renders' at the training poses")
-    p.add_argument("--views", type=int, default=24, help="procedural: number of training views (default 24)")
+    p.add_argument("--views", type=int, default=None,
+                   help="procedural only: number of training views (default 24, at most 1000)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     p.add_argument("--quiet", action="store_true", help="no per-epoch progress lines")
     p.set_defaults(handler=cmd_explore)
@@ -81,7 +82,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     """`waldo explore`: runs the search and writes its files into --out."""
     from waldo_jax import io
     from waldo_jax.commands_criteria import criterion_from_args
-    from waldo_jax.exploration import INITIAL_MODES, run_explore, write_outputs
+    from waldo_jax.exploration import INITIAL_MODES, check_epoch_memory, run_explore, write_outputs
     from waldo_jax.sources import load_source
 
     config = explore_config_from_args(args)
@@ -92,19 +93,26 @@ def cmd_explore(args: argparse.Namespace) -> int:
     source = load_source(args.source, args.resolution, args.views)
     criterion = criterion_from_args(args, room=source.room, source=source.spec)
     try:
-        config.resolve(source.n_train)
+        resolved = config.resolve(source.n_train)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
+    check_epoch_memory(source, resolved, args.seeds)
     setup = time.perf_counter() - start
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
                       setup_seconds=setup)
     out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
     results = write_outputs(run, out)
-    spread = (f" (mean over {args.seeds} seeds: CVIR {results['cvir_mean']:.1f} +/- {results['cvir_std']:.1f} %, "
-              f"mCVIR {results['mcvir_mean']:.1f} +/- {results['mcvir_std']:.1f} %)" if args.seeds > 1 else "")
     best = results["topk"][0]["score"] if results["topk"] else None
+
+    def percent(value, spread=None):  # None where no score was usable (every view failed a guard, or NaN)
+        if value is None:
+            return "n/a"
+        return f"{value:.1f} %" if spread is None else f"{value:.1f} +/- {spread:.1f} %"
+
+    spread = (f" (mean over {args.seeds} seeds: CVIR {percent(results['cvir_mean'], results['cvir_std'])}, "
+              f"mCVIR {percent(results['mcvir_mean'], results['mcvir_std'])})" if args.seeds > 1 else "")
     print(f"{run.config.method.upper()} on {source.name} with {criterion.name}: {results['n_train']} training + "
-          f"{results['n_generated']} generated views; best {best if best is None else format(best, '.4g')}; "
-          f"CVIR {results['cvir']:.1f} %, mCVIR {results['mcvir']:.1f} %{spread}; "
+          f"{results['n_generated']} generated views; best {'n/a' if best is None else format(best, '.4g')}; "
+          f"CVIR {percent(results['cvir'])}, mCVIR {percent(results['mcvir'])}{spread}; "
           f"{run.seconds['total']:.1f} s; wrote {out}")
     return 0

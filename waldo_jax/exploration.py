@@ -23,6 +23,7 @@ artefacts). A criterion that scores poses (the room's oracle) ignores images: it
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
@@ -38,10 +39,44 @@ from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_se
 from waldo_jax.sources import Source
 
 __all__ = ["ExploreRun", "INITIAL_MODES", "score_function", "initial_scores", "run_explore", "write_outputs",
-           "seed_keys", "contact_sheet", "methods_sheet", "training_tiles"]
+           "seed_keys", "contact_sheet", "methods_sheet", "training_tiles", "check_epoch_memory", "memory_bytes",
+           "EPOCH_BYTES_PER_PIXEL"]
 
 INITIAL_MODES = ("images", "renders")
 RESULTS_JSON = "results.json"
+# Working memory of one epoch per rendered pixel (renders, criterion activations, the search's own
+# arrays), an upper estimate: `waldo explore procedural --criterion saliency --resolution 128` grew by
+# 134 MB per extra seed (50 children of 128x128 each: 164 bytes per pixel) on the 2-core CPU.
+EPOCH_BYTES_PER_PIXEL = 256
+
+
+def memory_bytes() -> int:
+    """Memory the first device can use: its allocator's limit on an accelerator, half the RAM on a CPU."""
+    stats = None
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # backends without memory statistics
+        pass
+    if stats and stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 << 30
+
+
+def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> None:
+    """Refuses a run whose batched epoch (seeds x children_per_epoch renders) would not fit in memory,
+    with the largest --seeds that would (see `EPOCH_BYTES_PER_PIXEL`)."""
+    pixels = source.intrinsics.width * source.intrinsics.height
+    per_seed = config.children_per_epoch * pixels * EPOCH_BYTES_PER_PIXEL
+    available = memory_bytes()
+    if seeds * per_seed > available:
+        raise WaldoError(
+            f"--seeds {seeds}: one epoch renders {seeds} x {config.children_per_epoch} views of "
+            f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
+            f"more than the {available / 2**30:.1f} GiB at hand; at most --seeds {max(available // per_seed, 0)} "
+            "here (or a lower --resolution)")
 
 
 def _score_rendered(render, criterion: Criterion, c2w):
@@ -144,6 +179,7 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     start = time.perf_counter()
     config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
+    check_epoch_memory(source, config, seeds)
     scores, initial_used = initial_scores(source, criterion, initial)
     start_init = Initial(c2w=source.train_c2w, scores=scores)
     score_fn = score_function(source, criterion)
@@ -350,11 +386,15 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     out = Path(out)
     (out / "topk").mkdir(exist_ok=True)
     names = [f"topk/{i:02d}.png" for i in range(len(run.top_images))]
+    written = [Path(n).name for n in names]
     for name, image in zip(names, run.top_images):
         io.save_png(out / name, image)
     if run.top_truth is not None:
         for i, image in enumerate(run.top_truth):
             io.save_png(out / "topk" / f"{i:02d}_truth.png", image)
+            written.append(f"{i:02d}_truth.png")
+    for path in io.stale_files(out / "topk", r"\d{2,}(_truth)?\.png", written):  # an earlier run's (--force)
+        path.unlink()
     io.save_png(out / "contact_sheet.png", contact_sheet(run))
 
     result = run.result

@@ -1,22 +1,66 @@
 """Writing results: PNG images, labelled contact sheets, run folders that never overwrite, JSON.
 
-Everything here runs on the host (NumPy / Pillow / imageio), at the edges of the program.
+Everything here runs on the host (NumPy / Pillow / imageio), at the edges of the program. Every file
+is written atomically (`atomic_file`: a temporary file beside it, renamed into place once complete),
+so a failed write (disk full, an interrupt) leaves no half-written or empty file behind.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io as _io
 import json
 import os
+import re
+import secrets
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, BinaryIO, Iterator, Optional, Sequence
 
-import imageio.v3 as iio
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from waldo_jax.errors import WaldoError
 
-__all__ = ["to_uint8", "save_png", "contact_sheet", "prepare_output_dir", "write_json", "write_transforms"]
+__all__ = [
+    "atomic_file", "write_bytes", "write_text", "to_uint8", "png_bytes", "save_png", "contact_sheet",
+    "check_output_dir", "prepare_output_dir", "stale_files", "write_json", "write_transforms",
+]
+
+
+def _open_temp(path: Path) -> tuple:
+    """(name, binary file) of a new temporary file beside `path` (mode 0o666 less the umask)."""
+    name = str(path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    return name, os.fdopen(fd, "wb")
+
+
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
+    """A binary file to write `path` through: a temporary file in the same folder, flushed to disk and
+    renamed onto `path` when the block ends; removed (and `path` left as it was) if the block raises."""
+    path = Path(path)
+    name, f = _open_temp(path)
+    try:
+        with f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(name)
+        raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Writes `data` to `path` atomically."""
+    with atomic_file(path) as f:
+        f.write(data)
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Writes UTF-8 `text` to `path` atomically."""
+    write_bytes(path, text.encode("utf-8"))
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -25,10 +69,17 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def save_png(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Writes a float [H, W, 3] image in [0, 1] (or uint8) as PNG."""
+def png_bytes(image: np.ndarray) -> bytes:
+    """A float [H, W, 3] image in [0, 1] (or uint8) encoded as PNG."""
     image = np.asarray(image)
-    iio.imwrite(path, image if image.dtype == np.uint8 else to_uint8(image))
+    buffer = _io.BytesIO()
+    Image.fromarray(image if image.dtype == np.uint8 else to_uint8(image)).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def save_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Writes a float [H, W, 3] image in [0, 1] (or uint8) as PNG, atomically."""
+    write_bytes(path, png_bytes(image))
 
 
 def _font(size: int):
@@ -100,39 +151,79 @@ def prepare_output_dir(path: str | os.PathLike, force: bool = False, can_force: 
     `can_force` False: the command has no `--force`, and the error does not suggest one.
 
     Raises:
-      WaldoError: the folder exists and is not empty (and `force` is False), or it is a file.
+      WaldoError: the folder exists and is not empty (and `force` is False), is a file, or cannot be
+        created or written (see `check_output_dir`).
     """
     path = check_output_dir(path, force, can_force)
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise WaldoError(f"{path}: cannot create the output directory ({e.strerror or e})") from None
     return path
 
 
 def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bool = True) -> Path:
     """`prepare_output_dir`'s checks without creating anything: call it before slow or fallible work,
-    and `prepare_output_dir` once everything is validated, so a bad argument leaves no empty folder."""
+    and `prepare_output_dir` once everything is validated, so a bad argument leaves no empty folder
+    and a long computation (training) is never lost to an output folder it cannot write.
+
+    Checks: every name in the path fits the file system's limit, the folder is a directory (or does
+    not exist yet) and is empty unless `force`, and it (or its nearest existing parent) is writable."""
     path = Path(path)
+    existing = path.absolute()
+    while not os.path.exists(existing) and existing != existing.parent:
+        existing = existing.parent
+    name_max = _name_max(existing)
+    for part in path.parts:
+        if len(os.fsencode(part)) > name_max:
+            raise WaldoError(f"{part[:24]}...: a name of {len(os.fsencode(part))} bytes in --out; this file system "
+                             f"allows at most {name_max}")
     if path.exists() and not path.is_dir():
         raise WaldoError(f"{path}: exists and is not a directory")
+    if not existing.is_dir():
+        raise WaldoError(f"{path}: cannot create the output directory: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise WaldoError(f"{path}: cannot write there: {existing} is not writable (permission denied)")
     if path.is_dir() and any(path.iterdir()) and not force:
         advice = "choose another --out or pass --force" if can_force else "choose another --out"
         raise WaldoError(f"{path}: output directory exists and is not empty ({advice})")
     return path
 
 
+def _name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of the existing `folder` allows (255 if it cannot be asked)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (AttributeError, OSError, ValueError):
+        return 255
+
+
+def stale_files(folder: str | os.PathLike, pattern: str, keep: Sequence[str]) -> list:
+    """Files of `folder` whose names match the regular expression `pattern` and are not in `keep`: what
+    an earlier run wrote that a new run into the same folder (`--force`) will not overwrite. The
+    caller removes them once its own files are written, so the folder holds one run, not two."""
+    keep = set(keep)
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and re.fullmatch(pattern, p.name) and p.name not in keep)
+
+
+def _json_ready(obj: Any) -> Any:
+    """`obj` with NumPy values as Python ones and NaN / infinity as None (they are not JSON)."""
+    if isinstance(obj, dict):
+        return {k: _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Writes JSON atomically (temp file + rename), NumPy values converted."""
-
-    def default(o):
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=default) + "\n")
-    os.replace(tmp, path)
+    """Writes JSON atomically, NumPy values converted and NaN / infinity written as null (strict JSON)."""
+    write_text(path, json.dumps(_json_ready(obj), indent=2, allow_nan=False) + "\n")
 
 
 def write_transforms(path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_names: Sequence[str],

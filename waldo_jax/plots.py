@@ -10,6 +10,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from waldo_jax.io import atomic_file
+
 __all__ = ["pose_cloud", "STAGES"]
 
 STAGES = ("start", "epoch 1", "final")
@@ -98,4 +100,5 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
         fig.colorbar(mappable, ax=fig.axes, shrink=0.6, label="score")
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.savefig(path, dpi=90, bbox_inches="tight")
+    with atomic_file(path) as f:
+        fig.savefig(f, format="png", dpi=90, bbox_inches="tight")

@@ -73,7 +73,7 @@ import numpy as np
 from PIL import Image
 
 from waldo_jax.cameras import camera_focus
-from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, SceneFormatError, WaldoError, check_input_file
 from waldo_jax.types import Intrinsics, Scene
 
 __all__ = [
@@ -93,6 +93,9 @@ SPLITS = ("all", "train", "val", "test")
 BLENDER_SPLITS = ("train", "val", "test")
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |bottom row - (0,0,0,1)| of a pose.
+# Largest |coordinate| of a camera origin or scene box: geometry runs in float32, where squared
+# distances of larger coordinates lose all precision (and 1e20 overflows). Rescale such scenes.
+MAX_COORDINATE = 1e6
 TEST_EVERY = 8  # hold-out stride of formats without splits (NeRF's `llffhold`).
 BLENDER_AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
@@ -237,7 +240,17 @@ def _check_rigid(m: np.ndarray, path: Path, what: str) -> np.ndarray:
         )
     if m.shape == (4, 4) and float(np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)))) > RIGID_TOL:
         raise SceneFormatError(path, f"{what}: pose bottom row is {m[3].tolist()}, expected [0, 0, 0, 1]")
+    _check_origin(m, path, what)
     return m
+
+
+def _check_origin(m: np.ndarray, path: Path, what: str) -> None:
+    """Refuses a camera origin with a coordinate beyond `MAX_COORDINATE`."""
+    largest = float(np.max(np.abs(m[:3, 3])))
+    if largest > MAX_COORDINATE:
+        raise SceneFormatError(
+            path, f"{what}: camera origin has a coordinate of {largest:.6g}, beyond the {MAX_COORDINATE:g} "
+            "that float32 geometry handles (rescale the scene)")
 
 
 def camera_bounds(
@@ -455,6 +468,8 @@ def _load_images(
             raise
         except Exception as e:  # corrupt or truncated files raise OSError, SyntaxError, ValueError...
             raise SceneFormatError(path, f"cannot read image ({type(e).__name__}: {e})") from None
+        if not np.all(np.isfinite(rgb)) or (alpha is not None and not np.all(np.isfinite(alpha))):
+            raise SceneFormatError(path, "the image has NaN or infinite values")
         if alpha is not None:
             rgb = rgb + (1.0 - alpha[..., None]) * background
         images[i] = rgb
@@ -713,8 +728,12 @@ def _load_transforms(
     c2w_all = np.stack([f["_c2w"] for f, _ in found])
 
     if fmt == "instant-ngp":
-        aabb_scale = _number(meta, "aabb_scale", path) or 1.0
-        scale = _number(meta, "scale", path) or NGP_DEFAULT_SCALE
+        aabb_scale = _number(meta, "aabb_scale", path)
+        aabb_scale = 1.0 if aabb_scale is None else aabb_scale
+        scale = _number(meta, "scale", path)
+        scale = NGP_DEFAULT_SCALE if scale is None else scale
+        if aabb_scale <= 0 or scale <= 0:
+            raise SceneFormatError(path, f"'aabb_scale' and 'scale' must be positive, got {aabb_scale:g} and {scale:g}")
         offset = meta.get("offset", NGP_DEFAULT_OFFSET)
         try:
             offset_vec = np.broadcast_to(np.asarray(offset, np.float64), (3,))
@@ -920,6 +939,7 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     rotation = m[:3, :3]
     if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > RIGID_TOL or np.linalg.det(rotation) < 0:
         raise SceneFormatError(path, f"{what} is not a rigid camera-to-world matrix")
+    _check_origin(m, path, what)
     return m
 
 
@@ -942,9 +962,14 @@ def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics
     fl_y = fl_y if fl_y is not None else fl_x
     if not (fl_x > 0 and fl_y > 0 and w >= 1 and h >= 1):
         raise SceneFormatError(path, f"invalid camera (fl_x={fl_x}, fl_y={fl_y}, w={w}, h={h})")
+    if not (MIN_RESOLUTION <= min(w, h) and max(w, h) <= MAX_RESOLUTION):
+        raise SceneFormatError(path, f"camera of {w:g}x{h:g} pixels: sides must lie between {MIN_RESOLUTION} and "
+                               f"{MAX_RESOLUTION} (--resolution R renders at another size)")
     distortion = [_number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
-    return Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, _number(meta, "cx", path),
-                             _number(meta, "cy", path), distortion)
+    intrinsics = Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, _number(meta, "cx", path),
+                                   _number(meta, "cy", path), distortion)
+    _warn_off_image_principal_point(intrinsics, path)
+    return intrinsics
 
 
 def read_poses_file(
@@ -975,6 +1000,9 @@ def read_poses_file(
         The message names the file (and the frame).
     """
     path = Path(path)
+    if not os.path.lexists(path):
+        raise SceneFormatError(path, "no such poses file")
+    check_input_file(path, "poses file")
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -1008,6 +1036,37 @@ def read_poses_file(
 
 # ----------------------------------------------------------------------------------------------
 # Entry point.
+
+
+def _check_extent(parts: Dict[str, Any], path: Path) -> None:
+    """Refuses a scene box or near/far that is not finite or lies beyond `MAX_COORDINATE`."""
+    aabb = np.asarray(parts["aabb"], np.float64)
+    near, far = float(parts["near"]), float(parts["far"])
+    if not (np.all(np.isfinite(aabb)) and np.max(np.abs(aabb)) <= MAX_COORDINATE):
+        raise SceneFormatError(path, f"scene box {aabb.tolist()} is not finite or lies beyond {MAX_COORDINATE:g} "
+                               "(rescale the scene)")
+    if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+        raise SceneFormatError(path, f"near/far bounds {near:g} / {far:g} do not satisfy 0 < near < far")
+
+
+def _warn_about_cameras(parts: Dict[str, Any], path: Path) -> None:
+    """Warns about cameras that load but surely are a mistake: repeated poses, an off-image principal point."""
+    c2w = np.asarray(parts["c2w"], np.float64)
+    if len(c2w) > 1:
+        scale = max(float(np.max(np.abs(np.asarray(parts["aabb"])))), 1e-6)
+        distinct = np.unique(np.round(c2w[:, :3, :] / np.array([1.0, 1.0, 1.0, scale]) * 1e6), axis=0)
+        if len(distinct) < len(c2w):
+            warnings.warn(f"{path}: {len(c2w) - len(distinct)} of {len(c2w)} cameras repeat another camera's pose "
+                          f"({len(distinct)} distinct); views from one pose give a NeRF no parallax", stacklevel=3)
+    _warn_off_image_principal_point(parts["intrinsics"], path)
+
+
+def _warn_off_image_principal_point(intrinsics: Intrinsics, path: Path) -> None:
+    cx, cy = float(intrinsics.cx), float(intrinsics.cy)
+    if not (0.0 <= cx <= intrinsics.width and 0.0 <= cy <= intrinsics.height):
+        warnings.warn(f"{path}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the "
+                      f"{intrinsics.width}x{intrinsics.height} image; the cameras look far off their image centre",
+                      stacklevel=4)
 
 
 def load_scene(
@@ -1051,6 +1110,8 @@ def load_scene(
     else:
         parts = _load_llff(folder, scene_file, split, factor, bg, max_images)
     images = parts["images"]
+    _check_extent(parts, scene_file)
+    _warn_about_cameras(parts, scene_file)
     # The size `downscale` is relative to: the stored images (LLFF: the full-size images of hwf).
     original_w, original_h = parts["original_size"]
     metadata = dict(parts["metadata"])

@@ -26,14 +26,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.types import Array, Intrinsics, Scene
 
 __all__ = ["Source", "SourceError", "load_source", "procedural_source", "run_source", "resize_images",
-           "DEFAULT_PROCEDURAL_RESOLUTION", "DEFAULT_PROCEDURAL_VIEWS"]
+           "DEFAULT_PROCEDURAL_RESOLUTION", "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "check_views"]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
 DEFAULT_PROCEDURAL_VIEWS = 24
+MAX_PROCEDURAL_VIEWS = 1000  # the paper's high budget in images: more training views than that are surely a typo
 _ROOM_SAMPLES = 128
 
 
@@ -167,10 +168,8 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
     from waldo_jax.procedural import room_scene
 
     resolution = DEFAULT_PROCEDURAL_RESOLUTION if resolution is None else int(resolution)
-    if not 8 <= resolution <= 4096:
-        raise SourceError(f"--resolution must be between 8 and 4096, got {resolution}")
-    if views < 1:
-        raise SourceError(f"the number of training views must be >= 1, got {views}")
+    check_resolution(resolution)
+    check_views(views)
     if scene is None or room is None:
         try:
             scene, room = room_scene(seed, num_views=views, resolution=resolution, num_samples=_ROOM_SAMPLES)
@@ -225,8 +224,7 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     record = checkpoint.scene
     intrinsics = record.intrinsics
     if resolution is not None:
-        if not 8 <= resolution <= 4096:
-            raise SourceError(f"--resolution must be between 8 and 4096, got {resolution}")
+        check_resolution(resolution)
         intrinsics = intrinsics.with_max_side(int(resolution))
     background = record.background if record.background is not None else np.zeros(3, np.float32)
     renderer_args = (checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near, record.far,
@@ -253,13 +251,27 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
                   room=room, truth_render=truth, info=info, train_images_note=note)
 
 
-def load_source(spec: str, resolution: Optional[int] = None, views: int = DEFAULT_PROCEDURAL_VIEWS) -> Source:
+def check_views(views) -> int:
+    """`views` if it is a number of procedural training views in [1, MAX_PROCEDURAL_VIEWS], else a `SourceError`."""
+    if isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= MAX_PROCEDURAL_VIEWS:
+        raise SourceError(f"--views must be an integer between 1 and {MAX_PROCEDURAL_VIEWS}, got {views!r}")
+    return views
+
+
+def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int] = None) -> Source:
     """The Source of a SOURCE string: `procedural[:SEED]` or a run directory.
 
+    `views` (default `DEFAULT_PROCEDURAL_VIEWS`) is for the procedural room only: a run's training
+    views are those it was trained on, and passing `views` with a run is an error, not ignored.
+
     Raises:
-      SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint.
+      SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint,
+      `views` with a run.
     """
     seed = _parse_procedural(spec)
     if seed is not None:
-        return procedural_source(seed, resolution, views)
+        return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
+    if views is not None:
+        raise SourceError(f"--views is for procedural sources; the run {spec} explores from the views it was "
+                          "trained on")
     return run_source(spec, resolution)

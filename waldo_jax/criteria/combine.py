@@ -120,6 +120,14 @@ def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Crite
         raise CriterionError(f"criterion {primary.name!r} has no finite worst score to give a view that fails "
                              f"the guard (value range {primary.value_range})") from None
     relation = ">=" if guard.direction == "max" else "<="
+    low, high = guard.value_range
+    # A threshold at or past the guard's good end fails every view; at or past its bad end it passes all.
+    fails_all = threshold > high if guard.direction == "max" else threshold < low
+    passes_all = threshold <= low if guard.direction == "max" else threshold >= high
+    if fails_all or passes_all:
+        raise CriterionError(
+            f"--guard {guard.name}:{threshold:g}: {guard.name} lies in [{low:g}, {high:g}], so the threshold "
+            f"{'fails' if fails_all else 'passes'} every view; choose one inside that range")
     name = f"{primary.name}|{guard.name}{relation}{threshold:g}"
     params = (primary.params, guard.params, jnp.float32(threshold))
     return Criterion(params=params, name=name, direction=primary.direction, value_range=primary.value_range,
@@ -179,16 +187,23 @@ def parse_guard(spec: str) -> Tuple[str, float]:
 def _parse_weighted(spec: str, context: CriterionContext) -> Criterion:
     body = spec[len("weighted:"):]
     criteria, weights = [], []
+    names = []
     for item in filter(None, body.split(",")):
         name, sep, value = item.partition("=")
+        name = name.strip()
         try:
-            weight = float(value) if sep else 1.0
+            weight = float(value)
         except ValueError:
-            raise CriterionError(f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT") from None
-        criteria.append(build_criterion(name.strip(), context))
+            raise CriterionError(f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT "
+                                 "for every criterion") from None
+        if name in names:
+            raise CriterionError(f"{spec!r} names {name!r} twice: give each criterion once, with its weight")
+        names.append(name)
+        criteria.append(build_criterion(name, context))
         weights.append(weight)
-    if not criteria:
-        raise CriterionError(f"bad criterion {spec!r}: expected weighted:NAME=WEIGHT,NAME=WEIGHT")
+    if len(criteria) < 2:
+        raise CriterionError(f"bad criterion {spec!r}: weighted needs at least two criteria, "
+                             "weighted:NAME=WEIGHT,NAME=WEIGHT (for one, name it alone)")
     return weighted(criteria, weights)
 
 

@@ -27,7 +27,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import secrets
 import struct
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -36,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
+from waldo_jax.io import atomic_file
 from waldo_jax.nerf.field import init_field
 from waldo_jax.nerf.train import TrainConfig, TrainConfigError, make_sampler
 from waldo_jax.types import Intrinsics, Scene
@@ -228,26 +228,12 @@ def save_checkpoint(path: str | os.PathLike, params: Any, config: TrainConfig, s
     header_bytes = json.dumps(header, allow_nan=True).encode("utf-8")
 
     folder = path.parent if str(path.parent) else Path(".")
-    # A fresh name in the target's folder (os.replace is atomic only within one file system); mode
-    # 0o666 less the umask, as for an ordinary new file.
-    tmp_name = str(folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    fd = os.open(tmp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-    try:
-        digest = hashlib.sha256()
-        with os.fdopen(fd, "wb") as f:
-            for part in (MAGIC, _LENGTH.pack(len(header_bytes)), header_bytes, *chunks):
-                digest.update(part)
-                f.write(part)
-            f.write(digest.digest())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        raise
+    digest = hashlib.sha256()
+    with atomic_file(path) as f:
+        for part in (MAGIC, _LENGTH.pack(len(header_bytes)), header_bytes, *chunks):
+            digest.update(part)
+            f.write(part)
+        f.write(digest.digest())
     _fsync_dir(folder)
     return path
 
@@ -410,6 +396,10 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     if path.is_dir():
         path = path / CHECKPOINT_NAME
     try:
+        check_input_file(path, "checkpoint file")  # a FIFO would block read_bytes, a folder fail late
+    except DataNotFoundError:
+        raise CheckpointError(path, "no such checkpoint file") from None
+    try:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise CheckpointError(path, "no such checkpoint file") from None
@@ -431,6 +421,11 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     occupancy = None
     if occupancy_template is not None:
         occupancy = _restore(path, "occupancy", occupancy_template, entries, payload)
+    bad = [name for name, leaf in jax.tree_util.tree_leaves_with_path(params)
+           if np.issubdtype(np.asarray(leaf).dtype, np.floating) and not np.all(np.isfinite(leaf))]
+    if bad:
+        raise CheckpointError(path, f"the field's parameters hold NaN or infinity ({len(bad)} arrays, e.g. "
+                              f"{jax.tree_util.keystr(bad[0])}): the training diverged; train again")
     if "scene/c2w" not in entries:
         raise CheckpointError(path, "incompatible checkpoint: array scene/c2w is missing")
     e = entries["scene/c2w"]

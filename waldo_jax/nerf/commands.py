@@ -34,11 +34,13 @@ from typing import Any, Dict, Optional
 import numpy as np
 
 from waldo_jax import io
-from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError, check_resolution
 
 __all__ = ["TRAIN_JSON", "add_commands", "cmd_render", "cmd_train"]
 
 TRAIN_JSON = "train.json"
+MAX_RENDER_POSES = 100_000  # one `waldo render` call; its PNG names have at least four digits
+RENDER_GROUP_PIXELS = 2**24  # pixels rendered per call (~200 MB of float32 colour): bounds memory
 _SAMPLER_CHOICES = ("auto", "dense", "occupancy")
 
 
@@ -78,6 +80,10 @@ def _load_splits(scene_path: str, downscale: Optional[float]):
     from waldo_jax.scenes import load_scene
 
     train_scene = load_scene(scene_path, downscale=downscale, split="train")
+    if min(train_scene.width, train_scene.height) < MIN_RESOLUTION:
+        how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
+        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; a NeRF "
+                         f"needs sides of at least {MIN_RESOLUTION} pixels")
     test_scene = None
     splits = ("test", "val") if train_scene.format == "blender" else ("test",)
     for split in splits:
@@ -109,9 +115,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.render_step_scale is not None and not (math.isfinite(args.render_step_scale)
                                                    and args.render_step_scale > 0):
         raise WaldoError(f"--render-step-scale must be a positive number, got {args.render_step_scale}")
-    out = Path(args.out)
-    if out.is_dir() and any(out.iterdir()) and not args.force:  # refuse before the (slow) scene load
-        io.prepare_output_dir(out, force=False)
+    # Refuse an output folder that is not empty, not writable or badly named before the (slow) scene
+    # load and training: a training must never be lost to a folder it cannot write.
+    out = io.check_output_dir(args.out, force=args.force)
 
     import jax
 
@@ -192,19 +198,33 @@ def cmd_render(args: argparse.Namespace) -> int:
             raise WaldoError(f"{poses_path}: no such poses file (or pass --poses train)")
         c2w, intrinsics, _ = read_poses_file(poses_path, scene.intrinsics)
     if args.resolution is not None:
-        if args.resolution < 1:
-            raise WaldoError(f"--resolution must be a positive integer, got {args.resolution}")
+        check_resolution(args.resolution)
         intrinsics = intrinsics.with_max_side(args.resolution)
-    out = io.prepare_output_dir(args.out, force=getattr(args, "force", False))
+    if len(c2w) > MAX_RENDER_POSES:
+        raise WaldoError(f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} "
+                         "(split the file)")
+    force = getattr(args, "force", False)
+    out = io.prepare_output_dir(args.out, force=force)
+    names = [f"{i:04d}.png" for i in range(len(c2w))]
+    stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
 
     background = scene.background if scene.background is not None else np.zeros(3, np.float32)
     print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
     start = time.perf_counter()
-    rendered = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, c2w, intrinsics,
-                              scene.near, scene.far, background, aabb=scene.aabb)
-    images = np.asarray(jax.device_get(rendered.rgb))
+    # Groups of poses of one size (the last padded by repeating a pose): one compiled program, and
+    # memory bounded by RENDER_GROUP_PIXELS however many poses the file holds.
+    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
+    for first in range(0, len(c2w), group):
+        part = c2w[first:first + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
+        rendered = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, padded, intrinsics,
+                                  scene.near, scene.far, background, aabb=scene.aabb)
+        images = np.asarray(jax.device_get(rendered.rgb))[:len(part)]
+        for name, image in zip(names[first:first + group], images):
+            io.save_png(out / name, image)
     seconds = time.perf_counter() - start
-    for i, image in enumerate(images):
-        io.save_png(out / f"{i:04d}.png", image)
-    print(f"wrote {len(images)} PNGs to {out} in {seconds:.1f} s")
+    for path in stale:
+        path.unlink()
+    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
+    print(f"wrote {len(names)} PNGs to {out} in {seconds:.1f} s{removed}")
     return 0

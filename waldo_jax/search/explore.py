@@ -156,14 +156,24 @@ class ExploreConfig:
         _budget_bounds(self.budget)
 
     def resolve(self, n_train: int) -> "ExploreConfig":
-        """This config with children_per_epoch fixed (from the budget when it is None)."""
-        if self.children_per_epoch is not None:
-            return self
-        return dataclasses.replace(self, children_per_epoch=budget_children(n_train, self.budget, self.epochs))
+        """This config with children_per_epoch fixed (from the budget when it is None).
+
+        Raises:
+          ValueError: top_k exceeds the capacity n_train + epochs * children_per_epoch.
+        """
+        resolved = self
+        if self.children_per_epoch is None:
+            resolved = dataclasses.replace(self, children_per_epoch=budget_children(n_train, self.budget, self.epochs))
+        capacity = int(n_train) + resolved.epochs * resolved.children_per_epoch
+        if resolved.top_k > capacity:
+            raise ValueError(f"top_k (--top-k) {resolved.top_k} exceeds the {capacity} views of the run ({n_train} training "
+                             f"+ {resolved.epochs} epochs x {resolved.children_per_epoch} children)")
+        return resolved
 
     def capacity(self, n_train: int) -> int:
         """C = n_train + epochs * children_per_epoch."""
-        return int(n_train) + self.epochs * self.resolve(n_train).children_per_epoch
+        resolved = self.resolve(n_train)
+        return int(n_train) + resolved.epochs * resolved.children_per_epoch
 
 
 @flax.struct.dataclass

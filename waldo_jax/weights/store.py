@@ -23,13 +23,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
 from waldo_jax.errors import DataNotFoundError, WaldoError
+from waldo_jax.io import atomic_file
 
 __all__ = [
     "NATIVE_FORMAT_VERSION",
@@ -155,15 +155,8 @@ def save_native(path: str | os.PathLike, model: str, tree: Mapping[str, Any], me
     record = json.dumps({"format_version": NATIVE_FORMAT_VERSION, "model": model, "meta": dict(meta)})
     arrays = _flatten(tree)
     arrays[_META_KEY] = np.frombuffer(record.encode(), np.uint8)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as f:
+        np.savez(f, **arrays)
     return path
 
 
