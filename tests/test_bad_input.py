@@ -88,6 +88,8 @@ CASES = [
     ("score-not-an-image", ["score", "--criterion", "colorfulness", "{tmp}/junk.png"], "junk.png: not a readable image"),
     ("render-poses-a-directory", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/run", "--out", "{tmp}/new"],
      "run: a directory"),
+    ("scene-a-symlink-loop", ["scene", "info", "{tmp}/loop"], "loop: a symbolic link that leads nowhere"),
+    ("train-scene-a-fifo", ["train", "{tmp}/fifo", "--out", "{tmp}/new"], "fifo: unknown scene format"),
     ("render-checkpoint-a-fifo", ["render", "{tmp}/fifo_run", "--poses", "train", "--out", "{tmp}/new"],
      "checkpoint.ckpt: a FIFO"),
 ]

@@ -159,6 +159,8 @@ def _locate(path: str | os.PathLike) -> Tuple[Path, str, Path, Optional[Dict[str
     """Resolves a folder or scene file to (folder, format, scene file, parsed JSON or None)."""
     path = Path(path).expanduser()
     if not path.exists():
+        if os.path.islink(path):  # exists() follows links: a loop or a dangling link is not "missing"
+            raise SceneFormatError(path, "a symbolic link that leads nowhere (a loop or a missing target)")
         raise SceneFormatError(path, "no such file or folder")
     if path.is_dir():
         folder = path
