@@ -82,7 +82,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     """`waldo explore`: runs the search and writes its files into --out."""
     from waldo_jax import io
     from waldo_jax.commands_criteria import criterion_from_args
-    from waldo_jax.exploration import INITIAL_MODES, check_epoch_memory, run_explore, write_outputs
+    from waldo_jax.exploration import INITIAL_MODES, run_explore, write_outputs
     from waldo_jax.sources import load_source
 
     config = explore_config_from_args(args)
@@ -93,10 +93,10 @@ def cmd_explore(args: argparse.Namespace) -> int:
     source = load_source(args.source, args.resolution, args.views)
     criterion = criterion_from_args(args, room=source.room, source=source.spec)
     try:
-        resolved = config.resolve(source.n_train)
+        config.resolve(source.n_train)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
-    check_epoch_memory(source, resolved, args.seeds)
+    # run_explore checks the batched epoch fits in memory before it scores or renders anything.
     setup = time.perf_counter() - start
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
                       setup_seconds=setup)

@@ -272,9 +272,7 @@ def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params):
     if c2w.shape[1] == 3:
         c2w = np.concatenate([c2w, np.broadcast_to(np.array([[[0, 0, 0, 1]]], np.float32), (len(c2w), 1, 4))], 1)
     n_train = c2w.shape[0]
-    config = config.resolve(n_train)
-    if config.top_k > config.capacity(n_train):
-        raise ValueError(f"top_k={config.top_k} exceeds the population capacity {config.capacity(n_train)}")
+    config = config.resolve(n_train)  # raises when top_k exceeds the capacity
     method_config = search_method.make_config(config.children_per_epoch, top_c=config.top_c,
                                               pibs_fallback=config.pibs_fallback)
     params = search_method.default_params() if params is None else params
