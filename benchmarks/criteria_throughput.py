@@ -8,7 +8,7 @@ time. The `waldo` finder uses a 40x40 crop of the first image as its target.
 
   python benchmarks/criteria_throughput.py --out benchmarks/results/criteria_throughput_cpu.json
 
-The network criteria run inside the same jit as a search's scoring step (`exploration.score_function`
+The network criteria run inside the same jit as a search's scoring step (`pipeline.score_function`
 composes render and criterion in one function), so these figures are what a search pays per view.
 """
 
@@ -28,14 +28,14 @@ import waldo_jax  # noqa: E402,F401  (before jax: XLA flags)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from _common import emit, header, loaded_name, timed, wait_for_quiet  # noqa: E402
+from bench_common import emit, header, loaded_name, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CRITERIA, CriterionContext, make_criterion  # noqa: E402
 
 
 def natural_images(count: int, size: int) -> tuple[np.ndarray, str]:
     """[count, size, size, 3] float32 images: fox views (square crops) if available, else synthetic."""
     from waldo_jax import paths
-    from waldo_jax.sources import resize_images
+    from waldo_jax.pipeline.sources import resize_images
 
     data = paths.data_dir()
     fox = None if data is None else data / "scenes" / "fox" / "images"

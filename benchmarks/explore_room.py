@@ -37,11 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
-from _common import emit_with_load, header, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
-from waldo_jax.exploration import run_explore, write_outputs  # noqa: E402
+from waldo_jax.pipeline import load_source, run_explore, write_outputs  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig  # noqa: E402
-from waldo_jax.sources import load_source  # noqa: E402
 
 SOURCE = "procedural"
 TARGET_S = 30.0

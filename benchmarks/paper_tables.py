@@ -4,7 +4,7 @@ Reproduces the protocol of "Finding Waldo" (Skartados, Yucel et al., MMSys'24, a
 Sec. 5): for every scene a NeRF is trained (or reused), and for every criterion, search method
 (GRS, PIBS, EGPS) and budget (low = 250 to 300 images in total, high = 900 to 1000) the search runs
 5 epochs and keeps the top 10 views; all seeds of a cell run in ONE vmapped call
-(`waldo_jax.exploration.run_explore(..., seeds=K)`). Per cell it reports CVIR (% gain of the best
+(`waldo_jax.pipeline.run_explore(..., seeds=K)`). Per cell it reports CVIR (% gain of the best
 score over the best training score) and mCVIR (the same for the mean of the best 10) as mean ± std
 over the seeds (population std), and stores every seed's numbers.
 
@@ -109,7 +109,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import shutil
 import signal
@@ -124,11 +123,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 
 import paper_values  # noqa: E402
-from _common import header, wait_for_quiet  # noqa: E402
+from paper_cells import explore_cells, reachable_visibility, summarise, waldo_row, write_figures  # noqa: E402
+from paper_report import criterion_table, fmt, pm, tables_from, waldo_table  # noqa: E402
+from bench_common import header, wait_for_quiet  # noqa: E402
 
 METHODS = ("grs", "pibs", "egps")
 BUDGETS = ("low", "high")
@@ -269,29 +268,29 @@ def unique_path(path: Path) -> Path:
 
 
 def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> None:
-    """`waldo train` on $WALDO_DATA/scenes/<scene> into run_dir."""
-    from waldo_jax.nerf.commands import cmd_train
+    """`waldo train` on $WALDO_DATA/scenes/<scene> into run_dir (`waldo_jax.nerf.runs.train_scene_run`)."""
+    from waldo_jax.nerf.runs import train_scene_run
     from waldo_jax.paths import scene_path
 
-    cmd_train(argparse.Namespace(scene_path=str(scene_path(scene)), out=str(run_dir), steps=args.train_steps,
-                                 downscale=downscale, seed=args.seed, preset=args.preset, sampler="auto",
-                                 force=False, quiet=not args.progress, render_step_scale=args.render_step_scale))
+    train_scene_run(str(scene_path(scene)), run_dir, preset=args.preset, steps=args.train_steps, downscale=downscale,
+                    seed=args.seed, render_step_scale=args.render_step_scale, progress=args.progress)
 
 
 def _train_room(run_dir: Path, args) -> None:
     """The room's NeRF the `waldo demo` way (fast preset on analytic renders, held-out views)."""
-    from waldo_jax.demo import DemoSettings, _held_out_scene, _train_nerf
+    from waldo_jax.pipeline.demo import DemoSettings, held_out_scene, train_room_nerf
     from waldo_jax.procedural import room_scene
 
     settings = DemoSettings(views=args.room_views, resolution=args.room_resolution, train_steps=args.room_steps,
                             seeds=args.seeds, test_views=8, render_step_scale=args.render_step_scale)
     scene, room = room_scene(args.room_seed, num_views=settings.views, resolution=settings.resolution)
-    test_scene = _held_out_scene(room, args.room_seed, settings, scene)
-    # _train_nerf writes OUT/nerf: train in a scratch folder beside run_dir, then move it into place.
+    test_scene = held_out_scene(room, args.room_seed, settings.test_views, scene)
+    # Train in a scratch folder beside run_dir, then move it into place: never a half-written run.
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=".room-", dir=run_dir.parent))
     try:
-        _train_nerf(scene, test_scene, settings, args.room_seed, scratch, args.progress)
+        (scratch / "nerf").mkdir()  # mkdtemp's folder is private (0700); the run gets the usual mode
+        train_room_nerf(scene, test_scene, settings, args.room_seed, scratch / "nerf", args.progress)
         os.replace(scratch / "nerf", run_dir)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -305,7 +304,7 @@ def room_folder(room_seed: int) -> str:
 def ensure_nerf(scene: str, args, downscale: Optional[float]) -> Dict[str, Any]:
     """The NeRF of `scene` in args.runs/<scene> (the room: `room_folder`): reused when its checkpoint exists, else trained."""
     from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
-    from waldo_jax.nerf.commands import TRAIN_JSON
+    from waldo_jax.nerf.runs import TRAIN_JSON
 
     run_dir = Path(args.runs) / room_folder(args.room_seed) if scene == ROOM else Path(args.runs) / scene
     reused = (run_dir / CHECKPOINT_NAME).exists()
@@ -323,287 +322,9 @@ def ensure_nerf(scene: str, args, downscale: Optional[float]) -> Dict[str, Any]:
     keep = ("psnr_test", "steps", "seconds", "preset", "downscale", "image_size", "n_train", "n_test",
             "rays_per_second", "device", "scene_format")
     say(f"{scene}: NeRF {'reused' if reused else 'trained'} ({stats.get('steps')} steps, held-out PSNR "
-        f"{_fmt(stats.get('psnr_test'), 2)} dB)")
+        f"{fmt(stats.get('psnr_test'), 2)} dB)")
     return {"run_dir": str(run_dir), "reused": reused, "seconds": round(seconds, 2),
             "train": {k: stats.get(k) for k in keep}}
-
-
-# ---------------------------------------------------------------------------------------------
-# One cell: a search over K seeds, summarised.
-
-
-def _float(value) -> Optional[float]:
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-def summarise(run) -> Dict[str, Any]:
-    """Every number of one cell (one criterion, scene, method, budget; K seeds)."""
-    from waldo_jax.exploration import _generated
-
-    n_train = run.source.n_train
-    per_seed = []
-    for seed, result in zip(run.seeds, run.results):
-        m = result.metrics
-        _, _, slots = _generated(result, n_train)
-        per_seed.append({
-            "seed": seed, "cvir": _float(result.cvir), "mcvir": _float(result.mcvir),
-            "best": _float(m.best[-1]), "mean_top_n": _float(m.mean_top_n[-1]),
-            "best_train": _float(m.best[0]), "mean_top_n_train": _float(m.mean_top_n[0]),
-            "best_per_epoch": [_float(v) for v in m.best], "mean_top_n_per_epoch": [_float(v) for v in m.mean_top_n],
-            "n_generated": int(len(slots)), "n_failed": int(np.sum(np.asarray(m.num_failed)[1:])),
-        })
-    config = run.config
-    return {
-        "cvir_mean": _float(run.stats["cvir_mean"]), "cvir_std": _float(run.stats["cvir_std"]),
-        "mcvir_mean": _float(run.stats["mcvir_mean"]), "mcvir_std": _float(run.stats["mcvir_std"]),
-        "n_train": n_train, "children_per_epoch": config.children_per_epoch, "epochs": config.epochs,
-        "top_k": config.top_k, "top_n": config.top_n, "n_total": n_train + config.epochs * config.children_per_epoch,
-        "initial_scores": run.initial, "seeds": run.seeds, "seconds": run.seconds, "per_seed": per_seed,
-    }
-
-
-def explore_cell(source, criterion, method: str, budget: str, args, children: Dict[str, float]):
-    from waldo_jax.exploration import run_explore
-    from waldo_jax.search import ExploreConfig
-
-    config = ExploreConfig(method=method, budget=budget, epochs=args.epochs, top_k=args.top_k,
-                           children_per_epoch=int(children[budget]) if budget in children else None)
-    return run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial)
-
-
-# ---------------------------------------------------------------------------------------------
-# Figures.
-
-
-def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str, Any], args, budget: str) -> List[str]:
-    """The views sheet and the pose clouds (threshold: the best training score) of one scene and criterion."""
-    from waldo_jax import io
-    from waldo_jax.exploration import methods_sheet
-    from waldo_jax.plots import pose_cloud
-
-    written = []
-    path = folder / f"{scene}_{criterion_name}_views.png"
-    io.save_png(path, methods_sheet(runs, args.figure_columns))
-    written.append(str(path))
-    for method, run in runs.items():
-        if method not in args.cloud_methods:
-            continue
-        population = run.result.population
-        filled = np.asarray(population.valid)
-        threshold = float(run.result.metrics.best[0])  # the best training score
-        marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
-        path = folder / f"{scene}_{criterion_name}_{method}_cloud.png"
-        pose_cloud(path, np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
-                   np.asarray(population.epoch)[filled], run.criterion.direction,
-                   title=(f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed {run.seeds[0]}: "
-                          f"green = better than the best training view ({threshold:.3g})"),
-                   threshold=threshold, marker=marker)
-        written.append(str(path))
-    return written
-
-
-# ---------------------------------------------------------------------------------------------
-# The Waldo room: visibility of the generated poses.
-
-
-def waldo_row(run, goal: float) -> Dict[str, Any]:
-    """Per seed: best visibility generated, visibility of the best-scored view, renders to reach `goal`."""
-    from waldo_jax.exploration import _generated
-    from waldo_jax.procedural import waldo_visibility_batch
-
-    room, intrinsics = run.source.room, run.source.intrinsics
-    train_visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(run.source.train_c2w), intrinsics))
-    per_seed = []
-    for seed, result in zip(run.seeds, run.results):
-        _, _, slots = _generated(result, run.source.n_train)
-        c2w = np.asarray(result.population.c2w)[slots]  # generation order
-        visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(c2w), intrinsics)) if len(slots) else []
-        visibility = np.asarray(visibility, np.float64)
-        reached = np.flatnonzero(visibility >= goal)
-        top = np.asarray(result.top_c2w)[np.asarray(result.top_valid)][:1]
-        top_visibility = (float(np.asarray(waldo_visibility_batch(room, jnp.asarray(top), intrinsics))[0])
-                          if len(top) else None)
-        per_seed.append({"seed": seed, "best_visibility": float(visibility.max()) if len(visibility) else None,
-                         "best_scored_visibility": top_visibility,
-                         "renders_to_goal": int(reached[0]) + 1 if len(reached) else None,
-                         "n_generated": int(len(slots)), "cvir": _float(result.cvir), "mcvir": _float(result.mcvir)})
-    found = [s for s in per_seed if s["renders_to_goal"] is not None]
-    best = [s["best_visibility"] for s in per_seed if s["best_visibility"] is not None]
-    scored = [s["best_scored_visibility"] for s in per_seed if s["best_scored_visibility"] is not None]
-    return {
-        "goal": goal, "seeds": len(per_seed), "found_share": len(found) / len(per_seed),
-        "best_visibility_mean": float(np.mean(best)) if best else None,
-        "best_visibility_max": float(np.max(best)) if best else None,
-        "best_scored_visibility_mean": float(np.mean(scored)) if scored else None,
-        "renders_to_goal_mean": float(np.mean([s["renders_to_goal"] for s in found])) if found else None,
-        "best_training_visibility": float(train_visibility.max()),
-        "children_per_epoch": run.config.children_per_epoch, "n_train": run.source.n_train,
-        "cvir_mean": _float(run.stats["cvir_mean"]), "mcvir_mean": _float(run.stats["mcvir_mean"]),
-        "seconds": run.seconds, "per_seed": per_seed,
-    }
-
-
-def reachable_visibility(source, samples: int, goal: float, seed: int = 0) -> Dict[str, Any]:
-    """The known answer: the best visibility of Waldo that the searches' origin region allows.
-
-    `samples` origins are drawn uniformly within the per-axis bounds of the training camera origins
-    (where GRS draws its origins: `waldo_jax.search.grs.origin_bounds`), each camera aimed at Waldo's
-    centre with GRS's mean up vector and the run's intrinsics. Aiming at Waldo only moves him into
-    the frame (occlusion depends on the origin alone), so the best of these is a sample estimate of
-    the highest visibility any search pose with an origin in that box can reach; a goal above it is
-    out of the searches' reach in this room, whatever the method or budget.
-
-    Returns:
-      best (max visibility), goal_share (fraction of the samples at or above `goal`), samples,
-      the best pose's origin, and the box.
-    """
-    from waldo_jax.cameras import look_at
-    from waldo_jax.procedural import waldo_visibility_batch
-    from waldo_jax.search import grs
-    from waldo_jax.search.population import init_population, training_poses
-
-    train = training_poses(source.train_c2w)
-    population = init_population(train, jnp.zeros(source.n_train), source.n_train)
-    low, high = grs.origin_bounds(population)
-    up = grs.mean_up(population)
-    room = source.room
-    origins = jax.random.uniform(jax.random.key(seed), (samples, 3), minval=low, maxval=high)
-    aim = jax.jit(jax.vmap(lambda o: look_at(o, room.waldo_center, up)))
-    chunk = 4096
-    visibility = np.concatenate([np.asarray(waldo_visibility_batch(room, aim(origins[i:i + chunk]), source.intrinsics))
-                                 for i in range(0, samples, chunk)]).astype(np.float64)
-    best = int(np.argmax(visibility))
-    return {"best": float(visibility[best]), "goal": goal, "goal_share": float(np.mean(visibility >= goal)),
-            "samples": samples, "seed": seed, "best_origin": np.asarray(origins[best], np.float64).round(4).tolist(),
-            "origin_low": np.asarray(low, np.float64).round(4).tolist(),
-            "origin_high": np.asarray(high, np.float64).round(4).tolist(),
-            "aim": "Waldo's centre, GRS's mean up vector"}
-
-
-# ---------------------------------------------------------------------------------------------
-# Tables.
-
-
-def _fmt(value, digits: int = 0) -> str:
-    return "n/a" if value is None or not math.isfinite(float(value)) else f"{float(value):.{digits}f}"
-
-
-def _pm(mean, std) -> str:
-    return "n/a" if mean is None else f"{_fmt(mean)} ± {_fmt(std)}"
-
-
-def _budget_label(budget: str, children: Dict[str, float]) -> str:
-    return f"{budget}*" if budget in children else budget
-
-
-def _undefined_notes(cells: Dict[str, Any], scenes, budgets, methods) -> List[str]:
-    """Why a scene's CVIR is n/a: CVIR and mCVIR are percentages of the best training score(s).
-
-    A cell is n/a when that base is 0 in every seed (e.g. no training render has a salient pixel at
-    a small resolution) or no training view could be scored; the note gives the base and the best
-    generated score, so the cell is not mistaken for a failed search.
-    """
-    notes = []
-    for scene in scenes:
-        seeds = [seed for budget in budgets for method in methods
-                 for seed in (cells.get(scene, {}).get(budget, {}).get(method) or {}).get("per_seed", [])]
-        if not seeds or any(s.get("cvir") is not None for s in seeds):
-            continue
-        bases = {s.get("best_train") for s in seeds}
-        bests = [s["best"] for s in seeds if s.get("best") is not None]
-        reason = (f"the best training score is {_fmt(bases.pop(), 3)}, and CVIR is a percentage of it"
-                  if len(bases) == 1 and None not in bases else "no training view has a usable score")
-        best = f"; the best generated score is {max(bests):.3f}" if bests else ""
-        notes.append(f"{scene}: n/a because {reason}{best}.")
-    return notes
-
-
-def criterion_table(criterion: str, cells: Dict[str, Any], scenes, budgets, methods, children, seeds) -> Dict[str, Any]:
-    """The paper's layout for one criterion: rows (budget, method), columns (scene: CVIR, mCVIR)."""
-    label = paper_values.label(criterion)
-    rows, lines = [], []
-    head = ["poses", "method"] + [f"{s} {m}" for s in scenes for m in ("CVIR", "mCVIR")]
-    lines.append("| " + " | ".join(head) + " |")
-    lines.append("|" + "---|" * len(head))
-    paper_rows = []
-    for budget in budgets:
-        for method in methods:
-            values = {}
-            for scene in scenes:
-                cell = cells.get(scene, {}).get(budget, {}).get(method)
-                values[scene] = ({"cvir": _pm(cell["cvir_mean"], cell["cvir_std"]),
-                                  "mcvir": _pm(cell["mcvir_mean"], cell["mcvir_std"])} if cell else
-                                 {"cvir": "-", "mcvir": "-"})
-            rows.append({"source": "ours", "budget": budget, "method": method, "cells": values})
-            lines.append("| " + " | ".join([_budget_label(budget, children), method.upper()] +
-                                           [values[s][k] for s in scenes for k in ("cvir", "mcvir")]) + " |")
-            published = {s: paper_values.lookup(criterion, s, budget, method) for s in scenes}
-            if any(v is not None for v in published.values()):
-                paper_cells = {s: ({"cvir": _fmt(v[0], 1), "mcvir": _fmt(v[1], 1)} if v else {"cvir": "", "mcvir": ""})
-                               for s, v in published.items()}
-                paper_rows.append({"source": "paper", "label": label, "budget": budget, "method": method,
-                                   "cells": paper_cells})
-                lines.append("| " + " | ".join([budget, f"{method.upper()} (paper)"] +
-                                               [paper_cells[s][k] for s in scenes for k in ("cvir", "mcvir")]) + " |")
-    notes = [f"CVIR % | mCVIR %, mean ± std over {seeds} seeds (ours)."]
-    notes += _undefined_notes(cells, scenes, budgets, methods)
-    if children:
-        notes.append("* children per epoch overridden (" + ", ".join(f"{b}: {int(c)}" for b, c in children.items()) +
-                     "): not the paper's budget.")
-    table = paper_values.table_for(criterion)
-    if paper_rows:
-        notes.append(f"(paper) rows: {label}.")
-    elif table is None:
-        notes.append(f"The paper has no table for {criterion}.")
-    else:
-        network = paper_values.TABLES[table]["paper_network"]
-        notes.append(f"Paper values ({network} on {paper_values.NERF}, {paper_values.SOURCE_URL}): not transcribed, "
-                     "see benchmarks/paper_values.py.")
-    text = "\n".join([f"### {criterion}", ""] + lines + [""] + notes)
-    return {"columns": list(scenes), "rows": rows, "paper_rows": paper_rows, "paper_label": label,
-            "notes": notes, "text": text}
-
-
-def _reachable_note(reference: Optional[Dict[str, Any]]) -> str:
-    """The footer sentence on the reachable best (empty for a JSON written before it was measured)."""
-    if not reference:
-        return ""
-    note = (f" The best reachable: {reference['best']:.0%}, the best of {reference['samples']:,} poses with origins "
-            f"uniform within the training cameras' bounds (the searches' origin region), aimed at Waldo; "
-            f"{reference['goal_share']:.2%} of them reach {reference['goal']:.0%}.")
-    if reference["best"] < reference["goal"]:
-        note += " The goal is out of reach in this room: no method can find it."
-    return note
-
-
-def waldo_table(waldo: Dict[str, Any], budgets, methods, children,
-                reference: Optional[Dict[str, Any]] = None, room_seed: Optional[int] = None) -> Dict[str, Any]:
-    """The Waldo-room table per search criterion; `reference`: `reachable_visibility` (the known answer)."""
-    lines, rows = [], []
-    room = "Waldo room" if room_seed is None else f"Waldo room procedural:{room_seed}"
-    for criterion, by_budget in waldo.items():
-        goal = next(iter(next(iter(by_budget.values())).values()))["goal"]
-        lines += [f"### {room}, search criterion {criterion} (visibility from the exact oracle)", "",
-                  f"| poses | method | seeds finding >= {goal:.0%} visible | best visibility (mean / max) | "
-                  "visibility of the best-scored view (mean) | renders to first reach it (mean) | CVIR % |",
-                  "|---|---|---|---|---|---|---|"]
-        for budget in budgets:
-            for method in methods:
-                r = by_budget[budget][method]
-                rows.append({"criterion": criterion, "budget": budget, "method": method,
-                             "found_share": r["found_share"],
-                             "best_visibility_mean": r["best_visibility_mean"],
-                             "renders_to_goal_mean": r["renders_to_goal_mean"]})
-                lines.append(f"| {_budget_label(budget, children)} | {method.upper()} | "
-                             f"{r['found_share']:.0%} ({round(r['found_share'] * r['seeds'])}/{r['seeds']}) | "
-                             f"{_fmt(r['best_visibility_mean'], 3)} / {_fmt(r['best_visibility_max'], 3)} | "
-                             f"{_fmt(r['best_scored_visibility_mean'], 3)} | {_fmt(r['renders_to_goal_mean'], 0)} | "
-                             f"{_fmt(r['cvir_mean'])} |")
-        first = next(iter(next(iter(by_budget.values())).values()))
-        lines += ["", f"Best training view: {first['best_training_visibility']:.0%} of Waldo visible "
-                      f"({first['n_train']} training views).{_reachable_note(reference)}", ""]
-    return {"rows": rows, "text": "\n".join(lines), "reference": reference}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -624,76 +345,6 @@ def _settings(args, scenes, criteria, methods, budgets, children, downscale) -> 
         "std": "population std over seeds (ddof 0)", "initial_scores": args.initial,
         "argv": sys.argv[1:],
     }
-
-
-# Settings that must agree for runs to share a table (the scenes may differ: one run per scene).
-MERGE_SETTINGS = ("budgets", "methods", "seeds", "first_seed", "resolution", "epochs", "top_k",
-                  "children_override", "initial_scores")
-
-
-def _load_run(path: Path) -> Dict[str, Any]:
-    try:
-        data = json.loads(Path(path).read_text())
-        data["settings"]["scenes"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
-        raise SystemExit(f"{path}: not a paper_tables JSON ({error})") from None
-    return data
-
-
-def _merge_runs(paths: Sequence[Path]) -> Dict[str, Any]:
-    """One run's worth of results from the JSONs of several runs of the same settings (e.g. one per scene).
-
-    Raises SystemExit when a setting of MERGE_SETTINGS differs or two runs hold the same scene of a
-    criterion (which one to print would be a guess).
-    """
-    runs = [_load_run(path) for path in paths]
-    first = runs[0]["settings"]
-    for path, run in zip(paths[1:], runs[1:]):
-        for key in MERGE_SETTINGS:
-            if run["settings"].get(key) != first.get(key):
-                raise SystemExit(f"{path}: {key} = {run['settings'].get(key)!r} differs from {paths[0]} "
-                                 f"({first.get(key)!r}); runs with other settings do not share a table")
-    results: Dict[str, Any] = {}
-    for path, run in zip(paths, runs):
-        for criterion, record in run["results"].items():
-            merged = results.setdefault(criterion, {"scenes": {}})
-            for scene, cells in record.get("scenes", {}).items():
-                if scene in merged["scenes"]:
-                    raise SystemExit(f"{path}: scene {scene!r} of {criterion} is also in an earlier JSON")
-                merged["scenes"][scene] = cells
-    scenes = list(dict.fromkeys(s for run in runs for s in run["settings"]["scenes"]))  # in the files' order
-    incomplete = [f"{path}: {run['incomplete']}" for path, run in zip(paths, runs) if run.get("incomplete")]
-    return {"settings": dict(first, scenes=scenes), "results": results, "incomplete": "; ".join(incomplete),
-            "waldo": [(run.get("waldo") or {}, run.get("waldo_reference"), run["settings"].get("room_seed"))
-                      for run in runs]}
-
-
-def tables_from(paths) -> str:
-    """The tables (Markdown) of one or several JSONs written by this script, over the scenes they completed.
-
-    Several JSONs (runs of the same settings, e.g. one per scene) make one table per criterion.
-    An interrupted run (`incomplete` in its JSON) keeps every finished cell; its tables show the
-    scenes that have cells and say that the run is incomplete.
-    """
-    paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
-    data = _merge_runs(paths)
-    settings = data["settings"]
-    budgets, methods = settings["budgets"], settings["methods"]
-    children = {k: float(v) for k, v in settings.get("children_override", {}).items()}
-    texts = []
-    if data["incomplete"]:
-        texts.append(f"**Incomplete run** ({data['incomplete']}): only the scenes with results are shown.\n")
-    for criterion, record in data["results"].items():
-        cells = record["scenes"]
-        scenes = [s for s in settings["scenes"] if s in cells]
-        if scenes:
-            texts.append(criterion_table(criterion, cells, scenes, budgets, methods, children,
-                                         settings["seeds"])["text"] + "\n")
-    for waldo, reference, room_seed in data["waldo"]:
-        complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
-        if waldo and complete:
-            texts.append(waldo_table(waldo, budgets, methods, children, reference, room_seed)["text"])
-    return "\n".join(texts)
 
 
 def _interrupt_on_signals() -> Dict[int, Any]:
@@ -726,7 +377,7 @@ def main(argv=None) -> Dict[str, Any]:
 def _run(args) -> Dict[str, Any]:
     """The protocol (see the module docstring) for parsed arguments."""
     from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion
-    from waldo_jax.sources import run_source
+    from waldo_jax.pipeline import run_source
 
     scenes = _names(args.scenes, REAL_SCENES + (ROOM,), "scene")
     criteria = [] if args.criteria == "none" else _names(args.criteria, what="criterion")
@@ -786,19 +437,17 @@ def _run(args) -> Dict[str, Any]:
                 record.update({"direction": criterion.direction, "description": criterion.description,
                                "paper_table": paper_values.table_for(criterion_name)})
                 cells = record["scenes"].setdefault(scene, {})
-                figure_runs = {}
-                for budget in budgets:
-                    for method in methods:
-                        run = explore_cell(source, criterion, method, budget, args, children)
-                        cells.setdefault(budget, {})[method] = summarise(run)
-                        explore_s += run.seconds["total"]
-                        c = cells[budget][method]
-                        say(f"{scene} {criterion_name} {budget} {method}: CVIR {_pm(c['cvir_mean'], c['cvir_std'])} %, "
-                            f"mCVIR {_pm(c['mcvir_mean'], c['mcvir_std'])} % ({run.seconds['total']:.1f} s, "
-                            f"{c['n_train']} + {args.epochs} x {c['children_per_epoch']} images, {args.seeds} seeds)")
-                        if budget == budgets[-1]:
-                            figure_runs[method] = run
-                figures_for(scene, criterion_name, figure_runs)
+
+                def record_cell(budget, method, run, cells=cells, criterion_name=criterion_name):
+                    nonlocal explore_s
+                    c = cells.setdefault(budget, {})[method] = summarise(run)
+                    explore_s += run.seconds["total"]
+                    say(f"{scene} {criterion_name} {budget} {method}: CVIR {pm(c['cvir_mean'], c['cvir_std'])} %, "
+                        f"mCVIR {pm(c['mcvir_mean'], c['mcvir_std'])} % ({run.seconds['total']:.1f} s, "
+                        f"{c['n_train']} + {args.epochs} x {c['children_per_epoch']} images, {args.seeds} seeds)")
+
+                figures_for(scene, criterion_name,
+                            explore_cells(source, criterion, budgets, methods, args, children, record_cell))
             result["seconds"]["explore"][scene] = round(explore_s, 2)
 
             if scene == ROOM and waldo_criteria:
@@ -811,18 +460,15 @@ def _run(args) -> Dict[str, Any]:
                 for criterion_name in waldo_criteria:
                     criterion = build_criterion(criterion_name, context)
                     by_budget = result["waldo"].setdefault(criterion_name, {})
-                    figure_runs = {}
-                    for budget in budgets:
-                        for method in methods:
-                            run = explore_cell(source, criterion, method, budget, args, children)
-                            row = waldo_row(run, args.visibility_goal)
-                            by_budget.setdefault(budget, {})[method] = row
-                            say(f"room {criterion_name} {budget} {method}: {row['found_share']:.0%} of seeds reach "
-                                f"{args.visibility_goal:.0%}, best visibility {_fmt(row['best_visibility_mean'], 3)}, "
-                                f"renders to goal {_fmt(row['renders_to_goal_mean'])} ({run.seconds['total']:.1f} s)")
-                            if budget == budgets[-1]:
-                                figure_runs[method] = run
-                    figures_for(scene, criterion_name, figure_runs)
+
+                    def record_row(budget, method, run, by_budget=by_budget, criterion_name=criterion_name):
+                        row = by_budget.setdefault(budget, {})[method] = waldo_row(run, args.visibility_goal)
+                        say(f"room {criterion_name} {budget} {method}: {row['found_share']:.0%} of seeds reach "
+                            f"{args.visibility_goal:.0%}, best visibility {fmt(row['best_visibility_mean'], 3)}, "
+                            f"renders to goal {fmt(row['renders_to_goal_mean'])} ({run.seconds['total']:.1f} s)")
+
+                    figures_for(scene, criterion_name,
+                                explore_cells(source, criterion, budgets, methods, args, children, record_row))
                 result["seconds"]["waldo"] = round(time.perf_counter() - t_waldo, 2)
             del source
             jax.clear_caches()  # the next scene has other shapes: nothing compiled here is reused

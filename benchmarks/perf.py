@@ -52,7 +52,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import emit, header, loaded_name  # noqa: E402
+from bench_common import emit, header, loaded_name  # noqa: E402
 
 PARTS = ("render_population", "render_trained", "train", "train_step", "criteria", "search_overhead", "explore")
 BENCHMARK_OF_PART = {"render_population": "render_population", "render_trained": "render_trained",

@@ -23,7 +23,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.procedural import make_room, room_field, room_render_config  # noqa: E402
 from waldo_jax.render import render_view, render_views  # noqa: E402

@@ -7,7 +7,7 @@ one process:
   quality   held-out PSNR (every held-out view at the training resolution) at each marching step of
             `--step-scales` (x the training step; the quality/speed curve), and at the run's render
             step (`render_step_scale`, calibrated after training; for a run trained before
-            calibration existed, calibrated here by the same rule, `train.calibrate_render_step`).
+            calibration existed, calibrated here by the same rule, `nerf.render.calibrate_render_step`).
             `psnr_delta_db` = that PSNR minus `--baseline-psnr` (today's renderer on the same run,
             measured by the caller) or, without it, minus the PSNR at the training step (scale 1).
   speed     `--poses` poses (training poses, then held-out ones, then SLERP midpoints) at `--size`
@@ -45,12 +45,20 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax import paths  # noqa: E402
 from waldo_jax.cameras import slerp_c2w  # noqa: E402
-from waldo_jax.nerf import train as tr  # noqa: E402
 from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
+from waldo_jax.nerf.config import TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
+from waldo_jax.nerf.render import (  # noqa: E402
+    calibrate_render_step,
+    evaluate,
+    render_setup,
+    render_trained,
+    render_trained_counted,
+)
+from waldo_jax.nerf.train import train  # noqa: E402
 from waldo_jax.render import marched  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 from waldo_jax.types import Intrinsics  # noqa: E402
@@ -86,7 +94,7 @@ def render_points(config, params, grid, c2w, camera, scene, background, evaluati
     from waldo_jax.render import occupancy
     from waldo_jax.render.volume import view_rays
 
-    grid_, render_config, march = tr.render_setup(config, grid, scene.near, scene.far, scene.aabb, background)
+    grid_, render_config, march = render_setup(config, grid, scene.near, scene.far, scene.aabb, background)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))[:, :3, :4]
     evaluations = np.asarray(evaluations, np.int64).reshape(-1)
 
@@ -126,7 +134,7 @@ def field_alone(config, params, points: np.ndarray, directions: np.ndarray, pass
 
     @jax.jit
     def run(params, x, d):
-        return jax.lax.map(lambda xd: marched._field_slots(field, params, xd[0], xd[1], chunk), (x, d))
+        return jax.lax.map(lambda xd: marched.field_slots(field, params, xd[0], xd[1], chunk), (x, d))
 
     x, d = jnp.asarray(x), jnp.asarray(d)
     return (lambda: run(params, x, d)), calls
@@ -147,8 +155,8 @@ def quick_run(folder: Path, steps: int) -> tuple:
         raise SystemExit("--quick needs lego_tiny in $WALDO_DATA/scenes (see ../shared/README.md)")
     train_scene = load_scene(scene_path, split="train")
     test_scene = load_scene(scene_path, split="test")
-    config = tr.TrainConfig.preset("fast", train_scene, steps=steps)
-    result = tr.train(jax.random.key(0), train_scene, config, test_scene, progress=False)
+    config = TrainConfig.preset("fast", train_scene, steps=steps)
+    result = train(jax.random.key(0), train_scene, config, test_scene, progress=False)
     save_checkpoint(folder / CHECKPOINT_NAME, result.params, result.config, train_scene, result.occupancy,
                     info={"psnr_test": result.psnr_test, "steps": result.steps, "seconds": result.seconds})
     return folder, scene_path
@@ -207,7 +215,7 @@ def main(argv=None):
     calibrated_here = config.render_step_scale is None
     curve_calibration = []
     if calibrated_here:
-        scale, curve_calibration = tr.calibrate_render_step(params, grid, config, test_scene)
+        scale, curve_calibration = calibrate_render_step(params, grid, config, test_scene)
         config = config.replace(render_step_scale=scale)
     scale = config.render_step_scale
     curve = []
@@ -215,7 +223,7 @@ def main(argv=None):
     for s in ([1.0, scale] if "curve" in skip else scales):
         if any(c["step_scale"] == s for c in curve):
             continue
-        result = tr.evaluate(params, grid, config, test_scene, step_scale=s)
+        result = evaluate(params, grid, config, test_scene, step_scale=s)
         curve.append({"step_scale": s, "psnr_test": result["psnr"], "evaluations_per_ray": result["evaluations_per_ray"]})
         log(f"step x{s:g}: held-out PSNR {result['psnr']:.3f} dB, {result['evaluations_per_ray']:.1f} evaluations/ray")
     at_scale = next(c for c in curve if c["step_scale"] == scale)
@@ -228,16 +236,16 @@ def main(argv=None):
     rays = poses * width * height
 
     def render(poses_c2w):
-        return tr.render_trained(params, grid, config, poses_c2w, camera, scene.near, scene.far, background,
-                                 aabb=scene.aabb, packing=packing).rgb
+        return render_trained(params, grid, config, poses_c2w, camera, scene.near, scene.far, background,
+                              aabb=scene.aabb, packing=packing).rgb
 
-    counted = jax.device_get(tr.render_trained_counted(params, grid, config, c2w, camera, scene.near, scene.far,
-                                                       background, aabb=scene.aabb, packing=packing))
+    counted = jax.device_get(render_trained_counted(params, grid, config, c2w, camera, scene.near, scene.far,
+                                                    background, aabb=scene.aabb, packing=packing))
     evaluations = int(np.asarray(counted.evaluations, np.int64).sum())
     passes = int(np.asarray(counted.passes, np.int64).sum())
     slots = int(np.asarray(counted.slots, np.int64).sum())
-    shape = marched._block_shape(packing, rays, tr.render_setup(config, grid, scene.near, scene.far, scene.aabb,
-                                                                background)[2].max_samples)
+    shape = marched.block_shape(packing, rays, render_setup(config, grid, scene.near, scene.far, scene.aabb,
+                                                             background)[2].max_samples)
     pass_slots = shape.rows[0] * shape.row_length
     points, directions = render_points(config, params, grid, c2w, camera, scene, background, counted.evaluations)
     field_points = points.shape[0]

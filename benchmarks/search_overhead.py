@@ -40,7 +40,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
 from waldo_jax.search import METHODS, ExploreConfig, Initial, explore  # noqa: E402
 

@@ -38,9 +38,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 import jax  # noqa: E402
 
-from _common import emit, header, loaded_name, refuse_existing_out  # noqa: E402
+from bench_common import emit, header, loaded_name, refuse_existing_out  # noqa: E402
 from waldo_jax.errors import SceneFormatError  # noqa: E402
-from waldo_jax.nerf.train import PRESETS, TrainConfig, evaluate, train  # noqa: E402
+from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
+from waldo_jax.nerf.render import evaluate  # noqa: E402
+from waldo_jax.nerf.train import train  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 
 

@@ -28,9 +28,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from _common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
-from waldo_jax.nerf.train import PRESETS, TrainConfig, train  # noqa: E402
+from waldo_jax.nerf.train import train  # noqa: E402
 from waldo_jax.render import occupancy  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 
@@ -43,7 +44,7 @@ def occupied_points(key, grid: occupancy.OccupancyGrid, count: int) -> np.ndarra
     pick = np.asarray(jax.random.choice(key_cell, jnp.asarray(cells), (count,)))
     cascade, cell = pick // grid.cells_per_cascade, pick % grid.cells_per_cascade
     jitter = jax.random.uniform(key_jitter, (count, 3))
-    return np.asarray(occupancy._cell_points(grid, jnp.asarray(cascade), jnp.asarray(cell), jitter), np.float32)
+    return np.asarray(occupancy.cell_points(grid, jnp.asarray(cascade), jnp.asarray(cell), jitter), np.float32)
 
 
 def time_field(config: TrainConfig, params, points: np.ndarray, repeats: int) -> dict:

@@ -8,10 +8,14 @@ Tests that need the third-party data in `$WALDO_DATA` (default `../shared`) use 
 from __future__ import annotations
 
 import os
+import shutil
+from pathlib import Path
+from typing import Callable
 
 os.environ.setdefault("JAX_ENABLE_X64", "0")
 
 import pytest
+from filelock import FileLock
 
 from waldo_jax import paths
 
@@ -38,3 +42,25 @@ def require_weights(relpath: str):
     if path is None or not path.exists():
         _missing(f"weights file {relpath!r} ({path or 'WALDO_WEIGHTS unset'})")
     return path
+
+
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
+    """A folder that `build(folder)` fills once per test session, shared by all pytest-xdist workers.
+
+    A module-scoped fixture runs once per *worker*: under `pytest -n 2` both workers would train the
+    same NeRF side by side, each at half speed. Here the first worker builds (with both cores to
+    itself) while the other waits on a file lock and then reads the finished folder. A build that
+    raises leaves no `.done` mark, so the next worker tries again and reports its own failure.
+    Callers must treat the folder as read-only.
+    """
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's base folder, common to every worker
+    folder, done = root / name, root / f"{name}.done"
+    with FileLock(str(root / f"{name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder

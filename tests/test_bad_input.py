@@ -121,7 +121,7 @@ def _write_run(folder, nan=False):
 
     from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
     from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-    from waldo_jax.nerf.train import TrainConfig
+    from waldo_jax.nerf.config import TrainConfig
     from waldo_jax.scenes import load_scene
 
     scene = load_scene(folder.parent / "scene")

@@ -21,7 +21,8 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
 from waldo_jax.nerf import checkpoint as ckpt
 from waldo_jax.cli import build_parser
-from waldo_jax.nerf.train import TrainConfig, make_sampler
+from waldo_jax.nerf.config import TrainConfig
+from waldo_jax.nerf.samplers import make_sampler
 from waldo_jax.types import Intrinsics, Scene
 
 BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))

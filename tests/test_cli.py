@@ -8,7 +8,8 @@ import imageio.v3 as iio
 import pytest
 
 from conftest import require_scene
-from waldo_jax.cli import main, parse_procedural
+from waldo_jax.cli import main
+from waldo_jax.pipeline.sources import parse_procedural
 from waldo_jax.errors import WaldoError
 
 

@@ -110,7 +110,7 @@ def _blur(image, sigma):
 def test_quality_criteria_rank_a_clean_fox_view_above_its_blurred_copies():
     import imageio.v3 as iio
 
-    from waldo_jax.sources import resize_images
+    from waldo_jax.pipeline.sources import resize_images
 
     fox = require_scene("fox")
     path = sorted((fox / "images").glob("*.jpg"))[0]

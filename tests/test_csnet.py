@@ -20,6 +20,8 @@ from PIL import Image
 
 from conftest import require_scene, require_weights
 from waldo_jax.criteria import csnet
+from waldo_jax.criteria.csnet import convert as csnet_convert
+from waldo_jax.criteria.csnet import model as csnet_model
 from waldo_jax.criteria.base import CRITERIA, CriterionContext, make_criterion
 from waldo_jax.errors import DataNotFoundError
 from waldo_jax.weights import WeightsError, save_native
@@ -251,18 +253,18 @@ def test_primitives_match_numpy():
     x = rng.standard_normal((5, 12, 20))
     w = rng.standard_normal((4, 5, 3, 3)) / 5
     for stride, padding, dilation in ((1, 1, 1), (2, 1, 1), (1, 2, 2), (1, 8, 8)):
-        ours = csnet._conv(to_jax(x), jnp.asarray(w.transpose(2, 3, 1, 0), jnp.float32), stride=stride,
-                           padding=padding, dilation=dilation)
+        ours = csnet_model.conv(to_jax(x), jnp.asarray(w.transpose(2, 3, 1, 0), jnp.float32), stride=stride,
+                                padding=padding, dilation=dilation)
         assert_close(to_np(ours), np_conv(x, w, stride, padding, dilation))
     depthwise = rng.standard_normal((5, 1, 3, 3))
-    ours = csnet._depthwise3x3(to_jax(x), jnp.asarray(depthwise.transpose(2, 3, 1, 0), jnp.float32))
+    ours = csnet_model.depthwise3x3(to_jax(x), jnp.asarray(depthwise.transpose(2, 3, 1, 0), jnp.float32))
     assert_close(to_np(ours), np_conv(x, depthwise, padding=1, groups=5))
     for k in (2, 4):
-        assert_close(to_np(csnet._max_pool(to_jax(x), k)), np_pool(x, k, np.max))
-        assert_close(to_np(csnet._avg_pool(to_jax(x), k)), np_pool(x, k, np.mean))
+        assert_close(to_np(csnet_model.max_pool(to_jax(x), k)), np_pool(x, k, np.max))
+        assert_close(to_np(csnet_model.avg_pool(to_jax(x), k)), np_pool(x, k, np.mean))
     small = rng.standard_normal((3, 5, 7))
     for factor in (2, 4):
-        assert_close(to_np(csnet._upsample(to_jax(small), factor)), np_upsample(small, factor))
+        assert_close(to_np(csnet_model.upsample(to_jax(small), factor)), np_upsample(small, factor))
 
 
 GOCTAVE_CASES = [  # torch prefix, Flax path, in splits, out splits, kernel, stride
@@ -436,7 +438,7 @@ def test_truncated_or_foreign_splits_name_the_file(weights_dir, tmp_path):
 def test_wrong_tensor_shape_names_file_and_key(weights_dir, real_state_dict, monkeypatch):
     bad = dict(real_state_dict)
     bad["stage3.2.conv3x3_1.convs.1.weight"] = np.zeros((17, 1, 3, 3), np.float32)
-    monkeypatch.setattr(csnet, "state_dict", lambda obj: bad)
+    monkeypatch.setattr(csnet_convert, "state_dict", lambda obj: bad)
     with pytest.raises(WeightsError, match=r"csnet-L-x1\.pth\.tar: weight 'stage3\.2\.conv3x3_1\.convs\.1\.weight' "
                                            r"has shape \(17, 1, 3, 3\), expected \(18, 1, 3, 3\)"):
         csnet.read(weights_dir / "csnet")

@@ -8,10 +8,10 @@ import pytest
 
 from waldo_jax.cli import main
 from waldo_jax.criteria import CRITERIA, make_criterion
-from waldo_jax.demo import DemoSettings, run_demo
+from waldo_jax.pipeline.demo import DemoSettings, run_demo
 from waldo_jax.errors import WaldoError
 from waldo_jax.procedural import make_room, waldo_coverage
-from waldo_jax.sources import procedural_source, run_source
+from waldo_jax.pipeline.sources import procedural_source, run_source
 from waldo_jax.types import Intrinsics
 
 TINY = ["--resolution", "16", "--views", "8", "--epochs", "2", "--children-per-epoch", "6", "--top-k", "4",

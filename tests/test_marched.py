@@ -317,31 +317,40 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
 
 
 @pytest.fixture(scope="module")
-def trained_lego():
-    """lego_tiny trained for 150 steps (a small hash grid): a real field with surfaces and empty space."""
+def trained_lego(tmp_path_factory):
+    """lego_tiny trained for 150 steps (a small hash grid): a real field with surfaces and empty space.
+
+    Trained once per session (`built_once`) and read back from its checkpoint by every worker.
+    """
     import dataclasses
 
-    from conftest import require_scene
+    from conftest import built_once, require_scene
     from waldo_jax.nerf import train as tr
+    from waldo_jax.nerf.checkpoint import load_checkpoint, save_checkpoint
+    from waldo_jax.nerf.config import TrainConfig
     from waldo_jax.scenes import load_scene
 
     scene = load_scene(require_scene("lego_tiny"), split="train", max_images=30)
-    config = tr.TrainConfig.preset("fast", scene, steps=150, render_step_scale=1.0)
-    config = config.replace(field=dataclasses.replace(
-        config.field, hashgrid=dataclasses.replace(config.field.hashgrid, L=8, T=2**14)))
-    result = tr.train(jax.random.key(0), scene, config, progress=False)
-    return scene, result
+
+    def build(folder):
+        config = TrainConfig.preset("fast", scene, steps=150, render_step_scale=1.0)
+        config = config.replace(field=dataclasses.replace(
+            config.field, hashgrid=dataclasses.replace(config.field.hashgrid, L=8, T=2**14)))
+        result = tr.train(jax.random.key(0), scene, config, progress=False)
+        save_checkpoint(folder / "lego.ckpt", result.params, result.config, scene, result.occupancy)
+
+    return scene, load_checkpoint(built_once(tmp_path_factory, "trained_lego", build) / "lego.ckpt")
 
 
 @pytest.mark.parametrize("packing", PACKINGS[:2], ids=["cpu-default", "small-blocks"])
 @pytest.mark.parametrize("poses", [1, 2])
 def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses):
-    from waldo_jax.nerf import train as tr
     from waldo_jax.nerf.field import make_field
+    from waldo_jax.nerf.render import render_setup
 
     scene, result = trained_lego
-    grid, render_config, march = tr.render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
-                                                 np.ones(3, np.float32))
+    grid, render_config, march = render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
+                                              np.ones(3, np.float32))
     assert 0.01 < float(jnp.mean(grid.bitfield)) < 0.5  # the trained grid skips empty space
     field_fn = make_field(result.config.field)
     c2w = jnp.asarray(scene.c2w[:poses])

@@ -193,12 +193,12 @@ def test_grid_cell_matches_numpy_reference_across_cascades():
 def test_cell_points_round_trip():
     grid = occ.init_occupancy(BOX, aabb_scale=2, resolution=4)
     cells = jnp.arange(64)
-    centres = occ._cell_points(grid, jnp.zeros(64, jnp.int32), cells, jnp.full((64, 3), 0.5))
+    centres = occ.cell_points(grid, jnp.zeros(64, jnp.int32), cells, jnp.full((64, 3), 0.5))
     cascade, cell, inside = GRID_CELL(grid, centres)
     assert np.all(np.asarray(inside)) and np.all(np.asarray(cascade) == 0)
     np.testing.assert_array_equal(np.asarray(cell), np.arange(64))
     # Cascade-1 cells on the outer shell do not overlap cascade 0, so they map back to cascade 1.
-    centres = occ._cell_points(grid, jnp.ones(64, jnp.int32), cells, jnp.full((64, 3), 0.5))
+    centres = occ.cell_points(grid, jnp.ones(64, jnp.int32), cells, jnp.full((64, 3), 0.5))
     shell = np.abs(np.asarray(centres)).max(-1) > 1.0
     cascade, cell, _ = GRID_CELL(grid, centres)
     assert shell.sum() == 64 - 8

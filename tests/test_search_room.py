@@ -48,8 +48,8 @@ def test_egps_finds_waldo_better_than_every_training_view():
 def test_egps_beats_grs_on_mcvir_at_the_demo_settings():
     """`waldo demo`'s claim, without its NeRF: room 0, its 32 training cameras, waldo_oracle, 8 seeds."""
     from waldo_jax.criteria import CriterionContext, make_criterion
-    from waldo_jax.demo import SETTINGS
-    from waldo_jax.exploration import seed_keys
+    from waldo_jax.pipeline.demo import SETTINGS
+    from waldo_jax.pipeline import seed_keys
 
     settings = SETTINGS["full"]
     room = make_room(0)

@@ -52,7 +52,10 @@ TRAINED_SCRIPT = textwrap.dedent(
     import jax, jax.numpy as jnp
     from waldo_jax.cameras import look_at
     from waldo_jax.nerf import HashGridConfig, NGPFieldConfig
-    from waldo_jax.nerf import train as tr
+    from waldo_jax.nerf.config import TrainConfig
+    from waldo_jax.nerf.render import render_trained, render_trained_counted
+    from waldo_jax.nerf.samplers import make_sampler
+    from waldo_jax.nerf.step import init_train_state
     from waldo_jax.render import pose_mesh
     from waldo_jax.types import Intrinsics
 
@@ -64,15 +67,15 @@ TRAINED_SCRIPT = textwrap.dedent(
     c2w = jax.vmap(look_at, in_axes=(0, None, None))(origins, jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]))
     intr = Intrinsics.from_fov(10, 8, 0.8)
     for sampler in ("occupancy", "dense"):
-        config = tr.TrainConfig(field=field, steps=1, chunk=1, rays_per_batch=64, num_samples=16,
-                                samples_per_batch=1024, eval_samples=16, occupancy_resolution=16,
-                                steps_per_diagonal=64.0, sampler=sampler)
-        state = tr.init_train_state(jax.random.key(1), config)
+        config = TrainConfig(field=field, steps=1, chunk=1, rays_per_batch=64, num_samples=16,
+                             samples_per_batch=1024, eval_samples=16, occupancy_resolution=16,
+                             steps_per_diagonal=64.0, sampler=sampler)
+        state = init_train_state(jax.random.key(1), config)
         # a grid with structure: one density update from the random field (warm-up samples every cell)
-        grid = tr.make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, True)
+        grid = make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, True)
         args = (state.params, grid, config, c2w, intr, 1.0, 12.0)
-        sharded = tr.render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
-        one = tr.render_trained_counted(*args).output  # the single-device renderer
+        sharded = render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
+        one = render_trained_counted(*args).output  # the single-device renderer
         assert len(sharded.rgb.sharding.device_set) == 4, sampler
         # Each device packs only its own poses' rays into passes: the per-pass sums of a ray may be
         # split differently, so the images agree to float32 rounding.
@@ -80,7 +83,7 @@ TRAINED_SCRIPT = textwrap.dedent(
             np.testing.assert_allclose(np.asarray(getattr(one, name)), np.asarray(getattr(sharded, name)),
                                        atol=2e-6 if name != "depth" else 2e-5)
         assert float(jnp.std(one.rgb)) > 0  # not a blank image
-        explicit = tr.render_trained(*args, mesh=pose_mesh(jax.devices()[:2]))
+        explicit = render_trained(*args, mesh=pose_mesh(jax.devices()[:2]))
         np.testing.assert_allclose(np.asarray(explicit.rgb), np.asarray(one.rgb), atol=2e-6)
     print("OK")
     """

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from waldo_jax import exploration
+from waldo_jax.pipeline import figures
 
 PHOTO = 1.0  # every training image is this grey; a render of training pose i is 0.1 * (i + 1)
 
@@ -36,17 +36,17 @@ def _run(initial="renders", photos=True, top_indices=(1, 5), truth=False):
     ("images", False, [0.2, 0.3], "training (renders)"),  # the photographs are not on this machine
 ])
 def test_training_tiles_show_what_was_scored(initial, photos, expected, title):
-    tiles, got_title = exploration.training_tiles(_run(initial, photos), [1, 2])
+    tiles, got_title = figures.training_tiles(_run(initial, photos), [1, 2])
     assert got_title == title and [float(t[0, 0, 0]) for t in tiles] == pytest.approx(expected)
 
 
 def test_methods_sheet_rows_labels_and_training_marks(monkeypatch):
     captured = {}
-    monkeypatch.setattr(exploration.io, "contact_sheet",
+    monkeypatch.setattr(figures.io, "contact_sheet",
                         lambda images, columns, labels, row_titles: captured.update(
                             images=images, labels=labels, titles=row_titles) or np.zeros((1, 1, 3), np.uint8))
     runs = {"grs": _run(top_indices=(1, 5)), "egps": _run(top_indices=(7, 2), truth=True)}
-    exploration.methods_sheet(runs, columns=3)
+    figures.methods_sheet(runs, columns=3)
     assert captured["titles"] == ["training (renders)", "GRS", "EGPS (NeRF)", "EGPS (truth)"]
     labels, images = captured["labels"], captured["images"]
     assert labels[:3] == ["0.9", "0.4", "0.2"]  # the best training views, best first

@@ -19,6 +19,19 @@ import pytest
 from conftest import require_scene
 from waldo_jax.nerf import HashGridConfig, NGPFieldConfig
 from waldo_jax.nerf import train as tr
+from waldo_jax.nerf.config import TrainConfig, TrainConfigError, TrainHParams
+from waldo_jax.nerf.render import RENDER_STEP_TOLERANCE_DB
+from waldo_jax.nerf.samplers import TRAIN_ROW_LENGTH, make_sampler
+from waldo_jax.nerf.step import (
+    TrainData,
+    _fit_rays,
+    _sample_batch,
+    chunk_fn,
+    make_occupancy_update,
+    make_train_step,
+    next_rays,
+    rays_ladder,
+)
 from waldo_jax.scenes import load_scene
 
 # A tiny field for the mechanics tests (not for quality).
@@ -32,13 +45,13 @@ def lego_small():
     return load_scene(require_scene("lego_tiny"), split="train", max_images=12)
 
 
-def _tiny_config(scene, sampler: str, **overrides) -> tr.TrainConfig:
+def _tiny_config(scene, sampler: str, **overrides) -> TrainConfig:
     field = NGPFieldConfig(aabb=scene.aabb, **TINY_FIELD)
     values = dict(field=field, steps=5, chunk=3, rays_per_batch=128, num_samples=16, samples_per_batch=1024,
                   eval_samples=16, occupancy_resolution=16, occupancy_update_every=2, occupancy_warmup=2,
                   steps_per_diagonal=64.0, sampler=sampler)
     values.update(overrides)
-    return tr.TrainConfig(**values)
+    return TrainConfig(**values)
 
 
 def _samplers():
@@ -58,8 +71,8 @@ def test_fast_preset_reaches_20db_on_lego_tiny():
     path = require_scene("lego_tiny")
     train_scene = load_scene(path, split="train")
     test_scene = load_scene(path, split="test")
-    config = tr.TrainConfig.preset("fast", train_scene, steps=250, chunk=50, num_samples=128,
-                                   samples_per_batch=2**14, eval_samples=128)
+    config = TrainConfig.preset("fast", train_scene, steps=250, chunk=50, num_samples=128,
+                                samples_per_batch=2**14, eval_samples=128)
     hashgrid = dataclasses.replace(config.field.hashgrid, L=8, T=2**14)
     config = config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
     start = time.perf_counter()
@@ -76,8 +89,8 @@ def test_fast_preset_reaches_20db_on_lego_tiny():
     # the first one that loses more.
     chosen, curve = result.config.render_step_scale, result.render_step_curve
     assert curve[0]["step_scale"] == 1.0 and chosen in [c["step_scale"] for c in curve]
-    assert all(c["delta_db"] >= -tr.RENDER_STEP_TOLERANCE_DB for c in curve if c["step_scale"] <= chosen)
-    assert curve[-1]["step_scale"] == chosen or curve[-1]["delta_db"] < -tr.RENDER_STEP_TOLERANCE_DB
+    assert all(c["delta_db"] >= -RENDER_STEP_TOLERANCE_DB for c in curve if c["step_scale"] <= chosen)
+    assert curve[-1]["step_scale"] == chosen or curve[-1]["delta_db"] < -RENDER_STEP_TOLERANCE_DB
     evaluations = [c["evaluations_per_ray"] for c in curve]
     assert all(a > b for a, b in zip(evaluations, evaluations[1:]))  # coarser steps, fewer evaluations
     assert result.history[-1]["render_step_scale"] == chosen
@@ -105,8 +118,8 @@ def test_same_seed_same_params_other_seed_differs(lego_small, sampler):
     # the three runs.
     assert [h["rays_marched"] for h in first.history if "loss" in h] == [128, 128]
     assert [h["warmup"] for h in first.history if "loss" in h] == [True, False]
-    assert tr._chunk_fn(config, 128, True)._cache_size() == 1
-    assert tr._chunk_fn(config, 128, False)._cache_size() == 1
+    assert chunk_fn(config, 128, True)._cache_size() == 1
+    assert chunk_fn(config, 128, False)._cache_size() == 1
 
 
 @pytest.mark.parametrize("sampler", _samplers())
@@ -119,8 +132,8 @@ def test_scan_chunks_equal_step_loop(lego_small, sampler):
 
     inputs = tr.training_inputs(key, lego_small, config)
     rays = [h["rays_marched"] for h in result.history if "loss" in h][0]
-    step = jax.jit(tr.make_train_step(config, rays))
-    update = {warmup: jax.jit(tr.make_occupancy_update(config, warmup)) for warmup in (True, False)}
+    step = jax.jit(make_train_step(config, rays))
+    update = {warmup: jax.jit(make_occupancy_update(config, warmup)) for warmup in (True, False)}
     state = inputs.state
     for i in range(config.steps):
         if i % config.occupancy_update_every == 0:
@@ -137,8 +150,8 @@ def test_scan_chunks_equal_step_loop(lego_small, sampler):
         else:
             # Adam divides by sqrt(v): an entry with a near-zero gradient moves by up to lr on a rounding.
             np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3 * float(np.abs(b).max()))
-    data = tr.TrainData.from_scene(lego_small)
-    origins = np.asarray(jax.jit(lambda k: tr._sample_batch(k, data, config)[0])(jax.random.key(1)))
+    data = TrainData.from_scene(lego_small)
+    origins = np.asarray(jax.jit(lambda k: _sample_batch(k, data, config)[0])(jax.random.key(1)))
     nearest = np.argmin(np.linalg.norm(origins[:, None] - lego_small.c2w[None, :, :3, 3], axis=-1), axis=1)
     counts = np.bincount(nearest, minlength=lego_small.n_images)
     assert np.all(counts > 0)  # 12 images, ~10 rays each
@@ -147,15 +160,15 @@ def test_scan_chunks_equal_step_loop(lego_small, sampler):
 def test_rays_marched_adapt_to_the_budget(lego_small):
     """Instant-NGP's dynamic batch: R is the smallest rung of the ladder that marches 1.25 budgets."""
     config = _tiny_config(lego_small, "occupancy", rays_per_batch=1024)
-    assert tr.rays_ladder(config) == (128, 256, 512, 1024)
-    rows = config.samples_per_batch // tr._TRAIN_ROW_LENGTH  # the budget in packed rows
-    assert tr._fit_rays(config, rows_per_ray=rows / 256) == 512  # 1.25 * 256 = 320 rays wanted
-    assert tr._fit_rays(config, rows_per_ray=rows / 64) == 128  # 80 wanted
-    assert tr._fit_rays(config, rows_per_ray=0.01) == 1024  # the top rung at most
+    assert rays_ladder(config) == (128, 256, 512, 1024)
+    rows = config.samples_per_batch // TRAIN_ROW_LENGTH  # the budget in packed rows
+    assert _fit_rays(config, rows_per_ray=rows / 256) == 512  # 1.25 * 256 = 320 rays wanted
+    assert _fit_rays(config, rows_per_ray=rows / 64) == 128  # 80 wanted
+    assert _fit_rays(config, rows_per_ray=0.01) == 1024  # the top rung at most
     # The chunk's last period (2 steps) decides; discarded steps (NaN loss) do not count.
     metrics = {"loss": np.array([0.1, 0.1, 0.1, np.nan]), "rows": np.array([100 * rows, rows, rows, 0])}
-    assert tr._next_rays(config, metrics, 256) == 512  # rows / 256 rows per marched ray
-    assert tr.rays_ladder(config.replace(sampler="dense")) == (1024,)
+    assert next_rays(config, metrics, 256) == 512  # rows / 256 rows per marched ray
+    assert rays_ladder(config.replace(sampler="dense")) == (1024,)
 
 
 def test_packed_training_loss_and_gradients_equal_the_per_ray_reference(lego_small):
@@ -165,14 +178,14 @@ def test_packed_training_loss_and_gradients_equal_the_per_ray_reference(lego_sma
     from waldo_jax.render.volume import composite, volume_weights
 
     config = _tiny_config(lego_small, "occupancy", num_samples=24)
-    sampler = tr.make_sampler(config)
+    sampler = make_sampler(config)
     params = init_field(jax.random.key(0), config.field)
     # A field with structure: random hash features, large enough to give real densities.
     params["hash"] = jax.random.normal(jax.random.key(1), params["hash"].shape) * 2.0
     grid = sampler.init(jax.random.key(2), params)
     grid = grid.replace(bitfield=jax.random.bernoulli(jax.random.key(3), 0.3, grid.bitfield.shape))
     inputs = tr.training_inputs(jax.random.key(0), lego_small, config)
-    origins, directions, target, background = tr._sample_batch(jax.random.key(5), inputs.data, config)
+    origins, directions, target, background = _sample_batch(jax.random.key(5), inputs.data, config)
     render_config = inputs.render_config
 
     def packed_loss(params):
@@ -182,7 +195,7 @@ def test_packed_training_loss_and_gradients_equal_the_per_ray_reference(lego_sma
     def reference_loss(params):
         t, delta, mask = sampler._march(grid, origins, directions, render_config, None)  # [R, S]
         counts = jnp.sum(mask, axis=1)
-        s = tr._TRAIN_ROW_LENGTH
+        s = TRAIN_ROW_LENGTH
         included = jnp.cumsum(-(-counts // s)) <= config.samples_per_batch // s
 
         def one(o, d, t, delta, mask, bg):
@@ -211,30 +224,30 @@ def test_packed_training_loss_and_gradients_equal_the_per_ray_reference(lego_sma
 
 
 def test_preset_takes_box_and_aabb_scale_from_the_scene(lego_small):
-    fast = tr.TrainConfig.preset("fast", lego_small)
-    quality = tr.TrainConfig.preset("quality", lego_small)
+    fast = TrainConfig.preset("fast", lego_small)
+    quality = TrainConfig.preset("quality", lego_small)
     assert fast.field.aabb == tuple(float(v) for v in lego_small.aabb.reshape(-1))
     assert fast.aabb_scale == 1.0 and fast.cone_angle == 0.0  # Blender: synthetic, constant steps
     assert quality.field.hashgrid.N_max == 2048 and quality.field.hashgrid.T == 2**19
     assert 64 <= fast.field.hashgrid.N_max < 2048  # matched to 100x100 images
     scaled = dataclasses.replace(lego_small, metadata={"aabb_scale": 4}, format="instant-ngp")
-    fox_like = tr.TrainConfig.preset("quality", scaled)
+    fox_like = TrainConfig.preset("quality", scaled)
     assert fox_like.aabb_scale == 4.0 and fox_like.field.hashgrid.N_max == 8192
     assert fox_like.cone_angle == pytest.approx(1 / 256)
-    assert tr.TrainConfig.preset("fast", lego_small, steps=7).steps == 7
-    with pytest.raises(tr.TrainConfigError, match="unknown preset 'best'"):
-        tr.TrainConfig.preset("best", lego_small)
-    with pytest.raises(tr.TrainConfigError, match="rays_per_batch"):
-        tr.TrainConfig.preset("fast", lego_small, rays_per_batch=0)
-    assert tr.TrainConfig.from_dict(quality.to_dict()) == quality
+    assert TrainConfig.preset("fast", lego_small, steps=7).steps == 7
+    with pytest.raises(TrainConfigError, match="unknown preset 'best'"):
+        TrainConfig.preset("best", lego_small)
+    with pytest.raises(TrainConfigError, match="rays_per_batch"):
+        TrainConfig.preset("fast", lego_small, rays_per_batch=0)
+    assert TrainConfig.from_dict(quality.to_dict()) == quality
     # A config written before `render_step_scale` and with the retired `eval_ray_chunk` still loads.
     old = {k: v for k, v in quality.to_dict().items() if k != "render_step_scale"}
-    assert tr.TrainConfig.from_dict({**old, "eval_ray_chunk": 4096}) == quality
-    with pytest.raises(tr.TrainConfigError, match="render_step_scale"):
-        tr.TrainConfig.preset("fast", lego_small, render_step_scale=0.0)
+    assert TrainConfig.from_dict({**old, "eval_ray_chunk": 4096}) == quality
+    with pytest.raises(TrainConfigError, match="render_step_scale"):
+        TrainConfig.preset("fast", lego_small, render_step_scale=0.0)
 
 
 def test_learning_rate_schedule_follows_instant_ngp_decay():
-    hparams = tr.TrainHParams(decay_start=100.0, decay_interval=50.0)
+    hparams = TrainHParams(decay_start=100.0, decay_interval=50.0)
     rates = [float(hparams.learning_rate_at(s)) for s in (0, 99, 100, 149, 150, 200)]
     np.testing.assert_allclose(rates, [1e-2, 1e-2, 3.3e-3, 3.3e-3, 1.089e-3, 3.5937e-4], rtol=1e-5)

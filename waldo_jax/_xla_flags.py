@@ -1,33 +1,15 @@
 """Backend settings that waldo_jax needs for correct, reproducible results; imported first by
-`waldo_jax/__init__.py`.
+`waldo_jax/__init__.py`, before JAX creates a backend.
 
-jaxlib 0.10.2 on CPU miscompiles some fused reductions through its YNNPACK fusion: for example
-`jax.vmap(lambda o: jnp.sum(n * (o - p), -1) / jnp.sqrt(jnp.sum((o - p) ** 2, -1)))` over 49 or
-more cameras returns values off by O(1) (seen on x86-64, 2026-11; jaxlib 0.6 to 0.10.1 are correct).
-Turning YNN fusions off (`--xla_cpu_experimental_ynn_fusion_type=`, a flag jaxlib knows from 0.8
-on) restores exact results; `tests/test_xla_guard.py` checks it. The flag only concerns the CPU
-backend and must be in XLA_FLAGS before JAX creates its CPU client, so import waldo_jax before
-running any JAX computation. A user's own setting of that flag is left alone.
+  * CPU: YNNPACK fusions off (`--xla_cpu_experimental_ynn_fusion_type=`), as jaxlib 0.10.2
+    miscompiles some fused reductions through them; so import waldo_jax before any JAX computation.
+  * GPU: `--xla_gpu_deterministic_ops=true`, so a seed fixes a run bit for bit
+    (`WALDO_DETERMINISTIC=0` leaves it out).
+  * Every backend: `jax_default_matmul_precision` = "highest" (full float32, no TF32).
 
-A seed fixes a run bit for bit on every backend. On a GPU, XLA by default lets some operations
-(scatter-adds, reductions through atomics, autotuned algorithms) give different float rounding
-from run to run: the same `waldo explore` run twice on an H100 gave different `scores_generated`.
-`--xla_gpu_deterministic_ops=true` makes them deterministic (the issue that asked for it reported
-28.0 s and 31.2 s for that run on an H100 without and with it: the same within that machine's
-noise; not re-measured here, no GPU was lent); it is added by default. Set `WALDO_DETERMINISTIC=0`
-in the environment to leave it out (faster on some GPU workloads, no longer bit-identical reruns
-there); a user's own setting of it, or of
-`--xla_gpu_exclude_nondeterministic_ops`, is left alone. It changes nothing on a CPU.
-
-The same scores on every backend: JAX lets float32 matrix products and convolutions run in TF32
-(10-bit mantissa, ~1e-3 relative error) on NVIDIA GPUs by default; 17 tests that compare with
-NumPy were reported failing on an H100, TF32 the likely cause (not yet re-run on a GPU). waldo_jax sets
-`jax_default_matmul_precision` to "highest" (full float32) at import, for every computation: users
-compare criterion scores across machines, camera geometry must be exact, and the hash-grid field's
-products are too small (64-wide layers) for TF32 to matter next to its table gathers. It changes
-nothing on a CPU (bit-identical results). A user's own choice wins: the environment variable
-`JAX_DEFAULT_MATMUL_PRECISION` (e.g. `tensorfloat32` to get TF32 back), or
-`jax.config.update("jax_default_matmul_precision", ...)` after importing waldo_jax.
+A user's own setting of any of these is left alone. `apply()` adds the flags to XLA_FLAGS,
+`full_precision_matmuls()` sets the precision. Why, with what was measured: see docs/design.md,
+section "XLA flags".
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Writing results: PNG images, labelled contact sheets, run folders that never overwrite, JSON.
+"""Files at the program's edges: reading images, writing PNGs, labelled contact sheets, run folders
+that never overwrite, JSON.
 
 Everything here runs on the host (NumPy / Pillow / imageio), at the edges of the program. Every file
 is written atomically (`atomic_file`: a temporary file beside it, renamed into place once complete),
@@ -13,17 +14,19 @@ import json
 import os
 import re
 import secrets
+import warnings
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator, Optional, Sequence
 
+import imageio.v3 as iio
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file
 
 __all__ = [
     "atomic_file", "write_bytes", "write_text", "to_uint8", "png_bytes", "save_png", "contact_sheet",
-    "check_output_dir", "prepare_output_dir", "stale_files", "write_json", "write_transforms",
+    "check_output_dir", "prepare_output_dir", "stale_files", "write_json", "write_transforms", "read_image",
 ]
 
 
@@ -250,3 +253,55 @@ def write_transforms(path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_
         {"file_path": name, "transform_matrix": np.round(m, 8).tolist()} for name, m in zip(file_names, c2w)
     ]
     write_json(path, meta)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading images.
+
+
+def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "image file",
+               min_side: int = MIN_RESOLUTION) -> np.ndarray:
+    """An image file as float32 [H, W, 3] in [0, 1] ([H, W, 4] with its alpha if `keep_alpha` and it has one).
+
+    Sides must lie in [min_side, MAX_RESOLUTION] (read from the header, before any decoding; a scored
+    image needs MIN_RESOLUTION, a --target crop 2), and every value must be finite.
+
+    Raises:
+      DataNotFoundError: no such file. WaldoError: not a regular file, not a readable image, too
+        small or too large, or with NaN / infinite values (the message names the file).
+    """
+    path = check_input_file(path, what)
+    try:
+        with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
+            width, height = header.size
+    except Exception:  # not a format Pillow knows: imageio may still read it; its size is checked below
+        width = height = None
+    if width is not None:
+        _check_image_size(path, width, height, min_side)
+    try:
+        with warnings.catch_warnings():  # imageio's plugin probing warns about deprecated plugins on junk files
+            warnings.simplefilter("ignore", DeprecationWarning)
+            image = np.asarray(iio.imread(path))
+    except Exception as exc:  # imageio raises many types, some with installation advice on later lines
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise WaldoError(f"{path}: not a readable image ({first[:160]})") from None
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)
+    if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):
+        raise WaldoError(f"{path}: expected a grey, RGB or RGBA image, got an array of shape {image.shape}")
+    _check_image_size(path, image.shape[1], image.shape[0], min_side)
+    if image.shape[-1] == 1:
+        image = np.repeat(image, 3, axis=-1)
+    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    image = image.astype(np.float32) / scale
+    if not np.all(np.isfinite(image)):
+        raise WaldoError(f"{path}: the image has {int(np.sum(~np.isfinite(image)))} NaN or infinite values")
+    if image.shape[-1] == 4 and not keep_alpha:
+        image = image[..., :3]
+    return image
+
+
+def _check_image_size(path: Path, width: int, height: int, min_side: int) -> None:
+    if not (min_side <= min(width, height) and max(width, height) <= MAX_RESOLUTION):
+        raise WaldoError(f"{path}: the image is {width}x{height}; sides must lie between {min_side} and "
+                         f"{MAX_RESOLUTION} pixels")

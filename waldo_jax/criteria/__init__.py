@@ -1,22 +1,14 @@
 """Criteria: what a scene-space search maximises or minimises (the paper's "user criterion").
 
 A `Criterion` scores a batch of views inside the search's jit; `make_criterion(name, context)`
-builds one from the registry `CRITERIA` (the names `--criterion` accepts):
+builds one from the registry `CRITERIA` (the names `--criterion` accepts): the procedural room's
+oracles `waldo_oracle` and `waldo_visible` on poses; `colorfulness`, `saliency` (CSNet), `iqa_cnn`
+(CNNIQA), `niqe`, `brisque`, `composition` and `waldo` (the finder, with `--target`) on images;
+`opacity` on renders. `build_criterion(spec, context, guards)` (in `combine`) adds
+`weighted:NAME=W,...` and `--guard` (`constrained`) on top of the registry.
 
-  * `waldo_oracle` (poses, max): the share of the image showing un-occluded Waldo, exact, for the
-    procedural room;
-  * `waldo_visible` (poses, max): the visible fraction of Waldo, exact, for the procedural room;
-  * `colorfulness` (images, max): Hasler and Suesstrunk's colourfulness M;
-  * `saliency` (images, max, [0, 1]): share of pixels CSNet-L-x1 finds salient (> 0.5), the
-    paper's BASNet salient-pixel count;
-  * `iqa_cnn` (images, max): CNNIQA's quality, 100 - predicted LIVE DMOS;
-  * `niqe`, `brisque` (images, min): the classic no-reference quality models;
-  * `composition` (images, max, [1, 5]): rule-based composition from the CSNet saliency map;
-  * `waldo` (images, max): best normalised cross-correlation with a reference image (`--target`);
-  * `opacity` (renders, max, [0, 1]): mean accumulated opacity, the guard against empty views.
-
-`build_criterion(spec, context, guards)` (in `combine`) adds `weighted:NAME=W,...` and `--guard`
-(`constrained`) on top of the registry.
+What each criterion scores, with its input, direction and range: see docs/design.md, section
+"Criteria > The registry".
 """
 
 from waldo_jax.criteria import brisque as brisque

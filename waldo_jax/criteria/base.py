@@ -1,24 +1,14 @@
 """The criterion interface: what a search maximises (or minimises), as a pure, batched function.
 
-A `Criterion` scores a population of views in one call inside the search's jit. It is a pytree:
-its numeric `params` (network weights, the procedural room, ...) are leaves, so they are traced
-arguments rather than compile-time constants; everything else (name, direction, the function) is
-static.
+A `Criterion` is a pytree whose numeric `params` (network weights, the procedural room, ...) are
+traced leaves and whose name, direction and function are static. It scores P views in one call as
+float32 [P] (NaN marks a failure, never selected), from one of three `inputs`: "images" (float32
+[P, H, W, 3] in [0, 1]), "renders" (rgba float32 [P, H, W, 4]: the colour and the renderer's
+opacity) or "poses" (c2w float32 [P, 4, 4] and intrinsics, for oracles that need no render).
+`make_criterion(name, context)` builds one from the registry; `CriterionContext` carries what some
+criteria need (the procedural room, a weights folder, a target image).
 
-Three kinds of input:
-  * `inputs == "images"`: `apply(params, images)` with images float32 [P, H, W, 3] in [0, 1]
-    (resizing to a network's input size and normalisation happen inside `apply`);
-  * `inputs == "renders"`: `apply(params, rgba)` with rgba float32 [P, H, W, 4]: the colour and the
-    renderer's accumulated opacity, for guards against empty views (`opacity`) and combinations that
-    hold one; photographs (training images, files) have opacity 1;
-  * `inputs == "poses"`: `apply(params, c2w, intrinsics)` with c2w float32 [P, 4, 4], for oracles
-    that know the scene's geometry and need no render (the procedural room's `waldo_oracle`).
-
-Both return float32 scores [P]; NaN marks a failed score (the search never selects it).
-
-Criteria are built by name from the registry (`waldo_jax.criteria.CRITERIA`) with
-`make_criterion(name, context)`, where `CriterionContext` carries what some criteria need: the
-procedural room, a weights folder, a target image.
+The three inputs in detail: see docs/design.md, section "Criteria > The interface".
 """
 
 from __future__ import annotations
@@ -64,7 +54,7 @@ class Criterion:
       name: registry name, e.g. "waldo_oracle".
       direction: "max" when higher scores are better, "min" when lower ones are.
       value_range: (low, high) of the scores (inf where unbounded), for plots and reports.
-      inputs: "images", "renders" or "poses" (see the module docstring).
+      inputs: "images", "renders" or "poses" (see docs/design.md, "Criteria").
       apply: the pure function, `apply(params, images)`, `apply(params, rgba)` or
         `apply(params, c2w, intrinsics)`.
       description: one line for reports and `--help`.

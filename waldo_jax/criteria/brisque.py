@@ -4,39 +4,27 @@ A. Mittal, A. K. Moorthy and A. C. Bovik, "No-Reference Image Quality Assessment
 Domain", IEEE Trans. Image Processing 21(12), 4695-4708, 2012. An epsilon-SVR maps 36 natural-scene
 statistics of the image to the LIVE database's DMOS: lower is better.
 
-The model file is OpenCV contrib's (`modules/quality`, trained on LIVE R2 by its
-`brisque_trainer_livedb.cpp` from `QualityBRISQUE::computeFeatures`), so the features follow
-`qualitybrisque.cpp` rather than the original MATLAB release where the two differ:
-  1. 8-bit grey: the float RGB is quantised to 0..255 (as `cv::imread` of a saved PNG gives), then
-     OpenCV's fixed-point BGR2GRAY, Y = (4899 R + 9617 G + 1868 B + 2^13) >> 14; OpenCV then scales by
-     1/255 and uses C = 1/255, the same MSCN as 0..255 with C = 1 (`nss.mscn`);
-  2. two scales: the grey image, and `cv::resize` to (W // 2, H // 2) with INTER_CUBIC (a = -0.75,
-     no antialiasing, replicated borders), computed from the scale-1 image;
+The model file is OpenCV contrib's (`modules/quality`), so the features follow its `qualitybrisque.cpp`:
+  1. 8-bit grey (OpenCV's fixed-point BGR2GRAY of the quantised image), MSCN as `nss.mscn`;
+  2. two scales: the grey image and its `cv::resize` INTER_CUBIC half (W // 2, H // 2);
   3. 18 features per scale over the whole image, 36 in all (scale 1 then scale 2):
-       [alpha, (sigma_l^2 + sigma_r^2) / 2] of the AGGD fit of the MSCN image (OpenCV fits the AGGD
-       here, where the MATLAB release fits a GGD and uses its variance), then for each orientation
+       [alpha, (sigma_l^2 + sigma_r^2) / 2] of the AGGD fit of the MSCN image, then for each orientation
        (0, 1), (1, 0), (1, 1), (-1, 1) of the pairwise products (a neighbour outside the image counts
        as 0): [alpha, eta, sigma_l^2, sigma_r^2];
   4. each feature scaled to [-1, 1] by the range file: x' = -1 + 2 (x - min) / (max - min) (not clipped);
-  5. the SVR: score = sum_i a_i exp(-gamma ||x' - s_i||^2) - rho (OpenCV's sign convention for rho),
-     clamped to [0, 100] as OpenCV does.
+  5. the SVR: score = sum_i a_i exp(-gamma ||x' - s_i||^2) - rho, clamped to [0, 100] as OpenCV does.
+Where OpenCV departs from MATLAB's BRISQUE, and why a constant image scores finite here where OpenCV
+gives NaN: docs/design.md, "Criteria".
 
-Where OpenCV would produce NaN (a constant image: 0/0 in its AGGD fit, sqrt of a negative float
-variance), the fits here stay finite (see `nss`), so an all-black image gets a finite score.
-
-Weights (`<weights>/brisque/`, OpenCV FileStorage YAML, read by `read_opencv_storage` without OpenCV):
-  * `brisque_model_live.yml`: node `opencv_ml_svm`: svmType EPS_SVR, RBF kernel gamma 0.05,
-    var_count 36, sv_total 774, `support_vectors` (774 lists of 36), one decision function with
-    `rho` and `alpha` (774 dual coefficients);
-  * `brisque_range_live.yml`: `range`, an opencv-matrix 2 x 36: per-feature min (row 0), max (row 1).
-The converter's tree: {"support_vectors": [774, 36], "dual_coef": [774], "rho": [], "gamma": [],
+Weights (`<weights>/brisque/`, OpenCV FileStorage YAML, read by `waldo_jax.weights.opencv_yaml` without OpenCV):
+`brisque_model_live.yml` (the SVR) and `brisque_range_live.yml` (per-feature min and max). The
+converter's tree: {"support_vectors": [774, 36], "dual_coef": [774], "rho": [], "gamma": [],
 "feature_min": [36], "feature_max": [36]}.
 """
 
 from __future__ import annotations
 
 import functools
-import re
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -45,9 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.criteria import nss
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
-                                     sanitize_images, worst_score)
+from waldo_jax.criteria.base import Criterion, CriterionContext, CriterionSpec, register
 from waldo_jax.types import Array
+from waldo_jax.weights.opencv_yaml import read_opencv_storage
 from waldo_jax.weights.store import Converter, WeightsError, check_shapes, load_model, register_converter
 
 __all__ = [
@@ -57,7 +45,6 @@ __all__ = [
     "NUM_FEATURES",
     "VALUE_RANGE",
     "CHUNK",
-    "read_opencv_storage",
     "rgb_to_grey",
     "resize_half_cubic",
     "brisque_features",
@@ -75,208 +62,6 @@ NUM_FEATURES = 36
 CHUNK = 4  # images vmapped at once, chunks scanned over (bounded memory; faster on CPU than all at once)
 VALUE_RANGE = (0.0, 100.0)  # OpenCV clamps the SVR output to [0, 100]
 _PRECISION = jax.lax.Precision.HIGHEST
-
-
-# ---------------------------------------------------------------------------------------------
-# OpenCV FileStorage YAML (the subset OpenCV writes), without OpenCV.
-
-
-class _StorageError(Exception):
-    def __init__(self, line: int, problem: str):
-        super().__init__(f"line {line}: {problem}")
-
-
-_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
-_INTEGER = re.compile(r"[-+]?\d+$")
-_SPECIAL = {".inf": np.inf, "+.inf": np.inf, "-.inf": -np.inf, ".nan": np.nan}
-_KEY = re.compile(r"([A-Za-z_][\w\-]*)\s*:(\s+|$)(.*)$")
-_DTYPES = {"u": np.uint8, "c": np.int8, "w": np.uint16, "s": np.int16, "i": np.int32, "f": np.float32,
-           "d": np.float64}
-
-
-def _scalar(token: str) -> Any:
-    token = token.strip()
-    if _INTEGER.match(token):
-        return int(token)
-    if _NUMBER.match(token):
-        return float(token)
-    if token.lower() in _SPECIAL:
-        return _SPECIAL[token.lower()]
-    if len(token) >= 2 and token[0] == token[-1] and token[0] in "\"'":
-        return token[1:-1]
-    return token
-
-
-def _flow(text: str, line: int) -> Any:
-    """A flow collection `[ ... ]` / `{ k: v, ... }` (nested allowed) or a scalar."""
-    pos = 0
-
-    def skip() -> None:
-        nonlocal pos
-        while pos < len(text) and text[pos] in " \t":
-            pos += 1
-
-    def value() -> Any:
-        nonlocal pos
-        skip()
-        if pos >= len(text):
-            raise _StorageError(line, "a value is missing")
-        if text[pos] in "[{":
-            closing = "]" if text[pos] == "[" else "}"
-            is_map = text[pos] == "{"
-            pos += 1
-            items: Any = {} if is_map else []
-            while True:
-                skip()
-                if pos < len(text) and text[pos] == closing:
-                    pos += 1
-                    return items
-                if is_map:
-                    match = re.compile(r"([A-Za-z_][\w\-]*)\s*:").match(text, pos)
-                    if not match:
-                        raise _StorageError(line, f"expected 'key:' in a flow mapping at {text[pos:pos + 20]!r}")
-                    pos = match.end()
-                    items[match.group(1)] = value()
-                else:
-                    items.append(value())
-                skip()
-                if pos < len(text) and text[pos] == ",":
-                    pos += 1
-                elif pos < len(text) and text[pos] == closing:
-                    continue
-                else:
-                    raise _StorageError(line, f"expected ',' or {closing!r} at {text[pos:pos + 20]!r}")
-        start = pos
-        while pos < len(text) and text[pos] not in ",]}":
-            pos += 1
-        return _scalar(text[start:pos])
-
-    result = value()
-    skip()
-    if pos != len(text):
-        raise _StorageError(line, f"unexpected text after a value: {text[pos:pos + 20]!r}")
-    return result
-
-
-def _logical_lines(text: str) -> List[Tuple[int, int, str]]:
-    """(line number, indent, content) with flow collections spanning lines joined into one."""
-    lines = text.splitlines()
-    out: List[Tuple[int, int, str]] = []
-    i = 0
-    while i < len(lines):
-        raw = lines[i]
-        number = i + 1
-        i += 1
-        content = raw.strip()
-        if not content or content.startswith("#") or content == "---" or content.startswith("%"):
-            continue
-        indent = len(raw) - len(raw.lstrip(" "))
-        depth = content.count("[") + content.count("{") - content.count("]") - content.count("}")
-        while depth > 0:
-            if i >= len(lines):
-                raise _StorageError(number, "a '[' or '{' is never closed")
-            more = lines[i].strip()
-            i += 1
-            content += " " + more
-            depth += more.count("[") + more.count("{") - more.count("]") - more.count("}")
-        out.append((number, indent, content))
-    return out
-
-
-def _matrix(node: Any, line: int) -> np.ndarray:
-    if not isinstance(node, dict) or not {"rows", "cols", "dt", "data"} <= set(node):
-        raise _StorageError(line, "an opencv-matrix needs rows, cols, dt and data")
-    rows, cols, dt, data = node["rows"], node["cols"], str(node["dt"]), node["data"]
-    if dt not in _DTYPES:
-        raise _StorageError(line, f"unsupported opencv-matrix dt {dt!r}")
-    if not isinstance(data, list) or len(data) != rows * cols:
-        size = len(data) if isinstance(data, list) else "no list of"
-        raise _StorageError(line, f"opencv-matrix {rows}x{cols} has {size} data values")
-    return np.asarray(data, dtype=_DTYPES[dt]).reshape(rows, cols)
-
-
-def _block(lines: List[Tuple[int, int, str]], start: int, indent: int) -> Tuple[Any, int]:
-    """Parses the block of lines at `indent` from `start`; returns (value, index after the block)."""
-    number, _, content = lines[start]
-    is_sequence = content == "-" or content.startswith("- ")
-    result: Any = [] if is_sequence else {}
-    i = start
-    while i < len(lines) and lines[i][1] == indent:
-        number, _, content = lines[i]
-        if is_sequence:
-            if not (content == "-" or content.startswith("- ")):
-                raise _StorageError(number, f"expected a '- ' item, got {content[:30]!r}")
-            rest = content[1:].strip()
-            i += 1
-            if rest:
-                result.append(_flow(rest, number))
-            elif i < len(lines) and lines[i][1] > indent:
-                value, i = _block(lines, i, lines[i][1])
-                result.append(value)
-            else:
-                result.append(None)
-            continue
-        match = _KEY.match(content)
-        if not match:
-            raise _StorageError(number, f"expected 'key: value', got {content[:30]!r}")
-        key, rest = match.group(1), match.group(3).strip()
-        i += 1
-        tag = None
-        if rest.startswith("!!"):
-            tag, _, rest = rest.partition(" ")
-            rest = rest.strip()
-        if rest:
-            value = _flow(rest, number)
-        elif i < len(lines) and lines[i][1] > indent:
-            value, i = _block(lines, i, lines[i][1])
-        else:
-            value = None
-        if tag == "!!opencv-matrix":
-            value = _matrix(value, number)
-        elif tag is not None:
-            raise _StorageError(number, f"unsupported tag {tag!r}")
-        result[key] = value
-    if i < len(lines) and lines[i][1] > indent:
-        raise _StorageError(lines[i][0], "unexpected indentation")
-    return result, i
-
-
-def read_opencv_storage(path: str | Path) -> Dict[str, Any]:
-    """The top-level mapping of an OpenCV FileStorage YAML file (`%YAML:1.0`).
-
-    Mappings, sequences, flow lists/maps and `!!opencv-matrix` nodes (as NumPy arrays of their `dt`)
-    are read; numbers become int or float.
-
-    Raises:
-      DataNotFoundError: no such file.
-      WeightsError: not an OpenCV YAML file, or malformed (names the file and the line).
-    """
-    from waldo_jax.errors import DataNotFoundError
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"file not found: {path}")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (UnicodeDecodeError, OSError) as exc:
-        raise WeightsError(f"{path}: not a readable OpenCV YAML file ({exc})") from None
-    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
-    if not first.startswith("%YAML"):
-        raise WeightsError(f"{path}: not an OpenCV FileStorage YAML file (no '%YAML' header)")
-    try:
-        lines = _logical_lines(text)
-        if not lines:
-            raise _StorageError(1, "the file holds no data")
-        tree, end = _block(lines, 0, lines[0][1])
-        if end != len(lines):
-            raise _StorageError(lines[end][0], "unexpected dedent")
-    except _StorageError as exc:
-        raise WeightsError(f"{path}: malformed OpenCV YAML, {exc}") from None
-    except (ValueError, TypeError) as exc:
-        raise WeightsError(f"{path}: malformed OpenCV YAML ({exc})") from None
-    if not isinstance(tree, dict):
-        raise WeightsError(f"{path}: the top level is not a mapping")
-    return tree
 
 
 # ---------------------------------------------------------------------------------------------
@@ -449,9 +234,8 @@ def brisque_score(params: Dict[str, Array], image: Array) -> Array:
 
 
 def _apply(params, images: Array) -> Array:
-    clean, bad = sanitize_images(images)
-    score = jnp.clip(nss.map_images(functools.partial(brisque_score, params), clean, CHUNK), *VALUE_RANGE)
-    return finite_or_worst(score, bad, worst_score("min", VALUE_RANGE))
+    """Criterion scores [P] of images [P, H, W, 3]: `brisque_score`, clipped, the worst for failed views."""
+    return nss.quality_scores(functools.partial(brisque_score, params), images, CHUNK, VALUE_RANGE)
 
 
 def brisque(context: CriterionContext) -> Criterion:

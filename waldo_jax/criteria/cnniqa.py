@@ -1,39 +1,15 @@
-"""CNNIQA, a no-reference image quality network (Kang, Ye, Li and Doermann, "Convolutional neural
-networks for no-reference image quality assessment", CVPR 2014), with the LIVE-trained weights of
-the public PyTorch port (lidq92/CNNIQA, `CNNIQAnet` in `main.py`, patches in `IQADataset.py`).
+"""CNNIQA, a no-reference image quality network (Kang, Ye, Li and Doermann, CVPR 2014), with the
+LIVE-trained weights of the public PyTorch port (lidq92/CNNIQA).
 
-The pipeline, as in the reference:
-  1. grey level `g = 0.299 R + 0.587 G + 0.114 B` in [0, 1] (PIL's `convert('L')` then
-     `to_tensor`; PIL rounds to 8 bits, we keep the float value: at most 0.5/255 apart);
-  2. non-overlapping 32x32 patches at rows and columns `range(0, side - 32, 32)` (the reference's
-     loop: its bound `side - 32` drops the last patch when the side is a multiple of 32, e.g. a
-     256x256 image gives 7x7 = 49 patches, not 64);
-  3. each patch locally normalised at the [0, 1] intensity scale,
-     `x_hat = (x - mu) / (sigma + 1)`, where mu and E[x^2] are 3x3 box means over the patch with
-     symmetric (edge-repeating) borders (`scipy.signal.convolve2d(..., boundary='symm',
-     mode='same')`) and `sigma = sqrt(max(E[x^2] - mu^2, 0))`;
-  4. conv 7x7, 50 kernels, valid -> per-kernel global max and global min over the 26x26 map,
-     concatenated as [max (50), min (50)] -> fc 800 + ReLU -> fc 800 + ReLU -> fc 1;
-  5. the image's prediction is the mean over its patches: LIVE (realigned) DMOS, lower is better.
+As in the reference: grey level, non-overlapping 32x32 patches (`image_patches`), local normalisation
+(`local_normalise`), `CNNIQANet` (conv 7x7 x 50, global max and min, fc 800 + ReLU twice, fc 1), and
+the mean over patches: predicted LIVE DMOS, lower is better (`cnniqa_dmos`, `cnniqa_dmos_batch`).
+Unlike it, no dropout at test time, so the score is deterministic. The criterion `iqa_cnn`
+(direction max) reports 100 - DMOS, clipped to `VALUE_RANGE = (-100, 150)`; NaN/inf images score
+-100. `load_params` reads the weights (`convert_state_dict` maps the torch state dict).
 
-The reference calls `F.dropout(h)` between fc1 and fc2 in its functional form, whose default
-`training=True` keeps dropout on even in `model.eval()`, so its test-time scores are random. We
-apply no dropout, dropout's usual inference form (PyTorch rescales the kept units during training),
-which makes the score deterministic.
-
-Small images: where the reference's grid would be empty (a side of 32 px or less) we take the one
-patch at the origin, after resizing any side below 32 px up to 32 px (bilinear). The patch grid is
-a function of the static image shape, so it compiles once per image size.
-
-The criterion `iqa_cnn` (direction max) reports `score = 100 - DMOS`: LIVE's realigned DMOS runs
-roughly from 0 (pristine) to 100 (worst), so the score is roughly 100 for a pristine image and 0 for
-a very distorted one, and higher is better like the other "max" criteria. Measured predictions:
-sharp 256 px photos of fox and fern 12 to 32, the same Gaussian-blurred (sigma 4 px) about 72 or with
-noise (std 0.1) about 55; constant images 88; uniform noise 77; but out-of-distribution patterns go
-far beyond LIVE's range (binary noise 145, a one-pixel checkerboard 573). The score is clipped to
-`VALUE_RANGE = (-100, 150)` (DMOS from -50 to 200), which keeps every plausible rendering unclipped
-and bounds the pathological ones; an image with NaN/inf pixels gets the worst score, -100 (as does a
-pathological pattern whose DMOS exceeds 200).
+Each step as in the reference, the dropout and small-image choices and the measured predictions: see
+docs/design.md, section "Criteria > CNNIQA".
 """
 
 from __future__ import annotations

@@ -1,23 +1,14 @@
 """The artefact guard and criterion combinations.
 
-The paper names empty views as a failure mode of NeRF scene-space search: a camera that looks into
-free space (or out of the scene's bounds) renders the background, and a criterion can like that
-view (an empty image may be "high quality", a flat sky may be "salient"). The renderer knows: the
-accumulated opacity of a ray is ~0 where it met nothing. Three tools:
-
-  * `opacity` (renders, max, [0, 1]): the mean accumulated opacity of the view. Photographs
-    count as fully opaque.
-  * `constrained(primary, guard, threshold)`: the primary score where the guard passes (a "max"
-    guard at or above `threshold`, a "min" guard at or below it), the primary's worst score
-    elsewhere. On the command line: `--criterion saliency --guard opacity:0.9`.
-  * `weighted(parts, weights)`: sum_i w_i * n_i(s_i) / sum_i w_i, where n_i maps criterion i's
-    `value_range` linearly onto [0, 1] with 1 the good end (flipped for "min" criteria) and clips.
-    Direction max, range [0, 1]. On the command line: `--criterion weighted:saliency=0.7,iqa_cnn=0.3`.
-
-Combinations take "images" and "renders" criteria (pose oracles score no image). The combined
-criterion is a "renders" criterion when any part is one, so the search renders opacity only when
-it is used. Child parameters stay leaves of the combined criterion's params (traced under jit);
-the weights are leaves too, so a sweep can vmap over them.
+The paper names empty views as a failure mode (a camera looking into free space renders the
+background, which a criterion may like); a ray's accumulated opacity is ~0 where it met nothing, so:
+  * `opacity` (renders, max, [0, 1]): the view's mean accumulated opacity (photographs: 1);
+  * `constrained(primary, guard, threshold)`: the primary where the guard passes, its worst score
+    elsewhere (`--criterion saliency --guard opacity:0.9`);
+  * `weighted(parts, weights)`: the weighted mean of the parts' scores, each mapped onto [0, 1]
+    (`--criterion weighted:saliency=0.7,iqa_cnn=0.3`); `build_criterion` parses such specs.
+The definitions, and the inputs and parameters of a combination: see docs/design.md, section
+"Criteria > Guards and combinations".
 """
 
 from __future__ import annotations

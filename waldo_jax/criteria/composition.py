@@ -1,29 +1,15 @@
 """Photo composition in [1, 5] from a saliency map (a documented stand-in for SAMP-Net).
 
-The paper scores composition with SAMP-Net (Zhang et al., "Image composition assessment with
-saliency-augmented multi-pattern pooling", BMVC 2021), whose mean opinion scores lie in [1, 5]. Its
-weights cannot be had here, so `composition` scores the classic rules that composition-aware
-cropping and aesthetics work measures on a saliency map (Liu et al., "Optimizing photo composition",
-Eurographics 2010; Datta et al., ECCV 2006), computed on the CSNet saliency map S [H, W] in [0, 1]
-with pixel centres at normalised coordinates (x, y) in (0, 1)^2 and salient mass m = sum S:
+The paper scores composition with SAMP-Net (Zhang et al., BMVC 2021), whose weights cannot be had
+here; `composition` scores the classic composition rules on the CSNet saliency map S [H, W] instead:
+the rule of thirds (salient centroid near a power point), balance (centroid near the centre),
+left-right symmetry and subject emphasis (share of salient pixels in [0.05, 0.5]), as
+composition = 1 + 4 * (0.4 thirds + 0.2 balance + 0.1 symmetry + 0.3 emphasis). Its numbers are not
+comparable to the paper's; it is deterministic, documented and cheap. NaN images score 1 (the worst).
+`composition_terms` and `composition_from_map` score one map; `composition` is the criterion.
 
-  * thirds:   c = sum S (x, y) / m is the salient centroid; d its distance to the nearest of the four
-              power points (1/3 or 2/3, 1/3 or 2/3); thirds = exp(-d^2 / (2 * 0.15^2)). 1 on a power
-              point, 0.29 at the centre, ~0 in a corner.
-  * balance:  the visual mass should not pile up on one side: balance = exp(-|c - (1/2, 1/2)|^2 /
-              (2 * 0.25^2)). Together with thirds it favours power points over edges and corners.
-  * symmetry: left-right mirror agreement of the map: 1 - sum |S - S_mirrored| / (2 m).
-  * emphasis: the subject should be neither lost nor overwhelming: with a = the share of pixels with
-              S > 0.5, emphasis = 1 for a in [0.05, 0.5], a / 0.05 below, max(0, 1 - (a - 0.5) / 0.5)
-              above. An empty (no salient pixel) view scores 0 here.
-
-  composition = 1 + 4 * (0.4 thirds + 0.2 balance + 0.1 symmetry + 0.3 emphasis), in [1, 5].
-
-The weights put the rule of thirds first (the most studied rule), subject emphasis second (it keeps
-empty or cluttered views low, the failure mode the paper names) and balance and symmetry after.
-A view whose map has no mass takes the centre as its centroid. NaN images score 1 (the worst).
-This is not SAMP-Net and its numbers are not comparable to the paper's; it is deterministic,
-documented and cheap (the saliency network dominates the cost).
+Each term's formula, the references and why these weights: see docs/design.md, section
+"Criteria > Composition".
 """
 
 from __future__ import annotations
@@ -69,7 +55,7 @@ def composition_terms(saliency: Array) -> dict:
 
 
 def composition_from_map(saliency: Array) -> Array:
-    """The composition score [] in [1, 5] of one saliency map [H, W] (see the module docstring)."""
+    """The composition score [] in [1, 5] of one saliency map [H, W] (see docs/design.md, "Criteria")."""
     terms = composition_terms(saliency)
     return 1.0 + 4.0 * sum(WEIGHTS[name] * terms[name] for name in WEIGHTS)
 

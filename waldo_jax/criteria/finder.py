@@ -1,54 +1,15 @@
-"""The Waldo finder: template matching of a reference image of the object over positions and
-scales, by normalised cross-correlation (Lewis, "Fast normalized cross-correlation", Vision
-Interface 1995: FFT correlation for the numerator, integral images for the window statistics)
-times a colour-histogram similarity (the Bhattacharyya coefficient of Comaniciu, Ramesh and Meer,
-"Kernel-based object tracking", TPAMI 2003).
+"""The Waldo finder: template matching of a reference image of the object over positions and scales.
 
-Symbols (one view, one scale):
-  * `I` float32 [H, W, 3]: the view; `T` float32 [h, w, 3]: the target resampled to one scale;
-  * a window `I_yx = I[y:y + h, x:x + w]`, for every valid top-left corner (y, x),
-    0 <= y <= H - h and 0 <= x <= W - w; `n = 3 h w`, the values of a window;
-  * `NCC(y, x) = <I_yx - mean(I_yx), T - mean(T)> / (|I_yx - mean(I_yx)| |T - mean(T)|)`: the
-    zero-mean, unit-norm correlation of the window and the template as vectors of n values (one
-    mean over all three channels, so that colour differences between channels count: with a mean
-    per channel, a grey wall corner under the sky correlated about as well as Waldo himself);
-  * `BC(y, x) = sum_b sqrt(p_b(I_yx) p_b(T))`: the Bhattacharyya coefficient of the windows'
-    colour histograms p (`BINS` levels per channel, `BINS**3` joint bins, each pixel in one bin);
-  * `match(y, x) = max(NCC, 0) * BC`, and the finder score is the best match over all windows and
-    scales, in [0, 1]: 1 for an exact copy of the template (up to brightness gain and offset),
-    0.1 to 0.3 for the room's views without Waldo or for noise.
+A view's score is the best, over all windows and scales, of max(NCC, 0) * BC: the normalised
+cross-correlation of the window with the target resampled to that scale (Lewis 1995: FFT correlation,
+integral images) times the Bhattacharyya coefficient of their colour histograms (Comaniciu, Ramesh
+and Meer 2003), in [0, 1] (1 for an exact copy of the target, 0.1 to 0.3 for views without Waldo).
+Both factors are exact per window; the histogram keeps NCC from matching any similar light-dark
+layout (on the procedural room the product agrees best with the oracle). `find_target` and
+`finder_score(s)` score views, `ncc_map` / `colour_map` give the maps, `waldo(context)` the criterion.
 
-Both factors are exact per window, not approximations: the NCC numerator is a correlation computed
-with real FFTs of size H x W (circular correlation equals the linear one at valid corners); the
-window sums of I and I^2 come from integral images (running sums, one axis at a time so that they
-stay small in float32), and the histogram counts from an int32 integral image (four look-ups per
-window). Windows whose standard deviation (over their n values) is below `MIN_STD` are flat (sky,
-a wall, an all-black view): their NCC is 0, as is every window's when the template itself is flat.
-The template sizes run in groups of `SCALES_PER_GROUP` through one compiled program each (sizes are
-run-time values inside fixed buffers), so compile time does not grow with the number of scales.
-
-Why the histogram factor: NCC is blind to a window's mean colour and matches any similar
-light-dark layout, e.g. a small template against a wall corner under the sky; the colour histogram
-alone ignores layout. On the procedural room their product agrees best with the oracle. Spearman
-correlation with `waldo_visibility` over 200 views at 64x64 drawn as in `tests/test_finder.py`, on
-two sets of views with one crop of Waldo as the target: NCC alone 0.67 and 0.76, the histogram
-alone 0.70 and 0.67, their product per window 0.75 and 0.79, the NCC of the best window times that
-window's histogram similarity 0.72 and 0.74. (NCC with one mean per channel instead of one per
-window: 0.36 where one mean gave 0.58, before the other choices here.) The product's correlation
-depends on the crop: over 33 crops from different views that show all of Waldo it ranged from 0.66
-to 0.85, median 0.77.
-
-Scales: the target keeps its aspect ratio and is resampled to heights `round(s * H)` for each s of
-the static tuple `scales` (default `DEFAULT_SCALES`, factors of 2^(1/4) from 1/8 to 1 of the view's
-height); a scale whose template would be narrower or shorter than `MIN_SIDE` pixels, or larger than
-the view, is skipped (statically, from the image shape). Resampling is bilinear at the template's
-pixel centres without a low-pass filter, as a renderer samples a scene with one ray per pixel
-centre: a small Waldo in a render keeps aliased red and white stripes rather than pink, and so does
-the template (with an antialiasing filter the agreement above drops from 0.75 to 0.71).
-
-The criterion `waldo` (direction max, value range (0, 1)) needs the target image
-(`CriterionContext.target`, from the CLI's `--target FILE`); its array is the criterion's params
-(traced), the scales static. Views with NaN/inf pixels score 0, the worst value.
+The symbols, how each factor is computed, the measured agreement with the oracle, the scales and the
+resampling: see docs/design.md, section "Criteria > The Waldo finder".
 """
 
 from __future__ import annotations

@@ -6,43 +6,22 @@ IEEE Signal Processing Letters 20(3), 209-212, 2013; LIVE's "NIQE Software Relea
 distance between the statistics of the image's patches and those of pristine photographs.
 
 Pipeline, for one image (the conventions of the official MATLAB code, which produced the model file):
-  1. 8-bit grey: the float RGB is quantised to 0..255 (as a saved PNG would be), then MATLAB's
-     rgb2gray, round(0.298936 R + 0.587043 G + 0.114021 B);
-  2. the image is cropped (top-left) to a whole number of 96x96 patches; H and W must be >= 96;
-  3. two scales: the grey image, and MATLAB's imresize(I, 0.5) (bicubic, antialiased: an 8-tap filter,
-     symmetric borders), not rounded; at each scale the MSCN coefficients of the whole image
-     (`nss.mscn`) are cut into the patch grid (96x96, then 48x48);
-  4. 18 features per patch and scale, 36 per patch (scale 1 then scale 2):
-       [alpha, (beta_l + beta_r) / 2] of the AGGD fit of the MSCN patch, then for each orientation
-       H, V, D1, D2 of the pairwise products (circular within the patch, MATLAB's circshift):
-       [alpha, eta, beta_l, beta_r];
-  5. the image's multivariate Gaussian (mean mu_d, covariance Sigma_d over its patches) against the
-     pristine one (mu_p, Sigma_p):
-       NIQE = sqrt((mu_p - mu_d)^T ((Sigma_p + Sigma_d) / 2)^-1 (mu_p - mu_d)).
-
-Convention choices, and why:
-  * No patch selection at test time: the official `computequality.m` computes each patch's
-    sharpness but never uses it (the 0.75-of-max sharpness selection belongs to training,
-    `estimatemodelparam.m`, which made the model file), and scikit-video has it commented out.
-  * Features follow the official `computefeature.m` (AGGD scales beta, MSCN fitted with the AGGD), not
-    scikit-video's variant, because the model file is the official LIVE release (its mean features,
-    e.g. eta ~ 0.09 next to beta ~ 0.14 / 0.21, are consistent only with the beta convention).
-  * Flat patches (a side of one of their AGGD fits is empty: MATLAB gives NaN there and `nancov`
-    drops the row) are left out of both the mean and the covariance; an image without any other patch
-    gets NaN, i.e. the criterion's worst score. One patch gives a zero covariance (MATLAB's cov of one
-    observation).
-  * (Sigma_p + Sigma_d) / 2 is positive definite (Sigma_p is, smallest eigenvalue 7e-6), so the
-    MATLAB pinv is the inverse. Sigma_p's condition number (1.6e5) is too large for a float32 inverse,
-    so the distance is computed after whitening by Sigma_p's Cholesky factor L (done once in float64):
-    with e = L^-1 (mu_p - mu_d) and M = L^-1 Sigma_d L^-T, NIQE^2 = 2 e^T (I + M)^-1 e, a well
-    conditioned solve.
+  1. 8-bit grey (MATLAB rgb2gray of the quantised image), cropped (top-left) to whole 96x96 patches;
+  2. two scales: the grey image and MATLAB's imresize(I, 0.5); at each the MSCN coefficients of the
+     whole image (`nss.mscn`) are cut into the patch grid (96x96, then 48x48);
+  3. 18 features per patch and scale, 36 per patch (scale 1 then scale 2): [alpha, (beta_l + beta_r) / 2]
+     of the AGGD fit of the MSCN patch, then for each orientation H, V, D1, D2 of the pairwise products
+     (circular within the patch): [alpha, eta, beta_l, beta_r];
+  4. NIQE = sqrt((mu_p - mu_d)^T ((Sigma_p + Sigma_d) / 2)^-1 (mu_p - mu_d)), the image's Gaussian
+     (mu_d, Sigma_d over its non-flat patches) against the pristine one (mu_p, Sigma_p), computed as
+     NIQE^2 = 2 e^T (I + M)^-1 e with e = L^-1 (mu_p - mu_d), M = L^-1 Sigma_d L^-T and L the Cholesky
+     factor of Sigma_p (inverted once in float64: Sigma_p is too ill-conditioned for float32).
+Why no patch selection, the beta convention and the flat patches: docs/design.md, "Criteria".
 
 Weights: `<weights>/niqe/niqe_image_params.mat` (MATLAB v5) holds `pop_mu` (1, 36) and `pop_cov`
 (36, 36), the pristine model of the official LIVE release; the converter's tree is
-`{"pop_mu": [36], "pop_cov": [36, 36]}` (float64).
-
-Scores are clipped to `VALUE_RANGE` = (0, 100): natural images score about 2-10 and heavily distorted
-ones rarely above 50; 100 is the finite worst score of failed views (NaN/inf pixels, no usable patch).
+`{"pop_mu": [36], "pop_cov": [36, 36]}` (float64). Scores are clipped to `VALUE_RANGE` = (0, 100);
+100 is the finite worst score of failed views (NaN/inf pixels, no usable patch).
 """
 
 from __future__ import annotations
@@ -56,8 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.criteria import nss
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, finite_or_worst,
-                                     register, sanitize_images, worst_score)
+from waldo_jax.criteria.base import Criterion, CriterionContext, CriterionError, CriterionSpec, register
 from waldo_jax.types import Array
 from waldo_jax.weights.store import Converter, WeightsError, check_shapes, load_model, register_converter
 
@@ -287,9 +265,8 @@ def niqe_score(params: Dict[str, Array], image: Array) -> Array:
 
 
 def _apply(params, images: Array) -> Array:
-    clean, bad = sanitize_images(images)
-    score = jnp.clip(nss.map_images(functools.partial(niqe_score, params), clean, CHUNK), *VALUE_RANGE)
-    return finite_or_worst(score, bad, worst_score("min", VALUE_RANGE))
+    """Criterion scores [P] of images [P, H, W, 3]: `niqe_score`, clipped, the worst for failed views."""
+    return nss.quality_scores(functools.partial(niqe_score, params), images, CHUNK, VALUE_RANGE)
 
 
 def niqe(context: CriterionContext) -> Criterion:

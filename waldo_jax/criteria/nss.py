@@ -4,7 +4,7 @@ A. Mittal, A. K. Moorthy and A. C. Bovik, "No-Reference Image Quality Assessment
 Domain", IEEE Trans. Image Processing 21(12), 2012 (BRISQUE); A. Mittal, R. Soundararajan and
 A. C. Bovik, "Making a 'Completely Blind' Image Quality Analyzer", IEEE Signal Processing Letters
 20(3), 2013 (NIQE). Both describe an image by how its locally normalised luminance departs from the
-statistics of pristine photographs.
+statistics of pristine photographs; `quality_scores` is how both criteria score a batch.
 
 Names (the papers' symbols):
   I            grey image [H, W] on the 0..255 scale;
@@ -17,22 +17,11 @@ Names (the papers' symbols):
   beta_l, beta_r     AGGD scales sigma_{l,r} sqrt(Gamma(1/alpha) / Gamma(3/alpha));
   eta          AGGD mean (beta_r - beta_l) Gamma(2/alpha) / Gamma(1/alpha).
 
-The shape fits are moment matching by table look-up, as in the references: the GGD's
-E[x^2] / E[|x|]^2 = Gamma(1/alpha) Gamma(3/alpha) / Gamma(2/alpha)^2, and for the AGGD the same
-ratio corrected for the asymmetry gamma_hat = sigma_l / sigma_r,
-  r_hat_norm = (E[|x|]^2 / E[x^2]) (gamma_hat^3 + 1)(gamma_hat + 1) / (gamma_hat^2 + 1)^2,
-matched to Gamma(2/alpha)^2 / (Gamma(1/alpha) Gamma(3/alpha)) by an argmin over the grid, so the fits
-jit. The pairwise products I_hat(i, j) I_hat(i + di, j + dj) take the four orientations of
-`PAIR_SHIFTS`: horizontal, vertical, main diagonal and anti-diagonal.
-
-Numerics (all float32, no x64): the local moments are accumulated over the 49 window offsets from the
-differences I_{x+k} - I_x rather than as blur(I^2) - blur(I)^2, which cancels catastrophically in
-float32 on smooth bright regions (a 0.1 grey-level deviation under a 65025 mean square); a flat
-region therefore gives exactly zero coefficients. |I - mu| below `FLAT_LEVEL` grey levels (float
-rounding, not image content) is set to 0, so that such pixels count as neither side of an AGGD. A
-fit over samples with no negative (or no positive) value is degenerate (where the MATLAB code gives
-NaN): it stays finite here (the empty side's sigma is 0, an all-zero input gets the smallest shape,
-0.2) and `AGGDFit.valid` flags it.
+The shape fits are moment matching by table look-up (an argmin over the grid, so they jit); the
+pairwise products I_hat(i, j) I_hat(i + di, j + dj) take the four orientations of `PAIR_SHIFTS`. All
+float32: a flat region gives exactly zero coefficients, and a degenerate fit (no negative or no
+positive sample, NaN in MATLAB) stays finite and is flagged by `AGGDFit.valid`. The formulas and the
+numerics: docs/design.md, "Criteria".
 """
 
 from __future__ import annotations
@@ -44,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.criteria.base import finite_or_worst, sanitize_images, worst_score
 from waldo_jax.types import Array
 
 __all__ = [
@@ -58,6 +48,7 @@ __all__ = [
     "ggd_fit",
     "pairwise_products",
     "map_images",
+    "quality_scores",
 ]
 
 SHAPE_GRID = 0.2 + 0.001 * np.arange(9801)  # float64 [9801]: 0.2, 0.201, ..., 10.0
@@ -214,3 +205,24 @@ def map_images(score: Callable[[Array], Array], images: Array, chunk: int) -> Ar
         images = jnp.concatenate([images, jnp.zeros((pad,) + images.shape[1:], images.dtype)])
     chunks = images.reshape((-1, chunk) + images.shape[1:])  # [P / chunk, chunk, ...]
     return jax.lax.map(jax.vmap(score), chunks).reshape(-1)[:count]
+
+
+def quality_scores(score: Callable[[Array], Array], images: Array, chunk: int,
+                   value_range: Tuple[float, float]) -> Array:
+    """Criterion scores [P] of a lower-is-better quality model (BRISQUE, NIQE) over images [P, H, W, 3].
+
+    The images are sanitised (`sanitize_images`), scored with `map_images` and clipped to
+    `value_range`; images that held NaN/inf, and non-finite scores, get the worst score `value_range[1]`.
+
+    Args:
+      score: the model's score [] of one image float32 [H, W, 3] in [0, 1].
+      images: float32 [P, H, W, 3].
+      chunk: images vmapped at once (see `map_images`).
+      value_range: (best, worst) finite bounds the scores are clipped to.
+
+    Returns:
+      float32 [P].
+    """
+    clean, bad = sanitize_images(images)
+    scores = jnp.clip(map_images(score, clean, chunk), *value_range)
+    return finite_or_worst(scores, bad, worst_score("min", value_range))

@@ -1,16 +1,12 @@
 """Oracle criteria of the procedural Waldo room: exact answers from the analytic geometry, no render.
 
   * `waldo_oracle`: the share of the image covered by the visible part of Waldo
-    (`waldo_jax.procedural.waldo_coverage`): his un-occluded, in-frame pixels over all pixels. It
-    is the exact counterpart of the paper's BASNet criterion (the number of salient pixels) for
-    a scene where we know which pixels are Waldo, and it is largest for a view that shows all of
-    him, close up and unobstructed, so a search has to trade distance against occlusion and the
-    frame's edges.
+    (`waldo_jax.procedural.waldo_coverage`), the exact counterpart of the paper's BASNet criterion;
   * `waldo_visible`: the fraction of Waldo's projected area that is visible
-    (`waldo_jax.procedural.waldo_visibility`), whatever his size in the image; "a view in which
-    Waldo is fully visible" has `waldo_visible` >= 0.9.
+    (`waldo_jax.procedural.waldo_visibility`), whatever his size in the image.
 
-Both take the room as their params and score camera poses (`inputs == "poses"`).
+Both take the room as their params and score camera poses (`inputs == "poses"`). Why these two, and
+what a search has to trade: see docs/design.md, section "Criteria > Oracles".
 """
 
 from __future__ import annotations

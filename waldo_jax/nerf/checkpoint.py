@@ -37,8 +37,9 @@ import numpy as np
 
 from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
 from waldo_jax.io import atomic_file
+from waldo_jax.nerf.config import TrainConfig, TrainConfigError
 from waldo_jax.nerf.field import init_field
-from waldo_jax.nerf.train import TrainConfig, TrainConfigError, make_sampler
+from waldo_jax.nerf.samplers import make_sampler
 from waldo_jax.types import Intrinsics, Scene
 
 __all__ = [

@@ -1,30 +1,15 @@
 """The renderer of trained fields: occupancy-grid marching (Instant-NGP) with packed samples, compaction
 of live rays between passes and early ray termination, for whole populations of poses in one call.
 
-The rays of all P poses of a call (P * H * W) form one flat list, cut into blocks of N rays. A block:
-  1. marches every ray through the occupancy grid (`occupancy.march_ray`: empty space is skipped
-     before the field runs; padding rays get an empty interval), keeping at most S samples per ray;
-  2. runs passes: in each pass the live rays (samples left, transmittance >= `min_transmittance`) are
-     compacted into a budget of M rows of s samples (`packed.layout_rows`), each asking for its next
-     min(M // live, R_max) rows, so a pass stays full as rays retire; the field runs once on the M * s
-     slots (in `field_chunk` pieces where a backend prefers smaller calls), and the rows are
-     composited by plain cumulative sums (`packed.composite_rows`) onto the optical depth and sums
-     each ray carries. Passes come in `pass_levels` sizes, each `level_ratio` times smaller than the
-     one before: a `lax.while_loop` per size, which hands over to the next smaller size once the live
-     rays' requests would fill less than `level_fill` of its pass (a ray's first request is its
-     nominal share, `slots_per_ray`), so a block with many empty rays, or its tail of few live rays,
-     does not evaluate mostly empty slots. At most `max_passes` passes in all, a bound no block reaches;
-  3. adds the background: rgb = sum w * c + (1 - acc) * background.
+`render_marched(field, params, grid, c2w [P, 4, 4], intrinsics, ...)`: the P * H * W rays form one
+flat list cut into blocks of N rays; a block marches each ray through the grid
+(`occupancy.march_ray`), then runs passes in which the live rays' next samples are packed into M rows
+of s slots (`packed.layout_rows`), the field runs once and the rows are composited
+(`packed.composite_rows`), until every ray is done or opaque. `render_marched_sharded` splits the
+poses over devices; `Packing` holds the per-backend sizes.
 
-A ray's weights are those of `volume.volume_weights` over its samples up to the pass in which its
-transmittance fell below `min_transmittance` (Instant-NGP: 1e-4): the colour differs from the composite
-of all its samples by at most that transmittance times max |rgb - background|.
-
-Sizes (`Packing`) are per backend: a GPU wants millions of slots per field call, so few passes and
-host reads of the loop predicate per block; a CPU wants field calls that stay in cache.
-
-Names: `N` rays per block, `S` samples per ray, `M` rows per pass, `s` slots per row, `R_max` rows a
-ray may take in one pass, `P` poses.
+Design and measurements: docs/rendering.md; the steps in `Packing`'s terms, early termination's
+error bound and the names: docs/design.md, section "Rendering > The marched renderer".
 """
 
 from __future__ import annotations
@@ -41,7 +26,7 @@ from waldo_jax.render.sharding import shard_over_poses
 from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
 from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
 
-__all__ = ["MarchedViews", "Packing", "render_marched", "render_marched_sharded"]
+__all__ = ["BlockShape", "MarchedViews", "Packing", "block_shape", "field_slots", "render_marched", "render_marched_sharded"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,7 +88,7 @@ class Packing:
         return cls(**values)
 
 
-class _BlockShape(NamedTuple):
+class BlockShape(NamedTuple):
     """The static sizes of one call's blocks."""
 
     rays: int  # N
@@ -116,7 +101,7 @@ class _BlockShape(NamedTuple):
     level_fill: float
 
 
-def _block_shape(packing: Packing, total_rays: int, max_samples: int) -> _BlockShape:
+def block_shape(packing: Packing, total_rays: int, max_samples: int) -> BlockShape:
     """Balanced blocks of at most `rays_per_block` rays (the last block is padded, by under 8 rays a block)."""
     num_blocks = -(-total_rays // packing.rays_per_block)
     rays = -(-total_rays // num_blocks)
@@ -129,7 +114,7 @@ def _block_shape(packing: Packing, total_rays: int, max_samples: int) -> _BlockS
     # block can need more passes than this, even in passes of the smallest size: no ray is ever cut.
     max_passes = -(-rays * rows_per_ray // rows[-1]) + rows_per_ray + 1
     chunk = packing.field_chunk or first * packing.row_length
-    return _BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk,
+    return BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk,
                        packing.slots_per_ray // packing.row_length, packing.level_fill)
 
 
@@ -163,7 +148,7 @@ class MarchedViews(NamedTuple):
     slots: Array
 
 
-def _field_slots(field: Field, params, points: Array, directions: Array, chunk: int):
+def field_slots(field: Field, params, points: Array, directions: Array, chunk: int):
     """sigma [B], rgb [B, 3] at points [B, 3] seen along directions [B, 3], `chunk` slots per call."""
     if chunk >= points.shape[0]:
         return jax.vmap(field, in_axes=(None, 0, 0))(params, points, directions)
@@ -171,7 +156,7 @@ def _field_slots(field: Field, params, points: Array, directions: Array, chunk: 
 
 
 def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
-                  real: Array, render_config: RenderConfig, march: occupancy.MarchConfig, shape: _BlockShape):
+                  real: Array, render_config: RenderConfig, march: occupancy.MarchConfig, shape: BlockShape):
     """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
     evaluations int32 [N], passes int32 [], slots int32 [])."""
     num_rays, row_length = shape.rays, shape.row_length
@@ -201,7 +186,7 @@ def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: 
         delta_rows = jnp.where(valid, delta[owner, index], 0.0)  # [M, s]
         ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (rows, row_length, 3))  # [M, s, 3]
         points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
-        sigma, rgb = _field_slots(field, params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3), shape.field_chunk)
+        sigma, rgb = field_slots(field, params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3), shape.field_chunk)
         sums = packed.composite_rows(sigma.reshape(rows, row_length), rgb.reshape(rows, row_length, 3), t_rows,
                                      delta_rows, layout, state.optical_depth, shape.max_rows_per_ray)
         taken = jnp.minimum(layout.granted * row_length, count - state.next_sample)  # [N]
@@ -240,7 +225,7 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
     c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
     num_poses = c2w.shape[0]
     total = num_poses * intrinsics.height * intrinsics.width
-    shape = _block_shape(packing, total, march.max_samples)
+    shape = block_shape(packing, total, march.max_samples)
 
     def block(ids: Array):
         origins, directions, _, _ = view_rays(c2w, intrinsics, ids)
@@ -260,7 +245,7 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
 def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
                    render_config: RenderConfig, march: occupancy.MarchConfig,
                    packing: Optional[Packing] = None) -> MarchedViews:
-    """Renders P poses of a field through its occupancy grid in one jitted call (see the module docstring).
+    """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
     One compilation per (field, packing, grid geometry, march sizes, image size, P).
 

@@ -1,51 +1,15 @@
 """Instant-NGP's multi-scale occupancy grid and fixed-shape ray marching (Müller et al., SIGGRAPH 2022,
 Sec. 5.4 and Appendix E.2 "Accelerated ray marching").
 
-Geometry. The *base box* (cascade 0) has centre `center` and half-size `half_size` (world units, per
-axis). Cascade c covers the base box scaled by 2**c about the same centre, c = 0 .. C-1, with
-C = 1 + ceil(log2(aabb_scale)) capped at `MAX_CASCADES` (fox, aabb_scale 4: C = 3). Each cascade is a
-G x G x G grid of cells (G = `resolution`, 128 in Instant-NGP). With the box coordinates
-u = (x - center) / half_size (cascade 0 is u in [-1, 1]^3), a point belongs to the finest cascade that
-contains it, c = clip(ceil(log2(max_i |u_i|)), 0, C - 1) (NGP's `mip_from_pos`); its cell is
-(i, j, k) = floor((u / 2**c + 1) / 2 * G) and its flat index `cell = i + G * (j + G * k)` (x fastest,
-as the dense hash-grid levels; NGP uses Morton order, which only changes memory locality). Points
-with max |u_i| > 2**(C-1) lie outside the grid and are never occupied.
+`OccupancyGrid` holds, per cascade c < C (cascade c covers the base box scaled by 2**c) and cell of
+its G x G x G grid, a decaying running maximum of the density (`density` float32 [C, G**3]) and the
+occupied cells (`bitfield` bool [C, G**3]). `update_occupancy` is NGP's density-grid update (decay,
+sample, max, threshold); `march_ray` marches ONE ray with NGP's step sizes (closed-form bin edges, no
+sequential loop) and compacts the samples in occupied cells into its first S slots. The marched
+renderer (`waldo_jax.render.marched`) and training build on it.
 
-State (`OccupancyGrid`): `density` float32 [C, G**3], a decaying running maximum of the density sigma
-(world units^-1) seen in each cell, and `bitfield` bool [C, G**3], the occupied cells.
-
-Update (`update_occupancy`), as NGP's `update_density_grid`:
-  * every old value decays: density <- decay * density (decay = 0.95);
-  * new samples: the density at one uniformly jittered point inside each chosen cell; all cells of all
-    cascades while `step < warmup_steps` (NGP: the first 256 training steps), afterwards, per cascade,
-    M = `update_fraction` * G**3 uniformly drawn cells plus M cells drawn among the occupied ones
-    (fixed shapes; cells may repeat). Cells not drawn keep their decayed value;
-  * density <- max(decayed, new) (the maximum over repeated draws of a cell);
-  * threshold: a cell of cascade c is occupied iff density > min(mean of cascade 0, tau) * 2**-c.
-    tau = `density_threshold` is NGP's minimal optical thickness 0.01 per minimal step dt_min:
-    tau = 0.01 / dt_min = 0.01 * 1024 / (base-box diagonal), i.e. 0.01 * 1024 / sqrt(3) for NGP's
-    unit cube. NGP stores the optical thickness sigma * dt_min * 2**c of cascade c, so in density units
-    the threshold halves with every coarser cascade, where NGP's steps may be longer. The mean is taken
-    over cascade 0, as NGP reduces only the first cascade (its normaliser may differ; we use the plain
-    mean of cascade 0). A cell whose density stays below the threshold is skipped even where long
-    grazing paths through it would add up to visible opacity; that is NGP's trade-off too.
-
-Marching (`march_ray`), for ONE ray: candidate bins [e_k, e_{k+1}], k < K = `max_steps`, from t_start,
-of length dt(e_k) = clip(e_k * cone_angle, dt_min, dt_max) (NGP's `calc_dt`), with
-dt_min = base-box diagonal / `steps_per_diagonal` (NGP: sqrt(3) / 1024 for the unit cube) and
-dt_max = the cell diagonal of the coarsest cascade, base diagonal * 2**(C-1) / G (NGP's
-MAX_CONE_STEPSIZE for its fixed 8 cascades). cone_angle = 0 (synthetic scenes) gives constant
-steps; NGP uses 1/256 for real scenes, where steps grow with distance (constant, then geometric, then
-constant: the bin edges have a closed form, so no sequential loop is needed). The sample of a bin is
-t_k = e_k + u * delta_k with u = 0.5 (deterministic) or one uniform u per ray (training; NGP's random
-offset of the first step); the last bin is cut at t_end. Candidates whose sample falls in an occupied
-cell are compacted (cumsum + scatter) into the first S = `max_samples` slots, in order.
-
-Names: `t` sample distances along unit directions, `delta` bin lengths (the quadrature step, 0 for
-masked samples), `mask` valid samples, `sigma` densities, `w` weights, K candidates, S samples.
-
-Rendering and training with this grid live in `waldo_jax.render.marched`: the marched samples of
-many rays are packed into fixed budgets of field evaluations there (`waldo_jax.render.packed`).
+The grid's geometry and indexing, the update's schedule and threshold, the step sizes and the names:
+see docs/design.md, section "Rendering > The occupancy grid".
 """
 
 from __future__ import annotations
@@ -67,6 +31,7 @@ __all__ = [
     "MarchConfig",
     "OccupancyConfig",
     "OccupancyGrid",
+    "cell_points",
     "grid_cell",
     "init_occupancy",
     "init_occupancy_for_scene",
@@ -96,7 +61,7 @@ DensityFn = Callable[..., Array]
 
 @flax.struct.dataclass
 class OccupancyGrid:
-    """The multi-scale occupancy grid (see the module docstring for the geometry and indexing).
+    """The multi-scale occupancy grid (see docs/design.md, "Rendering" for the geometry and indexing).
 
     Attributes:
       density: float32 [C, G**3], decaying running maximum of the sampled density per cell.
@@ -359,7 +324,7 @@ def is_occupied(grid: OccupancyGrid, x: Array) -> Array:
     return inside & grid.bitfield.reshape(-1)[flat]
 
 
-def _cell_points(grid: OccupancyGrid, cascade: Array, cell: Array, jitter: Array) -> Array:
+def cell_points(grid: OccupancyGrid, cascade: Array, cell: Array, jitter: Array) -> Array:
     """World points at `jitter` [..., 3] in [0, 1)^3 inside cells `cell` [...] of cascades `cascade` [...]."""
     size = grid.resolution
     ijk = jnp.stack([cell % size, (cell // size) % size, cell // (size * size)], axis=-1)  # [..., 3]
@@ -410,7 +375,7 @@ def _sample_occupied(key: PRNGKey, bitfield: Array, fallback: Array) -> Array:
 
 def update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step,
                      config: OccupancyConfig) -> OccupancyGrid:
-    """One Instant-NGP occupancy update (decay, sample, max, threshold; see the module docstring).
+    """One Instant-NGP occupancy update (decay, sample, max, threshold; see docs/design.md, "Rendering").
 
     Pure and jitted (`density_fn` is static: pass the same function object, e.g. `make_density(cfg)`,
     to reuse the compilation; `step` is cast to int32, so Python and JAX integers share it). Both the
@@ -455,7 +420,7 @@ def update_occupancy_phase(key: PRNGKey, grid: OccupancyGrid, density_fn: Densit
     if warmup:
         cells = jnp.arange(num_cells, dtype=jnp.int32)  # [G**3]
         jitter = jax.random.uniform(key_warmup, (num_cascades, num_cells, 3))  # [C, G**3, 3]
-        points = _cell_points(grid, cascade_ids[:, None], cells[None, :], jitter)  # [C, G**3, 3]
+        points = cell_points(grid, cascade_ids[:, None], cells[None, :], jitter)  # [C, G**3, 3]
         sigma = _evaluate_density(density_fn, params, points.reshape(-1, 3), config.eval_chunk)
         new = sigma.reshape(num_cascades, num_cells)  # [C, G**3]
     else:
@@ -465,7 +430,7 @@ def update_occupancy_phase(key: PRNGKey, grid: OccupancyGrid, density_fn: Densit
         occupied_cells = _sample_occupied(key_occupied, grid.bitfield, uniform_cells)  # [C, M]
         cells = jnp.concatenate([uniform_cells, occupied_cells], axis=1)  # [C, 2M]
         jitter = jax.random.uniform(key_jitter, cells.shape + (3,))  # [C, 2M, 3]
-        points = _cell_points(grid, cascade_ids[:, None], cells, jitter)  # [C, 2M, 3]
+        points = cell_points(grid, cascade_ids[:, None], cells, jitter)  # [C, 2M, 3]
         sigma = _evaluate_density(density_fn, params, points.reshape(-1, 3), config.eval_chunk)
         sigma = sigma.reshape(cells.shape)  # [C, 2M]
         # Cells not drawn stay 0 here, so max(decayed, new) keeps their decayed value. A scatter-max
@@ -516,7 +481,7 @@ def _step_edges(t_start: Array, num_steps: int, dt_min: Array, dt_max: Array, co
 
 def march_ray(grid: OccupancyGrid, origin: Array, direction: Array, t_start: Array, t_end: Array,
               config: MarchConfig, key: Optional[PRNGKey] = None) -> Tuple[Array, Array, Array]:
-    """Samples of ONE ray in occupied cells, compacted to a fixed budget (see the module docstring).
+    """Samples of ONE ray in occupied cells, compacted to a fixed budget (see docs/design.md, "Rendering").
 
     Args:
       grid: occupancy grid.

@@ -1,24 +1,15 @@
 """Packed rows: the samples of many rays laid out in a fixed budget of field evaluations, composited
 with plain cumulative sums (Instant-NGP's compacted samples; nerfacc's packed samples).
 
-Layout (`layout_rows`). A budget of M rows of s slots ([M, s], M * s field evaluations). Ray r asks
-for `rows[r]` rows; the rays are laid out one after another in order, ray r owning rows
-[start[r], start[r] + granted[r]) with granted[r] = clip(M - start[r], 0, rows[r]): the ray at the
-end of the budget gets part of its request and the rays after it none. A row holds s consecutive
-samples of its ray; only a ray's last row may be partly empty (`valid` masks it), so the field runs
-on occupied samples only, up to that rounding.
+`layout_rows` lays the rays out one after another in a budget of M rows of s slots, each ray owning
+the rows it asked for while they fit; `composite_rows` evaluates the quadrature of
+`waldo_jax.render.volume` on them, a `cumsum` within a row and a segmented scan across a ray's rows
+(Hillis-Steele shifted adds), from the optical depth `carry` each ray brings from earlier passes. A
+ray's sums are gathered from its last row: no scatter-add, no [rays x max samples] array, no padding
+that collects gradients. Shared by the marched renderer and training.
 
-Compositing (`composite_rows`), the quadrature of `waldo_jax.render.volume`:
-    T_i = exp(-(carry + sum_{j<i} sigma_j delta_j)),  w_i = T_i (1 - exp(-sigma_i delta_i)),
-where `carry` is the optical depth a ray brings from earlier passes. The exclusive sum over a ray's
-samples is (within a row) a plain `cumsum` along the row plus (across its rows) a segmented scan over
-rows, done by log2(max rows per ray) shifted adds (Hillis-Steele), where a row's `rank` (its index
-among its ray's rows) tells how far back its segment reaches. A ray's sums sit at its last row and
-are gathered from there: no scatter-add, no [rays x max samples] array, no padding that collects
-gradients.
-
-Names: `M` rows, `s` slots per row, `N` rays, `owner` [M] the ray of each row, `rank` [M] the row's
-index among its ray's rows, `tau` optical depth sigma * delta.
+The layout, the compositing formula and the names (`M`, `s`, `N`, `owner`, `rank`, `tau`): see
+docs/design.md, section "Rendering > Packed rows"; why packed rows: docs/rendering.md.
 """
 
 from __future__ import annotations
@@ -36,7 +27,7 @@ __all__ = ["RowLayout", "RowSums", "composite_rows", "gather_rows", "layout_rows
 
 
 class RowLayout(NamedTuple):
-    """Where each ray's rows sit in a budget of M rows (see the module docstring).
+    """Where each ray's rows sit in a budget of M rows (see docs/design.md, "Rendering").
 
     Attributes:
       owner: int32 [M], the ray of each row (a valid ray index for unused rows too).

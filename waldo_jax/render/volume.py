@@ -1,26 +1,14 @@
 """Volume rendering of any radiance field, for one ray, one view or a whole population of views.
 
-A radiance field is a pure function for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])`
-(`waldo_jax.types.Field`); this module samples it along rays and evaluates the volume-rendering
-integral (Max 1995; Mildenhall et al. 2020, eq. 3) in its quadrature form:
+A field is a pure function for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])`
+(`waldo_jax.types.Field`); this module samples it along rays (bin midpoints, or stratified jitter
+given a key) and evaluates the quadrature of the volume-rendering integral,
+w_i = T_i * (1 - exp(-sigma_i * delta_i)), rgb = sum_i w_i c_i + (1 - sum_i w_i) * background.
+`render_views` renders P poses in one jitted call, the rays of all poses as one flat list in
+`ray_chunk` pieces. Trained fields with an occupancy grid go through `waldo_jax.render.marched`.
 
-    alpha_i = 1 - exp(-sigma_i * delta_i)
-    T_i     = exp(-sum_{j<i} sigma_j * delta_j)          (transmittance)
-    w_i     = T_i * alpha_i                               (weights)
-    rgb     = sum_i w_i * c_i + (1 - sum_i w_i) * background
-    depth   = sum_i w_i * t_i                              acc = sum_i w_i
-
-Names used throughout: `t` distances along unit ray directions (world units), `t_edges` the bin
-edges [S + 1], `delta` bin lengths [S], `sigma` densities [S], `w` weights [S], `S` the number of
-samples per ray. Samples cover [near, far] clipped to the scene box `aabb` when `use_aabb` is set;
-a ray that misses the box gets zero-length bins and so zero weights.
-
-Sampling is deterministic (bin midpoints) unless a PRNG key is passed (stratified jitter; ray q
-of pose p draws from `fold_in(split(key, P)[p], q)`, so its samples do not depend on the chunking).
-`render_views` renders P poses in one jitted call: the rays of ALL poses are flattened into one
-list and rendered `ray_chunk` at a time (vmap inside a chunk, `jax.lax.map` over chunks), so a
-population is the same fused work as one view, whatever P is. Trained fields with an occupancy grid
-are rendered by `waldo_jax.render.marched` instead (packed samples, empty-space skipping).
+The quadrature, the names (`t`, `t_edges`, `delta`, `sigma`, `w`, `S`), the scene box and the
+per-ray keys: see docs/design.md, section "Rendering > The volume integral".
 """
 
 from __future__ import annotations

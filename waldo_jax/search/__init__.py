@@ -33,6 +33,4 @@ from waldo_jax.search.population import top_k_indices as top_k_indices
 from waldo_jax.search.population import training_look_at as training_look_at
 from waldo_jax.search.population import training_poses as training_poses
 from waldo_jax.search.population import write_children as write_children
-
-# The registry of search methods, by the names the paper uses (`explore` looks names up here).
-METHODS = {"grs": grs.METHOD, "pibs": pibs.METHOD, "egps": egps.METHOD}
+from waldo_jax.search.registry import METHODS as METHODS

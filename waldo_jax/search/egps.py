@@ -1,33 +1,14 @@
 """Evolution-guided pose search (EGPS), the method of "Finding Waldo" (MMSys'24), Algorithm 1.
 
-A generational genetic algorithm on poses. Every child of an epoch is bred from the population as it
-was at the start of the epoch:
-  1. selection: sort by fitness; two distinct parents are drawn from the better half with a
-     rank-biased distribution;
-  2. crossover: up = the normalised mean of the parents' ups; origin and look-at point uniform per
-     axis between the parents' (each component independently);
-  3. mutation: each component of the origin and of the look-at point moves by delta in
-     {-nabla, 0, +nabla} with probabilities `mutation_probs` = (0.05, 0.9, 0.05), where
-     nabla = `nabla_scale` * (parent1 - parent2) per component (`nabla_scale` = 0.1).
+A generational genetic algorithm on poses: every child of an epoch is bred from the population as it
+was at the start of the epoch, by rank-biased selection of two distinct parents from the better half
+(`parent_weights`, `select_parents`), crossover (`crossover`: the normalised mean up; origin and
+look-at point uniform per axis between the parents') and mutation (`mutation_delta`: each component
+moves by -nabla, 0 or +nabla, nabla = `nabla_scale` * (parent1 - parent2)). `propose` draws one
+[children_per_epoch, 14] block of uniforms; each operator is a deterministic map of its row.
 
-Choices where the paper is silent (documented here, parameters where reasonable):
-  * Better half: the best h = max(2, floor(n_finite / 2)) views among the n_finite views with a
-    finite fitness. With fewer than two such views no child can be bred and all are masked.
-  * Rank bias: P(rank r) proportional to (h - r) ** `rank_bias` for r = 0 .. h - 1 (0 is the best):
-    linear ranking for the default `rank_bias` = 1, uniform over the better half for 0, greedier
-    above 1. The second parent is drawn from the same distribution without the first one, so the
-    parents are distinct slots.
-  * parent1 is the better-ranked of the two (the sign of nabla does not matter for the symmetric
-    default probabilities, but does for asymmetric ones).
-  * Up vectors: parents with opposite ups have a zero mean; it is left at zero and, like an up
-    parallel to the view direction, handled by `waldo_jax.cameras.look_at`, which then returns a
-    deterministic valid rotation.
-
-Randomness: `propose` uses its key once, for a [children_per_epoch, 14] block of uniforms in
-[0, 1); the per-child functions below are deterministic maps of their row (2 for the parents by
-inverse CDF, 6 for the crossover, 6 for the mutation). This keeps "write for one child and vmap"
-while compiling several times faster than per-child keys under vmap (measured on 2 CPU cores), and
-makes each operator testable from plain uniforms.
+The operators' probabilities, the choices where the paper is silent (better half, rank bias, parent
+order, up vectors) and why one block of uniforms: see docs/design.md, section "Search > EGPS".
 """
 
 from __future__ import annotations
@@ -146,7 +127,7 @@ def crossover(u: Array, parent1: Pose, parent2: Pose) -> Pose:
     """EGPS crossover of two poses ([3] fields) from six uniforms u [6].
 
     Origin and look-at point are uniform per axis between the parents'; up is the normalised mean
-    of the parents' ups (zero when they cancel; see the module docstring).
+    of the parents' ups (zero when they cancel; see docs/design.md, "Search").
     """
 
     def between(v, a, b):

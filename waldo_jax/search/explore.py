@@ -1,22 +1,14 @@
 """The exploration loop of "Finding Waldo" (MMSys'24), Algorithm 1, for any search method.
 
-Starting from the scored training views, every epoch the method proposes `children_per_epoch` poses,
-they are scored by the caller's `score_fn` (render + criterion, composed by the caller), written into
-the population, and after `epochs` epochs the top-k views are returned with CVIR / mCVIR and
-per-epoch curves (`waldo_jax.search.metrics`).
-
-The whole search is one `jax.lax.scan` over epochs inside one `jax.jit`; epoch e draws its random
-numbers from `fold_in(key, e)`. `score_fn` always receives the full [children_per_epoch, 4, 4]
-batch (fixed shapes); the scores of masked children are discarded. `explore_loop` runs the same
-epochs as a Python loop over a jitted step (same results), `explore_seeds` vmaps the whole search
-over a batch of keys in one compiled call.
-
-`score_fn` is part of the compilation cache key (by identity): define it once, not as a fresh lambda
-per call. To pass arrays (a scene, network weights) as traced arguments instead of compile-time
-constants, give a `jax.tree_util.Partial(fn, *arrays)`, which is called as fn(*arrays, c2w).
-
-Budgets (paper, Sec. 5): "low" = 250 to 300 images in total (training + generated), "high" = 900 to
-1000, over 5 epochs; `budget_children` derives children_per_epoch from the number of training views.
+`explore(key, score_fn, Initial(c2w, scores), method, ExploreConfig(...)) -> Result`: from the scored
+training views, every epoch the method proposes `children_per_epoch` poses, `score_fn` scores them
+(c2w [children_per_epoch, 4, 4] -> scores; render + criterion, composed by the caller) and they are
+written into the population; the top-k views come back with CVIR / mCVIR and per-epoch curves. The
+whole search is one `jax.lax.scan` inside one `jax.jit`; `explore_loop` runs the same epochs as a
+Python loop, `explore_seeds` vmaps it over a batch of keys. `score_fn` is part of the compilation
+cache key: define it once, or pass arrays through a `jax.tree_util.Partial`. `budget_children` turns
+the paper's "low" / "high" budgets into children per epoch. Randomness, fixed shapes, `Partial`
+and the budgets: see docs/design.md, section "Search > The exploration loop".
 """
 
 from __future__ import annotations
@@ -42,6 +34,7 @@ from waldo_jax.search.population import (
     training_poses,
     write_children,
 )
+from waldo_jax.search.registry import METHODS
 from waldo_jax.types import Array, Pose, PRNGKey
 
 __all__ = [
@@ -242,8 +235,6 @@ class SeedsResult:
 
 
 def _resolve_method(method: Union[str, SearchMethod, None], config: ExploreConfig) -> SearchMethod:
-    from waldo_jax.search import METHODS  # the registry lives in the package __init__
-
     if isinstance(method, SearchMethod):
         return method
     name = config.method if method is None else method

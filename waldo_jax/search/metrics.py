@@ -1,19 +1,13 @@
 """The exploration metrics of "Finding Waldo" (MMSys'24): CVIR, mCVIR and per-epoch curves.
 
-With S_train the training views' scores and S_all the scores of every view of the run (training
-views and all generated ones), and op = max for a criterion to maximise:
+CVIR = 100 * (op(S_all) - op(S_train)) / |op(S_train)| (criterion value improvement ratio), with
+S_train the training views' scores, S_all those of every view of the run and op = max; mCVIR is the
+same on the mean of the best N = 10 scores of each set. For a "min" criterion both are computed on
+the signed fitness F = sign * score, 100 * (F_all - F_train) / |F_train|, so that a positive value
+still means an improvement. Only valid, finite scores count; a ratio is NaN when undefined. `cvir`
+and `mcvir` take score arrays; `population_cvir`, `population_mcvir` and `epoch_metrics` a population.
 
-  CVIR  = 100 * (op(S_all) - op(S_train)) / |op(S_train)|                 (criterion value improvement ratio)
-  mCVIR = the same on the mean of the best N scores (N = 10) of each set  (mean CVIR)
-
-For a criterion to minimise (direction "min") both are defined so that a positive value still means
-an improvement: CVIR = 100 * (min(S_train) - min(S_all)) / |min(S_train)|, and likewise mCVIR on the
-mean of the N lowest scores. Both cases are one formula on the signed fitness F = sign * score
-(sign = +1 for "max", -1 for "min"): 100 * (F_all - F_train) / |F_train|.
-
-Only valid, finite scores count (NaN and +-inf are failures). With fewer than N usable scores the
-mean is over those available. A ratio is NaN when it is undefined: no usable training score, or a
-best (mean) training score of exactly 0.
+Both directions in full and the edge cases: see docs/design.md, section "Search > CVIR and mCVIR".
 """
 
 from __future__ import annotations
@@ -98,7 +92,7 @@ def mean_top_n(scores: Array, n: int = 10, valid: Optional[Array] = None, direct
 
 def cvir(all_scores: Array, train_scores: Array, direction: str = "max",
          all_valid: Optional[Array] = None, train_valid: Optional[Array] = None) -> Array:
-    """CVIR in percent (see the module docstring for the "min" direction).
+    """CVIR in percent (see docs/design.md, "Search" for the "min" direction).
 
     Args:
       all_scores: [P] raw scores of every view of the run, the training views included.

@@ -1,28 +1,14 @@
 """Pose interpolation-based search (PIBS), the second baseline of "Finding Waldo" (MMSys'24), Algorithm 1.
 
-Each epoch:
-  1. sort the population by fitness and take the `top_c` best views (non-finite ones excluded);
-  2. list the pairs among them (better rank first, in rank order (0, 1), (0, 2), ..., (1, 2), ...)
-     that were not explored yet;
-  3. interpolation_step = round(children_per_epoch / number_of_pairs), at least 1;
-  4. for each pair (a, b) in that order, `interpolation_step` poses strictly between them by SLERP
-     (`waldo_jax.cameras.slerp_pose`) at t = k / (interpolation_step + 1), k = 1 .. step,
-     until the children_per_epoch slots are used up;
-  5. mark the pairs that received children as explored, in both orders.
+Each epoch `propose` takes the `top_c` best views, lists their pairs not explored yet (better rank
+first, in rank order; `pair_table`) and gives each pair in turn
+interpolation_step = round(children_per_epoch / number_of_pairs) (at least 1) children, by SLERP
+(`waldo_jax.cameras.slerp_pose`) strictly between the two, until the slots are used up; the pairs
+that received children are marked explored. Slots left empty are masked (`fallback="none"`, the
+default) or filled with GRS poses (`fallback="grs"`).
 
-Choices where the paper is silent (documented here, the defaults reproduce the paper's description):
-  * `round` is `jnp.round` (halves to even, like Python's `round`); a step of 0 (more pairs than
-    twice the slots) is raised to 1, so the first `children_per_epoch` pairs each get one child.
-  * Only pairs that actually received a child are marked explored; pairs cut off by the slot limit
-    stay available for later epochs.
-  * Fewer pairs x step than slots: the remaining slots are masked (not rendered, no budget spent).
-  * Once every pair of the current top_c is explored (and no child entered the top_c), PIBS has
-    nothing to propose: by default (`fallback="none"`) all slots are masked; with `fallback="grs"`
-    the empty slots are filled with GRS poses (`waldo_jax.search.grs`).
-  * `top_c` sets the shape of the pair table, so it is static (`Config`), not a `Params` leaf.
-  * Up vectors: interpolated frames are rotations, so the child's up is its frame's up axis; the
-    look-at point lies on the interpolated view axis at the interpolated focus distance
-    (`slerp_pose`).
+The algorithm step by step and the choices where the paper is silent (rounding, which pairs count as
+explored, the fallback, the static `top_c`, up vectors): see docs/design.md, section "Search > PIBS".
 """
 
 from __future__ import annotations

@@ -1,18 +1,15 @@
 """The population buffer shared by the searches of "Finding Waldo" (MMSys'24), Algorithm 1.
 
-Every search starts from the scored training views and appends `children_per_epoch` new poses per
-epoch. The buffer has a fixed capacity C = n_train + epochs * children_per_epoch so that the whole
-search compiles once: slot i < n_train holds training view i, and the children of epoch e
-(1-based) occupy slots [n_train + (e - 1) * children_per_epoch, n_train + e * children_per_epoch).
-No images are kept, only poses and scores.
+`Population` holds the poses and scores (no images) of the training views and of every child, in a
+fixed capacity C = n_train + epochs * children_per_epoch so that the whole search compiles once:
+training view i in slot i, the children of each epoch after them in order. Its `fitness` [C] is the
+signed, higher-is-better score (sign * score; -inf, never selected, where invalid or not finite), so
+one selection code serves "max" and "min" criteria. Helpers build it (`init_population`,
+`training_poses`, `training_look_at`), read it (`top_k_indices`, `gather_poses`) and write a
+generation into it (`write_children`).
 
-Names used throughout `waldo_jax.search`:
-  * `score`: the criterion's raw value of a view, whatever its direction (NaN when it failed).
-  * `direction`: "max" (higher raw scores are better) or "min" (lower ones are).
-  * `fitness`: the signed, "higher is better" view used for every selection:
-    fitness = sign * score where the slot is valid and the score finite, else -inf
-    (sign = +1 for "max", -1 for "min"). A -inf fitness is never selected.
-  * `look-at point` / `target`: the point a camera looks at (see `training_look_at`).
+The slot layout and the names used throughout `waldo_jax.search` (score, direction, fitness,
+look-at point): see docs/design.md, section "Search > Population and names".
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
-"""Criterion weights: reading torch pickles without torch, the native `.npz` format, the weights folder.
+"""Criterion weights: reading torch pickles without torch and OpenCV YAML without OpenCV, the native
+`.npz` format, the weights folder.
 
 See `waldo_jax.weights.store` for the folder layout and `waldo weights convert`.
 """
 
+from waldo_jax.weights.opencv_yaml import read_opencv_storage as read_opencv_storage
 from waldo_jax.weights.store import CONVERTERS as CONVERTERS
 from waldo_jax.weights.store import Converter as Converter
 from waldo_jax.weights.store import WeightsError as WeightsError

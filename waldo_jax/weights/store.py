@@ -1,21 +1,14 @@
 """Where criterion weights come from, and the native format they are converted to.
 
-Weights live in a folder with the layout of `../shared/weights` (one sub-folder per model):
-
-  csnet/csnet-L-x1.pth.tar, csnet-L-x1.bin     CSNet-L-x1 saliency (torch pickle + channel splits)
-  cnniqa/CNNIQA-LIVE                           CNNIQA (torch state dict)
-  brisque/brisque_model_live.yml, _range_      BRISQUE SVR (OpenCV FileStorage)
-  niqe/niqe_image_params.mat                   NIQE pristine model (MATLAB v5)
-
-The folder is `--weights DIR`, else `WALDO_WEIGHTS`, else `$WALDO_DATA/weights`.
-
-Reading the original files (torch pickles, YAML, .mat) takes a moment; `waldo weights convert SRC DST`
-writes each model once as `DST/<model>/<model>.npz`, a flat NumPy archive of the converted parameter
-tree (keys are tree paths joined by "/") plus a JSON record with the format version. Loaders look for
-the `.npz` first and fall back to the original files, so `--weights DST` works either way.
-
+Weights live in a folder with one sub-folder per model (csnet, cnniqa, brisque, niqe), found by
+`resolve_weights_dir`: `--weights DIR`, else `WALDO_WEIGHTS`, else `$WALDO_DATA/weights`.
+`waldo weights convert SRC DST` (`convert_all`) writes each model once as `DST/<model>/<model>.npz`
+(`save_native`), which loaders (`load_model`) read before falling back to the original files.
 Each model registers a `Converter` (`register_converter`): the files it reads and a function from
 the model folder to `(tree, meta)`.
+
+The folder's files per model and the native format: see docs/design.md, section
+"Weights > The weights folder and the native format".
 """
 
 from __future__ import annotations

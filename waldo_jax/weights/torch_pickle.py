@@ -1,22 +1,14 @@
 """Reading PyTorch checkpoints without PyTorch: legacy and zip-format torch pickles to NumPy.
 
-`torch.save` has written two formats:
+`read_torch_file(path)` reads a file written by `torch.save` in either format (legacy, before torch
+1.6; zip, from 1.6 on) and returns the unpickled object with tensors as `np.ndarray` (NumPy views of
+their storages); `state_dict(obj)` finds the `{name: ndarray}` inside the usual wrappers
+(`{"state_dict": ...}`, `{"model": ...}`) and strips a `module.` prefix left by `DataParallel`. The
+unpickler maps the few torch classes it needs to small stand-ins and refuses any other global: no
+torch import and no arbitrary code. Errors raise `TorchPickleError`.
 
-  * **legacy** (before torch 1.6, and `_use_new_zipfile_serialization=False`): five pickles in a row
-    (magic number, protocol version 1001, system info, the object, the list of storage keys), then
-    for each storage key in that order its raw little-endian bytes after an int64 element count;
-  * **zip** (torch >= 1.6): an archive `<root>/data.pkl` holding the object, and one file
-    `<root>/data/<key>` of raw bytes per storage.
-
-In both, a tensor in the object pickle is a call `torch._utils._rebuild_tensor_v2(storage,
-storage_offset, size, stride, requires_grad, backward_hooks, ...)`, and the storage is a persistent
-id `('storage', <torch.FloatStorage>, key, location, numel)`. The unpickler below maps the torch
-classes it needs to small stand-ins and builds each tensor as a NumPy view of its storage, so no
-torch import and no arbitrary code: any other global is refused.
-
-`read_torch_file(path)` returns the unpickled object with tensors as `np.ndarray`; `state_dict(obj)`
-finds the `{name: ndarray}` inside the usual wrappers (`{"state_dict": ...}`, `{"model": ...}`) and
-strips a `module.` prefix left by `DataParallel`.
+The two file formats and how tensors and storages appear in them: see docs/design.md, section
+"Weights > Torch pickles without torch".
 """
 
 from __future__ import annotations

@@ -26,11 +26,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.errors import WaldoError, check_resolution
+from waldo_jax.errors import WaldoError, check_resolution, check_seed
+from waldo_jax.nerf.checkpoint import load_checkpoint
+from waldo_jax.nerf.field import make_field
+from waldo_jax.nerf.render import render_setup
+from waldo_jax.procedural import make_room, room_field, room_render_config, room_scene
+from waldo_jax.render import render_views
+from waldo_jax.render.marched import render_marched
+from waldo_jax.scenes import load_scene
 from waldo_jax.types import Array, Intrinsics, Scene
 
 __all__ = ["Source", "SourceError", "load_source", "procedural_source", "run_source", "resize_images",
-           "DEFAULT_PROCEDURAL_RESOLUTION", "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "check_views"]
+           "parse_procedural", "room_renderer", "field_renderer", "DEFAULT_PROCEDURAL_RESOLUTION",
+           "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "check_views"]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
 DEFAULT_PROCEDURAL_VIEWS = 24
@@ -104,9 +112,6 @@ def _output(out, rgba: bool) -> Array:
 
 
 def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgba: bool = False) -> Array:
-    from waldo_jax.procedural import room_field
-    from waldo_jax.render import render_views
-
     return _output(render_views(room_field, room, c2w, intrinsics, render_config), rgba)
 
 
@@ -115,14 +120,11 @@ _render_room_rgba = functools.partial(_render_room, rgba=True)
 
 def _render_field(params, grid, intrinsics: Intrinsics, render_config, march, c2w: Array, *, field,
                   rgba: bool = False) -> Array:
-    from waldo_jax.render.marched import render_marched
-
     return _output(render_marched(field, params, grid, c2w, intrinsics, render_config, march).output, rgba)
 
 
-def _room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
-    from waldo_jax.procedural import room_render_config
-
+def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
+    """The procedural room's analytic renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4])."""
     return jax.tree_util.Partial(_render_room_rgba if rgba else _render_room, room, intrinsics,
                                  room_render_config(room, num_samples=_ROOM_SAMPLES))
 
@@ -130,8 +132,6 @@ def _room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree
 @functools.lru_cache(maxsize=None)
 def _field_fn(field_config, rgba: bool = False):
     """One function object per field config, so that Partials of equal configs share compilations."""
-    from waldo_jax.nerf.field import make_field
-
     return functools.partial(_render_field, field=make_field(field_config), rgba=rgba)
 
 
@@ -141,8 +141,6 @@ def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: floa
 
     With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity.
     """
-    from waldo_jax.nerf.train import render_setup
-
     params = jax.tree.map(jnp.asarray, params)
     occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
     grid, render_config, march = render_setup(config, occupancy, near, far, np.asarray(aabb, np.float32), background)
@@ -153,10 +151,24 @@ def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: floa
 # Sources.
 
 
-def _parse_procedural(spec: str) -> Optional[int]:
-    from waldo_jax.cli import parse_procedural
+def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
+    """Seed of a `procedural` / `procedural:SEED` source (None if `source` is not procedural).
 
-    return parse_procedural(spec)
+    `seed` (a `--seed` flag) may repeat the source's own seed, or give it for plain `procedural`.
+    """
+    if source != "procedural" and not source.startswith("procedural:"):
+        return None
+    spec = source.partition(":")[2]
+    if spec:
+        try:
+            spec_seed = int(spec)
+        except ValueError:
+            raise SourceError(f"bad source {source!r}: expected procedural or procedural:SEED with an integer SEED")
+        check_seed(spec_seed, f"the seed of source {source!r}")
+        if seed is not None and seed != spec_seed:
+            raise SourceError(f"source {source!r} and --seed {seed} disagree")
+        return spec_seed
+    return 0 if seed is None else seed
 
 
 def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: int = DEFAULT_PROCEDURAL_VIEWS,
@@ -165,8 +177,6 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
 
     `scene` and `room` (from `waldo_jax.procedural.room_scene`) skip building them again.
     """
-    from waldo_jax.procedural import room_scene
-
     resolution = DEFAULT_PROCEDURAL_RESOLUTION if resolution is None else int(resolution)
     check_resolution(resolution)
     check_views(views)
@@ -182,7 +192,7 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
         images = resize_images(images, intrinsics.width, intrinsics.height)
     return Source(spec=f"procedural:{seed}", kind="procedural", name=f"procedural:{seed}",
                   train_c2w=np.asarray(scene.c2w, np.float32), intrinsics=intrinsics,
-                  render=_room_renderer(room, intrinsics), render_rgba=_room_renderer(room, intrinsics, rgba=True),
+                  render=room_renderer(room, intrinsics), render_rgba=room_renderer(room, intrinsics, rgba=True),
                   train_images=np.asarray(images, np.float32),
                   train_names=tuple(scene.file_names), room=room,
                   info={"procedural_seed": int(seed), "views": int(views)})
@@ -190,8 +200,6 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
 
 def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
     """The run's training images from its scene folder at `intrinsics`' size, or (None, why)."""
-    from waldo_jax.scenes import load_scene
-
     if not record.path or not Path(record.path).exists():
         return None, f"the training scene {record.path or '(unnamed)'} is not on this machine"
     try:
@@ -215,8 +223,6 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
       run_dir: the folder holding `checkpoint.ckpt`.
       resolution: longer side of the renders in pixels (default: the training images' size).
     """
-    from waldo_jax.nerf.checkpoint import load_checkpoint
-
     run = Path(run_dir)
     if not run.is_dir():
         raise SourceError(f"SOURCE {run_dir!r} is neither procedural[:SEED] nor an existing run directory")
@@ -234,11 +240,9 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
             "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
     room, truth = None, None
     if record.format == "procedural":
-        from waldo_jax.procedural import make_room
-
         seed = int(record.metadata.get("seed", 0))
         room = make_room(seed)
-        truth = _room_renderer(room, intrinsics)
+        truth = room_renderer(room, intrinsics)
         info["procedural_seed"] = seed
         # The room's training images are its analytic renders: make them again at this size.
         images = np.asarray(truth(jnp.asarray(record.c2w)), np.float32)
@@ -268,7 +272,7 @@ def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int
       SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint,
       `views` with a run.
     """
-    seed = _parse_procedural(spec)
+    seed = parse_procedural(spec)
     if seed is not None:
         return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
     if views is not None:

@@ -1,56 +1,21 @@
-"""The procedural "Waldo room": an analytic radiance field with a known answer.
-
-A seeded room (a checkered floor and four walls) cluttered with coloured boxes, spheres and
-cylinders, and one small Waldo figure (blue legs, a red-and-white striped jumper, a head and a
-striped bobble hat) hidden in a pen of crates. It needs no training: the radiance field is analytic
-(densities from signed distance functions) and is rendered by `waldo_jax.render` like any other field.
-
-It provides
-  * `make_room(seed)`: the geometry as a pytree (`WaldoRoom`), which is also the field's params;
-  * `room_field(room, x, d)`: the radiance field for one point;
-  * `training_cameras(key, room, ...)`: cameras on a band around the room (inside the walls, looking
-    towards its middle), kept only when they see Waldo at most partly (occluded, or cut by the
-    frame), so that a search can improve on every training view;
-  * `room_scene(seed, ...)`: those training views rendered as a `waldo_jax.types.Scene`;
-  * `waldo_visibility(room, c2w, intrinsics)`: the exact oracle, the fraction of Waldo's projected
-    area that is inside the frame and not occluded, from ray/primitive intersections with the
-    analytic geometry (not from a render).
-
-Units are metres; +y is up; the floor is the plane y = 0 and the room spans
-[-ROOM_HALF, ROOM_HALF] in x and z.
-
-Density model: sigma(x) = DENSITY * sigmoid(-sdf(x) / SURFACE_WIDTH), where sdf is the signed
-distance to the union of all primitives; colour is that of the nearest primitive (with its pattern),
-shaded by a fixed directional light using the SDF gradient as the normal. The oracle uses the hard
-surfaces (sdf = 0) of the same primitives.
+"""The room: its geometry (`WaldoRoom`, also the field's params), `make_room(seed)`, and the analytic
+radiance field `room_field(room, x, d)` from signed distance functions (docs/design.md, "Procedural room").
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-from typing import Optional, Tuple
+from typing import Tuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.cameras import look_at, project_points
-from waldo_jax.types import Array, Intrinsics, PRNGKey, Scene
+from waldo_jax.types import Array
 
-__all__ = [
-    "WaldoRoom",
-    "RoomCameraConfig",
-    "make_room",
-    "room_field",
-    "room_sdf",
-    "room_render_config",
-    "training_cameras",
-    "room_scene",
-    "waldo_visibility",
-    "waldo_visibility_batch",
-]
+__all__ = ["WaldoRoom", "make_room", "room_field", "room_sdf", "ROOM_HALF", "WALL_HEIGHT", "DENSITY", "BACKGROUND",
+           "KIND_BOX", "KIND_SPHERE", "KIND_CYLINDER", "FAR"]
 
 ROOM_HALF = 4.0  # the room spans [-4, 4] in x and z
 WALL_HEIGHT = 2.6
@@ -66,7 +31,7 @@ STRIPE_WIDTH = 0.05
 
 # Primitive kinds in the flat arrays of `WaldoRoom`.
 KIND_BOX, KIND_SPHERE, KIND_CYLINDER = 0, 1, 2
-_FAR = 1e30  # "no intersection" segment parameter (finite: no inf arithmetic under jit)
+FAR = 1e30  # "no intersection" segment parameter (finite: no inf arithmetic under jit)
 
 
 @flax.struct.dataclass
@@ -219,14 +184,6 @@ def room_field(room: WaldoRoom, x: Array, d: Array) -> Tuple[Array, Array]:
     normal = normal / jnp.sqrt(jnp.sum(normal**2) + 1e-12)
     shade = 0.5 + 0.5 * jnp.maximum(jnp.dot(normal, jnp.asarray(LIGHT_DIR, jnp.float32)), 0.0)
     return sigma, jnp.clip(_albedo(room, nearest, x) * shade, 0.0, 1.0)
-
-
-def room_render_config(room: WaldoRoom, num_samples: int = 128, **kwargs):
-    """A `RenderConfig` suited to the room: its box, near 0.05, far 12 and the sky background."""
-    from waldo_jax.render import RenderConfig
-
-    return RenderConfig.create(near=0.05, far=12.0, aabb=room.aabb, background=BACKGROUND,
-                               num_samples=num_samples, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -410,221 +367,3 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# The oracle: exact visibility of Waldo from the analytic geometry.
-
-
-def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Array) -> Array:
-    """Whether the open segment start -> end [3] crosses the solid primitive (exact)."""
-    v = end - start
-    safe_v = jnp.where(jnp.abs(v) > 1e-12, v, 1e-12)
-
-    def slab(lo, hi):
-        t0, t1 = (lo - start) / safe_v, (hi - start) / safe_v
-        return jnp.minimum(t0, t1), jnp.maximum(t0, t1)
-
-    # Box: intersection of three slabs.
-    near, far = slab(center - size, center + size)
-    box_in, box_out = jnp.max(near), jnp.min(far)
-
-    # Quadratic a s^2 + b s + c = 0 for the sphere and the cylinder's mantle.
-    def quadratic(a, half_b, c):
-        disc = half_b * half_b - a * c
-        safe_a = jnp.where(jnp.abs(a) > 1e-12, a, 1.0)
-        root = jnp.sqrt(jnp.maximum(disc, 0.0))
-        lo, hi = (-half_b - root) / safe_a, (-half_b + root) / safe_a
-        degenerate = jnp.abs(a) <= 1e-12  # no motion in the quadratic's plane: inside or not, always
-        lo = jnp.where(degenerate, jnp.where(c < 0.0, -_FAR, _FAR), jnp.where(disc > 0.0, lo, _FAR))
-        hi = jnp.where(degenerate, jnp.where(c < 0.0, _FAR, -_FAR), jnp.where(disc > 0.0, hi, -_FAR))
-        return lo, hi
-
-    d = start - center
-    r = size[0]
-    sph_in, sph_out = quadratic(jnp.dot(v, v), jnp.dot(v, d), jnp.dot(d, d) - r * r)
-    cyl_in, cyl_out = quadratic(v[0] ** 2 + v[2] ** 2, v[0] * d[0] + v[2] * d[2], d[0] ** 2 + d[2] ** 2 - r * r)
-    y_near, y_far = slab(center[1] - size[1], center[1] + size[1])
-    cyl_in, cyl_out = jnp.maximum(cyl_in, y_near[1]), jnp.minimum(cyl_out, y_far[1])
-
-    t_in = jnp.select([kind == KIND_BOX, kind == KIND_SPHERE], [box_in, sph_in], cyl_in)
-    t_out = jnp.select([kind == KIND_BOX, kind == KIND_SPHERE], [box_out, sph_out], cyl_out)
-    return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
-
-
-def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float) -> Tuple[Array, Array]:
-    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it."""
-    c2w = jnp.asarray(c2w, jnp.float32)
-    camera = c2w[:3, 3]
-    to_camera = camera - room.waldo_points  # [M, 3]
-    dist2 = jnp.sum(to_camera**2, axis=-1)
-    cos = jnp.sum(room.waldo_normals * to_camera, axis=-1) / jnp.sqrt(dist2 + 1e-12)
-    weight = room.waldo_areas * jnp.maximum(cos, 0.0) / jnp.maximum(dist2, 1e-6)  # [M] solid angles
-
-    uv, depth = project_points(c2w, intrinsics, room.waldo_points)
-    in_frame = (depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0) & (
-        uv[:, 1] <= intrinsics.height)
-
-    starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
-    hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
-        room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
-    seen = in_frame & ~jnp.any(hits, axis=-1)
-    return jnp.sum(jnp.where(seen, weight, 0.0)), jnp.sum(weight)
-
-
-def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
-    """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
-
-    Waldo's surface is represented by regular area-weighted samples. A sample counts towards the
-    projected area when it faces the camera, with weight area * cos(angle) / distance^2 (its solid
-    angle, so proportional to its projected pixels); it counts as seen when, in addition, it
-    projects inside the image in front of the camera (beyond `near`) and the segment from it to the
-    camera centre crosses no solid (walls, floor, clutter, crates, or Waldo's other parts).
-
-    Args:
-      room: the room.
-      c2w: [4, 4] or [3, 4] camera-to-world matrix of one camera.
-      intrinsics: its intrinsics (distortion included).
-      near: minimum depth in front of the camera.
-
-    Returns:
-      visibility [] in [0, 1]: 0 when Waldo is behind the camera, out of frame or hidden; 1 when
-      all of Waldo is in frame with nothing in between.
-    """
-    seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near)
-    return jnp.where(facing > 0.0, seen / jnp.maximum(facing, 1e-30), 0.0)
-
-
-def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
-    """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
-
-    The seen solid angle of `waldo_visibility` times the pixels per steradian at the image centre
-    (fx * fy), over the image's pixel count. It is largest when Waldo is close, unoccluded and
-    whole in frame: moving closer enlarges him until the frame starts to cut him. Like the paper's
-    salient-pixel criterion, but exact.
-
-    Returns:
-      coverage [] in [0, 1] (clipped; the small-angle pixel estimate can overshoot near the border).
-    """
-    seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near)
-    pixels = seen * intrinsics.fx * intrinsics.fy
-    return jnp.clip(pixels / (intrinsics.width * intrinsics.height), 0.0, 1.0)
-
-
-@jax.jit
-def waldo_visibility_batch(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
-    """`waldo_visibility` for a population of cameras c2w [P, 4, 4]; returns [P]."""
-    return jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics)
-
-
-# ---------------------------------------------------------------------------------------------
-# Training cameras and the training scene.
-
-
-@dataclasses.dataclass(frozen=True)
-class RoomCameraConfig:
-    """Where the training cameras of the room go (a band inside the walls, looking inwards).
-
-    Attributes:
-      band_radius: (min, max) horizontal distance from the room's centre.
-      band_height: (min, max) camera height.
-      target_radius: look-at points lie within this distance of the centre ...
-      target_height: ... at heights in this range.
-      fov_x: horizontal field of view in radians.
-      max_visibility: a camera is kept only if it sees at most this fraction of Waldo.
-      oversample: candidate cameras drawn per kept camera.
-    """
-
-    band_radius: Tuple[float, float] = (2.9, 3.4)
-    band_height: Tuple[float, float] = (1.0, 1.7)
-    target_radius: float = 1.2
-    target_height: Tuple[float, float] = (0.2, 0.9)
-    fov_x: float = math.radians(60.0)
-    max_visibility: float = 0.5
-    oversample: int = 6
-
-
-def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: Intrinsics,
-                     config: RoomCameraConfig = RoomCameraConfig()) -> np.ndarray:
-    """Training cameras on a band around the room that see Waldo at most partly.
-
-    Candidates are spread evenly in angle (with jitter) over the band, each looking at a random
-    point near the centre; the first `num_views` candidates (in angular order) whose oracle
-    visibility is at most `config.max_visibility` are kept.
-
-    Args:
-      key: PRNG key.
-      room: the room.
-      num_views: cameras to return.
-      intrinsics: the cameras' intrinsics (the frame decides what "cut by the frame" means).
-      config: the band.
-
-    Returns:
-      c2w: float32 [num_views, 4, 4].
-
-    Raises:
-      ValueError: when too few candidates qualify (ask for fewer views or a larger oversample).
-    """
-    n = num_views * config.oversample
-    k_angle, k_radius, k_height, k_target = jax.random.split(key, 4)
-    angle = 2 * jnp.pi * (jnp.arange(n) + jax.random.uniform(k_angle, (n,))) / n
-    radius = jax.random.uniform(k_radius, (n,), minval=config.band_radius[0], maxval=config.band_radius[1])
-    height = jax.random.uniform(k_height, (n,), minval=config.band_height[0], maxval=config.band_height[1])
-    origins = jnp.stack([radius * jnp.cos(angle), height, radius * jnp.sin(angle)], -1)
-    kt_r, kt_a, kt_h = jax.random.split(k_target, 3)
-    t_r = config.target_radius * jnp.sqrt(jax.random.uniform(kt_r, (n,)))
-    t_a = 2 * jnp.pi * jax.random.uniform(kt_a, (n,))
-    t_h = jax.random.uniform(kt_h, (n,), minval=config.target_height[0], maxval=config.target_height[1])
-    targets = jnp.stack([t_r * jnp.cos(t_a), t_h, t_r * jnp.sin(t_a)], -1)
-    c2w = jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))
-    visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
-    keep = np.flatnonzero(visibility <= config.max_visibility)
-    if len(keep) < num_views:
-        raise ValueError(
-            f"only {len(keep)} of {n} candidate cameras see Waldo at most {config.max_visibility:.0%}; "
-            f"ask for fewer than {num_views} views or raise oversample"
-        )
-    # Spread the kept cameras over the whole band rather than taking the first ones in angle.
-    chosen = keep[np.round(np.linspace(0, len(keep) - 1, num_views)).astype(int)]
-    return np.asarray(c2w)[chosen].astype(np.float32)
-
-
-def room_scene(seed: int = 0, num_views: int = 24, resolution: int = 64, num_samples: int = 128,
-               camera_config: RoomCameraConfig = RoomCameraConfig(),
-               room: Optional[WaldoRoom] = None) -> Tuple[Scene, WaldoRoom]:
-    """The room's training views as a `Scene`, rendered with `waldo_jax.render.render_views`.
-
-    Args:
-      seed: seeds the room (unless `room` is given) and the cameras.
-      num_views: number of training views.
-      resolution: the views are resolution x resolution pixels.
-      num_samples: samples per ray for the renders.
-      camera_config: where the training cameras go.
-      room: an already built room (else `make_room(seed)`).
-
-    Returns:
-      (scene, room).
-    """
-    from waldo_jax.render import render_views
-
-    room = make_room(seed) if room is None else room
-    intrinsics = Intrinsics.from_fov(resolution, resolution, camera_config.fov_x)
-    key = jax.random.fold_in(jax.random.key(seed), 1)
-    c2w = training_cameras(key, room, num_views, intrinsics, camera_config)
-    config = room_render_config(room, num_samples=num_samples)
-    images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), intrinsics, config).rgb, np.float32)
-    scene = Scene(
-        images=images,
-        c2w=np.asarray(c2w, np.float32),
-        intrinsics=intrinsics,
-        aabb=room.aabb,
-        near=0.05,
-        far=12.0,
-        file_names=tuple(f"view_{i:03d}.png" for i in range(num_views)),
-        format="procedural",
-        name=f"procedural:{seed}",
-        split="train",
-        path="",
-        background=np.asarray(BACKGROUND, np.float32),
-        metadata={"seed": int(seed), "num_samples": int(num_samples),
-                  "max_visibility": float(camera_config.max_visibility)},
-    )
-    return scene, room

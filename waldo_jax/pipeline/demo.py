@@ -25,9 +25,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
+from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
+from waldo_jax.nerf.config import TrainConfig
+from waldo_jax.nerf.runs import train_run
+from waldo_jax.pipeline.experiment import run_explore
+from waldo_jax.pipeline.figures import methods_sheet
+from waldo_jax.pipeline.outputs import write_outputs
+from waldo_jax.pipeline.sources import Source, field_renderer, room_renderer
+from waldo_jax.procedural import room_field, room_render_config, room_scene, training_cameras, waldo_visibility_batch
+from waldo_jax.render import render_views
+from waldo_jax.search import ExploreConfig
+from waldo_jax.types import Scene
 
-__all__ = ["DemoSettings", "SETTINGS", "run_demo", "default_demo_dir"]
+__all__ = ["DemoSettings", "SETTINGS", "run_demo", "default_demo_dir", "held_out_scene", "train_room_nerf"]
 
 METHOD_ORDER = ("grs", "pibs", "egps")
 
@@ -72,38 +83,26 @@ def default_demo_dir(root: str | Path = "runs") -> Path:
     return path
 
 
-def _held_out_scene(room, seed: int, settings: DemoSettings, train_scene):
-    """Views from cameras the NeRF has not seen (another key), rendered analytically."""
-    from waldo_jax.procedural import room_field, room_render_config, training_cameras
-    from waldo_jax.render import render_views
-
-    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, settings.test_views,
-                           train_scene.intrinsics)
+def held_out_scene(room, seed: int, count: int, train_scene: Scene) -> Scene:
+    """`count` views of the room from cameras its NeRF has not seen (another key), rendered analytically,
+    at `train_scene`'s intrinsics: the NeRF's held-out test split."""
+    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics)
     images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics,
                                      room_render_config(room)).rgb, np.float32)
     return dataclasses.replace(train_scene, images=images, c2w=c2w, split="test",
                                file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))))
 
 
-def _train_nerf(scene, test_scene, settings: DemoSettings, seed: int, out: Path, progress: bool) -> Dict[str, Any]:
-    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-    from waldo_jax.nerf.commands import TRAIN_JSON
-    from waldo_jax.nerf.train import TrainConfig, train
+def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path,
+                    progress: bool):
+    """The room's NeRF (fast preset, `settings.train_steps`) trained into the existing folder `run_dir`.
 
+    Returns:
+      (the `TrainResult`, its train.json contents), as `waldo_jax.nerf.runs.train_run`.
+    """
     overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
     config = TrainConfig.preset("fast", scene, steps=settings.train_steps, **overrides)
-    result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
-    config = result.config  # with the calibrated render step
-    stats = {"psnr_test": result.psnr_test, "psnr_test_training_step": result.psnr_test_training_step,
-             "render_step_scale": config.render_step_scale, "render_step_curve": result.render_step_curve,
-             "steps": result.steps, "seconds": round(result.seconds, 3),
-             "rays_per_second": round(result.rays_per_second, 1), "device": result.device,
-             "n_train": result.n_train, "n_test": result.n_test, "preset": "fast", "seed": seed,
-             "scene_format": scene.format, "image_size": [scene.width, scene.height], "config": config.to_dict()}
-    (out / "nerf").mkdir()
-    save_checkpoint(out / "nerf" / CHECKPOINT_NAME, result.params, config, scene, result.occupancy, info=stats)
-    io.write_json(out / "nerf" / TRAIN_JSON, stats)
-    return {"result": result, "config": config, "stats": stats}
+    return train_run(seed, scene, config, test_scene, run_dir, "fast", progress)
 
 
 def _report(out: Path, summary: Dict[str, Any]) -> str:
@@ -162,12 +161,6 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
       progress: progress bar and per-epoch lines.
       settings: explicit sizes (overrides `quick`).
     """
-    from waldo_jax.criteria import CriterionContext, make_criterion
-    from waldo_jax.exploration import methods_sheet, run_explore, write_outputs
-    from waldo_jax.procedural import room_scene, waldo_visibility_batch
-    from waldo_jax.search import ExploreConfig
-    from waldo_jax.sources import Source, _room_renderer, field_renderer
-
     settings = settings or SETTINGS["quick" if quick else "full"]
     out = io.prepare_output_dir(default_demo_dir() if out is None else out, force=False, can_force=False)
     t0 = time.perf_counter()
@@ -177,21 +170,22 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
         scene, room = room_scene(seed, num_views=settings.views, resolution=settings.resolution)
     except ValueError as e:
         raise WaldoError(str(e)) from None
-    test_scene = _held_out_scene(room, seed, settings, scene)
+    test_scene = held_out_scene(room, seed, settings.test_views, scene)
     t_scene = time.perf_counter()
     say(f"[demo] training the hash-grid NeRF ({settings.train_steps} steps) ...", flush=True)
-    nerf = _train_nerf(scene, test_scene, settings, seed, out, progress)
+    (out / "nerf").mkdir()
+    trained, stats = train_room_nerf(scene, test_scene, settings, seed, out / "nerf", progress)
+    stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
     t_train = time.perf_counter()
 
-    config = nerf["config"]
-    renderer_args = (nerf["result"].params, nerf["result"].occupancy, config, scene.intrinsics, scene.near,
+    renderer_args = (trained.params, trained.occupancy, trained.config, scene.intrinsics, scene.near,
                      scene.far, scene.aabb, scene.background)
     render, render_rgba = field_renderer(*renderer_args), field_renderer(*renderer_args, rgba=True)
     source = Source(spec=str(out / "nerf"), kind="run", name=f"NeRF of procedural:{seed}",
                     train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, render_rgba=render_rgba,
                     train_images=scene.images,
-                    train_names=scene.file_names, room=room, truth_render=_room_renderer(room, scene.intrinsics),
-                    info={"procedural_seed": seed, "run_dir": str(out / "nerf"), "psnr_test": nerf["stats"]["psnr_test"]})
+                    train_names=scene.file_names, room=room, truth_render=room_renderer(room, scene.intrinsics),
+                    info={"procedural_seed": seed, "run_dir": str(out / "nerf"), "psnr_test": stats["psnr_test"]})
     criterion = make_criterion("waldo_oracle", CriterionContext(room=room, source=source.spec))
 
     runs, methods = {}, {}
@@ -229,12 +223,12 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: int = 
         "children_per_epoch": first.config.children_per_epoch,
         "best_train_score": float(first.scores_train[best_train]),
         "best_train_visible": float(train_visible[best_train]),
-        "nerf": nerf["stats"],
+        "nerf": stats,
         "methods": methods,
         "egps_ahead_of_grs_on_mcvir": bool(methods["egps"]["mcvir_mean"] > methods["grs"]["mcvir_mean"]),
         "seconds": {"scene": round(t_scene - t0, 2), "train": round(t_train - t_scene, 2),
                     "search_and_files": round(time.perf_counter() - t_train, 2), "total": round(total, 2)},
-        "device": nerf["stats"]["device"],
+        "device": stats["device"],
         "command": "waldo demo" + (" --quick" if quick else ""),
     }
     io.write_json(out / "summary.json", summary)

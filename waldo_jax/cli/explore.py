@@ -1,10 +1,10 @@
-"""The `waldo explore` command (and the argument checks `waldo demo` shares).
+"""`waldo explore`: one experiment (source + criterion + method) from the command line.
 
     waldo explore SOURCE --criterion NAME --method grs|pibs|egps --budget low|high --seed N
                   [--seeds K] [--resolution R] --out DIR
 
 SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`; see
-`waldo_jax.exploration` for what is written.
+`waldo_jax.pipeline.outputs` for what is written.
 """
 
 from __future__ import annotations
@@ -13,16 +13,17 @@ import argparse
 import time
 from typing import Optional
 
+from waldo_jax import io
+from waldo_jax.cli.criterion import add_criterion_arguments, criterion_from_args
 from waldo_jax.errors import WaldoError
+from waldo_jax.pipeline import INITIAL_MODES, load_source, run_explore, write_outputs
+from waldo_jax.search import BUDGETS, METHODS, ExploreConfig
 
-__all__ = ["add_explore_command", "cmd_explore", "explore_config_from_args"]
+__all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
 
 
-def add_explore_command(subparsers) -> None:
+def add_command(subparsers) -> None:
     """Registers `explore` on an argparse subparsers object (function as `handler`)."""
-    from waldo_jax.commands_criteria import add_criterion_arguments
-    from waldo_jax.search import METHODS
-
     p = subparsers.add_parser(
         "explore", help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS)",
         description="Run one of the paper's searches (Algorithm 1) on SOURCE: start from the scored training "
@@ -55,8 +56,6 @@ def add_explore_command(subparsers) -> None:
 
 def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = None):
     """An `ExploreConfig` from parsed arguments; bad values raise `WaldoError` naming the flag."""
-    from waldo_jax.search import BUDGETS, METHODS, ExploreConfig
-
     method = args.method if method is None else method
     if method not in METHODS:
         raise WaldoError(f"unknown --method {method!r}: expected one of {', '.join(METHODS)}")
@@ -80,11 +79,6 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
 
 def cmd_explore(args: argparse.Namespace) -> int:
     """`waldo explore`: runs the search and writes its files into --out."""
-    from waldo_jax import io
-    from waldo_jax.commands_criteria import criterion_from_args
-    from waldo_jax.exploration import INITIAL_MODES, run_explore, write_outputs
-    from waldo_jax.sources import load_source
-
     config = explore_config_from_args(args)
     if args.initial not in INITIAL_MODES:
         raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")

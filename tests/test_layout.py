@@ -1,0 +1,185 @@
+"""The package's layout (docs/design.md, "Layers"): read from the code's own imports.
+
+Layers, bottom to top; a module may import from a lower layer or from its own package, never upward
+and never sideways into another package of its layer:
+
+  0 core      types, errors, _xla_flags
+  1 base      paths, io, cameras
+  2 data      scenes (one module per format), weights; search (poses and scores only: no renderer,
+              no criterion)
+  3 render    the volume integral, occupancy marching, the marched renderer, sharding
+  4 models    nerf (hash grid, field, training, checkpoints, run directories), procedural (the room)
+  5 criteria  what scores a view
+  6 pipeline  sources, experiments (source + criterion + method), their files, the demo
+  7 cli       one module per command
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+from pathlib import Path
+from typing import Dict, List, Set, Tuple
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "waldo_jax"
+
+LAYERS = {
+    "waldo_jax.types": 0, "waldo_jax.errors": 0, "waldo_jax._xla_flags": 0,
+    "waldo_jax.paths": 1, "waldo_jax.io": 1, "waldo_jax.cameras": 1,
+    "waldo_jax.scenes": 2, "waldo_jax.weights": 2, "waldo_jax.search": 2,
+    "waldo_jax.render": 3,
+    "waldo_jax.nerf": 4, "waldo_jax.procedural": 4,
+    "waldo_jax.criteria": 5,
+    "waldo_jax.pipeline": 6,
+    "waldo_jax.cli": 7,
+    "waldo_jax": 8, "waldo_jax.__main__": 8,
+}
+
+
+def _modules() -> Dict[str, Path]:
+    modules = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = list(path.relative_to(ROOT).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        modules[".".join(parts)] = path
+    return modules
+
+
+MODULES = _modules()
+
+
+def _resolve(name: str) -> str:
+    """The module of the repository that `name` (a module or a name inside one) lives in."""
+    while name and name not in MODULES:
+        name = name.rpartition(".")[0]
+    return name
+
+
+def _imports(module: str, path: Path) -> List[Tuple[str, str, int]]:
+    """(imported module, imported name or "", line) of every waldo_jax import in `path` (functions too)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+                base = base[:len(base) - node.level + 1]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            if source.split(".")[0] != "waldo_jax":
+                continue
+            for alias in node.names:
+                full = f"{source}.{alias.name}"
+                if full in MODULES:  # `from package import module`
+                    found.append((full, "", node.lineno))
+                else:
+                    found.append((_resolve(source), alias.name, node.lineno))
+        elif isinstance(node, ast.Import):
+            found += [(_resolve(a.name), "", node.lineno) for a in node.names if a.name.split(".")[0] == "waldo_jax"]
+    return found
+
+
+def _unit(module: str) -> str:
+    """The layer entry a module belongs to (its package, or itself)."""
+    while module not in LAYERS:
+        module = module.rpartition(".")[0]
+    return module
+
+
+def _graph() -> Dict[str, Set[str]]:
+    return {m: {target for target, _, _ in _imports(m, p) if target != m} for m, p in MODULES.items()}
+
+
+def test_every_module_has_a_layer():
+    assert all(_unit(m) in LAYERS for m in MODULES)
+
+
+def test_no_import_runs_upward_or_sideways():
+    wrong = []
+    for module, path in MODULES.items():
+        unit = _unit(module)
+        for target, _, line in _imports(module, path):
+            other = _unit(target)
+            if other != unit and LAYERS[other] >= LAYERS[unit]:
+                wrong.append(f"{path.relative_to(ROOT)}:{line}: {unit} (layer {LAYERS[unit]}) imports {target} "
+                             f"(layer {LAYERS[other]})")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_import_cycle():
+    graph = _graph()
+    state: Dict[str, int] = {}
+    stack: List[str] = []
+    cycles = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycles.append(" -> ".join(stack[stack.index(nxt):] + [nxt]))
+            elif nxt not in state:
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node)
+    assert not cycles, "\n".join(cycles)
+
+
+def _users() -> List[Tuple[Path, str, str, int]]:
+    """(file, module, name, line) of every `from waldo_jax... import name` in the package and the benchmarks."""
+    uses = []
+    for module, path in MODULES.items():
+        uses += [(path, target, name, line) for target, name, line in _imports(module, path) if target != module]
+    for path in sorted((ROOT / "benchmarks").glob("*.py")):
+        uses += [(path, target, name, line) for target, name, line in _imports(path.stem, path)]
+    return uses
+
+
+def test_no_private_name_crosses_a_module():
+    private = [f"{path.relative_to(ROOT)}:{line}: {module}.{name}" for path, module, name, line in _users()
+               if name.startswith("_") and not name.startswith("__")]
+    attributes = []
+    for path in [*MODULES.values(), *sorted((ROOT / "benchmarks").glob("*.py"))]:
+        tree = ast.parse(path.read_text())
+        imported = {alias.asname or alias.name.split(".")[-1]
+                    for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom))
+                    for alias in node.names
+                    if (getattr(node, "module", None) or alias.name).startswith("waldo_jax")}
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in imported
+                    and node.attr.startswith("_") and not node.attr.startswith("__")):
+                attributes.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert not private + attributes, "\n".join(private + attributes)
+
+
+def test_names_used_across_modules_are_documented():
+    missing = []
+    for path, module, name, line in _users():
+        if not name or name == "*":
+            continue
+        obj = getattr(importlib.import_module(module), name, None)
+        if (inspect.isfunction(obj) or inspect.isclass(obj)) and not inspect.getdoc(obj):
+            missing.append(f"{path.relative_to(ROOT)}:{line}: {module}.{name}")
+    assert not missing, "\n".join(missing)
+
+
+@pytest.mark.parametrize("name", ["load_scene", "read_poses_file"])
+def test_the_public_api_keeps_its_names(name):
+    import waldo_jax.criteria as criteria
+    import waldo_jax.render as render
+    import waldo_jax.scenes as scenes
+    import waldo_jax.search as search
+
+    assert callable(getattr(scenes, name))
+    assert callable(search.explore) and "egps" in search.METHODS
+    assert "saliency" in criteria.CRITERIA and callable(criteria.make_criterion)
+    assert callable(render.render_views) and callable(render.render_marched)

@@ -1,0 +1,41 @@
+"""The criterion flags that `waldo score` and `waldo explore` share, and the criterion they name.
+
+`--criterion` takes a registered name or `weighted:NAME=W,...`; `--guard NAME:THRESHOLD` wraps it with
+`constrained` (repeatable); `--weights DIR` replaces `WALDO_WEIGHTS`; `--target FILE` is the reference
+image of the `waldo` finder.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Optional
+
+from waldo_jax.criteria import CRITERIA, Criterion, CriterionContext
+from waldo_jax.criteria.combine import build_criterion
+from waldo_jax.io import read_image
+
+__all__ = ["add_criterion_arguments", "criterion_from_args"]
+
+
+def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[str] = None) -> None:
+    """`--criterion`, `--guard`, `--weights` and `--target` on `parser`."""
+    names = ", ".join(sorted(CRITERIA))
+    parser.add_argument("--criterion", required=default is None, default=default,
+                        help=f"one of {names}, or weighted:NAME=W,NAME=W" + (f" (default {default})" if default else ""))
+    parser.add_argument("--guard", action="append", default=[], metavar="NAME:THRESHOLD",
+                        help="a view failing this criterion's threshold gets the worst score, e.g. opacity:0.9 "
+                             "(repeatable)")
+    parser.add_argument("--weights", default=None, metavar="DIR",
+                        help="weights folder in the ../shared/weights layout (default: WALDO_WEIGHTS, else "
+                             "$WALDO_DATA/weights)")
+    parser.add_argument("--target", default=None, metavar="FILE",
+                        help="reference image of the object to find (criterion waldo)")
+
+
+def criterion_from_args(args: argparse.Namespace, room=None, source: str = "") -> Criterion:
+    """The criterion the flags name (built with the room, weights folder and target they give)."""
+    target = None
+    if getattr(args, "target", None):
+        target = read_image(args.target, what="--target image", min_side=2)
+    context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source)
+    return build_criterion(args.criterion, context, getattr(args, "guard", []) or [])

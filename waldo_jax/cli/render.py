@@ -1,0 +1,164 @@
+"""`waldo render`: views to PNGs, of the procedural room or of a trained run.
+
+    waldo render procedural[:SEED] --out DIR [--resolution R] [--views N] [--samples S]
+    waldo render RUN_DIR --poses FILE|train --out DIR [--resolution R]
+
+The room renders its training views analytically, with a contact sheet, transforms.json and
+room.json (Waldo's visibility per view). A run renders the poses of a file read by
+`waldo_jax.scenes.read_poses_file` (a JSON object with `frames[].transform_matrix`: instant-ngp /
+nerfstudio transforms, OpenGL camera-to-world in the scene's world frame, as the training poses;
+nerfstudio viewer camera paths are refused) or its training poses. Intrinsics come from the file
+when it has a focal length, else from the checkpoint; `--resolution` rescales them so that the
+longer side has R pixels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax import io
+from waldo_jax.errors import WaldoError, check_resolution
+from waldo_jax.nerf.checkpoint import load_checkpoint
+from waldo_jax.nerf.render import render_trained
+from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
+from waldo_jax.procedural import RoomCameraConfig, room_scene, waldo_visibility_batch
+from waldo_jax.scenes import read_poses_file
+
+__all__ = ["add_command", "cmd_render", "MAX_RENDER_POSES", "RENDER_GROUP_PIXELS"]
+
+MAX_RENDER_POSES = 100_000  # one `waldo render` call; its PNG names have at least four digits
+RENDER_GROUP_PIXELS = 2**24  # pixels rendered per call (~200 MB of float32 colour): bounds memory
+
+
+def add_command(subparsers) -> None:
+    """Registers `render` on an argparse subparsers object (function as `handler`)."""
+    render = subparsers.add_parser(
+        "render", help="render views to PNGs",
+        description="Render the procedural Waldo room's training views (SOURCE = procedural[:SEED]), or "
+                    "poses with a trained field (SOURCE = a run directory of `waldo train`, with --poses).")
+    render.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or RUN_DIR")
+    render.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    render.add_argument("--poses", default=None, metavar="FILE|train",
+                        help="RUN_DIR only: a transforms.json-like file, or 'train' for the training poses")
+    render.add_argument("--resolution", type=int, default=None,
+                        help="procedural: image side (default 128); RUN_DIR: longer side (default: camera's)")
+    render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default 0)")
+    render.add_argument("--views", type=int, default=None,
+                        help="procedural only: number of training views (default 24, at most 1000)")
+    render.add_argument("--samples", type=int, default=None,
+                        help="procedural only: samples per ray (default 128, at most 1024)")
+    render.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    render.set_defaults(handler=cmd_render)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """`waldo render`: the procedural room's training views, or poses rendered by a trained run."""
+    seed = parse_procedural(args.source, args.seed)
+    if seed is not None:
+        return _render_procedural(args, seed)
+    ignored = [flag for flag, value in (("--seed", args.seed), ("--views", args.views), ("--samples", args.samples))
+               if value is not None]
+    if ignored:
+        raise WaldoError(f"{', '.join(ignored)}: for procedural sources only; {args.source} renders its trained field")
+    return _render_run(args)
+
+
+def _render_procedural(args: argparse.Namespace, seed: int) -> int:
+    """`waldo render procedural[:SEED]`: the room's training views, a sheet, transforms.json, room.json."""
+    resolution = 128 if args.resolution is None else args.resolution
+    args.resolution = resolution
+    if args.poses is not None:
+        raise WaldoError("--poses is for trained runs; the procedural room renders its own training views")
+    args.views = check_views(DEFAULT_PROCEDURAL_VIEWS if args.views is None else args.views)
+    check_resolution(args.resolution)
+    args.samples = 128 if args.samples is None else args.samples
+    if not 1 <= args.samples <= 1024:
+        raise WaldoError(f"--samples must be between 1 and 1024, got {args.samples}")
+    out = io.prepare_output_dir(args.out, force=args.force)
+    start = time.perf_counter()
+    try:
+        scene, room = room_scene(seed, num_views=args.views, resolution=args.resolution,
+                                 num_samples=args.samples, camera_config=RoomCameraConfig())
+    except ValueError as e:
+        raise WaldoError(str(e)) from None
+    seconds = time.perf_counter() - start
+    visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
+    stale = io.stale_files(out, r"view_\d{3,}\.png", scene.file_names)  # --force: an earlier render's views
+    for name, image in zip(scene.file_names, scene.images):
+        io.save_png(out / name, image)
+    for path in stale:
+        path.unlink()
+    labels = [f"{i}: waldo {v:.0%}" for i, v in enumerate(visibility)]
+    io.save_png(out / "contact_sheet.png", io.contact_sheet(list(scene.images), labels=labels))
+    io.write_transforms(out / "transforms.json", scene.c2w, scene.intrinsics, scene.file_names,
+                        extra={"waldo_procedural_seed": seed, "aabb": scene.aabb.tolist()})
+    io.write_json(out / "room.json", {
+        "seed": seed,
+        "views": args.views,
+        "resolution": args.resolution,
+        "samples_per_ray": args.samples,
+        "waldo_base": np.asarray(room.waldo_base).tolist(),
+        "waldo_visibility": visibility.tolist(),
+        "max_training_visibility": float(visibility.max()),
+        "render_seconds": seconds,
+    })
+    print(f"wrote {args.views} views of procedural:{seed} at {args.resolution}x{args.resolution} to {out} "
+          f"(contact_sheet.png, transforms.json, room.json) in {seconds:.1f} s; "
+          f"best training-view Waldo visibility {visibility.max():.0%}")
+    return 0
+
+
+def _render_run(args: argparse.Namespace) -> int:
+    """`waldo render RUN_DIR --poses FILE|train`: renders poses with a trained field to DIR/0000.png, ..."""
+    if args.poses is None:
+        raise WaldoError("rendering a trained run needs --poses FILE (a transforms.json) or --poses train")
+    run = Path(args.source)
+    if not run.exists():
+        raise WaldoError(f"run directory {run} does not exist")
+    checkpoint = load_checkpoint(run)
+    scene = checkpoint.scene
+    if args.poses == "train":
+        c2w, intrinsics = np.asarray(scene.c2w, np.float32), scene.intrinsics
+    else:
+        poses_path = Path(args.poses)
+        if not poses_path.exists():
+            raise WaldoError(f"{poses_path}: no such poses file (or pass --poses train)")
+        c2w, intrinsics, _ = read_poses_file(poses_path, scene.intrinsics)
+    if args.resolution is not None:
+        check_resolution(args.resolution)
+        intrinsics = intrinsics.with_max_side(args.resolution)
+    if len(c2w) > MAX_RENDER_POSES:
+        raise WaldoError(f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} "
+                         "(split the file)")
+    force = getattr(args, "force", False)
+    out = io.prepare_output_dir(args.out, force=force)
+    names = [f"{i:04d}.png" for i in range(len(c2w))]
+    stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
+
+    background = scene.background if scene.background is not None else np.zeros(3, np.float32)
+    print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
+    start = time.perf_counter()
+    # Groups of poses of one size (the last padded by repeating a pose): one compiled program, and
+    # memory bounded by RENDER_GROUP_PIXELS however many poses the file holds.
+    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
+    for first in range(0, len(c2w), group):
+        part = c2w[first:first + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
+        rendered = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, padded, intrinsics,
+                                  scene.near, scene.far, background, aabb=scene.aabb)
+        images = np.asarray(jax.device_get(rendered.rgb))[:len(part)]
+        for name, image in zip(names[first:first + group], images):
+            io.save_png(out / name, image)
+    seconds = time.perf_counter() - start
+    for path in stale:
+        path.unlink()
+    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
+    print(f"wrote {len(names)} PNGs to {out} in {seconds:.1f} s{removed}")
+    return 0

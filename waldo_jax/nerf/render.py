@@ -1,0 +1,192 @@
+"""The one renderer of a trained field, its held-out PSNR and the calibration of its marching step.
+
+A trained run (params, occupancy grid, `TrainConfig`) renders with `waldo_jax.render.marched`:
+`render_setup` turns the run into that renderer's grid, render config and march config (a
+dense-trained field goes through a single, always-occupied cell). `calibrate_render_step` picks the
+run's marching step from its own quality/speed curve. Names: `P` poses of `H x W` pixels.
+See docs/design.md, "Training".
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.nerf.config import TrainConfig, TrainConfigError, check_scene
+from waldo_jax.nerf.field import make_field
+from waldo_jax.nerf.samplers import make_sampler
+from waldo_jax.render import marched, occupancy
+from waldo_jax.render.volume import RenderConfig
+from waldo_jax.types import Intrinsics, RenderOutput, Scene
+
+__all__ = [
+    "RENDER_STEP_CANDIDATES",
+    "RENDER_STEP_TOLERANCE_DB",
+    "calibrate_render_step",
+    "eval_background",
+    "evaluate",
+    "render_setup",
+    "render_trained",
+    "render_trained_counted",
+]
+
+# Rendering marches with the training step times `TrainConfig.render_step_scale`. Its value comes from
+# each run's own quality/speed curve (`calibrate_render_step`): the largest of these scales whose
+# held-out PSNR is within RENDER_STEP_TOLERANCE_DB of the training step's. Measured on the CPU-trained
+# fox (benchmarks/results/render_trained_fox_*): x2 -0.01 dB, x3 -0.03 dB (70 instead of 203
+# evaluations per ray), x4 -0.09 dB; on lego_tiny x2 already loses 1.4 dB, so no fixed scale serves both.
+RENDER_STEP_CANDIDATES = (2.0, 3.0, 4.0)
+RENDER_STEP_TOLERANCE_DB = 0.05
+# Held-out views rendered per candidate scale (spread over the split).
+_CALIBRATION_VIEWS = 3
+
+
+def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aabb, background,
+                 step_scale: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, occupancy.MarchConfig]:
+    """What `render.marched` needs to render a trained field: (grid, render config, march config).
+
+    Args:
+      config: the training config (sampler, steps, eval_samples, render_step_scale).
+      sampler_state: the occupancy grid, or None (dense sampler).
+      near, far: ray bounds (world units). aabb: [2, 3] box to sample in. background: colour [3].
+      step_scale: the marching step over the training step (default `config.render_step_scale`, or 1).
+    """
+    sampler = make_sampler(config)
+    scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
+    scale = float(scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise TrainConfigError(f"the render step scale must be a positive number, got {step_scale!r}")
+    render_config = RenderConfig.create(near=near, far=far, aabb=np.asarray(aabb, np.float32).reshape(2, 3),
+                                        background=background, ray_chunk=1)
+    return sampler.view_grid(sampler_state), render_config, sampler.view_march(scale)
+
+
+def _render_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float, far: float,
+                    background, aabb, mesh, step_scale: Optional[float], packing: Optional[marched.Packing]):
+    """(RenderOutput [P, H, W], evaluations int32 [P, H, W]) on one device, or sharded over several."""
+    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
+    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
+    field = make_field(config.field)
+    c2w = jnp.asarray(np.asarray(c2w, np.float32))
+    if mesh is None and jax.local_device_count() == 1:
+        views = marched.render_marched(field, params, grid, c2w, intrinsics, render_config, march, packing)
+        return views.output, views.evaluations
+    return marched.render_marched_sharded(field, params, grid, c2w, intrinsics, render_config, march, packing, mesh)
+
+
+def render_trained_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
+                           far: float, background=(1.0, 1.0, 1.0), aabb=None, step_scale: Optional[float] = None,
+                           packing: Optional[marched.Packing] = None) -> marched.MarchedViews:
+    """`render_trained` on one device, with what it cost (`render.marched.MarchedViews`: evaluations per
+    pixel, passes per block)."""
+    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
+    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
+    return marched.render_marched(make_field(config.field), params, grid, jnp.asarray(np.asarray(c2w, np.float32)),
+                                  intrinsics, render_config, march, packing)
+
+
+def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
+                   far: float, background=(1.0, 1.0, 1.0), aabb=None, mesh=None, step_scale: Optional[float] = None,
+                   packing: Optional[marched.Packing] = None) -> RenderOutput:
+    """Renders P views of a trained field in one call with the marched renderer (`render.marched`).
+
+    With more than one local device (or a `mesh`), the poses are split over the devices
+    (`render.marched.render_marched_sharded`).
+
+    Args:
+      params: the field's parameters.
+      sampler_state: the occupancy grid, or None (dense sampler).
+      config: the training config (field, sampler, eval_samples, render_step_scale).
+      c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
+      intrinsics: shared intrinsics (their width and height set the image size).
+      near, far: ray bounds (world units).
+      background: colour [3] behind the volume.
+      aabb: [2, 3] sampling box (default: the field's box).
+      mesh: a one-axis mesh named "poses" to shard over (default: all local devices if more than one).
+      step_scale: the marching step over the training step (default `config.render_step_scale`).
+      packing: the renderer's static sizes (default `render.marched.Packing.for_backend()`).
+
+    Returns:
+      RenderOutput with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W] (device arrays).
+    """
+    return _render_counted(params, sampler_state, config, c2w, intrinsics, near, far, background, aabb, mesh,
+                           step_scale, packing)[0]
+
+
+def eval_background(scene: Scene) -> np.ndarray:
+    """The colour float32 [3] a scene's views are rendered and compared on: its background, or black."""
+    return np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
+
+
+def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scale: Optional[float] = None,
+             views: Optional[Sequence[int]] = None) -> Dict[str, Any]:
+    """Held-out PSNR: renders the views of `scene` (all, or the indices `views`) and compares with its images.
+
+    RGBA scenes are compared on the background their images were composited on (`scene.background`);
+    opaque ones are rendered on black.
+
+    Returns:
+      {"psnr": mean of per-image PSNR (dB), "psnr_per_image": list, "mse": mean MSE,
+       "evaluations_per_ray": mean field evaluations per ray, "step_scale": the marching step used,
+       "images": float32 [P, H, W, 3] renders (host)}.
+    """
+    check_scene(scene, "test scene")
+    index = np.arange(scene.n_images) if views is None else np.asarray(views, np.int64)
+    c2w = np.asarray(scene.c2w, np.float32)[index]
+    out, evaluations = _render_counted(params, sampler_state, config, c2w, scene.intrinsics, scene.near, scene.far,
+                                       eval_background(scene), scene.aabb, None, step_scale, None)
+    rendered = np.asarray(jax.device_get(out.rgb), np.float32)
+    images = np.asarray(scene.images, np.float64)[index]
+    mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))
+    psnr = -10.0 * np.log10(np.maximum(mse, 1e-12))
+    scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
+    return {"psnr": float(np.mean(psnr)), "psnr_per_image": psnr.tolist(), "mse": float(np.mean(mse)),
+            "evaluations_per_ray": float(np.mean(np.asarray(evaluations, np.float64))), "step_scale": float(scale),
+            "images": rendered}
+
+
+def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Scene,
+                          reference: Optional[Dict[str, Any]] = None,
+                          candidates: Sequence[float] = RENDER_STEP_CANDIDATES,
+                          tolerance_db: float = RENDER_STEP_TOLERANCE_DB) -> Tuple[float, List[Dict[str, Any]]]:
+    """The marching step to render a trained run with, from its own quality/speed curve.
+
+    Renders up to `_CALIBRATION_VIEWS` held-out views (spread over the split) with the march `scale`
+    times coarser than training, for each scale of `candidates` in increasing order, and keeps the
+    largest whose PSNR on those views is within `tolerance_db` of the training step's (scale 1);
+    stops at the first that is not.
+
+    Args:
+      params, sampler_state, config: the trained run.
+      scene: its held-out views.
+      reference: `evaluate` at scale 1 on all of `scene` (when None, the chosen views are rendered here).
+      candidates: scales to try, increasing.
+      tolerance_db: the PSNR the render may lose.
+
+    Returns:
+      (scale, curve): the chosen scale (1.0 when none qualifies) and one entry per scale tried
+      {"step_scale", "psnr_views", "delta_db", "evaluations_per_ray"}.
+    """
+    count = min(_CALIBRATION_VIEWS, scene.n_images)
+    views = np.unique(np.linspace(0, scene.n_images - 1, count).round().astype(np.int64))
+    if reference is None:
+        reference = evaluate(params, sampler_state, config, scene, step_scale=1.0, views=views)
+        base = reference["psnr"]
+    else:
+        base = float(np.mean(np.asarray(reference["psnr_per_image"])[views]))
+    curve = [{"step_scale": 1.0, "psnr_views": base, "delta_db": 0.0,
+              "evaluations_per_ray": reference["evaluations_per_ray"]}]
+    chosen = 1.0
+    for scale in candidates:
+        result = evaluate(params, sampler_state, config, scene, step_scale=scale, views=views)
+        delta = result["psnr"] - base
+        curve.append({"step_scale": float(scale), "psnr_views": result["psnr"], "delta_db": delta,
+                      "evaluations_per_ray": result["evaluations_per_ray"]})
+        if delta < -tolerance_db:
+            break
+        chosen = float(scale)
+    return chosen, curve

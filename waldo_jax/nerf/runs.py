@@ -1,0 +1,150 @@
+"""Run directories: a trained field as `checkpoint.ckpt` + `train.json`, written in one place.
+
+`train_scene_run` is `waldo train` as a function (scene folder -> run directory); `train_run` trains
+on scenes already in memory (the demo's procedural room) and writes the same two files, so every
+run directory has the same `train.json` keys (`train_stats`), whoever trained it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import jax
+
+from waldo_jax import io
+from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError
+from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
+from waldo_jax.nerf.config import PRESETS, TrainConfig
+from waldo_jax.nerf.train import TrainResult, train
+from waldo_jax.scenes import load_scene
+from waldo_jax.types import Scene
+
+__all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "load_splits", "train_stats", "train_run", "train_scene_run"]
+
+TRAIN_JSON = "train.json"
+SAMPLER_CHOICES = ("auto", "dense", "occupancy")  # auto = occupancy
+
+
+def load_splits(scene_path: str, downscale: Optional[float]) -> Tuple[Scene, Optional[Scene]]:
+    """(training scene, held-out scene or None) with the format's own hold-out.
+
+    Blender scenes hold out transforms_test.json (else _val); other formats every 8th image. A scene
+    without held-out views warns and returns None for it.
+    """
+    train_scene = load_scene(scene_path, downscale=downscale, split="train")
+    if min(train_scene.width, train_scene.height) < MIN_RESOLUTION:
+        how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
+        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; a NeRF "
+                         f"needs sides of at least {MIN_RESOLUTION} pixels")
+    test_scene = None
+    splits = ("test", "val") if train_scene.format == "blender" else ("test",)
+    for split in splits:
+        try:
+            with warnings.catch_warnings():  # the train split already warned about skipped frames
+                warnings.simplefilter("ignore", UserWarning)
+                test_scene = load_scene(scene_path, downscale=downscale, split=split)
+            break
+        except SceneFormatError as e:
+            problem = str(e)
+    if test_scene is None:
+        warnings.warn(f"{scene_path}: no held-out views ({problem}); psnr_test will be null", stacklevel=2)
+    return train_scene, test_scene
+
+
+def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int) -> Dict[str, Any]:
+    """The contents of train.json: the run's quality, cost, settings and loss history (JSON-able)."""
+    config = result.config
+    last = next((h for h in reversed(result.history) if "loss" in h), {})
+    return {
+        "psnr_test": result.psnr_test,
+        "psnr_test_training_step": result.psnr_test_training_step,
+        "render_step_scale": config.render_step_scale,
+        "render_step_curve": result.render_step_curve,
+        "steps": result.steps,
+        "seconds": round(result.seconds, 3),
+        "compile_seconds": round(result.compile_seconds, 3),
+        "rays_per_second": round(result.rays_per_second, 1),
+        "device": result.device,
+        "n_train": result.n_train,
+        "n_test": result.n_test,
+        "preset": preset,
+        "sampler": config.sampler,
+        "seed": seed,
+        "scene_path": None if not scene.path else str(Path(scene.path).resolve()),
+        "scene_format": scene.format,
+        "downscale": scene.metadata.get("downscale"),
+        "image_size": [scene.width, scene.height],
+        "train_loss": last.get("loss"),
+        "train_psnr": last.get("psnr"),
+        "checkpoint": CHECKPOINT_NAME,
+        "config": config.to_dict(),
+        "hparams": {f.name: float(getattr(result.hparams, f.name)) for f in dataclasses.fields(result.hparams)},
+        "history": result.history,
+    }
+
+
+def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional[Scene], out: Path,
+              preset: str, progress: bool = True) -> Tuple[TrainResult, Dict[str, Any]]:
+    """Trains on `scene` (held-out PSNR on `test_scene`) and writes OUT/checkpoint.ckpt and OUT/train.json.
+
+    Args:
+      seed: the training seed (`jax.random.key(seed)`).
+      scene, config, test_scene: as `waldo_jax.nerf.train.train`.
+      out: an existing folder (see `waldo_jax.io.prepare_output_dir`).
+      preset: the preset `config` came from (recorded).
+      progress: a progress bar.
+
+    Returns:
+      (the `TrainResult`, its config holding the calibrated render step; the train.json contents).
+    """
+    result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
+    stats = train_stats(result, scene, preset, seed)
+    save_checkpoint(Path(out) / CHECKPOINT_NAME, result.params, result.config, scene, result.occupancy,
+                    info={k: v for k, v in stats.items() if k != "history"})
+    io.write_json(Path(out) / TRAIN_JSON, stats)
+    return result, stats
+
+
+def _positive(flag: str, value: Optional[float]) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise WaldoError(f"{flag} must be a positive number, got {value}")
+
+
+def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", steps: Optional[int] = None,
+                    downscale: Optional[float] = None, seed: int = 0, sampler: str = "auto",
+                    render_step_scale: Optional[float] = None, force: bool = False,
+                    progress: bool = True) -> Tuple[TrainResult, Dict[str, Any], Path]:
+    """`waldo train` as a function: the scene on disk -> a run directory `out`.
+
+    Every value is checked, and `out` too (empty, writable, a valid name), before the scene is loaded:
+    a training is never lost to a folder it cannot write. `force` writes into a non-empty `out`.
+
+    Returns:
+      (the `TrainResult`, the train.json contents, the run directory).
+
+    Raises:
+      WaldoError: a bad value (named as its `waldo train` flag), scene or output folder.
+    """
+    if preset not in PRESETS:
+        raise WaldoError(f"unknown preset {preset!r}: expected one of {', '.join(PRESETS)}")
+    if sampler not in SAMPLER_CHOICES:
+        raise WaldoError(f"unknown sampler {sampler!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
+    if steps is not None and steps < 1:
+        raise WaldoError(f"--steps must be a positive integer, got {steps}")
+    _positive("--downscale", downscale)
+    _positive("--render-step-scale", render_step_scale)
+    out = io.check_output_dir(out, force=force)
+    train_scene, test_scene = load_splits(scene_path, downscale)
+    out = io.prepare_output_dir(out, force=force)
+    overrides: Dict[str, Any] = {"sampler": "occupancy" if sampler == "auto" else sampler}
+    if steps is not None:
+        overrides["steps"] = steps
+    if render_step_scale is not None:
+        overrides["render_step_scale"] = render_step_scale
+    config = TrainConfig.preset(preset, train_scene, **overrides)
+    result, stats = train_run(seed, train_scene, config, test_scene, out, preset, progress)
+    return result, stats, out

@@ -1,0 +1,34 @@
+"""The pipeline: a scene to explore (`sources`), an experiment = source + criterion + method
+(`experiment`), its files (`outputs`, `figures`) and the end-to-end demo on the procedural room (`demo`).
+
+    from waldo_jax.pipeline import load_source, run_explore, write_outputs
+    source = load_source("procedural:0")
+    run = run_explore(source, make_criterion("waldo_oracle", CriterionContext(room=source.room)),
+                      ExploreConfig(method="egps", budget="low"), seed=0, seeds=4)
+    write_outputs(run, io.prepare_output_dir("runs/egps"))
+"""
+
+from waldo_jax.pipeline.experiment import INITIAL_MODES as INITIAL_MODES
+from waldo_jax.pipeline.experiment import ExploreRun as ExploreRun
+from waldo_jax.pipeline.experiment import generated_slots as generated_slots
+from waldo_jax.pipeline.experiment import initial_scores as initial_scores
+from waldo_jax.pipeline.experiment import run_explore as run_explore
+from waldo_jax.pipeline.experiment import score_function as score_function
+from waldo_jax.pipeline.experiment import seed_keys as seed_keys
+from waldo_jax.pipeline.figures import contact_sheet as contact_sheet
+from waldo_jax.pipeline.figures import methods_sheet as methods_sheet
+from waldo_jax.pipeline.figures import pose_cloud as pose_cloud
+from waldo_jax.pipeline.outputs import RESULTS_JSON as RESULTS_JSON
+from waldo_jax.pipeline.outputs import results_dict as results_dict
+from waldo_jax.pipeline.outputs import write_outputs as write_outputs
+from waldo_jax.pipeline.sources import Source as Source
+from waldo_jax.pipeline.sources import SourceError as SourceError
+from waldo_jax.pipeline.sources import load_source as load_source
+from waldo_jax.pipeline.sources import procedural_source as procedural_source
+from waldo_jax.pipeline.sources import run_source as run_source
+
+__all__ = [
+    "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet", "generated_slots",
+    "initial_scores", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
+    "run_explore", "run_source", "score_function", "seed_keys", "write_outputs",
+]

@@ -1,0 +1,207 @@
+"""An experiment: a `Source` (what renders) + a `Criterion` (what scores) + a search method -> `ExploreRun`.
+
+`run_explore` composes the source and the criterion into the search's score function, scores the
+initial population, runs `waldo_jax.search.explore` (one seed) or `explore_seeds` (several seeds,
+one vmapped call) and re-renders the top-k views; `waldo_jax.pipeline.outputs` writes its files.
+
+Initial scores (`initial`): "images" scores the real training images, as the paper does;
+"renders" scores renders at the training poses instead (a comparison free of the renderer's own
+artefacts). A criterion that scores poses (the room's oracle) ignores images: it is recorded as
+"poses".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Dict, List, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.criteria import Criterion
+from waldo_jax.errors import WaldoError
+from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_seeds
+from waldo_jax.pipeline.sources import Source
+
+__all__ = ["ExploreRun", "INITIAL_MODES", "score_function", "initial_scores", "run_explore", "seed_keys",
+           "generated_slots", "check_epoch_memory", "memory_bytes", "EPOCH_BYTES_PER_PIXEL"]
+
+INITIAL_MODES = ("images", "renders")
+# Working memory of one epoch per rendered pixel (renders, criterion activations, the search's own
+# arrays), an upper estimate: `waldo explore procedural --criterion saliency --resolution 128` grew by
+# 134 MB per extra seed (50 children of 128x128 each: 164 bytes per pixel) on the 2-core CPU.
+EPOCH_BYTES_PER_PIXEL = 256
+
+
+def memory_bytes() -> int:
+    """Memory the first device can use: its allocator's limit on an accelerator, half the RAM on a CPU."""
+    stats = None
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # backends without memory statistics
+        pass
+    if stats and stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 << 30
+
+
+def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> None:
+    """Refuses a run whose batched epoch (seeds x children_per_epoch renders) would not fit in memory,
+    with the largest --seeds that would (see `EPOCH_BYTES_PER_PIXEL`)."""
+    pixels = source.intrinsics.width * source.intrinsics.height
+    per_seed = config.children_per_epoch * pixels * EPOCH_BYTES_PER_PIXEL
+    available = memory_bytes()
+    if seeds * per_seed > available:
+        raise WaldoError(
+            f"--seeds {seeds}: one epoch renders {seeds} x {config.children_per_epoch} views of "
+            f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
+            f"more than the {available / 2**30:.1f} GiB at hand; at most --seeds {max(available // per_seed, 0)} "
+            "here (or a lower --resolution)")
+
+
+def _score_rendered(render, criterion: Criterion, c2w):
+    return criterion.apply(criterion.params, render(c2w))
+
+
+def _score_posed(criterion: Criterion, intrinsics, c2w):
+    return criterion.apply(criterion.params, c2w, intrinsics)
+
+
+def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
+    """c2w [P, 4, 4] -> scores [P]: render with the source and score, or score the poses directly."""
+    if criterion.inputs == "poses":
+        return jax.tree_util.Partial(_score_posed, criterion, source.intrinsics)
+    return jax.tree_util.Partial(_score_rendered, _renderer(source, criterion), criterion)
+
+
+def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
+    """The source's renderer for the criterion: colour, or colour + opacity for a "renders" criterion."""
+    if criterion.inputs != "renders":
+        return source.render
+    if source.render_rgba is None:
+        raise WaldoError(f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give")
+    return source.render_rgba
+
+
+# Compiled once per criterion function and shape: scoring eagerly is ~10x slower for a network
+# (CSNet on 16 images: 22 s eager vs 2.6 s jitted on the 2-core CPU).
+_jit_score_images = jax.jit(lambda criterion, images: criterion.score_images(images))
+_jit_score_poses = jax.jit(lambda criterion, c2w, intrinsics: criterion.score_poses(c2w, intrinsics))
+
+
+def initial_scores(source: Source, criterion: Criterion, initial: str = "images") -> Tuple[np.ndarray, str]:
+    """Scores [N] of the training views and what was scored ("images", "renders" or "poses")."""
+    if initial not in INITIAL_MODES:
+        raise WaldoError(f"initial scores must come from one of {INITIAL_MODES}, got {initial!r}")
+    train_c2w = jnp.asarray(source.train_c2w)
+    if criterion.inputs == "poses":
+        return np.asarray(_jit_score_poses(criterion, train_c2w, source.intrinsics), np.float32), "poses"
+    if initial == "images":
+        if source.train_images is None:
+            raise WaldoError(f"cannot score the real training images of {source.spec}: {source.train_images_note}; "
+                             "use --initial renders to score renders at the training poses instead")
+        return np.asarray(_jit_score_images(criterion, jnp.asarray(source.train_images)), np.float32), "images"
+    return np.asarray(_jit_score_images(criterion, _renderer(source, criterion)(train_c2w)), np.float32), "renders"
+
+
+def seed_keys(seed: int, count: int):
+    """[count] keys for seeds seed, seed + 1, ...: seed s of a multi-seed run is `jax.random.key(s)`."""
+    return jax.vmap(jax.random.key)(jnp.arange(seed, seed + count, dtype=jnp.uint32))
+
+
+@dataclasses.dataclass
+class ExploreRun:
+    """A finished exploration (host-side record).
+
+    Attributes:
+      source, criterion, config: what ran (config resolved: children_per_epoch set).
+      seeds: the seeds (one per vmapped run).
+      results: `Result` of each seed (NumPy leaves, no seed axis), in the order of `seeds`.
+      scores_train: float32 [N] initial scores; initial: what they were computed on.
+      top_images: float32 [k, H, W, 3] renders of the first seed's top-k views.
+      top_truth: the same views rendered by the analytic room (a NeRF of the room), or None.
+      seconds: {"setup", "search", "render_topk", "total"} wall-clock.
+      stats: mean / std of CVIR and mCVIR over the seeds.
+    """
+
+    source: Source
+    criterion: Criterion
+    config: ExploreConfig
+    seeds: List[int]
+    results: List[Result]
+    scores_train: np.ndarray
+    initial: str
+    top_images: np.ndarray
+    top_truth: Optional[np.ndarray]
+    seconds: Dict[str, float]
+    stats: Dict[str, float]
+
+    @property
+    def result(self) -> Result:
+        """The first seed's result (the one the images and poses files show)."""
+        return self.results[0]
+
+
+def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, seed: int = 0, seeds: int = 1,
+                initial: str = "images", setup_seconds: float = 0.0) -> ExploreRun:
+    """Runs one search (or `seeds` searches in one vmapped call) and renders the top-k views.
+
+    Args:
+      source: what renders.
+      criterion: what scores; its direction overrides `config.direction`.
+      config: the search's static settings (method, budget, epochs, top_k, ...).
+      seed: the first seed; `seeds` > 1 runs seeds seed, seed + 1, ... (`seed_keys`).
+      seeds: number of seeds.
+      initial: "images" or "renders" (see the module docstring).
+      setup_seconds: time already spent loading the source (reported under seconds.setup).
+    """
+    if seeds < 1:
+        raise WaldoError(f"--seeds must be >= 1, got {seeds}")
+    start = time.perf_counter()
+    config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
+    check_epoch_memory(source, config, seeds)
+    scores, initial_used = initial_scores(source, criterion, initial)
+    start_init = Initial(c2w=source.train_c2w, scores=scores)
+    score_fn = score_function(source, criterion)
+    if seeds == 1:
+        results = [jax.device_get(explore(jax.random.key(seed), score_fn, start_init, config=config))]
+        stats = {"cvir_mean": float(results[0].cvir), "cvir_std": 0.0,
+                 "mcvir_mean": float(results[0].mcvir), "mcvir_std": 0.0}
+    else:
+        out = jax.device_get(explore_seeds(seed_keys(seed, seeds), score_fn, start_init, config=config))
+        results = [jax.tree.map(lambda a, i=i: a[i], out.results) for i in range(seeds)]
+        stats = {"cvir_mean": float(out.cvir_mean), "cvir_std": float(out.cvir_std),
+                 "mcvir_mean": float(out.mcvir_mean), "mcvir_std": float(out.mcvir_std)}
+    searched = time.perf_counter()
+
+    top = results[0]
+    valid = np.asarray(top.top_valid)
+    top_c2w = jnp.asarray(np.asarray(top.top_c2w)[valid])
+    top_images = np.asarray(source.render(top_c2w), np.float32)
+    top_truth = None if source.truth_render is None else np.asarray(source.truth_render(top_c2w), np.float32)
+    done = time.perf_counter()
+    seconds = {"setup": round(setup_seconds, 3), "search": round(searched - start, 3),
+               "render_topk": round(done - searched, 3), "total": round(setup_seconds + done - start, 3)}
+    return ExploreRun(source=source, criterion=criterion, config=config, seeds=list(range(seed, seed + seeds)),
+                      results=results, scores_train=scores, initial=initial_used, top_images=top_images,
+                      top_truth=top_truth, seconds=seconds, stats=stats)
+
+
+def generated_slots(result: Result, n_train: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rendered children of one seed in generation order (masked slots left out).
+
+    Returns:
+      (scores float [G], epochs int [G], slots int [G]): their scores, epochs of birth and slots in
+      `result.population`.
+    """
+    population = result.population
+    slots = np.arange(n_train, np.asarray(population.score).shape[0])
+    valid = np.asarray(population.valid)[slots]
+    slots = slots[valid]
+    return np.asarray(population.score)[slots], np.asarray(population.epoch)[slots], slots

@@ -1,0 +1,138 @@
+"""The files of an experiment (what `waldo explore` promises), written by `write_outputs`:
+
+  results.json      the run: method, criterion, direction, seed(s), budget, n_train, n_generated,
+                    scores_train, scores_generated (generation order), cvir, mcvir, topk
+                    [{score, c2w, image, ...}], epochs (per-epoch best and mean-top-N), seconds;
+                    with several seeds also per_seed and the mean / std of CVIR and mCVIR
+  topk/NN.png       the top-k views, best first (the first seed's)
+  contact_sheet.png best training views in the first row, best found views below, scores on them
+  poses.json        the top-k poses in transforms.json form (instant-ngp / nerfstudio can render them)
+  pose_cloud.png    every pose coloured by score at the start, after epoch 1 and at the end
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import jax
+import numpy as np
+
+from waldo_jax import io
+from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
+from waldo_jax.pipeline.figures import contact_sheet, pose_cloud
+from waldo_jax.search import Result
+
+__all__ = ["RESULTS_JSON", "results_dict", "write_outputs", "json_floats"]
+
+RESULTS_JSON = "results.json"
+
+
+def json_floats(values) -> List[Optional[float]]:
+    """JSON-safe floats of any array (flattened; NaN / inf -> None)."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, np.float64).ravel()]
+
+
+def _float(value) -> Optional[float]:
+    return json_floats([value])[0]
+
+
+def _epoch_rows(result: Result) -> List[Dict[str, Any]]:
+    m = result.metrics
+    return [{"epoch": e, "best": _float(m.best[e]), "mean_top_n": _float(m.mean_top_n[e]),
+             "scored": int(m.num_scored[e]), "failed": int(m.num_failed[e])} for e in range(len(m.best))]
+
+
+def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
+    """The contents of results.json (see the module docstring)."""
+    config, result, source = run.config, run.result, run.source
+    scores_generated, epochs_generated, slots = generated_slots(result, source.n_train)
+    population = result.population
+    valid = np.asarray(result.top_valid)
+    indices = np.asarray(result.top_indices)[valid]
+    topk = []
+    for rank, (slot, name) in enumerate(zip(indices, image_names)):
+        entry = {"rank": rank, "score": _float(population.score[slot]),
+                 "c2w": np.round(np.asarray(population.c2w[slot], np.float64), 8).tolist(), "image": name,
+                 "epoch": int(population.epoch[slot]), "training_view": bool(slot < source.n_train),
+                 "origin": json_floats(population.origin[slot]), "look_at": json_floats(population.target[slot]),
+                 "up": json_floats(population.up[slot])}
+        if slot < source.n_train:
+            entry["training_image"] = source.train_names[slot]
+        topk.append(entry)
+    out: Dict[str, Any] = {
+        "method": config.method,
+        "criterion": run.criterion.name,
+        "criterion_description": run.criterion.description,
+        "direction": run.criterion.direction,
+        "source": source.spec,
+        "source_info": source.info,
+        "seed": run.seeds[0],
+        "budget": config.budget if isinstance(config.budget, str) else list(config.budget),
+        "epochs_count": config.epochs,
+        "children_per_epoch": config.children_per_epoch,
+        "top_k": config.top_k,
+        "top_n": config.top_n,
+        "resolution": [source.intrinsics.width, source.intrinsics.height],
+        "initial_scores": run.initial,
+        "n_train": source.n_train,
+        "n_generated": int(len(slots)),
+        "n_failed_generated": int(np.sum(~np.isfinite(scores_generated))),
+        "scores_train": json_floats(run.scores_train),
+        "scores_generated": json_floats(scores_generated),
+        "generated_epochs": [int(e) for e in epochs_generated],
+        "cvir": _float(result.cvir),
+        "mcvir": _float(result.mcvir),
+        "topk": topk,
+        "epochs": _epoch_rows(result),
+        "seconds": run.seconds,
+        "device": jax.devices()[0].platform + (f":{jax.devices()[0].device_kind}"
+                                               if getattr(jax.devices()[0], "device_kind", "") else ""),
+    }
+    if config.method == "pibs":
+        out["pibs"] = {"top_c": config.top_c, "fallback": config.pibs_fallback}
+    if len(run.seeds) > 1:
+        out["seeds"] = run.seeds
+        out["per_seed"] = [{"seed": s, "cvir": _float(r.cvir), "mcvir": _float(r.mcvir),
+                            "best": _float(r.metrics.best[-1]), "mean_top_n": _float(r.metrics.mean_top_n[-1])}
+                           for s, r in zip(run.seeds, run.results)]
+        out.update({k: _float(v) for k, v in run.stats.items()})
+    return out
+
+
+def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]:
+    """Writes results.json, topk/*.png, contact_sheet.png, poses.json and pose_cloud.png into `out`.
+
+    `out` must exist (see `waldo_jax.io.prepare_output_dir`). Returns the results dictionary.
+    """
+    out = Path(out)
+    (out / "topk").mkdir(exist_ok=True)
+    names = [f"topk/{i:02d}.png" for i in range(len(run.top_images))]
+    written = [Path(n).name for n in names]
+    for name, image in zip(names, run.top_images):
+        io.save_png(out / name, image)
+    if run.top_truth is not None:
+        for i, image in enumerate(run.top_truth):
+            io.save_png(out / "topk" / f"{i:02d}_truth.png", image)
+            written.append(f"{i:02d}_truth.png")
+    for path in io.stale_files(out / "topk", r"\d{2,}(_truth)?\.png", written):  # an earlier run's (--force)
+        path.unlink()
+    io.save_png(out / "contact_sheet.png", contact_sheet(run))
+
+    result = run.result
+    valid_top = np.asarray(result.top_valid)
+    top_scores = np.asarray(result.top_scores)[valid_top]
+    io.write_transforms(out / "poses.json", np.asarray(result.top_c2w)[valid_top], run.source.intrinsics, names,
+                        extra={"waldo_explore": {"criterion": run.criterion.name, "method": run.config.method,
+                                                 "scores": json_floats(top_scores), "source": run.source.spec}})
+
+    population = result.population
+    filled = np.asarray(population.valid)
+    marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
+    pose_cloud(out / "pose_cloud.png", np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
+               np.asarray(population.epoch)[filled], run.criterion.direction,
+               title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
+               marker=marker)
+    results = results_dict(run, names)
+    io.write_json(out / RESULTS_JSON, results)
+    return results

@@ -1,0 +1,89 @@
+"""The room's training cameras: a band inside the walls, looking inwards, each seeing Waldo at most partly."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.cameras import look_at
+from waldo_jax.procedural.oracle import waldo_visibility_batch
+from waldo_jax.procedural.room import WaldoRoom
+from waldo_jax.types import Intrinsics, PRNGKey
+
+__all__ = ["RoomCameraConfig", "training_cameras"]
+
+
+
+@dataclasses.dataclass(frozen=True)
+class RoomCameraConfig:
+    """Where the training cameras of the room go (a band inside the walls, looking inwards).
+
+    Attributes:
+      band_radius: (min, max) horizontal distance from the room's centre.
+      band_height: (min, max) camera height.
+      target_radius: look-at points lie within this distance of the centre ...
+      target_height: ... at heights in this range.
+      fov_x: horizontal field of view in radians.
+      max_visibility: a camera is kept only if it sees at most this fraction of Waldo.
+      oversample: candidate cameras drawn per kept camera.
+    """
+
+    band_radius: Tuple[float, float] = (2.9, 3.4)
+    band_height: Tuple[float, float] = (1.0, 1.7)
+    target_radius: float = 1.2
+    target_height: Tuple[float, float] = (0.2, 0.9)
+    fov_x: float = math.radians(60.0)
+    max_visibility: float = 0.5
+    oversample: int = 6
+
+
+def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: Intrinsics,
+                     config: RoomCameraConfig = RoomCameraConfig()) -> np.ndarray:
+    """Training cameras on a band around the room that see Waldo at most partly.
+
+    Candidates are spread evenly in angle (with jitter) over the band, each looking at a random
+    point near the centre; the first `num_views` candidates (in angular order) whose oracle
+    visibility is at most `config.max_visibility` are kept.
+
+    Args:
+      key: PRNG key.
+      room: the room.
+      num_views: cameras to return.
+      intrinsics: the cameras' intrinsics (the frame decides what "cut by the frame" means).
+      config: the band.
+
+    Returns:
+      c2w: float32 [num_views, 4, 4].
+
+    Raises:
+      ValueError: when too few candidates qualify (ask for fewer views or a larger oversample).
+    """
+    n = num_views * config.oversample
+    k_angle, k_radius, k_height, k_target = jax.random.split(key, 4)
+    angle = 2 * jnp.pi * (jnp.arange(n) + jax.random.uniform(k_angle, (n,))) / n
+    radius = jax.random.uniform(k_radius, (n,), minval=config.band_radius[0], maxval=config.band_radius[1])
+    height = jax.random.uniform(k_height, (n,), minval=config.band_height[0], maxval=config.band_height[1])
+    origins = jnp.stack([radius * jnp.cos(angle), height, radius * jnp.sin(angle)], -1)
+    kt_r, kt_a, kt_h = jax.random.split(k_target, 3)
+    t_r = config.target_radius * jnp.sqrt(jax.random.uniform(kt_r, (n,)))
+    t_a = 2 * jnp.pi * jax.random.uniform(kt_a, (n,))
+    t_h = jax.random.uniform(kt_h, (n,), minval=config.target_height[0], maxval=config.target_height[1])
+    targets = jnp.stack([t_r * jnp.cos(t_a), t_h, t_r * jnp.sin(t_a)], -1)
+    c2w = jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))
+    visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
+    keep = np.flatnonzero(visibility <= config.max_visibility)
+    if len(keep) < num_views:
+        raise ValueError(
+            f"only {len(keep)} of {n} candidate cameras see Waldo at most {config.max_visibility:.0%}; "
+            f"ask for fewer than {num_views} views or raise oversample"
+        )
+    # Spread the kept cameras over the whole band rather than taking the first ones in angle.
+    chosen = keep[np.round(np.linspace(0, len(keep) - 1, num_views)).astype(int)]
+    return np.asarray(c2w)[chosen].astype(np.float32)
+
+

@@ -1,0 +1,120 @@
+"""Exact oracles from the room's geometry: how much of Waldo a camera sees (`waldo_visibility`) and how
+much of its image he covers (`waldo_coverage`), by casting segments against the primitives.
+"""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import jax
+import jax.numpy as jnp
+
+from waldo_jax.cameras import project_points
+from waldo_jax.procedural.room import FAR, KIND_BOX, KIND_SPHERE, WaldoRoom
+from waldo_jax.types import Array, Intrinsics
+
+__all__ = ["waldo_visibility", "waldo_coverage", "waldo_visibility_batch"]
+
+
+
+def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Array) -> Array:
+    """Whether the open segment start -> end [3] crosses the solid primitive (exact)."""
+    v = end - start
+    safe_v = jnp.where(jnp.abs(v) > 1e-12, v, 1e-12)
+
+    def slab(lo, hi):
+        t0, t1 = (lo - start) / safe_v, (hi - start) / safe_v
+        return jnp.minimum(t0, t1), jnp.maximum(t0, t1)
+
+    # Box: intersection of three slabs.
+    near, far = slab(center - size, center + size)
+    box_in, box_out = jnp.max(near), jnp.min(far)
+
+    # Quadratic a s^2 + b s + c = 0 for the sphere and the cylinder's mantle.
+    def quadratic(a, half_b, c):
+        disc = half_b * half_b - a * c
+        safe_a = jnp.where(jnp.abs(a) > 1e-12, a, 1.0)
+        root = jnp.sqrt(jnp.maximum(disc, 0.0))
+        lo, hi = (-half_b - root) / safe_a, (-half_b + root) / safe_a
+        degenerate = jnp.abs(a) <= 1e-12  # no motion in the quadratic's plane: inside or not, always
+        lo = jnp.where(degenerate, jnp.where(c < 0.0, -FAR, FAR), jnp.where(disc > 0.0, lo, FAR))
+        hi = jnp.where(degenerate, jnp.where(c < 0.0, FAR, -FAR), jnp.where(disc > 0.0, hi, -FAR))
+        return lo, hi
+
+    d = start - center
+    r = size[0]
+    sph_in, sph_out = quadratic(jnp.dot(v, v), jnp.dot(v, d), jnp.dot(d, d) - r * r)
+    cyl_in, cyl_out = quadratic(v[0] ** 2 + v[2] ** 2, v[0] * d[0] + v[2] * d[2], d[0] ** 2 + d[2] ** 2 - r * r)
+    y_near, y_far = slab(center[1] - size[1], center[1] + size[1])
+    cyl_in, cyl_out = jnp.maximum(cyl_in, y_near[1]), jnp.minimum(cyl_out, y_far[1])
+
+    t_in = jnp.select([kind == KIND_BOX, kind == KIND_SPHERE], [box_in, sph_in], cyl_in)
+    t_out = jnp.select([kind == KIND_BOX, kind == KIND_SPHERE], [box_out, sph_out], cyl_out)
+    return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
+
+
+def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float) -> Tuple[Array, Array]:
+    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it."""
+    c2w = jnp.asarray(c2w, jnp.float32)
+    camera = c2w[:3, 3]
+    to_camera = camera - room.waldo_points  # [M, 3]
+    dist2 = jnp.sum(to_camera**2, axis=-1)
+    cos = jnp.sum(room.waldo_normals * to_camera, axis=-1) / jnp.sqrt(dist2 + 1e-12)
+    weight = room.waldo_areas * jnp.maximum(cos, 0.0) / jnp.maximum(dist2, 1e-6)  # [M] solid angles
+
+    uv, depth = project_points(c2w, intrinsics, room.waldo_points)
+    in_frame = (depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0) & (
+        uv[:, 1] <= intrinsics.height)
+
+    starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
+    hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
+        room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
+    seen = in_frame & ~jnp.any(hits, axis=-1)
+    return jnp.sum(jnp.where(seen, weight, 0.0)), jnp.sum(weight)
+
+
+def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
+    """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
+
+    Waldo's surface is represented by regular area-weighted samples. A sample counts towards the
+    projected area when it faces the camera, with weight area * cos(angle) / distance^2 (its solid
+    angle, so proportional to its projected pixels); it counts as seen when, in addition, it
+    projects inside the image in front of the camera (beyond `near`) and the segment from it to the
+    camera centre crosses no solid (walls, floor, clutter, crates, or Waldo's other parts).
+
+    Args:
+      room: the room.
+      c2w: [4, 4] or [3, 4] camera-to-world matrix of one camera.
+      intrinsics: its intrinsics (distortion included).
+      near: minimum depth in front of the camera.
+
+    Returns:
+      visibility [] in [0, 1]: 0 when Waldo is behind the camera, out of frame or hidden; 1 when
+      all of Waldo is in frame with nothing in between.
+    """
+    seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near)
+    return jnp.where(facing > 0.0, seen / jnp.maximum(facing, 1e-30), 0.0)
+
+
+def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
+    """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
+
+    The seen solid angle of `waldo_visibility` times the pixels per steradian at the image centre
+    (fx * fy), over the image's pixel count. It is largest when Waldo is close, unoccluded and
+    whole in frame: moving closer enlarges him until the frame starts to cut him. Like the paper's
+    salient-pixel criterion, but exact.
+
+    Returns:
+      coverage [] in [0, 1] (clipped; the small-angle pixel estimate can overshoot near the border).
+    """
+    seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near)
+    pixels = seen * intrinsics.fx * intrinsics.fy
+    return jnp.clip(pixels / (intrinsics.width * intrinsics.height), 0.0, 1.0)
+
+
+@jax.jit
+def waldo_visibility_batch(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
+    """`waldo_visibility` for a population of cameras c2w [P, 4, 4]; returns [P]."""
+    return jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics)
+
+

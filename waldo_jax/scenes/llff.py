@@ -1,0 +1,146 @@
+"""LLFF scenes: `poses_bounds.npy` with `images/` or `images_K/` folders.
+
+LLFF pose columns [down, right, backward] become OpenGL [right, up, backward]; the world is neither
+recentred nor rescaled. `downscale` is relative to the full-size images of hwf (default
+`LLFF_DEFAULT_FACTOR` = 8, NeRF's): a factor F reads `images_F`, else the folder with the largest
+K < F box-filtered by F / K (never upsampled). The box covers every camera frustum between its own
+near and far bound. See docs/design.md, "Scenes".
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+import numpy as np
+
+from waldo_jax.errors import SceneFormatError
+from waldo_jax.scenes.common import (
+    SPLITS,
+    check_rigid,
+    check_split,
+    holdout,
+    natural_key,
+    relative,
+    subsample,
+)
+from waldo_jax.scenes.images import IMAGE_EXTENSIONS, image_size, load_images
+from waldo_jax.types import Intrinsics
+
+LLFF_NEAR_MARGIN = 0.9
+LLFF_FAR_MARGIN = 1.0
+LLFF_DEFAULT_FACTOR = 8
+
+
+def _llff_folders(folder: Path) -> Dict[int, Path]:
+    """{K: images_K folder}, with K = 1 for `images/`."""
+    found = {}
+    for child in folder.iterdir():
+        m = re.fullmatch(r"images(?:_(\d+))?", child.name)
+        if m and child.is_dir():
+            k = int(m.group(1) or 1)
+            if k >= 1:
+                found[k] = child
+    return found
+
+
+def load_llff(
+    folder: Path, path: Path, split: Optional[str], factor: Optional[float],
+    background: np.ndarray, max_images: Optional[int],
+) -> Dict[str, Any]:
+    """LLFF poses_bounds.npy with images/ or images_K/ folders."""
+    check_split(split, SPLITS)
+    split = split or "all"
+    try:
+        table = np.load(path, allow_pickle=False)
+    except Exception as e:  # numpy raises ValueError/OSError/EOFError... for bad files.
+        raise SceneFormatError(path, f"cannot read .npy array ({type(e).__name__}: {e})") from None
+    if table.ndim != 2 or table.shape[1] != 17 or table.shape[0] == 0:
+        raise SceneFormatError(
+            path, f"expected shape [N, 17] with N >= 1 (3x5 pose + near, far), got {list(table.shape)}"
+        )
+    if not np.issubdtype(table.dtype, np.floating) or not np.all(np.isfinite(table)):
+        raise SceneFormatError(path, "poses_bounds must be finite floating-point numbers")
+    table = table.astype(np.float64)
+    poses = table[:, :15].reshape(-1, 3, 5)
+    bounds = table[:, 15:17]  # [N, 2] per-camera near, far.
+    hwf = poses[:, :, 4]
+    if np.any(np.abs(hwf - hwf[0]) > 1e-6 * np.abs(hwf[0])):
+        raise SceneFormatError(path, "the [h, w, f] column differs between poses: several cameras are not supported")
+    full_h, full_w, focal = hwf[0]
+    if min(full_h, full_w, focal) <= 0:
+        raise SceneFormatError(path, f"[h, w, f] must be positive, got {hwf[0].tolist()}")
+    if np.any(bounds[:, 0] <= 0) or np.any(bounds[:, 1] <= bounds[:, 0]):
+        raise SceneFormatError(path, "near/far bounds must satisfy 0 < near < far for every pose")
+    # LLFF columns are [down, right, backward]; OpenGL wants [right, up, backward].
+    llff_rot = poses[:, :, :3]
+    rotation = np.stack([llff_rot[:, :, 1], -llff_rot[:, :, 0], llff_rot[:, :, 2]], -1)
+    c2w_all = np.zeros((len(poses), 4, 4))
+    c2w_all[:, :3, :3] = rotation
+    c2w_all[:, :3, 3] = poses[:, :, 3]
+    c2w_all[:, 3, 3] = 1.0
+    for i, m in enumerate(c2w_all):
+        check_rigid(m, path, f"pose {i}")
+
+    folders = _llff_folders(folder)
+    if not folders:
+        raise SceneFormatError(folder, "LLFF scene has no images/ or images_K/ folder")
+    wanted = float(LLFF_DEFAULT_FACTOR) if factor is None else factor
+    if factor is None and LLFF_DEFAULT_FACTOR not in folders:
+        source_k = max(folders)
+        wanted = float(source_k)
+    else:
+        exact = [k for k in folders if abs(k - wanted) < 1e-9]
+        below = [k for k in folders if k < wanted]
+        if not exact and not below:
+            raise SceneFormatError(
+                folder,
+                f"downscale {wanted:g} needs images/ or images_K with K <= {wanted:g}; "
+                f"available: {', '.join(folders[k].name for k in sorted(folders))}",
+            )
+        source_k = exact[0] if exact else max(below)
+    image_dir = folders[source_k]
+    image_paths = sorted(
+        (p for p in image_dir.iterdir() if p.suffix in IMAGE_EXTENSIONS and p.is_file()),
+        key=lambda p: natural_key(p.name),
+    )
+    if len(image_paths) != len(poses):
+        raise SceneFormatError(
+            image_dir, f"holds {len(image_paths)} images but {path.name} has {len(poses)} poses"
+        )
+    index = subsample(holdout(len(poses), split), max_images)
+    chosen = [image_paths[i] for i in index]
+    if not chosen:
+        raise SceneFormatError(path, f"split {split!r} is empty ({len(poses)} images in all)")
+    disk_w, disk_h = image_size(chosen[0])
+    if abs(disk_w / disk_h - full_w / full_h) > 0.01 * full_w / full_h:
+        raise SceneFormatError(
+            image_dir, f"images are {disk_w}x{disk_h}, another aspect ratio than the {full_w:g}x{full_h:g} of hwf"
+        )
+    residual = wanted * disk_w / full_w  # further factor applied to the folder's images.
+    images, alphas, full = load_images(chosen, max(1.0, residual), background)
+    height, width = images.shape[1:3]
+    intrinsics = Intrinsics.create(int(round(full_w)), int(round(full_h)), focal).scaled(width, height)
+
+    # Scene box: all camera frustums between each camera's own near and far bound.
+    half_w, half_h = 0.5 * full_w / focal, 0.5 * full_h / focal
+    corners_cam = np.array([[sx * half_w, sy * half_h, -1.0] for sx in (-1, 1) for sy in (-1, 1)])  # [4, 3]
+    depths = bounds[:, :, None, None] * corners_cam[None, None]  # [N, 2, 4, 3]
+    world = np.einsum("nij,nkcj->nkci", c2w_all[:, :3, :3], depths) + c2w_all[:, None, None, :3, 3]
+    world = world.reshape(-1, 3)
+    aabb = np.stack([world.min(0), world.max(0)]).astype(np.float32)
+    return dict(
+        images=images, alphas=alphas, original_size=(int(round(full_w)), int(round(full_h))),
+        intrinsics=intrinsics, c2w=c2w_all[index], aabb=aabb, near=float(LLFF_NEAR_MARGIN * bounds[:, 0].min()),
+        far=float(LLFF_FAR_MARGIN * bounds[:, 1].max()),
+        file_names=tuple(relative(p, folder) for p in chosen), split=split, skipped_missing=0,
+        applied_transform=None,
+        metadata={
+            "scene_file": relative(path, folder),
+            "image_folder": image_dir.name,
+            "image_folder_size": [int(full[0]), int(full[1])],
+            "bounds_min": bounds.min(0).tolist(),
+            "bounds_max": bounds.max(0).tolist(),
+        },
+    )

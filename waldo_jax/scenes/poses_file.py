@@ -1,0 +1,137 @@
+"""Cameras to render, without images: a transforms.json-like poses file (see `read_poses_file`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from waldo_jax.errors import (
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    SceneFormatError,
+    check_input_file,
+)
+from waldo_jax.scenes.common import (
+    RIGID_TOL,
+    check_origin,
+    number,
+    warn_off_image_principal_point,
+)
+from waldo_jax.types import Intrinsics
+
+
+def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
+    """A validated [4, 4] camera-to-world matrix of a poses file (16 numbers or [3, 4] accepted)."""
+    try:
+        m = np.asarray(matrix, np.float64)
+    except (TypeError, ValueError):
+        raise SceneFormatError(path, f"{what} is not a matrix of numbers") from None
+    if m.shape == (16,):
+        m = m.reshape(4, 4)
+    if m.shape == (3, 4):
+        m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
+    if m.shape != (4, 4):
+        raise SceneFormatError(path, f"{what} has shape {list(m.shape)}, expected 4x4")
+    if not np.all(np.isfinite(m)):
+        raise SceneFormatError(path, f"{what} has non-finite values")
+    rotation = m[:3, :3]
+    if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > RIGID_TOL or np.linalg.det(rotation) < 0:
+        raise SceneFormatError(path, f"{what} is not a rigid camera-to-world matrix")
+    check_origin(m, path, what)
+    return m
+
+
+def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics) -> Intrinsics:
+    """Intrinsics of a poses file, or `default` when it has no focal length."""
+    w, h = number(meta, "w", path), number(meta, "h", path)
+    fl_x, fl_y = number(meta, "fl_x", path), number(meta, "fl_y", path)
+    angle_x, angle_y = number(meta, "camera_angle_x", path), number(meta, "camera_angle_y", path)
+    if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
+        return default
+    if w is None or h is None:
+        # A focal length without an image size: assume the default camera's size (and aspect).
+        w = w or (h * default.width / default.height if h else float(default.width))
+        h = h or (w * default.height / default.width)
+    if fl_x is None and angle_x is not None:
+        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
+    if fl_y is None and angle_y is not None:
+        fl_y = 0.5 * h / math.tan(0.5 * angle_y)
+    fl_x = fl_x if fl_x is not None else fl_y
+    fl_y = fl_y if fl_y is not None else fl_x
+    if not (fl_x > 0 and fl_y > 0 and w >= 1 and h >= 1):
+        raise SceneFormatError(path, f"invalid camera (fl_x={fl_x}, fl_y={fl_y}, w={w}, h={h})")
+    if not (MIN_RESOLUTION <= min(w, h) and max(w, h) <= MAX_RESOLUTION):
+        raise SceneFormatError(path, f"camera of {w:g}x{h:g} pixels: sides must lie between {MIN_RESOLUTION} and "
+                               f"{MAX_RESOLUTION} (--resolution R renders at another size)")
+    distortion = [number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
+    intrinsics = Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, number(meta, "cx", path),
+                                   number(meta, "cy", path), distortion)
+    warn_off_image_principal_point(intrinsics, path)
+    return intrinsics
+
+
+def read_poses_file(
+    path: str | os.PathLike, default_intrinsics: Intrinsics
+) -> Tuple[np.ndarray, Intrinsics, List[Optional[str]]]:
+    """Reads the cameras of a transforms.json-like poses file (no images are needed or read).
+
+    The file is a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio / Blender
+    transforms: OpenGL camera-to-world, in the file's own world frame, used as they are). A matrix may
+    be 4x4, 3x4 (the (0, 0, 0, 1) row is added) or 16 numbers; it must be finite and rigid (rotation
+    orthonormal within `RIGID_TOL`, det +1). Intrinsics come from the file when it has a focal length
+    (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`, with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`; a
+    missing size is taken from `default_intrinsics`), else they are `default_intrinsics`. nerfstudio
+    viewer camera paths (`camera_path`) are refused: they live in nerfstudio's normalised world, which
+    `load_scene` does not reproduce.
+
+    Args:
+      path: the JSON file.
+      default_intrinsics: the camera to use when the file has no focal length (e.g. a checkpoint's).
+
+    Returns:
+      (c2w float32 [N, 4, 4], intrinsics, file_names): `file_names[i]` is frame i's `file_path`, or
+      None when it has none.
+
+    Raises:
+      SceneFormatError: the file is missing, unreadable, not JSON, has no (or an empty) `frames`
+        list, a frame without a valid `transform_matrix`, invalid intrinsics, or is a camera path.
+        The message names the file (and the frame).
+    """
+    path = Path(path)
+    if not os.path.lexists(path):
+        raise SceneFormatError(path, "no such poses file")
+    check_input_file(path, "poses file")
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SceneFormatError(path, "no such poses file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneFormatError(path, f"cannot read poses file ({e})") from None
+    except json.JSONDecodeError as e:
+        raise SceneFormatError(path, f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    if not isinstance(meta, dict):
+        raise SceneFormatError(path, "expected a JSON object with a 'frames' list")
+    if isinstance(meta.get("frames"), list):
+        frames = meta["frames"]
+        if not frames:
+            raise SceneFormatError(path, "'frames' is empty")
+        poses, names = [], []
+        for i, frame in enumerate(frames):
+            if not isinstance(frame, dict) or "transform_matrix" not in frame:
+                raise SceneFormatError(path, f"frame {i} has no 'transform_matrix'")
+            poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
+            name = frame.get("file_path")
+            names.append(None if name is None else str(name))
+        return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
+    if "camera_path" in meta:
+        # nerfstudio's viewer writes camera paths in its own normalised world (after its dataparser's
+        # orientation and scale), not in the frame of the scene's transforms.json.
+        raise SceneFormatError(
+            path, "a nerfstudio camera path is in nerfstudio's normalised world frame, not the scene's; "
+            "pass a transforms.json-like file with frames[].transform_matrix in the scene's own frame")
+    raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")
