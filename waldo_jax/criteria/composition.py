@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
                                      sanitize_images)
+from waldo_jax.criteria.csnet import load_params, saliency_maps
 from waldo_jax.types import Array
 
 __all__ = ["WEIGHTS", "composition_terms", "composition_from_map", "composition"]
@@ -61,8 +62,6 @@ def composition_from_map(saliency: Array) -> Array:
 
 
 def _apply(params, images: Array) -> Array:
-    from waldo_jax.criteria.csnet import saliency_maps
-
     clean, bad = sanitize_images(images)
     scores = jax.vmap(composition_from_map)(saliency_maps(params, clean))
     return finite_or_worst(scores, bad, 1.0)
@@ -73,8 +72,6 @@ _DESCRIPTION = "photo composition in [1, 5] from the CSNet saliency map: thirds,
 
 def composition(context: CriterionContext) -> Criterion:
     """The `composition` criterion (direction max, [1, 5]); loads CSNet from `context.weights_dir`."""
-    from waldo_jax.criteria.csnet import load_params
-
     return Criterion(params=load_params(context.weights_dir), name="composition", direction="max",
                      value_range=(1.0, 5.0), inputs="images", apply=_apply, description=_DESCRIPTION)
 

@@ -1,24 +1,9 @@
 """Checkpoints of trained fields: one self-checking file with params, occupancy grid, config and scene.
 
-File layout (format_version 1), all integers little-endian:
-
-    MAGIC                       16 bytes, b"\\x89WALDO-CKPT\\r\\n\\x1a\\n\\x00\\x00\\x00"
-    header_length               uint64
-    header                      UTF-8 JSON object, `header_length` bytes
-    payload                     the arrays' raw bytes, back to back (C order)
-    digest                      32 bytes, SHA-256 of everything before it
-
-The header holds `format_version`, the training config (`TrainConfig.to_dict`), the scene record
-(intrinsics via `Intrinsics.to_dict`, aabb, near/far, file names, path, format, ...), free-form `info`
-(training statistics) and an `arrays` table: name, dtype, shape, offset and byte count of every array.
-Array names are "params/<key path>", "occupancy/<key path>" and "scene/c2w". Arrays are stored as
-their raw bytes, so a round trip is bit-exact.
-
-Writes are atomic: the file is written to a temporary file in the same folder, flushed to disk and
-moved over the target with `os.replace`, so a reader sees the old file or the new one, never half.
-Loading checks, in order: the magic, the header, the format version, the file size against the array
-table (truncation), the digest (any flipped byte), then every array's name, dtype and shape against
-the structure the stored config implies. Every failure raises `CheckpointError` naming the file.
+`save_checkpoint` writes it atomically; `load_checkpoint` checks magic, header, version, size,
+SHA-256 digest and every array's dtype and shape against the stored config, raising
+`CheckpointError` naming the file. A round trip is bit-exact. The file layout: docs/design.md,
+"Checkpoints".
 """
 
 from __future__ import annotations

@@ -1,26 +1,10 @@
 """Multiresolution hash encoding of Instant-NGP (Müller et al., SIGGRAPH 2022, Sec. 3).
 
-Symbols follow the paper:
-  L      number of levels
-  T      maximum number of table entries per level
-  F      number of features per entry
-  N_min  coarsest grid resolution,  N_max  finest grid resolution
-  b      per-level growth factor, b = exp((ln N_max - ln N_min) / (L - 1))
-  N_l    resolution of level l, N_l = floor(N_min * b**l), l = 0 .. L-1
-
-A level has (N_l + 1)**3 vertices. When they fit in T the level is *dense*: vertex (i, j, k) (along
-x, y, z) owns row i + (N_l + 1) * (j + (N_l + 1) * k) of a level table of exactly (N_l + 1)**3 rows,
-collision free. Otherwise the level is *hashed*: the vertex owns row
-    (i * 1  xor  j * 2654435761  xor  k * 805459861) mod T
-computed in uint32 arithmetic (products wrap modulo 2**32), of a level table of T rows.
-
-All level tables live in ONE array `table` of shape [sum of level sizes, F]; level l starts at row
-`offsets[l]`. The layout (resolutions, sizes, offsets) is computed once in Python/NumPy from the
-static `HashGridConfig`, so under `jit` it is made of compile-time constants.
-
-Resolutions only grow with l, so the dense levels are a prefix of the levels: `encode` computes the
-dense indices of that prefix and the hashes of the remaining suffix as two vectorised expressions over
-levels, and then gathers the 8 corners of all L levels with one gather.
+`HashGridConfig` (L, T, F, N_min, N_max: the paper's symbols), `HashGridLayout` (per-level
+resolutions, sizes and row offsets, computed once from the static config), `init_hashgrid` and
+`encode(table, x01)` -> [L * F] features of a point in the unit cube. Dense levels index their
+vertices, hashed levels use the paper's primes; the layout and indexing: docs/design.md,
+"The hash-grid field".
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from waldo_jax import paths
 from waldo_jax.errors import DataNotFoundError, WaldoError
 from waldo_jax.io import atomic_file
 
@@ -76,9 +77,7 @@ def resolve_weights_dir(weights_dir: Optional[str | os.PathLike] = None) -> Path
     """`weights_dir`, else `WALDO_WEIGHTS`, else `$WALDO_DATA/weights`; a clear error when none is set."""
     if weights_dir is not None:
         return Path(weights_dir).expanduser()
-    from waldo_jax.paths import weights_dir as default_weights_dir
-
-    found = default_weights_dir()
+    found = paths.weights_dir()
     if found is None:
         raise DataNotFoundError(
             "no weights folder: pass --weights DIR or set WALDO_WEIGHTS (or WALDO_DATA, whose weights/ is used) "

@@ -24,7 +24,7 @@ from typing import Any, Callable, Dict, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import DataNotFoundError, WaldoError
 
 __all__ = ["TorchPickleError", "read_torch_file", "state_dict"]
 
@@ -234,8 +234,6 @@ def read_torch_file(path: str | os.PathLike) -> Any:
       TorchPickleError: the file is not a torch checkpoint, is truncated or corrupt, or pickles
         objects other than tensors and plain containers.
     """
-    from waldo_jax.errors import DataNotFoundError
-
     path = os.fspath(path)
     if not Path(path).is_file():
         raise DataNotFoundError(f"torch checkpoint not found: {path}")
