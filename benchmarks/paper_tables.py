@@ -278,8 +278,8 @@ def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> 
 
 def _train_room(run_dir: Path, args) -> None:
     """The room's NeRF the `waldo demo` way (fast preset on analytic renders, held-out views)."""
-    from waldo_jax.pipeline.demo import DemoSettings, held_out_scene, train_room_nerf
-    from waldo_jax.procedural import room_scene
+    from waldo_jax.pipeline.demo import DemoSettings, train_room_nerf
+    from waldo_jax.procedural import held_out_scene, room_scene
 
     settings = DemoSettings(views=args.room_views, resolution=args.room_resolution, train_steps=args.room_steps,
                             seeds=args.seeds, test_views=8, render_step_scale=args.render_step_scale)

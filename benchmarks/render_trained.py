@@ -7,7 +7,7 @@ one process:
   quality   held-out PSNR (every held-out view at the training resolution) at each marching step of
             `--step-scales` (x the training step; the quality/speed curve), and at the run's render
             step (`render_step_scale`, calibrated after training; for a run trained before
-            calibration existed, calibrated here by the same rule, `nerf.render.calibrate_render_step`).
+            calibration existed, calibrated here by the same rule, `nerf.trained.calibrate_render_step`).
             `psnr_delta_db` = that PSNR minus `--baseline-psnr` (today's renderer on the same run,
             measured by the caller) or, without it, minus the PSNR at the training step (scale 1).
   speed     `--poses` poses (training poses, then held-out ones, then SLERP midpoints) at `--size`
@@ -51,7 +51,7 @@ from waldo_jax.cameras import slerp_c2w  # noqa: E402
 from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
 from waldo_jax.nerf.config import TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
-from waldo_jax.nerf.render import (  # noqa: E402
+from waldo_jax.nerf.trained import (  # noqa: E402
     calibrate_render_step,
     evaluate,
     render_setup,

@@ -41,7 +41,7 @@ import jax  # noqa: E402
 from bench_common import emit, header, loaded_name, refuse_existing_out  # noqa: E402
 from waldo_jax.errors import SceneFormatError  # noqa: E402
 from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
-from waldo_jax.nerf.render import evaluate  # noqa: E402
+from waldo_jax.nerf.trained import evaluate  # noqa: E402
 from waldo_jax.nerf.train import train  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 

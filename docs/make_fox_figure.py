@@ -14,7 +14,7 @@ import numpy as np
 
 from waldo_jax.io import contact_sheet, save_png
 from waldo_jax.nerf.checkpoint import load_checkpoint
-from waldo_jax.nerf.render import render_trained
+from waldo_jax.nerf.trained import render_trained
 from waldo_jax.paths import scene_path
 from waldo_jax.scenes import load_scene
 

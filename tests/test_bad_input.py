@@ -250,9 +250,10 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_training(tmp_
     (tmp_path / "ro").mkdir()
     real_access = os.access
     monkeypatch.setattr(os, "access", lambda p, mode: False if str(p) == str(tmp_path / "ro") else real_access(p, mode))
-    import waldo_jax.nerf.train as train_module
+    import waldo_jax.nerf.runs as runs
 
-    monkeypatch.setattr(train_module, "train", lambda *a, **k: pytest.fail("trained into an unwritable folder"))
+    monkeypatch.setattr(runs, "load_splits", lambda *a, **k: pytest.fail("loaded the scene for an unwritable folder"))
+    monkeypatch.setattr(runs, "train", lambda *a, **k: pytest.fail("trained into an unwritable folder"))
     for out in (tmp_path / "ro", tmp_path / "ro" / "new"):
         assert main(["train", str(tmp_path / "scene"), "--out", str(out), "--quiet"]) == 1
         err = capsys.readouterr().err.strip()

@@ -346,7 +346,7 @@ def trained_lego(tmp_path_factory):
 @pytest.mark.parametrize("poses", [1, 2])
 def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses):
     from waldo_jax.nerf.field import make_field
-    from waldo_jax.nerf.render import render_setup
+    from waldo_jax.nerf.trained import render_setup
 
     scene, result = trained_lego
     grid, render_config, march = render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,

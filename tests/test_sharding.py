@@ -53,7 +53,7 @@ TRAINED_SCRIPT = textwrap.dedent(
     from waldo_jax.cameras import look_at
     from waldo_jax.nerf import HashGridConfig, NGPFieldConfig
     from waldo_jax.nerf.config import TrainConfig
-    from waldo_jax.nerf.render import render_trained, render_trained_counted
+    from waldo_jax.nerf.trained import render_trained, render_trained_counted
     from waldo_jax.nerf.samplers import make_sampler
     from waldo_jax.nerf.step import init_train_state
     from waldo_jax.render import pose_mesh

@@ -20,7 +20,7 @@ from conftest import require_scene
 from waldo_jax.nerf import HashGridConfig, NGPFieldConfig
 from waldo_jax.nerf import train as tr
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError, TrainHParams
-from waldo_jax.nerf.render import RENDER_STEP_TOLERANCE_DB
+from waldo_jax.nerf.trained import RENDER_STEP_TOLERANCE_DB
 from waldo_jax.nerf.samplers import TRAIN_ROW_LENGTH, make_sampler
 from waldo_jax.nerf.step import (
     TrainData,

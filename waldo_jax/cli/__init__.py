@@ -65,6 +65,3 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         warnings.showwarning = show
 
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

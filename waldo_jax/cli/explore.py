@@ -14,7 +14,7 @@ import time
 from typing import Optional
 
 from waldo_jax import io
-from waldo_jax.cli.criterion import add_criterion_arguments, criterion_from_args
+from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
 from waldo_jax.errors import WaldoError
 from waldo_jax.pipeline import INITIAL_MODES, load_source, run_explore, write_outputs
 from waldo_jax.search import BUDGETS, METHODS, ExploreConfig

@@ -26,7 +26,7 @@ import numpy as np
 from waldo_jax import io
 from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.nerf.checkpoint import load_checkpoint
-from waldo_jax.nerf.render import render_trained
+from waldo_jax.nerf.trained import render_trained
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
 from waldo_jax.procedural import RoomCameraConfig, room_scene, waldo_visibility_batch
 from waldo_jax.scenes import read_poses_file

@@ -14,7 +14,7 @@ import json
 import jax
 import numpy as np
 
-from waldo_jax.cli.criterion import add_criterion_arguments, criterion_from_args
+from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
 from waldo_jax.errors import WaldoError
 from waldo_jax.io import read_image
 

@@ -1,6 +1,11 @@
-"""Instant-NGP in JAX: hash encoding, the density/colour MLPs, training and checkpoints.
+"""Instant-NGP in JAX: hash encoding, the density/colour MLPs, training, checkpoints and run directories.
 
-The occupancy grid, ray marching and the renderer of trained fields live in `waldo_jax.render`."""
+Modules, bottom to top: `hashgrid`, `field` (the field, re-exported here) -> `config` (TrainConfig,
+presets) -> `samplers` -> `step` (one training step, chunks of steps) -> `trained` (a trained field
+rendered through `waldo_jax.render.marched`: render_trained, evaluate) -> `train` (the loop) ->
+`checkpoint` -> `runs`. Entry points: `train.train` (scenes in memory -> `TrainResult`),
+`runs.train_run` (the same, writing a run directory), `runs.train_scene_run` (`waldo train`: a
+scene on disk -> a run directory), `checkpoint.load_checkpoint` (a run back)."""
 
 from waldo_jax.nerf.field import MLP as MLP
 from waldo_jax.nerf.field import NGPFieldConfig as NGPFieldConfig

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import warnings
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
@@ -18,7 +19,7 @@ import jax
 from waldo_jax import io
 from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-from waldo_jax.nerf.config import PRESETS, TrainConfig
+from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
 from waldo_jax.nerf.train import TrainResult, train
 from waldo_jax.scenes import load_scene
 from waldo_jax.types import Scene
@@ -26,14 +27,14 @@ from waldo_jax.types import Scene
 __all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "load_splits", "train_stats", "train_run", "train_scene_run"]
 
 TRAIN_JSON = "train.json"
-SAMPLER_CHOICES = ("auto", "dense", "occupancy")  # auto = occupancy
+SAMPLER_CHOICES = ("auto",) + SAMPLERS  # auto = occupancy
 
 
-def load_splits(scene_path: str, downscale: Optional[float]) -> Tuple[Scene, Optional[Scene]]:
+def load_splits(scene_path: str, downscale: Optional[float], stacklevel: int = 2) -> Tuple[Scene, Optional[Scene]]:
     """(training scene, held-out scene or None) with the format's own hold-out.
 
     Blender scenes hold out transforms_test.json (else _val); other formats every 8th image. A scene
-    without held-out views warns and returns None for it.
+    without held-out views warns (at `stacklevel`, pointing at the caller) and returns None for it.
     """
     train_scene = load_scene(scene_path, downscale=downscale, split="train")
     if min(train_scene.width, train_scene.height) < MIN_RESOLUTION:
@@ -51,12 +52,17 @@ def load_splits(scene_path: str, downscale: Optional[float]) -> Tuple[Scene, Opt
         except SceneFormatError as e:
             problem = str(e)
     if test_scene is None:
-        warnings.warn(f"{scene_path}: no held-out views ({problem}); psnr_test will be null", stacklevel=2)
+        warnings.warn(f"{scene_path}: no held-out views ({problem}); psnr_test will be null", stacklevel=stacklevel)
     return train_scene, test_scene
 
 
-def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int) -> Dict[str, Any]:
-    """The contents of train.json: the run's quality, cost, settings and loss history (JSON-able)."""
+def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,
+                scene_path: Optional[str] = None) -> Dict[str, Any]:
+    """The contents of train.json: the run's quality, cost, settings and loss history (JSON-able).
+
+    `scene_path` is the path the user gave (a folder or a scene file), recorded resolved; default:
+    the scene's folder, or None for a scene built in memory.
+    """
     config = result.config
     last = next((h for h in reversed(result.history) if "loss" in h), {})
     return {
@@ -74,7 +80,7 @@ def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int) -> Di
         "preset": preset,
         "sampler": config.sampler,
         "seed": seed,
-        "scene_path": None if not scene.path else str(Path(scene.path).resolve()),
+        "scene_path": str(Path(scene_path or scene.path).resolve()) if (scene_path or scene.path) else None,
         "scene_format": scene.format,
         "downscale": scene.metadata.get("downscale"),
         "image_size": [scene.width, scene.height],
@@ -88,7 +94,8 @@ def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int) -> Di
 
 
 def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional[Scene], out: Path,
-              preset: str, progress: bool = True) -> Tuple[TrainResult, Dict[str, Any]]:
+              preset: str, progress: bool = True,
+              scene_path: Optional[str] = None) -> Tuple[TrainResult, Dict[str, Any]]:
     """Trains on `scene` (held-out PSNR on `test_scene`) and writes OUT/checkpoint.ckpt and OUT/train.json.
 
     Args:
@@ -97,12 +104,20 @@ def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional
       out: an existing folder (see `waldo_jax.io.prepare_output_dir`).
       preset: the preset `config` came from (recorded).
       progress: a progress bar.
+      scene_path: the path the scene was loaded from, as given (recorded in train.json).
 
     Returns:
-      (the `TrainResult`, its config holding the calibrated render step; the train.json contents).
+      (the `TrainResult`, whose config holds the calibrated render step, and the train.json contents).
+
+    Raises:
+      WaldoError: `out` is not an existing, writable folder (checked before training, so a
+        training is never lost to it).
     """
+    out = Path(out)
+    if not out.is_dir() or not os.access(out, os.W_OK):
+        raise WaldoError(f"{out}: not an existing writable folder to save the run in")
     result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
-    stats = train_stats(result, scene, preset, seed)
+    stats = train_stats(result, scene, preset, seed, scene_path)
     save_checkpoint(Path(out) / CHECKPOINT_NAME, result.params, result.config, scene, result.occupancy,
                     info={k: v for k, v in stats.items() if k != "history"})
     io.write_json(Path(out) / TRAIN_JSON, stats)
@@ -138,7 +153,7 @@ def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", step
     _positive("--downscale", downscale)
     _positive("--render-step-scale", render_step_scale)
     out = io.check_output_dir(out, force=force)
-    train_scene, test_scene = load_splits(scene_path, downscale)
+    train_scene, test_scene = load_splits(scene_path, downscale, stacklevel=3)
     out = io.prepare_output_dir(out, force=force)
     overrides: Dict[str, Any] = {"sampler": "occupancy" if sampler == "auto" else sampler}
     if steps is not None:
@@ -146,5 +161,5 @@ def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", step
     if render_step_scale is not None:
         overrides["render_step_scale"] = render_step_scale
     config = TrainConfig.preset(preset, train_scene, **overrides)
-    result, stats = train_run(seed, train_scene, config, test_scene, out, preset, progress)
+    result, stats = train_run(seed, train_scene, config, test_scene, out, preset, progress, scene_path)
     return result, stats, out

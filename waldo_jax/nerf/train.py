@@ -2,7 +2,7 @@
 
 `train` is the loop: it runs the jitted chunks of `waldo_jax.nerf.step` with one host sync per chunk
 (progress, history, the rays marched next), then calibrates the run's rendering step on held-out
-views (`waldo_jax.nerf.render`). The same key and config give bit-identical parameters on the same
+views (`waldo_jax.nerf.trained`). The same key and config give bit-identical parameters on the same
 backend. Names: `R` rays per batch, `N` training images. See docs/design.md, "Training".
 """
 
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.nerf.config import TrainConfig, TrainHParams, check_scene
-from waldo_jax.nerf.render import calibrate_render_step, eval_background, evaluate
+from waldo_jax.nerf.trained import calibrate_render_step, eval_background, evaluate
 from waldo_jax.nerf.step import (
     TrainData,
     TrainState,

@@ -1,7 +1,11 @@
 """The pipeline: a scene to explore (`sources`), an experiment = source + criterion + method
 (`experiment`), its files (`outputs`, `figures`) and the end-to-end demo on the procedural room (`demo`).
 
+    from waldo_jax import io
+    from waldo_jax.criteria import CriterionContext, make_criterion
     from waldo_jax.pipeline import load_source, run_explore, write_outputs
+    from waldo_jax.search import ExploreConfig
+
     source = load_source("procedural:0")
     run = run_explore(source, make_criterion("waldo_oracle", CriterionContext(room=source.room)),
                       ExploreConfig(method="egps", budget="low"), seed=0, seeds=4)

@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 from typing import Any, Dict, Optional
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -33,12 +32,11 @@ from waldo_jax.pipeline.experiment import run_explore
 from waldo_jax.pipeline.figures import methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import Source, field_renderer, room_renderer
-from waldo_jax.procedural import room_field, room_render_config, room_scene, training_cameras, waldo_visibility_batch
-from waldo_jax.render import render_views
+from waldo_jax.procedural import held_out_scene, room_scene, waldo_visibility_batch
 from waldo_jax.search import ExploreConfig
 from waldo_jax.types import Scene
 
-__all__ = ["DemoSettings", "SETTINGS", "run_demo", "default_demo_dir", "held_out_scene", "train_room_nerf"]
+__all__ = ["DemoSettings", "SETTINGS", "run_demo", "default_demo_dir", "train_room_nerf"]
 
 METHOD_ORDER = ("grs", "pibs", "egps")
 
@@ -81,16 +79,6 @@ def default_demo_dir(root: str | Path = "runs") -> Path:
         n += 1
         path = Path(root) / f"demo-{stamp}-{n}"
     return path
-
-
-def held_out_scene(room, seed: int, count: int, train_scene: Scene) -> Scene:
-    """`count` views of the room from cameras its NeRF has not seen (another key), rendered analytically,
-    at `train_scene`'s intrinsics: the NeRF's held-out test split."""
-    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics)
-    images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics,
-                                     room_render_config(room)).rgb, np.float32)
-    return dataclasses.replace(train_scene, images=images, c2w=c2w, split="test",
-                               file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))))
 
 
 def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path,

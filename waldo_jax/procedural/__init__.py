@@ -7,21 +7,22 @@ trained and `waldo_jax.render` renders it like any other field:
   * `training_cameras(key, room, ...)`: views that see Waldo at most partly; `room_scene(seed, ...)`:
     those views rendered as a `waldo_jax.types.Scene`;
   * `waldo_visibility`, `waldo_coverage(room, c2w, intrinsics)`: exact oracles from the geometry.
-Modules, bottom to top: `room` (geometry and field), `oracle`, `cameras`, `scene`.
+Modules, bottom to top: `room` (geometry and field), `visibility` (the oracles), `cameras`, `scene`.
 Units are metres, +y is up, the floor is y = 0. The cameras, the oracle and the density model: see
 docs/design.md, section "Procedural room".
 """
 
 from waldo_jax.procedural.cameras import RoomCameraConfig as RoomCameraConfig
 from waldo_jax.procedural.cameras import training_cameras as training_cameras
-from waldo_jax.procedural.oracle import waldo_coverage as waldo_coverage
-from waldo_jax.procedural.oracle import waldo_visibility as waldo_visibility
-from waldo_jax.procedural.oracle import waldo_visibility_batch as waldo_visibility_batch
+from waldo_jax.procedural.visibility import waldo_coverage as waldo_coverage
+from waldo_jax.procedural.visibility import waldo_visibility as waldo_visibility
+from waldo_jax.procedural.visibility import waldo_visibility_batch as waldo_visibility_batch
 from waldo_jax.procedural.room import DENSITY as DENSITY
 from waldo_jax.procedural.room import WaldoRoom as WaldoRoom
 from waldo_jax.procedural.room import make_room as make_room
 from waldo_jax.procedural.room import room_field as room_field
 from waldo_jax.procedural.room import room_sdf as room_sdf
+from waldo_jax.procedural.scene import held_out_scene as held_out_scene
 from waldo_jax.procedural.scene import room_render_config as room_render_config
 from waldo_jax.procedural.scene import room_scene as room_scene
 
@@ -29,6 +30,7 @@ __all__ = [
     "DENSITY",
     "RoomCameraConfig",
     "WaldoRoom",
+    "held_out_scene",
     "make_room",
     "room_field",
     "room_render_config",

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import look_at
-from waldo_jax.procedural.oracle import waldo_visibility_batch
+from waldo_jax.procedural.visibility import waldo_visibility_batch
 from waldo_jax.procedural.room import WaldoRoom
 from waldo_jax.types import Intrinsics, PRNGKey
 

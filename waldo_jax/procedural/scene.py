@@ -1,7 +1,8 @@
-"""The room as a training scene: its render config and its training views rendered as a `Scene`."""
+"""The room as a scene: its render config, its training views and held-out test views rendered as `Scene`s."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional, Tuple
 
 import jax
@@ -13,7 +14,7 @@ from waldo_jax.procedural.room import BACKGROUND, WaldoRoom, make_room, room_fie
 from waldo_jax.render import RenderConfig, render_views
 from waldo_jax.types import Intrinsics, Scene
 
-__all__ = ["room_render_config", "room_scene"]
+__all__ = ["room_render_config", "room_scene", "held_out_scene"]
 
 
 def room_render_config(room: WaldoRoom, num_samples: int = 128, **kwargs):
@@ -61,3 +62,13 @@ def room_scene(seed: int = 0, num_views: int = 24, resolution: int = 64, num_sam
                   "max_visibility": float(camera_config.max_visibility)},
     )
     return scene, room
+
+
+def held_out_scene(room: WaldoRoom, seed: int, count: int, train_scene: Scene) -> Scene:
+    """`count` views of the room from cameras its NeRF has not seen (another key), rendered analytically,
+    at `train_scene`'s intrinsics: the NeRF's held-out test split."""
+    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics)
+    images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics,
+                                     room_render_config(room)).rgb, np.float32)
+    return dataclasses.replace(train_scene, images=images, c2w=c2w, split="test",
+                               file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))))

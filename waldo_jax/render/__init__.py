@@ -4,7 +4,8 @@ occupancy grid.
 Layers, bottom to top: `volume` (the quadrature, any field along rays, `render_views` for a
 population), `sharding` (a population split over devices), `occupancy` (Instant-NGP's grid and
 ray marching), `packed` (samples of many rays in fixed budgets of rows, composited by cumulative
-sums; shared with training), `marched` (the one renderer of trained fields).
+sums; shared with training), `marched` (the renderer of fields with an occupancy grid: every trained field goes through it,
+via `waldo_jax.nerf.trained`).
 """
 
 from waldo_jax.render.marched import MarchedViews as MarchedViews

@@ -2,7 +2,8 @@
 
 One module per method (`grs`, `pibs`, `egps`), each with a numeric `Params` pytree, a static `Config`
 and a pure `propose(key, population, params, config, epoch)`; the population buffer in `population`;
-CVIR / mCVIR in `metrics`; the compiled exploration loop in `explore`.
+CVIR / mCVIR in `metrics`; the registry of methods by name in `registry`; the compiled exploration loop
+in `explore`.
 
     from waldo_jax.search import ExploreConfig, Initial, explore
     result = explore(jax.random.key(0), score_fn, Initial(c2w=train_c2w, scores=train_scores), "egps",

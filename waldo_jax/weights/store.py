@@ -180,8 +180,13 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
 
     Raises:
       DataNotFoundError: neither the native file nor the original files are there (names the files).
-      WeightsError: a file is there but does not fit.
+      WeightsError: a file is there but does not fit, or no converter is registered for `model`
+        (the criteria register theirs when `waldo_jax.criteria` is imported).
     """
+    if model not in CONVERTERS:
+        raise WeightsError(f"no converter registered for model {model!r} (registered: "
+                           f"{', '.join(sorted(CONVERTERS)) or 'none'}); import waldo_jax.criteria, which registers "
+                           "the criteria's models")
     converter = CONVERTERS[model]
     root = resolve_weights_dir(weights_dir)
     native = root / model / f"{model}.npz"
