@@ -91,7 +91,7 @@ def render_points(config, params, grid, c2w, camera, scene, background, evaluati
 
     Returns points [E, 3] and unit directions [E, 3] (host arrays), E = evaluations.sum().
     """
-    from waldo_jax.render import occupancy
+    from waldo_jax.render import marching
     from waldo_jax.render.volume import view_rays
 
     grid_, render_config, march = render_setup(config, grid, scene.near, scene.far, scene.aabb, background)
@@ -101,8 +101,8 @@ def render_points(config, params, grid, c2w, camera, scene, background, evaluati
     @jax.jit
     def march_block(ids):
         origins, directions, _, _ = view_rays(c2w, camera, ids)
-        t_start, t_end = jax.vmap(lambda o, d: occupancy.ray_interval(grid_, o, d, render_config))(origins, directions)
-        t, _, _ = jax.vmap(lambda o, d, a, b: occupancy.march_ray(grid_, o, d, a, b, march))(
+        t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid_, o, d, render_config))(origins, directions)
+        t, _, _ = jax.vmap(lambda o, d, a, b: marching.march_ray(grid_, o, d, a, b, march))(
             origins, directions, t_start, t_end)
         return origins, directions, t
 

@@ -24,7 +24,7 @@ import pytest
 from hypothesis import given, settings
 
 from waldo_jax.cameras import look_at
-from waldo_jax.render import RenderConfig, marched, occupancy as occ, packed
+from waldo_jax.render import RenderConfig, marched, marching, occupancy as occ, packed
 from waldo_jax.render.volume import composite, view_rays, volume_weights
 from waldo_jax.types import Intrinsics
 
@@ -64,7 +64,7 @@ DENSE_FOG = scene_params(fog=8.0)  # transmittance reaches 1e-4 inside the fog: 
 
 RENDER_CONFIG = RenderConfig.create(near=0.1, far=8.0, aabb=BOX, background=(0.1, 0.2, 0.3), ray_chunk=1)
 # dt_min = 2 sqrt(3) / 128 = 0.027: up to ~70 samples inside the box.
-MARCH = occ.MarchConfig.create(max_steps=200, max_samples=200, steps_per_diagonal=128, min_transmittance=MIN_T)
+MARCH = marching.MarchConfig.create(max_steps=200, max_samples=200, steps_per_diagonal=128, min_transmittance=MIN_T)
 FULL = MARCH.replace(min_transmittance=jnp.float32(0.0))
 INTRINSICS = Intrinsics.from_fov(9, 7, math.radians(60.0))  # 63 rays a view: blocks never divide evenly
 
@@ -96,8 +96,8 @@ def reference(field_fn, params, grid, c2w, intrinsics, render_config, march):
     origins, directions, _, _ = view_rays(c2w[:, :3, :4], intrinsics, ids)
 
     def one(o, d):
-        t_start, t_end = occ.ray_interval(grid, o, d, render_config)
-        t, delta, mask = occ.march_ray(grid, o, d, t_start, t_end, march)
+        t_start, t_end = marching.ray_interval(grid, o, d, render_config)
+        t, delta, mask = marching.march_ray(grid, o, d, t_start, t_end, march)
         sigma, rgb = jax.vmap(field_fn, in_axes=(None, 0, None))(params, o + t[:, None] * d, d)
         w = volume_weights(jnp.where(mask, sigma, 0.0), delta)
         return composite(w, rgb, t, render_config.background), jnp.sum(mask)
@@ -163,8 +163,8 @@ def needed_samples(params, grid, c2w):
     transmittance is below MIN_T (float64 optical depths), or all of them."""
     ids = jnp.arange(c2w.shape[0] * INTRINSICS.height * INTRINSICS.width)
     origins, directions, _, _ = view_rays(c2w[:, :3, :4], INTRINSICS, ids)
-    t_start, t_end = jax.vmap(lambda o, d: occ.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
-    t, delta, mask = as_numpy(jax.vmap(lambda o, d, a, b: occ.march_ray(grid, o, d, a, b, FULL))(
+    t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
+    t, delta, mask = as_numpy(jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, FULL))(
         origins, directions, t_start, t_end))
     points = np.asarray(origins)[:, None] + t[..., None] * np.asarray(directions)[:, None]
     sigma = np.asarray(jax.vmap(jax.vmap(density, in_axes=(None, 0)), in_axes=(None, 0))(params, jnp.asarray(points)))

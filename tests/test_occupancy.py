@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from waldo_jax.cameras import camera_rays, look_at
-from waldo_jax.render import RenderConfig, marched, occupancy as occ, render_rays
+from waldo_jax.render import RenderConfig, marched, marching, occupancy as occ, render_rays
 from waldo_jax.types import Intrinsics
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], np.float32)
@@ -149,7 +149,7 @@ def test_bad_arguments_raise():
     with pytest.raises(ValueError, match="aabb_scale"):
         occ.init_occupancy(BOX, aabb_scale=0.0)
     with pytest.raises(ValueError, match="max_steps"):
-        occ.MarchConfig.create(max_steps=0)
+        marching.MarchConfig.create(max_steps=0)
 
 
 def test_scene_grid_uses_the_aabb_scale_of_its_metadata():
@@ -355,11 +355,11 @@ def test_mark_all_occupied():
 # Marching
 
 # One budget for every test (one compilation per ray-batch shape): 512 minimal steps per box diagonal.
-MARCH = occ.MarchConfig.create(max_steps=540, max_samples=540, steps_per_diagonal=512)
+MARCH = marching.MarchConfig.create(max_steps=540, max_samples=540, steps_per_diagonal=512)
 DT_MIN = 2 * math.sqrt(3) / 512
 SHORT = MARCH.replace(max_samples=64)  # for single rays with fewer occupied candidates than steps
-MARCH_RAYS = jax.jit(jax.vmap(occ.march_ray, in_axes=(None, 0, 0, 0, 0, None, None)))
-MARCH_RAYS_KEYED = jax.jit(jax.vmap(occ.march_ray, in_axes=(None, 0, 0, 0, 0, None, 0)))
+MARCH_RAYS = jax.jit(jax.vmap(marching.march_ray, in_axes=(None, 0, 0, 0, 0, None, None)))
+MARCH_RAYS_KEYED = jax.jit(jax.vmap(marching.march_ray, in_axes=(None, 0, 0, 0, 0, None, 0)))
 
 
 CAMERA = look_at(jnp.array([0.6, 0.9, 3.2]), jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]))
@@ -461,7 +461,7 @@ def _ray_batch():
     origins = jnp.concatenate([origins, jnp.broadcast_to(origins[:1], (2, 3))])
     directions = jnp.concatenate([directions, miss_dirs])
     geometry = occ.init_occupancy(BOX, resolution=G)  # the interval only depends on the grid's box
-    t_enter, t_exit = jax.vmap(lambda o, d: occ.ray_interval(geometry, o, d, RENDER_CONFIG))(origins, directions)
+    t_enter, t_exit = jax.vmap(lambda o, d: marching.ray_interval(geometry, o, d, RENDER_CONFIG))(origins, directions)
     return origins, directions, t_enter, t_exit
 
 
@@ -522,7 +522,7 @@ def test_march_determinism_and_random_offset(sparse_grid):
     assert np.abs(np.asarray(keyed[2]).sum(1) - np.asarray(first[2]).sum(1)).max() <= 8
 
 
-STEP_EDGES = jax.jit(occ._step_edges, static_argnums=1)
+STEP_EDGES = jax.jit(marching._step_edges, static_argnums=1)
 
 
 @pytest.mark.parametrize("t_start", [0.0, 0.05, 0.7, 3.0])
@@ -565,7 +565,7 @@ def test_update_and_render_compile_once(sparse_grid):
     assert TRACES["density"] == traced
 
     # A render of tiny shapes: traced once, whatever the params, grid and march numbers.
-    tiny = occ.MarchConfig.create(max_steps=64, max_samples=16, steps_per_diagonal=32)
+    tiny = marching.MarchConfig.create(max_steps=64, max_samples=16, steps_per_diagonal=32)
     first, n_first = _render(BALL, sparse_grid, tiny)
     traced = TRACES["density"]
     _render(other, occ.mark_all_occupied(sparse_grid), tiny.replace(cone_angle=jnp.float32(0.01)))

@@ -18,7 +18,7 @@ import numpy as np
 
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError
 from waldo_jax.nerf.field import make_density, make_field
-from waldo_jax.render import occupancy, packed
+from waldo_jax.render import marching, occupancy, packed
 from waldo_jax.render.volume import RenderConfig, render_ray
 from waldo_jax.types import Array, PRNGKey, RenderOutput
 
@@ -77,16 +77,16 @@ class _DenseSampler:
         """A single always-occupied cell over the field's box."""
         return occupancy.init_occupancy(self.box, 1.0, resolution=1)
 
-    def view_march(self, scale: float) -> occupancy.MarchConfig:
+    def view_march(self, scale: float) -> marching.MarchConfig:
         """eval_samples / scale steps across the box's diagonal."""
         grid = self.view_grid(None)
-        return occupancy.MarchConfig.for_grid(grid, self.config.eval_samples / scale)
+        return marching.MarchConfig.for_grid(grid, self.config.eval_samples / scale)
 
 
 class _OccupancySampler:
     """Instant-NGP's occupancy grid and ray marching (`waldo_jax.render.occupancy`), with packed rows.
 
-    Each ray is marched (`occupancy.march_ray`: candidates every dt, kept where the grid is occupied,
+    Each ray is marched (`marching.march_ray`: candidates every dt, kept where the grid is occupied,
     compacted to at most S = `num_samples`). The kept samples are packed one ray after another into
     a budget of `samples_per_batch` slots (`render.packed`, rows of `TRAIN_ROW_LENGTH` samples):
     rays enter in their (random) order while their samples fit, the others are left out of this
@@ -103,7 +103,7 @@ class _OccupancySampler:
         center, half = 0.5 * (aabb[0] + aabb[1]), 0.5 * (aabb[1] - aabb[0]) / config.aabb_scale
         self.base_aabb = np.stack([center - half, center + half])
         self.geometry = occupancy.init_occupancy(self.base_aabb, config.aabb_scale, resolution=1)
-        self.march = occupancy.MarchConfig.for_grid(
+        self.march = marching.MarchConfig.for_grid(
             self.geometry.replace(resolution=config.occupancy_resolution), config.steps_per_diagonal,
             config.cone_angle, max_samples=config.num_samples)
         self.row_length = TRAIN_ROW_LENGTH
@@ -134,8 +134,8 @@ class _OccupancySampler:
         """t, delta [R, S] and mask bool [R, S] of R rays (random offsets with a key)."""
 
         def one(o, d, k):
-            t_start, t_end = occupancy.ray_interval(grid, o, d, render_config)
-            return occupancy.march_ray(grid, o, d, t_start, t_end, self.march, k)
+            t_start, t_end = marching.ray_interval(grid, o, d, render_config)
+            return marching.march_ray(grid, o, d, t_start, t_end, self.march, k)
 
         keys = None if key is None else jax.random.split(key, origins.shape[0])
         return jax.vmap(one, in_axes=(0, 0, None if keys is None else 0))(origins, directions, keys)
@@ -172,9 +172,9 @@ class _OccupancySampler:
         """The trained grid itself."""
         return grid
 
-    def view_march(self, scale: float) -> occupancy.MarchConfig:
+    def view_march(self, scale: float) -> marching.MarchConfig:
         """The training march with steps `scale` times longer (NGP's dt_min and cone angle both scaled)."""
-        return occupancy.MarchConfig.for_grid(
+        return marching.MarchConfig.for_grid(
             self.geometry.replace(resolution=self.config.occupancy_resolution), self.config.steps_per_diagonal / scale,
             self.config.cone_angle * scale, max_samples=self.config.eval_samples)
 

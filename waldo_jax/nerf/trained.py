@@ -19,7 +19,7 @@ import numpy as np
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError, check_scene
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.samplers import make_sampler
-from waldo_jax.render import marched, occupancy
+from waldo_jax.render import marched, marching, occupancy
 from waldo_jax.render.volume import RenderConfig
 from waldo_jax.types import Intrinsics, RenderOutput, Scene
 
@@ -46,7 +46,7 @@ _CALIBRATION_VIEWS = 3
 
 
 def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aabb, background,
-                 step_scale: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, occupancy.MarchConfig]:
+                 step_scale: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, marching.MarchConfig]:
     """What `render.marched` needs to render a trained field: (grid, render config, march config).
 
     Args:

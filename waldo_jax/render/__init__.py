@@ -1,18 +1,17 @@
-"""Rendering: the volume integral, population rendering, sharding, and trained fields through an
-occupancy grid.
+"""Rendering: the volume integral, population rendering, sharding, and fields with an occupancy grid.
 
-Layers, bottom to top: `volume` (the quadrature, any field along rays, `render_views` for a
-population), `sharding` (a population split over devices), `occupancy` (Instant-NGP's grid and
-ray marching), `packed` (samples of many rays in fixed budgets of rows, composited by cumulative
-sums; shared with training), `marched` (the renderer of fields with an occupancy grid: every trained field goes through it,
-via `waldo_jax.nerf.trained`).
+Modules, bottom to top: `volume` (the quadrature, any field along rays, `render_views` for a
+population), `sharding` (a population split over devices), `occupancy` (Instant-NGP's grid and its
+update), `marching` (rays marched through the grid), `packed` (samples of many rays in fixed budgets
+of rows, composited by cumulative sums; shared with training), `marched` (the renderer of fields
+with an occupancy grid: every trained field goes through it, via `waldo_jax.nerf.trained`).
 """
 
 from waldo_jax.render.marched import MarchedViews as MarchedViews
 from waldo_jax.render.marched import Packing as Packing
 from waldo_jax.render.marched import render_marched as render_marched
 from waldo_jax.render.marched import render_marched_sharded as render_marched_sharded
-from waldo_jax.render.occupancy import MarchConfig as MarchConfig
+from waldo_jax.render.marching import MarchConfig as MarchConfig
 from waldo_jax.render.occupancy import OccupancyConfig as OccupancyConfig
 from waldo_jax.render.occupancy import OccupancyGrid as OccupancyGrid
 from waldo_jax.render.sharding import pose_mesh as pose_mesh

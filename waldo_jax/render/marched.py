@@ -3,7 +3,7 @@ of live rays between passes and early ray termination, for whole populations of 
 
 `render_marched(field, params, grid, c2w [P, 4, 4], intrinsics, ...)`: the P * H * W rays form one
 flat list cut into blocks of N rays; a block marches each ray through the grid
-(`occupancy.march_ray`), then runs passes in which the live rays' next samples are packed into M rows
+(`marching.march_ray`), then runs passes in which the live rays' next samples are packed into M rows
 of s slots (`packed.layout_rows`), the field runs once and the rows are composited
 (`packed.composite_rows`), until every ray is done or opaque. `render_marched_sharded` splits the
 poses over devices; `Packing` holds the per-backend sizes.
@@ -21,7 +21,7 @@ from typing import Callable, NamedTuple, Optional, Tuple
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.render import occupancy, packed
+from waldo_jax.render import marching, occupancy, packed
 from waldo_jax.render.sharding import shard_over_poses
 from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
 from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
@@ -156,14 +156,14 @@ def field_slots(field: Field, params, points: Array, directions: Array, chunk: i
 
 
 def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
-                  real: Array, render_config: RenderConfig, march: occupancy.MarchConfig, shape: BlockShape):
+                  real: Array, render_config: RenderConfig, march: marching.MarchConfig, shape: BlockShape):
     """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
     evaluations int32 [N], passes int32 [], slots int32 [])."""
     num_rays, row_length = shape.rays, shape.row_length
     num_samples = march.max_samples
-    t_start, t_end = jax.vmap(lambda o, d: occupancy.ray_interval(grid, o, d, render_config))(origins, directions)
+    t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, render_config))(origins, directions)
     t_end = jnp.where(real, t_end, t_start)  # padding rays march an empty interval
-    t, delta, mask = jax.vmap(lambda o, d, a, b: occupancy.march_ray(grid, o, d, a, b, march))(
+    t, delta, mask = jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, march))(
         origins, directions, t_start, t_end)  # [N, S] each
     count = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N]
 
@@ -220,7 +220,7 @@ def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: 
 
 
 def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
-            march: occupancy.MarchConfig, packing: Packing) -> MarchedViews:
+            march: marching.MarchConfig, packing: Packing) -> MarchedViews:
     """`render_marched` unjitted (for `shard_over_poses`)."""
     c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
     num_poses = c2w.shape[0]
@@ -243,7 +243,7 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
 
 @functools.partial(jax.jit, static_argnames=("field", "packing"))
 def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
-                   render_config: RenderConfig, march: occupancy.MarchConfig,
+                   render_config: RenderConfig, march: marching.MarchConfig,
                    packing: Optional[Packing] = None) -> MarchedViews:
     """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
@@ -279,7 +279,7 @@ def _marched_local(field: Field, packing: Packing) -> Callable:
 
 
 def render_marched_sharded(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
-                           render_config: RenderConfig, march: occupancy.MarchConfig,
+                           render_config: RenderConfig, march: marching.MarchConfig,
                            packing: Optional[Packing] = None, mesh=None):
     """`render_marched` with the poses split over the devices of `mesh` (`sharding.shard_over_poses`).
 
