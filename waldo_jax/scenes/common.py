@@ -22,6 +22,31 @@ import numpy as np
 from waldo_jax.errors import SceneFormatError, WaldoError
 from waldo_jax.types import Intrinsics
 
+__all__ = [
+    "FORMATS",
+    "SPLITS",
+    "BLENDER_SPLITS",
+    "RIGID_TOL",
+    "MAX_COORDINATE",
+    "TEST_EVERY",
+    "MIN_NEAR_FRACTION",
+    "SceneArgumentError",
+    "read_json",
+    "blender_split_of",
+    "locate",
+    "detect_format",
+    "check_rigid",
+    "check_origin",
+    "camera_bounds",
+    "check_split",
+    "holdout",
+    "subsample",
+    "natural_key",
+    "relative",
+    "number",
+    "warn_off_image_principal_point",
+]
+
 FORMATS = ("instant-ngp", "nerfstudio", "blender", "llff")
 SPLITS = ("all", "train", "val", "test")
 BLENDER_SPLITS = ("train", "val", "test")

@@ -18,6 +18,8 @@ from PIL import Image
 
 from waldo_jax.errors import SceneFormatError
 
+__all__ = ["IMAGE_EXTENSIONS", "image_size", "load_images", "resolve_image"]
+
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _MAX_THREADS = 8
 

@@ -28,6 +28,8 @@ from waldo_jax.scenes.common import (
 from waldo_jax.scenes.images import IMAGE_EXTENSIONS, image_size, load_images
 from waldo_jax.types import Intrinsics
 
+__all__ = ["LLFF_NEAR_MARGIN", "LLFF_FAR_MARGIN", "LLFF_DEFAULT_FACTOR", "load_llff"]
+
 LLFF_NEAR_MARGIN = 0.9
 LLFF_FAR_MARGIN = 1.0
 LLFF_DEFAULT_FACTOR = 8

@@ -23,6 +23,8 @@ from waldo_jax.scenes.llff import load_llff
 from waldo_jax.scenes.transforms import load_blender, load_transforms
 from waldo_jax.types import Scene
 
+__all__ = ["load_scene"]
+
 
 def _check_downscale(downscale: Any) -> Optional[float]:
     """`downscale` as a float >= 1, or None."""

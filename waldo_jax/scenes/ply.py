@@ -10,6 +10,8 @@ import numpy as np
 
 from waldo_jax.errors import SceneFormatError
 
+__all__ = ["read_ply_points"]
+
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
     "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",

@@ -24,6 +24,8 @@ from waldo_jax.scenes.common import (
 )
 from waldo_jax.types import Intrinsics
 
+__all__ = ["read_poses_file"]
+
 
 def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     """A validated [4, 4] camera-to-world matrix of a poses file (16 numbers or [3, 4] accepted)."""

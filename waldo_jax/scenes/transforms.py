@@ -36,6 +36,19 @@ from waldo_jax.scenes.images import load_images, resolve_image
 from waldo_jax.scenes.ply import read_ply_points
 from waldo_jax.types import Intrinsics
 
+__all__ = [
+    "BLENDER_AABB",
+    "BLENDER_NEAR",
+    "BLENDER_FAR",
+    "NGP_DEFAULT_SCALE",
+    "NGP_DEFAULT_OFFSET",
+    "PLY_PERCENTILES",
+    "PLY_PAD",
+    "ORIGIN_PAD",
+    "load_transforms",
+    "load_blender",
+]
+
 BLENDER_AABB = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 BLENDER_NEAR, BLENDER_FAR = 2.0, 6.0
 NGP_DEFAULT_SCALE = 0.33
