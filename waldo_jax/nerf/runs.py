@@ -64,6 +64,7 @@ def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,
     the scene's folder, or None for a scene built in memory.
     """
     config = result.config
+    path = scene_path or scene.path
     last = next((h for h in reversed(result.history) if "loss" in h), {})
     return {
         "psnr_test": result.psnr_test,
@@ -80,7 +81,7 @@ def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,
         "preset": preset,
         "sampler": config.sampler,
         "seed": seed,
-        "scene_path": str(Path(scene_path or scene.path).resolve()) if (scene_path or scene.path) else None,
+        "scene_path": str(Path(path).resolve()) if path else None,
         "scene_format": scene.format,
         "downscale": scene.metadata.get("downscale"),
         "image_size": [scene.width, scene.height],
@@ -118,9 +119,9 @@ def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional
         raise WaldoError(f"{out}: not an existing writable folder to save the run in")
     result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
     stats = train_stats(result, scene, preset, seed, scene_path)
-    save_checkpoint(Path(out) / CHECKPOINT_NAME, result.params, result.config, scene, result.occupancy,
+    save_checkpoint(out / CHECKPOINT_NAME, result.params, result.config, scene, result.occupancy,
                     info={k: v for k, v in stats.items() if k != "history"})
-    io.write_json(Path(out) / TRAIN_JSON, stats)
+    io.write_json(out / TRAIN_JSON, stats)
     return result, stats
 
 

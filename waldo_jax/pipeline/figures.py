@@ -18,7 +18,7 @@ from waldo_jax.io import atomic_file
 from waldo_jax.pipeline.experiment import ExploreRun
 from waldo_jax.pipeline.sources import resize_images
 
-__all__ = ["pose_cloud", "STAGES", "contact_sheet", "methods_sheet", "training_tiles", "format_score"]
+__all__ = ["pose_cloud", "STAGES", "contact_sheet", "methods_sheet", "training_tiles"]
 
 STAGES = ("start", "epoch 1", "final")
 
@@ -114,7 +114,7 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
 # Contact sheets.
 
 
-def format_score(value: float) -> str:
+def _format_score(value: float) -> str:
     """A score for a label: three significant digits, \"n/a\" when it is not finite."""
     return "n/a" if not np.isfinite(value) else f"{value:.3g}"
 
@@ -149,11 +149,11 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
     tiles, train_title = training_tiles(run, best_train)
     train_row = [resize_images(tile[None], shape[1], shape[0])[0] for tile in tiles]
     images = train_row + [None] * (columns - len(train_row))
-    labels = [format_score(run.scores_train[i]) for i in best_train] + [None] * (columns - len(best_train))
+    labels = [_format_score(run.scores_train[i]) for i in best_train] + [None] * (columns - len(best_train))
     found = list(run.top_images) + [None] * (columns - k)
     scores = np.asarray(run.result.top_scores)[np.asarray(run.result.top_valid)]
     images += found
-    labels += [f"#{r + 1} {format_score(s)}" for r, s in enumerate(scores)] + [None] * (columns - k)
+    labels += [f"#{r + 1} {_format_score(s)}" for r, s in enumerate(scores)] + [None] * (columns - k)
     titles = [f"{train_title}", f"{run.config.method.upper()} found"]
     if run.top_truth is not None:
         images += list(run.top_truth) + [None] * (columns - k)
@@ -179,13 +179,13 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
         return images + [None] * (columns - len(images)), labels + [None] * (columns - len(labels))
 
     tiles, title = training_tiles(first, best_train)
-    images, labels = row(tiles, [format_score(first.scores_train[i]) for i in best_train])
+    images, labels = row(tiles, [_format_score(first.scores_train[i]) for i in best_train])
     titles = [title]
     for method, run in runs.items():
         valid = np.asarray(run.result.top_valid)
         scores = np.asarray(run.result.top_scores)[valid]
         trained = np.asarray(run.result.top_indices)[valid] < run.source.n_train
-        found = row(run.top_images, [f"#{r + 1} {format_score(s)}" + (" train" if t else "")
+        found = row(run.top_images, [f"#{r + 1} {_format_score(s)}" + (" train" if t else "")
                                      for r, (s, t) in enumerate(zip(scores, trained))])
         images, labels = images + found[0], labels + found[1]
         if run.top_truth is None:

@@ -23,18 +23,18 @@ from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
 from waldo_jax.pipeline.figures import contact_sheet, pose_cloud
 from waldo_jax.search import Result
 
-__all__ = ["RESULTS_JSON", "results_dict", "write_outputs", "json_floats"]
+__all__ = ["RESULTS_JSON", "results_dict", "write_outputs"]
 
 RESULTS_JSON = "results.json"
 
 
-def json_floats(values) -> List[Optional[float]]:
+def _floats(values) -> List[Optional[float]]:
     """JSON-safe floats of any array (flattened; NaN / inf -> None)."""
     return [float(v) if np.isfinite(v) else None for v in np.asarray(values, np.float64).ravel()]
 
 
 def _float(value) -> Optional[float]:
-    return json_floats([value])[0]
+    return _floats([value])[0]
 
 
 def _epoch_rows(result: Result) -> List[Dict[str, Any]]:
@@ -55,8 +55,8 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         entry = {"rank": rank, "score": _float(population.score[slot]),
                  "c2w": np.round(np.asarray(population.c2w[slot], np.float64), 8).tolist(), "image": name,
                  "epoch": int(population.epoch[slot]), "training_view": bool(slot < source.n_train),
-                 "origin": json_floats(population.origin[slot]), "look_at": json_floats(population.target[slot]),
-                 "up": json_floats(population.up[slot])}
+                 "origin": _floats(population.origin[slot]), "look_at": _floats(population.target[slot]),
+                 "up": _floats(population.up[slot])}
         if slot < source.n_train:
             entry["training_image"] = source.train_names[slot]
         topk.append(entry)
@@ -78,8 +78,8 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "n_train": source.n_train,
         "n_generated": int(len(slots)),
         "n_failed_generated": int(np.sum(~np.isfinite(scores_generated))),
-        "scores_train": json_floats(run.scores_train),
-        "scores_generated": json_floats(scores_generated),
+        "scores_train": _floats(run.scores_train),
+        "scores_generated": _floats(scores_generated),
         "generated_epochs": [int(e) for e in epochs_generated],
         "cvir": _float(result.cvir),
         "mcvir": _float(result.mcvir),
@@ -124,7 +124,7 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     top_scores = np.asarray(result.top_scores)[valid_top]
     io.write_transforms(out / "poses.json", np.asarray(result.top_c2w)[valid_top], run.source.intrinsics, names,
                         extra={"waldo_explore": {"criterion": run.criterion.name, "method": run.config.method,
-                                                 "scores": json_floats(top_scores), "source": run.source.spec}})
+                                                 "scores": _floats(top_scores), "source": run.source.spec}})
 
     population = result.population
     filled = np.asarray(population.valid)
