@@ -110,6 +110,33 @@ def test_image_criterion_renders_and_scores(tmp_path):
     assert float(crit.score_images(png[None])[0]) == pytest.approx(r["topk"][0]["score"], rel=0.02)
 
 
+def test_refine_and_evosax_methods_from_the_cli(tmp_path, capsys):
+    assert explore(tmp_path / "refine", "--method", "egps+refine", "--refine-poses", "2", "--refine-steps", "2") == 0
+    r = json.loads((tmp_path / "refine" / "results.json").read_text())
+    # The oracle's smooth stand-in costs 2 renders a gradient; the children are given here, so the
+    # cost adds up rather than fitting a budget.
+    assert r["method"] == "egps+refine" and r["refine"]["gradient_cost"] == 2
+    assert r["cost"]["renders"] == 8 + 2 * 6 + 2 * 2 * 2
+    assert explore(tmp_path / "cma", "--method", "evosax:CMA_ES", "--seed", "2") == 0
+    assert explore(tmp_path / "cma2", "--method", "evosax:CMA_ES", "--seed", "2") == 0
+    first, second = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("cma", "cma2"))
+    assert first["scores_generated"] == second["scores_generated"] and first["method"] == "evosax:CMA_ES"
+    # Refused before anything is written: a criterion gradient steps cannot follow, an unknown strategy,
+    # more refined poses than children.
+    for extra, message in ((["--method", "egps+refine", "--criterion", "brisque"], "'brisque' is not differentiable"),
+                           (["--method", "evosax:CMAES"], "unknown --method 'evosax:CMAES'"),
+                           (["--method", "grs+refine", "--refine-poses", "7"], "refining 7 poses"),
+                           (["--method", "egps+refine", "--gradient-cost", "1"], "--gradient-cost must be")):
+        if "brisque" in extra:
+            from conftest import require_weights
+
+            require_weights("brisque")
+        out = tmp_path / "refused"
+        assert explore(out, *extra) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
 def test_errors_are_one_line(tmp_path, capsys):
     assert explore(tmp_path / "x", "--criterion", "nope") == 1
     assert "unknown criterion 'nope'" in capsys.readouterr().err
@@ -143,6 +170,19 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
                  "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]) == 0
     again = json.loads((tmp_path / "again" / "results.json").read_text())
     assert again["source_info"]["procedural_seed"] == 0 and (tmp_path / "again" / "topk" / "00_truth.png").is_file()
+    # Beyond the paper, on the trained run: gradient steps through the NeRF's marched render (forward
+    # mode) with an image criterion, and an evosax strategy.
+    tiny_run = ["--resolution", "16", "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]
+    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "refined"), *tiny_run,
+                 "--method", "egps+refine", "--criterion", "colorfulness", "--refine-poses", "1",
+                 "--refine-steps", "2"]) == 0
+    refined = json.loads((tmp_path / "refined" / "results.json").read_text())
+    assert refined["cost"] == {"renders": 10 + 4 + 2 * 12, "training_views": 10, "children": 4,
+                               "gradient_evaluations": 2, "renders_per_gradient_evaluation": 12}
+    assert refined["refine"]["poses"] == 1 and refined["n_generated"] == 4
+    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "cma"), *tiny_run,
+                 "--method", "evosax:CMA_ES"]) == 0
+    assert json.loads((tmp_path / "cma" / "results.json").read_text())["method"] == "evosax:CMA_ES"
 
 
 

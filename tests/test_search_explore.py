@@ -181,9 +181,15 @@ def test_progress_lines(capsys):
 
 
 def test_registry_and_input_errors():
-    assert set(METHODS) == {"grs", "pibs", "egps"}
-    with pytest.raises(ValueError, match="unknown search method 'cmaes'"):
+    assert set(METHODS) == {"grs", "pibs", "egps", "grs+refine", "pibs+refine", "egps+refine"}
+    with pytest.raises(ValueError, match=r"unknown search method 'cmaes'.*evosax:NAME"):
         explore(jax.random.key(0), toy_score, INITIAL, "cmaes", CONFIG)
+    with pytest.raises(ValueError, match=r"unknown evosax strategy 'CMAES'; choose one of .*CMA_ES"):
+        explore(jax.random.key(0), toy_score, INITIAL, "evosax:CMAES", CONFIG)
+    with pytest.raises(ValueError, match="SV_CMA_ES.* cannot run as a pose search"):
+        explore(jax.random.key(0), toy_score, INITIAL, "evosax:SV_CMA_ES", CONFIG)
+    with pytest.raises(ValueError, match="'egps\\+refine' takes gradient steps: pass a differentiable objective_fn"):
+        explore(jax.random.key(0), toy_score, INITIAL, "egps+refine", CONFIG)
     with pytest.raises(ValueError, match=r"initial.scores must have shape \(8,\)"):
         explore(jax.random.key(0), toy_score, Initial(c2w=INITIAL.c2w, scores=INITIAL.scores[:5]), "grs", CONFIG)
     with pytest.raises(ValueError, match="initial.c2w"):

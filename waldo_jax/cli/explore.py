@@ -1,7 +1,10 @@
 """`waldo explore`: one experiment (source + criterion + method) from the command line.
 
-    waldo explore SOURCE --criterion NAME --method grs|pibs|egps --budget low|high --seed N
+    waldo explore SOURCE --criterion NAME --method METHOD --budget low|high --seed N
                   [--seeds K] [--resolution R] --out DIR
+
+METHOD is grs, pibs, egps, one of them + "+refine" (gradient refinement in the last epoch) or
+evosax:NAME (any evosax strategy).
 
 SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`; see
 `waldo_jax.pipeline.outputs` for what is written.
@@ -10,14 +13,15 @@ SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from typing import Optional
 
 from waldo_jax import io
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
 from waldo_jax.errors import WaldoError
-from waldo_jax.pipeline import INITIAL_MODES, load_source, run_explore, write_outputs
-from waldo_jax.search import BUDGETS, METHODS, ExploreConfig
+from waldo_jax.pipeline import INITIAL_MODES, gradient_cost_for, load_source, run_explore, write_outputs
+from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
 
 __all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
 
@@ -31,7 +35,7 @@ def add_command(subparsers) -> None:
                     "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.")
     p.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or a RUN_DIR of waldo train")
     add_criterion_arguments(p, default="waldo_oracle")
-    p.add_argument("--method", default="egps", help=f"one of {', '.join(METHODS)} (default egps)")
+    p.add_argument("--method", default="egps", help=f"one of {method_names()} (default egps)")
     p.add_argument("--budget", default="low", help="low (250-300 images in total) or high (900-1000); default low")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds (seed, seed+1, ...) in one vmapped call")
@@ -49,6 +53,17 @@ def add_command(subparsers) -> None:
                         "or on 'renders' at the training poses")
     p.add_argument("--views", type=int, default=None,
                    help="procedural only: number of training views (default 24, at most 1000)")
+    defaults = RefineConfig()
+    p.add_argument("--refine-poses", type=int, default=defaults.poses,
+                   help=f"+refine: best poses refined in the last epoch (default {defaults.poses})")
+    p.add_argument("--refine-steps", type=int, default=defaults.steps,
+                   help=f"+refine: gradient evaluations per refined pose (default {defaults.steps})")
+    p.add_argument("--refine-step-size", type=float, default=defaults.step_size,
+                   help=f"+refine: largest step per coordinate, as a fraction of the scene extent "
+                        f"(default {defaults.step_size})")
+    p.add_argument("--gradient-cost", type=int, default=None,
+                   help="+refine: renders one gradient evaluation counts as in the budget, >= 2 (default: "
+                        "measured, 2 for a pose oracle, 12 through a render; README 'Which method when')")
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     p.add_argument("--quiet", action="store_true", help="no per-epoch progress lines")
     p.set_defaults(handler=cmd_explore)
@@ -57,8 +72,10 @@ def add_command(subparsers) -> None:
 def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = None):
     """An `ExploreConfig` from parsed arguments; bad values raise `WaldoError` naming the flag."""
     method = args.method if method is None else method
-    if method not in METHODS:
-        raise WaldoError(f"unknown --method {method!r}: expected one of {', '.join(METHODS)}")
+    try:
+        get_method(method)
+    except ValueError:
+        raise WaldoError(f"unknown --method {method!r}: expected one of {method_names()}") from None
     if args.budget not in BUDGETS:
         raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(BUDGETS)}")
     for flag, value, minimum in (("--epochs", args.epochs, 1), ("--top-k", args.top_k, 1), ("--top-c", args.top_c, 2),
@@ -70,9 +87,18 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     if args.pibs_fallback not in ("none", "grs"):
         raise WaldoError(f"unknown --pibs-fallback {args.pibs_fallback!r}: expected none or grs")
     try:
+        refine = RefineConfig(poses=args.refine_poses, steps=args.refine_steps, step_size=args.refine_step_size,
+                              **({} if args.gradient_cost is None else {"gradient_cost": args.gradient_cost}))
+    except ValueError as e:
+        message = str(e)
+        for field, flag in (("poses", "--refine-poses"), ("steps", "--refine-steps"),
+                            ("step_size", "--refine-step-size"), ("gradient_cost", "--gradient-cost")):
+            message = message.replace(f"RefineConfig.{field}", flag)
+        raise WaldoError(message) from None
+    try:
         return ExploreConfig(method=method, epochs=args.epochs, children_per_epoch=args.children_per_epoch,
                              budget=args.budget, top_k=args.top_k, top_c=args.top_c, pibs_fallback=args.pibs_fallback,
-                             progress=not args.quiet)
+                             progress=not args.quiet, refine=refine)
     except ValueError as e:
         raise WaldoError(str(e)) from None
 
@@ -86,8 +112,16 @@ def cmd_explore(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     source = load_source(args.source, args.resolution, args.views)
     criterion = criterion_from_args(args, room=source.room, source=source.spec)
+    method = get_method(config.method)
+    if method.differentiable:
+        criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
+        if args.gradient_cost is None:
+            config = dataclasses.replace(config, refine=dataclasses.replace(
+                config.refine, gradient_cost=gradient_cost_for(criterion)))
     try:
-        config.resolve(source.n_train)
+        children = config.resolve(source.n_train).children_per_epoch
+        method.make_config(children, refine=config.refine, epochs=config.epochs, top_c=config.top_c,
+                           pibs_fallback=config.pibs_fallback)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
     # run_explore checks the batched epoch fits in memory before it scores or renders anything.

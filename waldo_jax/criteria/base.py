@@ -58,6 +58,10 @@ class Criterion:
       apply: the pure function, `apply(params, images)`, `apply(params, rgba)` or
         `apply(params, c2w, intrinsics)`.
       description: one line for reports and `--help`.
+      smooth_apply: a differentiable stand-in for `apply` (same params and inputs) that gradient
+        refinement follows, or None when the criterion has none (`smooth` refuses it). For a
+        differentiable criterion it is `apply` itself; where `apply` counts or thresholds (the
+        salient fraction, the oracles' in-frame test) a sigmoid replaces the step.
     """
 
     params: Any
@@ -67,6 +71,25 @@ class Criterion:
     inputs: str = flax.struct.field(pytree_node=False, default="images")
     apply: Callable = flax.struct.field(pytree_node=False, default=None)
     description: str = flax.struct.field(pytree_node=False, default="")
+    smooth_apply: Optional[Callable] = flax.struct.field(pytree_node=False, default=None)
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether gradient refinement can use the criterion (it has a `smooth_apply`)."""
+        return self.smooth_apply is not None
+
+    def smooth(self) -> "Criterion":
+        """This criterion with `smooth_apply` as its function: the objective of gradient refinement.
+
+        Raises:
+          CriterionError: the criterion has no differentiable stand-in (the message lists those that do).
+        """
+        if self.smooth_apply is None:
+            usable = ", ".join(sorted(name for name, spec in CRITERIA.items() if spec.smooth))
+            raise CriterionError(
+                f"criterion {self.name!r} is not differentiable and has no smooth stand-in, so gradient "
+                f"refinement (the +refine methods) cannot follow it; use a method without +refine, or one of: {usable}")
+        return self.replace(apply=self.smooth_apply, name=self.name + ":smooth")
 
     def score_images(self, images: Array) -> Array:
         """Scores [P] of images float32 [P, H, W, 3] in [0, 1] (photographs: opacity 1).
@@ -152,6 +175,7 @@ class CriterionSpec:
       inputs: "images" or "poses".
       description: one line.
       build: `build(context) -> Criterion`; raises `CriterionError` naming anything missing.
+      smooth: the criterion it builds has a `smooth_apply` (gradient refinement can use it).
     """
 
     name: str
@@ -159,6 +183,7 @@ class CriterionSpec:
     inputs: str
     description: str
     build: Callable[[CriterionContext], Criterion]
+    smooth: bool = False
 
 
 CRITERIA: Dict[str, CriterionSpec] = {}
@@ -185,6 +210,7 @@ def make_criterion(name: str, context: Optional[CriterionContext] = None) -> Cri
     if name not in CRITERIA:
         raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
     criterion = CRITERIA[name].build(context or CriterionContext())
-    if criterion.name != name or criterion.direction != CRITERIA[name].direction:
+    if (criterion.name != name or criterion.direction != CRITERIA[name].direction
+            or criterion.differentiable != CRITERIA[name].smooth):
         raise AssertionError(f"criterion {name!r} built with a mismatching name or direction")  # a registry bug
     return criterion

@@ -246,8 +246,9 @@ def iqa_cnn(context: CriterionContext) -> Criterion:
       DataNotFoundError / WeightsError / TorchPickleError: from `load_params(context.weights_dir)`.
     """
     return Criterion(params=load_params(context.weights_dir), name="iqa_cnn", direction="max",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION)
+                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION,
+                     smooth_apply=_apply)
 
 
 _DESCRIPTION = "100 - predicted LIVE DMOS of CNNIQA (Kang et al. 2014), no-reference quality, higher is better"
-register(CriterionSpec("iqa_cnn", "max", "images", _DESCRIPTION, iqa_cnn))
+register(CriterionSpec("iqa_cnn", "max", "images", _DESCRIPTION, iqa_cnn, smooth=True))

@@ -39,8 +39,8 @@ def colorfulness(context: CriterionContext) -> Criterion:
     """The `colorfulness` criterion (Hasler-Suesstrunk M, direction max, >= 0)."""
     del context
     return Criterion(params=(), name="colorfulness", direction="max", value_range=(0.0, float("inf")),
-                     inputs="images", apply=_apply, description=_DESCRIPTION)
+                     inputs="images", apply=_apply, description=_DESCRIPTION, smooth_apply=_apply)
 
 
 _DESCRIPTION = "Hasler-Suesstrunk colourfulness M of the image (classic, no weights)"
-register(CriterionSpec("colorfulness", "max", "images", _DESCRIPTION, colorfulness))
+register(CriterionSpec("colorfulness", "max", "images", _DESCRIPTION, colorfulness, smooth=True))

@@ -45,10 +45,10 @@ def opacity(context: Optional[CriterionContext] = None) -> Criterion:
     """The `opacity` criterion: mean accumulated opacity of the render, direction max, in [0, 1]."""
     del context
     return Criterion(params=(), name="opacity", direction="max", value_range=(0.0, 1.0), inputs="renders",
-                     apply=_opacity_apply, description=_OPACITY_DESCRIPTION)
+                     apply=_opacity_apply, description=_OPACITY_DESCRIPTION, smooth_apply=_opacity_apply)
 
 
-register(CriterionSpec("opacity", "max", "renders", _OPACITY_DESCRIPTION, opacity))
+register(CriterionSpec("opacity", "max", "renders", _OPACITY_DESCRIPTION, opacity, smooth=True))
 
 
 @dataclasses.dataclass(frozen=True)

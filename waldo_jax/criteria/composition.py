@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
                                      sanitize_images)
-from waldo_jax.criteria.csnet import load_params, saliency_maps
+from waldo_jax.criteria.csnet import SOFTNESS, load_params, saliency_maps
 from waldo_jax.types import Array
 
 __all__ = ["WEIGHTS", "composition_terms", "composition_from_map", "composition"]
@@ -30,8 +30,12 @@ _BALANCE_SIGMA = 0.25
 _AREA_RANGE = (0.05, 0.5)
 
 
-def composition_terms(saliency: Array) -> dict:
-    """The four rule scores of one saliency map [H, W] in [0, 1], each [] in [0, 1]."""
+def composition_terms(saliency: Array, softness: float = 0.0) -> dict:
+    """The four rule scores of one saliency map [H, W] in [0, 1], each [] in [0, 1].
+
+    softness > 0 counts the salient area (of `emphasis`) with a sigmoid of that width instead of the
+    step at 0.5: the differentiable stand-in of the smooth score.
+    """
     saliency = jnp.clip(jnp.asarray(saliency, jnp.float32), 0.0, 1.0)
     height, width = saliency.shape
     ys = (jnp.arange(height, dtype=jnp.float32) + 0.5) / height  # [H]
@@ -49,22 +53,30 @@ def composition_terms(saliency: Array) -> dict:
     mirror_gap = jnp.sum(jnp.abs(saliency - saliency[:, ::-1]))
     symmetry = jnp.where(has_mass, 1.0 - mirror_gap / (2.0 * safe_mass), 0.0)
 
-    area = jnp.mean((saliency > 0.5).astype(jnp.float32))
+    if softness > 0.0:
+        area = jnp.mean(jax.nn.sigmoid((saliency - 0.5) / softness))
+    else:
+        area = jnp.mean((saliency > 0.5).astype(jnp.float32))
     low, high = _AREA_RANGE
     emphasis = jnp.where(area < low, area / low, jnp.clip(1.0 - (area - high) / high, 0.0, 1.0))
     return {"thirds": thirds, "balance": balance, "symmetry": jnp.clip(symmetry, 0.0, 1.0), "emphasis": emphasis}
 
 
-def composition_from_map(saliency: Array) -> Array:
-    """The composition score [] in [1, 5] of one saliency map [H, W] (see docs/design.md, "Criteria")."""
-    terms = composition_terms(saliency)
+def composition_from_map(saliency: Array, softness: float = 0.0) -> Array:
+    """The composition score [] in [1, 5] of one saliency map [H, W] (see docs/design.md, "Criteria");
+    softness as `composition_terms`."""
+    terms = composition_terms(saliency, softness)
     return 1.0 + 4.0 * sum(WEIGHTS[name] * terms[name] for name in WEIGHTS)
 
 
-def _apply(params, images: Array) -> Array:
+def _apply(params, images: Array, softness: float = 0.0) -> Array:
     clean, bad = sanitize_images(images)
-    scores = jax.vmap(composition_from_map)(saliency_maps(params, clean))
+    scores = jax.vmap(lambda m: composition_from_map(m, softness))(saliency_maps(params, clean))
     return finite_or_worst(scores, bad, 1.0)
+
+
+def _smooth_apply(params, images: Array) -> Array:
+    return _apply(params, images, SOFTNESS)
 
 
 _DESCRIPTION = "photo composition in [1, 5] from the CSNet saliency map: thirds, balance, symmetry, emphasis"
@@ -73,7 +85,8 @@ _DESCRIPTION = "photo composition in [1, 5] from the CSNet saliency map: thirds,
 def composition(context: CriterionContext) -> Criterion:
     """The `composition` criterion (direction max, [1, 5]); loads CSNet from `context.weights_dir`."""
     return Criterion(params=load_params(context.weights_dir), name="composition", direction="max",
-                     value_range=(1.0, 5.0), inputs="images", apply=_apply, description=_DESCRIPTION)
+                     value_range=(1.0, 5.0), inputs="images", apply=_apply, description=_DESCRIPTION,
+                     smooth_apply=_smooth_apply)
 
 
-register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition))
+register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition, smooth=True))

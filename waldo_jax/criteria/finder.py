@@ -354,8 +354,9 @@ def waldo(context: CriterionContext, scales: Sequence[float] = DEFAULT_SCALES) -
         raise CriterionError("criterion 'waldo' needs a reference image of the object to find: "
                              "pass --target FILE (an image of the object, cropped)")
     return Criterion(params=make_finder_params(context.target, scales), name="waldo", direction="max",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION)
+                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION,
+                     smooth_apply=_apply)
 
 
 _DESCRIPTION = "best normalised cross-correlation x colour-histogram similarity of the --target image"
-register(CriterionSpec("waldo", "max", "images", _DESCRIPTION, waldo))
+register(CriterionSpec("waldo", "max", "images", _DESCRIPTION, waldo, smooth=True))

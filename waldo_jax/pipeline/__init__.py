@@ -12,10 +12,13 @@
     write_outputs(run, io.prepare_output_dir("runs/egps"))
 """
 
+from waldo_jax.pipeline.experiment import GRADIENT_COSTS as GRADIENT_COSTS
 from waldo_jax.pipeline.experiment import INITIAL_MODES as INITIAL_MODES
 from waldo_jax.pipeline.experiment import ExploreRun as ExploreRun
 from waldo_jax.pipeline.experiment import generated_slots as generated_slots
+from waldo_jax.pipeline.experiment import gradient_cost_for as gradient_cost_for
 from waldo_jax.pipeline.experiment import initial_scores as initial_scores
+from waldo_jax.pipeline.experiment import objective_function as objective_function
 from waldo_jax.pipeline.experiment import run_explore as run_explore
 from waldo_jax.pipeline.experiment import score_function as score_function
 from waldo_jax.pipeline.experiment import seed_keys as seed_keys
@@ -32,7 +35,7 @@ from waldo_jax.pipeline.sources import procedural_source as procedural_source
 from waldo_jax.pipeline.sources import run_source as run_source
 
 __all__ = [
-    "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet", "generated_slots",
-    "initial_scores", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
+    "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet",
+    "generated_slots", "gradient_cost_for", "initial_scores", "objective_function", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
     "run_explore", "run_source", "score_function", "seed_keys", "write_outputs",
 ]

@@ -23,10 +23,11 @@ import numpy as np
 
 from waldo_jax.criteria import Criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_seeds
+from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_seeds, get_method
 from waldo_jax.pipeline.sources import Source
 
-__all__ = ["ExploreRun", "INITIAL_MODES", "score_function", "initial_scores", "run_explore", "seed_keys",
+__all__ = ["ExploreRun", "INITIAL_MODES", "GRADIENT_COSTS", "gradient_cost_for", "score_function",
+           "objective_function", "initial_scores", "run_explore", "seed_keys",
            "generated_slots", "check_epoch_memory", "memory_bytes", "EPOCH_BYTES_PER_PIXEL"]
 
 INITIAL_MODES = ("images", "renders")
@@ -65,6 +66,18 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
             "here (or a lower --resolution)")
 
 
+# Renders one refinement gradient evaluation counts as, by what the criterion scores (>= 2): the
+# ratio of a forward-mode gradient's time to an exact score's, rounded up, measured on the 2-core CPU
+# with benchmarks/gradient_cost.py: 1.7 for the room's oracle on poses; 4.9 for saliency on the
+# room's renders and 11.5 on a trained fox NeRF's (64 px), the costlier taken for every render.
+GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12}
+
+
+def gradient_cost_for(criterion: Criterion) -> int:
+    """The default `RefineConfig.gradient_cost` for a criterion (`GRADIENT_COSTS` by its inputs)."""
+    return GRADIENT_COSTS[criterion.inputs]
+
+
 def _score_rendered(render, criterion: Criterion, c2w):
     return criterion.apply(criterion.params, render(c2w))
 
@@ -78,6 +91,15 @@ def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partia
     if criterion.inputs == "poses":
         return jax.tree_util.Partial(_score_posed, criterion, source.intrinsics)
     return jax.tree_util.Partial(_score_rendered, _renderer(source, criterion), criterion)
+
+
+def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
+    """The `+refine` methods' objective: `score_function` of the criterion's smooth stand-in.
+
+    Raises:
+      CriterionError: the criterion has no smooth stand-in (`Criterion.smooth`).
+    """
+    return score_function(source, criterion.smooth())
 
 
 def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
@@ -166,15 +188,18 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     start = time.perf_counter()
     config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
     check_epoch_memory(source, config, seeds)
+    objective = objective_function(source, criterion) if get_method(config.method).differentiable else None
     scores, initial_used = initial_scores(source, criterion, initial)
     start_init = Initial(c2w=source.train_c2w, scores=scores)
     score_fn = score_function(source, criterion)
     if seeds == 1:
-        results = [jax.device_get(explore(jax.random.key(seed), score_fn, start_init, config=config))]
+        results = [jax.device_get(explore(jax.random.key(seed), score_fn, start_init, config=config,
+                                          objective_fn=objective))]
         stats = {"cvir_mean": float(results[0].cvir), "cvir_std": 0.0,
                  "mcvir_mean": float(results[0].mcvir), "mcvir_std": 0.0}
     else:
-        out = jax.device_get(explore_seeds(seed_keys(seed, seeds), score_fn, start_init, config=config))
+        out = jax.device_get(explore_seeds(seed_keys(seed, seeds), score_fn, start_init, config=config,
+                                           objective_fn=objective))
         results = [jax.tree.map(lambda a, i=i: a[i], out.results) for i in range(seeds)]
         stats = {"cvir_mean": float(out.cvir_mean), "cvir_std": float(out.cvir_std),
                  "mcvir_mean": float(out.mcvir_mean), "mcvir_std": float(out.mcvir_std)}

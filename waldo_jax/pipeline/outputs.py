@@ -12,6 +12,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
@@ -71,6 +73,7 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "budget": config.budget if isinstance(config.budget, str) else list(config.budget),
         "epochs_count": config.epochs,
         "children_per_epoch": config.children_per_epoch,
+        "cost": config.cost(source.n_train),
         "top_k": config.top_k,
         "top_n": config.top_n,
         "resolution": [source.intrinsics.width, source.intrinsics.height],
@@ -89,8 +92,10 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "device": jax.devices()[0].platform + (f":{jax.devices()[0].device_kind}"
                                                if getattr(jax.devices()[0], "device_kind", "") else ""),
     }
-    if config.method == "pibs":
+    if config.method.startswith("pibs"):
         out["pibs"] = {"top_c": config.top_c, "fallback": config.pibs_fallback}
+    if config.gradient_renders():
+        out["refine"] = dataclasses.asdict(config.refine)
     if len(run.seeds) > 1:
         out["seeds"] = run.seeds
         out["per_seed"] = [{"seed": s, "cvir": _float(r.cvir), "mcvir": _float(r.mcvir),

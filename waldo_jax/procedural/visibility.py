@@ -53,8 +53,13 @@ def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Ar
     return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
 
 
-def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float) -> Tuple[Array, Array]:
-    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it."""
+def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float,
+                        softness: float = 0.0) -> Tuple[Array, Array]:
+    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it.
+
+    softness > 0 weighs each sample by a product of sigmoids of its distance (in pixels) to the four
+    image borders, of width softness * image width, instead of the in-frame step; occlusion stays exact.
+    """
     c2w = jnp.asarray(c2w, jnp.float32)
     camera = c2w[:3, 3]
     to_camera = camera - room.waldo_points  # [M, 3]
@@ -63,17 +68,23 @@ def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, nea
     weight = room.waldo_areas * jnp.maximum(cos, 0.0) / jnp.maximum(dist2, 1e-6)  # [M] solid angles
 
     uv, depth = project_points(c2w, intrinsics, room.waldo_points)
-    in_frame = (depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0) & (
-        uv[:, 1] <= intrinsics.height)
+    if softness > 0.0:
+        width = softness * intrinsics.width
+        margins = jnp.stack([uv[:, 0], intrinsics.width - uv[:, 0], uv[:, 1], intrinsics.height - uv[:, 1]], -1)
+        in_frame = (depth > near) * jnp.prod(jax.nn.sigmoid(margins / width), axis=-1)
+    else:
+        in_frame = ((depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0)
+                    & (uv[:, 1] <= intrinsics.height)).astype(jnp.float32)
 
     starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
     hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
         room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
-    seen = in_frame & ~jnp.any(hits, axis=-1)
-    return jnp.sum(jnp.where(seen, weight, 0.0)), jnp.sum(weight)
+    seen = jnp.where(jnp.any(hits, axis=-1), 0.0, in_frame)
+    return jnp.sum(seen * weight), jnp.sum(weight)
 
 
-def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
+def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
+                     softness: float = 0.0) -> Array:
     """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
 
     Waldo's surface is represented by regular area-weighted samples. A sample counts towards the
@@ -87,27 +98,30 @@ def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: 
       c2w: [4, 4] or [3, 4] camera-to-world matrix of one camera.
       intrinsics: its intrinsics (distortion included).
       near: minimum depth in front of the camera.
+      softness: 0 for the exact oracle; > 0 for its smooth stand-in (a sigmoid of that width, as a
+        fraction of the image width, at the image borders: see `_waldo_solid_angles`).
 
     Returns:
       visibility [] in [0, 1]: 0 when Waldo is behind the camera, out of frame or hidden; 1 when
       all of Waldo is in frame with nothing in between.
     """
-    seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near)
+    seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near, softness)
     return jnp.where(facing > 0.0, seen / jnp.maximum(facing, 1e-30), 0.0)
 
 
-def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05) -> Array:
+def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
+                   softness: float = 0.0) -> Array:
     """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
 
     The seen solid angle of `waldo_visibility` times the pixels per steradian at the image centre
     (fx * fy), over the image's pixel count. It is largest when Waldo is close, unoccluded and
     whole in frame: moving closer enlarges him until the frame starts to cut him. Like the paper's
-    salient-pixel criterion, but exact.
+    salient-pixel criterion, but exact. softness as `waldo_visibility`.
 
     Returns:
       coverage [] in [0, 1] (clipped; the small-angle pixel estimate can overshoot near the border).
     """
-    seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near)
+    seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near, softness)
     pixels = seen * intrinsics.fx * intrinsics.fy
     return jnp.clip(pixels / (intrinsics.width * intrinsics.height), 0.0, 1.0)
 

@@ -1,8 +1,10 @@
-"""Scene-space search of "Finding Waldo" (MMSys'24), Algorithm 1: GRS, PIBS and EGPS.
+"""Scene-space search of "Finding Waldo" (MMSys'24), Algorithm 1: GRS, PIBS and EGPS, and beyond the
+paper: gradient refinement (`refine`: `refine`, `refine_poses` and the `+refine` methods) and any evosax
+strategy (`strategy`: "evosax:NAME").
 
 One module per method (`grs`, `pibs`, `egps`), each with a numeric `Params` pytree, a static `Config`
 and a pure `propose(key, population, params, config, epoch)`; the population buffer in `population`;
-CVIR / mCVIR in `metrics`; the registry of methods by name in `registry`; the compiled exploration loop
+CVIR / mCVIR in `metrics`; the registry of methods by name in `registry` (`get_method`); the compiled exploration loop
 in `explore`.
 
     from waldo_jax.search import ExploreConfig, Initial, explore
@@ -34,4 +36,12 @@ from waldo_jax.search.population import top_k_indices as top_k_indices
 from waldo_jax.search.population import training_look_at as training_look_at
 from waldo_jax.search.population import training_poses as training_poses
 from waldo_jax.search.population import write_children as write_children
+from waldo_jax.search.refine import RefineConfig as RefineConfig
+from waldo_jax.search.refine import RefineResult as RefineResult
+from waldo_jax.search.refine import SceneBox as SceneBox
+from waldo_jax.search.refine import refine as refine
+from waldo_jax.search.refine import refine_poses as refine_poses
+from waldo_jax.search.refine import scene_box as scene_box
 from waldo_jax.search.registry import METHODS as METHODS
+from waldo_jax.search.registry import get_method as get_method
+from waldo_jax.search.registry import method_names as method_names

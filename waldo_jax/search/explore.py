@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import pose_to_c2w
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import SearchMethod, split_for_state
 from waldo_jax.search.metrics import EpochMetrics, epoch_metrics, population_cvir, population_mcvir
 from waldo_jax.search.population import (
     DIRECTIONS,
@@ -34,7 +34,8 @@ from waldo_jax.search.population import (
     training_poses,
     write_children,
 )
-from waldo_jax.search.registry import METHODS
+from waldo_jax.search.refine import REFINE_SUFFIX, RefineConfig
+from waldo_jax.search.registry import get_method
 from waldo_jax.types import Array, Pose, PRNGKey
 
 __all__ = [
@@ -109,7 +110,8 @@ class ExploreConfig:
     """Static settings of an exploration run (hashable: it is a static argument of the jit).
 
     Attributes:
-      method: "grs", "pibs" or "egps" (a key of `waldo_jax.search.METHODS`).
+      method: "grs", "pibs", "egps", "grs+refine", "egps+refine", "pibs+refine" or "evosax:NAME"
+        (`waldo_jax.search.get_method`).
       epochs: number of epochs E (paper: 5).
       children_per_epoch: poses generated per epoch; None derives it from the budget.
       budget: "low", "high" or a (min, max) total image count; used when children_per_epoch is None.
@@ -121,6 +123,9 @@ class ExploreConfig:
       focus_min_fraction: training look-at points lie at least this fraction of the distance to the
         scene focus in front of their camera (`population.training_look_at`).
       progress: print one line per epoch (through `jax.debug.callback`).
+      refine: `RefineConfig` of the `+refine` methods (ignored by the others). Their gradient steps
+        count as `refine.renders()` renders, which come out of the children: a budget gives them
+        fewer children per epoch, so every method costs the same (`cost`).
     """
 
     method: str = "egps"
@@ -134,6 +139,7 @@ class ExploreConfig:
     direction: str = "max"
     focus_min_fraction: float = 0.1
     progress: bool = False
+    refine: RefineConfig = RefineConfig()
 
     def __post_init__(self):
         if self.epochs < 1:
@@ -156,7 +162,15 @@ class ExploreConfig:
         """
         resolved = self
         if self.children_per_epoch is None:
-            resolved = dataclasses.replace(self, children_per_epoch=budget_children(n_train, self.budget, self.epochs))
+            children = budget_children(n_train, self.budget, self.epochs)
+            # Gradient steps are paid for with children, so a refining method costs at most what the
+            # others cost (fewer than `epochs` renders less when its gradient renders do not divide evenly).
+            children -= -(-self.gradient_renders() // self.epochs)
+            if children < 1:
+                raise ValueError(f"refinement costs {self.gradient_renders()} renders, more than the {self.budget!r} "
+                                 f"budget leaves for children after {n_train} training views; refine fewer poses "
+                                 "or take fewer steps")
+            resolved = dataclasses.replace(self, children_per_epoch=children)
         capacity = int(n_train) + resolved.epochs * resolved.children_per_epoch
         if resolved.top_k > capacity:
             raise ValueError(f"top_k (--top-k) {resolved.top_k} exceeds the {capacity} views of the run ({n_train} training "
@@ -167,6 +181,27 @@ class ExploreConfig:
         """C = n_train + epochs * children_per_epoch."""
         resolved = self.resolve(n_train)
         return int(n_train) + resolved.epochs * resolved.children_per_epoch
+
+    def gradient_renders(self) -> int:
+        """Renders the method's gradient steps count as (0 unless it refines; `RefineConfig.renders`)."""
+        return self.refine.renders() if self.method.endswith(REFINE_SUFFIX) else 0
+
+    def cost(self, n_train: int) -> dict:
+        """The run's cost in renders, training views included: what the budget bounds.
+
+        Returns:
+          {"renders": total, "training_views": n_train, "children": epochs * children_per_epoch,
+           "gradient_evaluations": poses refined x steps (0 unless the method refines),
+           "renders_per_gradient_evaluation": `RefineConfig.gradient_cost` (0 unless it refines)}.
+          A child counts whether or not its method masked it (a fixed-shape epoch renders it).
+        """
+        resolved = self.resolve(n_train)
+        gradients = resolved.gradient_renders()
+        children = resolved.epochs * resolved.children_per_epoch
+        per_gradient = resolved.refine.gradient_cost if gradients else 0
+        return {"renders": int(n_train) + children + gradients, "training_views": int(n_train), "children": children,
+                "gradient_evaluations": gradients // per_gradient if gradients else 0,
+                "renders_per_gradient_evaluation": per_gradient}
 
 
 @flax.struct.dataclass
@@ -237,10 +272,7 @@ class SeedsResult:
 def _resolve_method(method: Union[str, SearchMethod, None], config: ExploreConfig) -> SearchMethod:
     if isinstance(method, SearchMethod):
         return method
-    name = config.method if method is None else method
-    if name not in METHODS:
-        raise ValueError(f"unknown search method {name!r}; choose one of {sorted(METHODS)}")
-    return METHODS[name]
+    return get_method(config.method if method is None else method)
 
 
 def _as_partial(score_fn: Callable) -> jax.tree_util.Partial:
@@ -249,10 +281,16 @@ def _as_partial(score_fn: Callable) -> jax.tree_util.Partial:
     return score_fn if isinstance(score_fn, jax.tree_util.Partial) else jax.tree_util.Partial(score_fn)
 
 
-def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params):
+def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params, objective_fn=None):
     """Validates the inputs and returns everything the jitted search needs."""
     config = ExploreConfig() if config is None else config
     search_method = _resolve_method(method, config)
+    if search_method.differentiable != search_method.name.endswith(REFINE_SUFFIX):
+        raise ValueError(f"method {search_method.name!r}: a method takes gradient steps exactly when its name "
+                         f"ends with {REFINE_SUFFIX!r} (its budget is counted that way)")
+    if search_method.differentiable and objective_fn is None:
+        raise ValueError(f"method {search_method.name!r} takes gradient steps: pass a differentiable objective_fn "
+                         "(e.g. the criterion's smooth() composed with the render)")
     config = dataclasses.replace(config, method=search_method.name)
     c2w = np.asarray(initial.c2w, np.float32)
     scores = np.asarray(initial.scores, np.float32)
@@ -265,10 +303,12 @@ def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params):
     n_train = c2w.shape[0]
     config = config.resolve(n_train)  # raises when top_k exceeds the capacity
     method_config = search_method.make_config(config.children_per_epoch, top_c=config.top_c,
-                                              pibs_fallback=config.pibs_fallback)
+                                              pibs_fallback=config.pibs_fallback, refine=config.refine,
+                                              epochs=config.epochs)
     params = search_method.default_params() if params is None else params
     poses = training_poses(c2w, initial.focus, config.focus_min_fraction)
-    return search_method, method_config, config, params, poses, jnp.asarray(c2w), jnp.asarray(scores)
+    objective = None if objective_fn is None else _as_partial(objective_fn)
+    return search_method, method_config, config, params, poses, jnp.asarray(c2w), jnp.asarray(scores), objective
 
 
 # ---------------------------------------------------------------------------------------------
@@ -288,27 +328,38 @@ def _report(method_name: str, epochs: int, top_n: int, runs: int, run, epoch, be
               f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}", flush=True)
 
 
-def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, population: Population, epoch: Array, params,
-                method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0,
-                runs: int = 1) -> Population:
-    """One epoch of Algorithm 1: propose, score, write. epoch is 1-based (int32, may be traced).
+def _start(key: PRNGKey, population: Population, params, method: SearchMethod, method_config):
+    """The method's state before epoch 1, from key fold_in(key, 0) (epochs use fold_in(key, e), e >= 1)."""
+    return method.start(jax.random.fold_in(key, 0), population, params, method_config)
 
-    run / runs only label the progress line (run r of a vmapped batch of `runs` seeds).
+
+def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry, epoch: Array, params,
+                method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0, runs: int = 1):
+    """One epoch of Algorithm 1: propose, score, write, tell. epoch is 1-based (int32, may be traced).
+
+    carry is (population, method state); run / runs only label the progress line (run r of a
+    vmapped batch of `runs` seeds).
     """
+    population, state = carry
     n = config.children_per_epoch
-    epoch_key = jax.random.fold_in(key, epoch)
-    children, mask, population = method.propose(epoch_key, population, params, method_config, epoch)
+    ask_key, tell_key = split_for_state(jax.random.fold_in(key, epoch), method)
+    children, mask, population, state = method.ask(ask_key, population, state, params, method_config, epoch,
+                                                   objective)
     c2w = jax.vmap(pose_to_c2w)(children)  # [n, 4, 4]
     scores = jnp.asarray(score_fn(c2w), jnp.float32).reshape(n)
     offset = population.num_train + (epoch - 1) * n
     population = write_children(population, children, c2w, scores, mask, epoch, offset)
+    if method.stateful:
+        sign = 1.0 if population.direction == "max" else -1.0
+        fitness = jnp.where(mask & jnp.isfinite(scores), sign * scores, -jnp.inf)
+        state = method.told(tell_key, state, fitness, params, method_config)
     if config.progress:
         curves = epoch_metrics(population, config.epochs, config.top_n)
         jax.debug.callback(
             lambda *a: _report(method.name, config.epochs, config.top_n, runs, *a),
             run, epoch, curves.best[epoch], curves.mean_top_n[epoch], curves.num_scored[epoch],
             curves.num_failed[epoch])
-    return population
+    return population, state
 
 
 def _finish(population: Population, config: ExploreConfig) -> Result:
@@ -326,22 +377,25 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
     )
 
 
-def _search(key: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
+def _search(key: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
             method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0, runs: int = 1) -> Result:
     population = _init(poses, c2w, scores, config)
+    carry = (population, _start(key, population, params, method, method_config))
 
-    def body(population, epoch):
-        return _epoch_step(key, score_fn, population, epoch, params, method, method_config, config, run, runs), None
+    def body(carry, epoch):
+        return _epoch_step(key, score_fn, objective, carry, epoch, params, method, method_config, config, run,
+                           runs), None
 
-    population, _ = jax.lax.scan(body, population, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
+    (population, _), _ = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
     return _finish(population, config)
 
 
-def _search_seeds(keys: PRNGKey, score_fn, poses: Pose, c2w: Array, scores: Array, params,
+def _search_seeds(keys: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
                   method: SearchMethod, method_config, config: ExploreConfig) -> SeedsResult:
     runs = keys.shape[0]
-    results = jax.vmap(lambda key, run: _search(key, score_fn, poses, c2w, scores, params, method, method_config,
-                                                config, run, runs))(keys, jnp.arange(runs, dtype=jnp.int32))
+    results = jax.vmap(lambda key, run: _search(key, score_fn, objective, poses, c2w, scores, params, method,
+                                                method_config, config, run, runs))(
+        keys, jnp.arange(runs, dtype=jnp.int32))
     return SeedsResult(results=results, cvir_mean=jnp.mean(results.cvir), cvir_std=jnp.std(results.cvir),
                        mcvir_mean=jnp.mean(results.mcvir), mcvir_std=jnp.std(results.mcvir))
 
@@ -350,6 +404,7 @@ _STATIC = ("method", "method_config", "config")
 _search_jit = jax.jit(_search, static_argnames=_STATIC)
 _search_seeds_jit = jax.jit(_search_seeds, static_argnames=_STATIC)
 _init_jit = jax.jit(_init, static_argnames=("config",))
+_start_jit = jax.jit(_start, static_argnames=("method", "method_config"))
 _epoch_step_jit = jax.jit(_epoch_step, static_argnames=_STATIC)
 _finish_jit = jax.jit(_finish, static_argnames=("config",))
 
@@ -360,56 +415,63 @@ _finish_jit = jax.jit(_finish, static_argnames=("config",))
 
 def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
             method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-            params=None) -> Result:
+            params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> Result:
     """Runs one search (Algorithm 1) as a single compiled `lax.scan` over epochs.
 
     Args:
-      key: PRNG key (`jax.random.key(seed)`); epoch e uses `fold_in(key, e)`.
+      key: PRNG key (`jax.random.key(seed)`); epoch e uses `fold_in(key, e)`, a method's initial
+        state `fold_in(key, 0)`.
       score_fn: jit-able c2w [P, 4, 4] -> raw scores [P] (P = children_per_epoch); NaN allowed
         (such a view is kept, counted as failed and never selected). Static (by identity), or a
         `jax.tree_util.Partial` whose bound arrays are traced.
       initial: `Initial` with the training c2w [N, 4, 4] and their scores [N].
-      method: "grs", "pibs", "egps" or a `SearchMethod`; overrides `config.method` when given.
+      method: a name (`get_method`) or a `SearchMethod`; overrides `config.method` when given.
       config: `ExploreConfig` (default: EGPS, 5 epochs, low budget).
       params: the method's `Params` pytree (default: the paper's values).
+      objective_fn: the `+refine` methods' differentiable c2w [P, 4, 4] -> scores [P] (same
+        direction as score_fn; e.g. a render composed with `Criterion.smooth()`); unused otherwise.
 
     Returns:
       `Result`.
     """
-    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
-    return _search_jit(key, _as_partial(score_fn), poses, c2w, scores, params,
+    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+        initial, method, config, params, objective_fn)
+    return _search_jit(key, _as_partial(score_fn), objective, poses, c2w, scores, params,
                        method=search_method, method_config=method_config, config=config)
 
 
 def explore_loop(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
                  method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                 params=None) -> Result:
+                 params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> Result:
     """`explore` as a Python loop over a jitted per-epoch step (same arguments, same result).
 
     Useful to inspect or checkpoint between epochs, and as the reference the scan is tested against.
     """
-    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
+    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+        initial, method, config, params, objective_fn)
     score_fn = _as_partial(score_fn)
     population = _init_jit(poses, c2w, scores, config=config)
+    carry = (population, _start_jit(key, population, params, method=search_method, method_config=method_config))
     for epoch in range(1, config.epochs + 1):
-        population = _epoch_step_jit(key, score_fn, population, jnp.int32(epoch), params,
-                                     method=search_method, method_config=method_config, config=config)
-    return _finish_jit(population, config=config)
+        carry = _epoch_step_jit(key, score_fn, objective, carry, jnp.int32(epoch), params,
+                                method=search_method, method_config=method_config, config=config)
+    return _finish_jit(carry[0], config=config)
 
 
 def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
                   method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                  params=None) -> SeedsResult:
+                  params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> SeedsResult:
     """`explore` for a batch of keys [K], vmapped in one compiled call.
 
     Args:
       keys: [K] PRNG keys (e.g. `jax.random.split(jax.random.key(seed), K)`).
-      score_fn, initial, method, config, params: as `explore`; score_fn is vmapped over the seeds,
-        so it must be vmap-able (any jnp function is).
+      score_fn, initial, method, config, params, objective_fn: as `explore`; score_fn (and
+        objective_fn) are vmapped over the seeds, so they must be vmap-able (any jnp function is).
 
     Returns:
       `SeedsResult`: per-seed `Result`s (leading axis K) and the mean / std of CVIR and mCVIR.
     """
-    search_method, method_config, config, params, poses, c2w, scores = _prepare(initial, method, config, params)
-    return _search_seeds_jit(keys, _as_partial(score_fn), poses, c2w, scores, params,
+    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+        initial, method, config, params, objective_fn)
+    return _search_seeds_jit(keys, _as_partial(score_fn), objective, poses, c2w, scores, params,
                              method=search_method, method_config=method_config, config=config)

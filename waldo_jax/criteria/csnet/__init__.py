@@ -27,12 +27,14 @@ from waldo_jax.criteria.csnet.convert import read_layer_config as read_layer_con
 from waldo_jax.criteria.csnet.convert import torch_shapes as torch_shapes
 from waldo_jax.criteria.csnet.criterion import INPUT_SIZE as INPUT_SIZE
 from waldo_jax.criteria.csnet.criterion import SALIENT_THRESHOLD as SALIENT_THRESHOLD
+from waldo_jax.criteria.csnet.criterion import SOFTNESS as SOFTNESS
 from waldo_jax.criteria.csnet.criterion import CSNetParams as CSNetParams
 from waldo_jax.criteria.csnet.criterion import load_params as load_params
 from waldo_jax.criteria.csnet.criterion import saliency as saliency
 from waldo_jax.criteria.csnet.criterion import saliency_map as saliency_map
 from waldo_jax.criteria.csnet.criterion import saliency_maps as saliency_maps
 from waldo_jax.criteria.csnet.criterion import salient_fraction as salient_fraction
+from waldo_jax.criteria.csnet.criterion import soft_salient_fraction as soft_salient_fraction
 from waldo_jax.criteria.csnet.model import CSFHead as CSFHead
 from waldo_jax.criteria.csnet.model import CSNet as CSNet
 from waldo_jax.criteria.csnet.model import DepthwiseCBR as DepthwiseCBR
@@ -45,6 +47,7 @@ __all__ = [
     "FILES",
     "INPUT_SIZE",
     "SALIENT_THRESHOLD",
+    "SOFTNESS",
     "BlockSpec",
     "CSNetConfig",
     "GOctaveCBR",
@@ -63,5 +66,6 @@ __all__ = [
     "saliency_map",
     "saliency_maps",
     "salient_fraction",
+    "soft_salient_fraction",
     "saliency",
 ]

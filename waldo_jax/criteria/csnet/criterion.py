@@ -35,11 +35,14 @@ __all__ = [
     "saliency_map",
     "saliency_maps",
     "salient_fraction",
+    "soft_salient_fraction",
+    "SOFTNESS",
     "saliency",
 ]
 
 INPUT_SIZE = 224  # the network's input side (training and test size of the reference)
 SALIENT_THRESHOLD = 0.5  # saliency above this counts as a salient pixel (BASNet's count in the paper)
+SOFTNESS = 0.05  # width of the sigmoid that stands in for the threshold in the smooth score
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
 _CHUNK = 16  # images per network call in `saliency_maps`
@@ -129,13 +132,28 @@ def salient_fraction(saliency_image: Array) -> Array:
     return jnp.mean((saliency_image > SALIENT_THRESHOLD).astype(jnp.float32))
 
 
-def _apply(params: CSNetParams, images: Array) -> Array:
-    """Scores [P] of images [P, H, W, 3]: the salient fraction, 0.0 for images with NaN/inf."""
+def soft_salient_fraction(saliency_image: Array, softness: float = SOFTNESS) -> Array:
+    """`salient_fraction` with the step at `SALIENT_THRESHOLD` replaced by a sigmoid of width `softness`:
+    the differentiable stand-in that gradient refinement follows."""
+    return jnp.mean(jax.nn.sigmoid((saliency_image - SALIENT_THRESHOLD) / softness))
+
+
+def _scores(params: CSNetParams, images: Array, fraction) -> Array:
     clean, bad = sanitize_images(images)
     maps = saliency_maps(params, clean)  # [P, H, W]
-    scores = jax.vmap(salient_fraction)(maps)
+    scores = jax.vmap(fraction)(maps)
     bad = bad | ~jnp.all(jnp.isfinite(maps), axis=(1, 2))
     return finite_or_worst(scores, bad, 0.0)
+
+
+def _apply(params: CSNetParams, images: Array) -> Array:
+    """Scores [P] of images [P, H, W, 3]: the salient fraction, 0.0 for images with NaN/inf."""
+    return _scores(params, images, salient_fraction)
+
+
+def _smooth_apply(params: CSNetParams, images: Array) -> Array:
+    """`_apply` with `soft_salient_fraction`."""
+    return _scores(params, images, soft_salient_fraction)
 
 
 _DESCRIPTION = ("CSNet-L-x1 salient-object detection (Gao et al., ECCV 2020): the fraction of pixels with "
@@ -153,7 +171,8 @@ def saliency(context: CriterionContext) -> Criterion:
       DataNotFoundError / WeightsError: from `load_params(context.weights_dir)`.
     """
     return Criterion(params=load_params(context.weights_dir), name="saliency", direction="max",
-                     value_range=(0.0, 1.0), inputs="images", apply=_apply, description=_DESCRIPTION)
+                     value_range=(0.0, 1.0), inputs="images", apply=_apply, description=_DESCRIPTION,
+                     smooth_apply=_smooth_apply)
 
 
-register(CriterionSpec("saliency", "max", "images", _DESCRIPTION, saliency))
+register(CriterionSpec("saliency", "max", "images", _DESCRIPTION, saliency, smooth=True))

@@ -1,0 +1,169 @@
+"""The search methods compared at equal cost: GRS, PIBS, EGPS, EGPS + gradient refinement and evosax
+strategies, on the Waldo room (`waldo_oracle`) and on a trained fox NeRF (`saliency`), low and high
+budgets, K seeds per cell: mean, std and a 95 % bootstrap interval of CVIR and mCVIR.
+
+Equal cost: every method of a (scene, budget) cell costs the same number of renders, training views
+included (`ExploreConfig.cost`); a `+refine` method pays for its gradient evaluations at
+`gradient_cost` renders each, measured here first for each scene with `gradient_cost.measure` (the
+time of a forward-mode gradient over that of a render and exact score, rounded up, at least 2), and
+so has fewer children. On the room the global methods follow the exact oracle; refinement follows
+its smooth stand-in (`Criterion.smooth`: a sigmoid at the image borders instead of the in-frame step)
+and every score reported is the exact oracle's. On fox, refinement follows the smooth salient
+fraction (a sigmoid instead of the 0.5 threshold); scores are the exact salient fraction.
+
+  python benchmarks/methods.py --fox-run RUN --seeds 8 --out benchmarks/results/methods_cpu.json
+  python benchmarks/methods.py --scenes room --budgets low --seeds 2 --quick   # a minute
+
+The interval is the 2.5 and 97.5 percentiles of the mean over `--bootstrap` resamples of the seeds
+(NumPy generator seeded with 0). `beats_egps`: the method's mCVIR interval lies wholly above EGPS's.
+Writes `<out>.partial` after each cell, the final JSON (never over an existing file) at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
+import numpy as np  # noqa: E402
+
+from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from gradient_cost import measure  # noqa: E402
+from waldo_jax.criteria import CriterionContext, build_criterion  # noqa: E402
+from waldo_jax.pipeline import load_source, run_explore  # noqa: E402
+from waldo_jax.search import ExploreConfig, RefineConfig  # noqa: E402
+
+METHODS = ("grs", "pibs", "egps", "egps+refine", "evosax:CMA_ES", "evosax:SNES")
+SCENES = {"room": ("procedural:0", "waldo_oracle"), "fox": (None, "saliency")}
+
+
+def bootstrap_interval(values, resamples: int, seed: int = 0):
+    """(low, high): the 2.5 and 97.5 percentiles of the mean of `values` resampled with replacement."""
+    values = np.asarray([v for v in values if v is not None and math.isfinite(v)], np.float64)
+    if len(values) == 0:
+        return None, None
+    rng = np.random.default_rng(seed)
+    means = rng.choice(values, size=(resamples, len(values)), replace=True).mean(axis=1)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
+def summary(values, resamples: int) -> dict:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    low, high = bootstrap_interval(finite, resamples)
+    return {"mean": float(np.mean(finite)) if finite else None, "std": float(np.std(finite)) if finite else None,
+            "ci95": [low, high], "values": values, "finite": len(finite)}
+
+
+def run_cell(source, criterion, method: str, budget: str, refine: RefineConfig, args) -> dict:
+    config = ExploreConfig(method=method, budget=budget, epochs=5, top_k=10, refine=refine)
+    run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial)
+    cvir = [float(r.cvir) if np.isfinite(r.cvir) else None for r in run.results]
+    mcvir = [float(r.mcvir) if np.isfinite(r.mcvir) else None for r in run.results]
+    resolved = run.config
+    return {"method": method, "budget": budget, "cost": resolved.cost(source.n_train),
+            "children_per_epoch": resolved.children_per_epoch, "initial_scores": run.initial,
+            "cvir": summary(cvir, args.bootstrap), "mcvir": summary(mcvir, args.bootstrap),
+            "best": [float(r.metrics.best[-1]) for r in run.results], "seconds": run.seconds}
+
+
+def compare(cells: list) -> None:
+    """Marks the cells whose mCVIR interval lies wholly above EGPS's of the same scene and budget."""
+    egps = {(c["scene"], c["budget"]): c for c in cells if c["method"] == "egps"}
+    for cell in cells:
+        reference = egps.get((cell["scene"], cell["budget"]))
+        low = cell["mcvir"]["ci95"][0]
+        high = reference["mcvir"]["ci95"][1] if reference else None
+        cell["beats_egps"] = bool(reference is not None and low is not None and high is not None and low > high
+                                  and cell["method"] != "egps")
+
+
+def table(cells: list) -> str:
+    """A Markdown table: one row per scene, budget and method."""
+    def fmt(s):
+        if s["mean"] is None:
+            return "n/a"
+        return f"{s['mean']:.1f} ± {s['std']:.1f} [{s['ci95'][0]:.1f}, {s['ci95'][1]:.1f}]"
+
+    lines = ["| scene | budget | method | cost (renders) | CVIR % mean ± std [95 % CI] | mCVIR % mean ± std [95 % CI] |",
+             "|---|---|---|---|---|---|"]
+    for c in cells:
+        mark = " **(> EGPS)**" if c.get("beats_egps") else ""
+        lines.append(f"| {c['scene']} | {c['budget']} | {c['method']}{mark} | {c['cost']['renders']} | "
+                     f"{fmt(c['cvir'])} | {fmt(c['mcvir'])} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", default="room,fox")
+    parser.add_argument("--fox-run", default=None, help="run directory of `waldo train` on fox (needed for fox)")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--budgets", default="low,high")
+    parser.add_argument("--seeds", type=int, default=8)
+    parser.add_argument("--seed", type=int, default=0, help="first seed")
+    parser.add_argument("--resolution", type=int, default=32, help="longer side of the fox renders")
+    parser.add_argument("--room-resolution", type=int, default=64)
+    parser.add_argument("--initial", default="renders", help="initial scores: images or renders")
+    parser.add_argument("--refine-poses", type=int, default=None, help="default: 4 on the room, 2 on fox")
+    parser.add_argument("--refine-steps", type=int, default=None, help="default: 4 on the room, 3 on fox")
+    parser.add_argument("--step-size", type=float, default=0.02)
+    parser.add_argument("--gradient-cost", type=int, default=None, help="default: measured per scene")
+    parser.add_argument("--bootstrap", type=int, default=10000)
+    parser.add_argument("--quick", action="store_true", help="smoke run: no timing repeats")
+    parser.add_argument("--load-threshold", type=float, default=1.0)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    refuse_existing_out(args.out)
+    quiet = wait_for_quiet(args.load_threshold, max_wait_s=0 if args.quick else 300)
+    result = header("methods")
+    result["settings"] = {k: v for k, v in vars(args).items()}
+    cells, costs = [], {}
+    start = time.perf_counter()
+    for scene in args.scenes.split(","):
+        spec, criterion_name = SCENES[scene]
+        resolution = args.room_resolution if scene == "room" else args.resolution
+        if scene == "fox":
+            if not args.fox_run:
+                raise SystemExit("--fox-run RUN is needed for the fox scene (a run directory of `waldo train`)")
+            spec = args.fox_run
+        source = load_source(spec, resolution)
+        criterion = build_criterion(criterion_name, CriterionContext(room=source.room, source=source.spec))
+        if args.gradient_cost is None:
+            measured = measure(f"{spec}:{criterion_name}", resolution, 4 if scene == "room" else 2,
+                               1 if args.quick else 3)
+            costs[scene] = measured
+            gradient_cost = max(2, math.ceil(measured["ratio"]))
+        else:
+            gradient_cost = args.gradient_cost
+        refine = RefineConfig(poses=args.refine_poses or (4 if scene == "room" else 2),
+                              steps=args.refine_steps or (4 if scene == "room" else 3), step_size=args.step_size,
+                              gradient_cost=gradient_cost)
+        for budget in args.budgets.split(","):
+            for method in args.methods.split(","):
+                cell = run_cell(source, criterion, method, budget, refine, args)
+                cell.update({"scene": scene, "source": source.spec, "criterion": criterion.name,
+                             "refine": dataclasses.asdict(refine) if "+refine" in method else None})
+                cells.append(cell)
+                print(f"[methods] {scene} {budget} {method}: mCVIR {cell['mcvir']['mean']}, "
+                      f"CVIR {cell['cvir']['mean']}, cost {cell['cost']['renders']}, {cell['seconds']['total']:.0f} s",
+                      file=sys.stderr, flush=True)
+                if args.out:
+                    Path(args.out + ".partial").write_text(json.dumps({"cells": cells, "gradient_cost": costs}))
+    compare(cells)
+    result.update({"cells": cells, "gradient_cost": costs, "table": table(cells),
+                   "seconds": round(time.perf_counter() - start, 1)})
+    print(result["table"], file=sys.stderr)
+    emit_with_load(result, args.out, quiet, args.load_threshold)
+    if args.out:
+        Path(args.out + ".partial").unlink(missing_ok=True)
+
+
+if __name__ == "__main__":
+    main()
