@@ -40,7 +40,8 @@ import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 from bench_common import emit_with_load, header, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.pipeline import load_source, run_explore, write_outputs  # noqa: E402
-from waldo_jax.search import METHODS, ExploreConfig  # noqa: E402
+from waldo_jax.search import ExploreConfig  # noqa: E402
+from waldo_jax.search.registry import PAPER_METHODS  # noqa: E402
 
 SOURCE = "procedural"
 TARGET_S = 30.0
@@ -92,7 +93,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--methods", default=",".join(PAPER_METHODS))
     parser.add_argument("--criteria", default="waldo_oracle,colorfulness")
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")

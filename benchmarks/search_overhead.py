@@ -42,7 +42,8 @@ import numpy as np  # noqa: E402
 
 from bench_common import emit_with_load, header, timed, wait_for_quiet  # noqa: E402
 from waldo_jax.cameras import look_at  # noqa: E402
-from waldo_jax.search import METHODS, ExploreConfig, Initial, explore  # noqa: E402
+from waldo_jax.search import ExploreConfig, Initial, explore  # noqa: E402
+from waldo_jax.search.registry import PAPER_METHODS  # noqa: E402
 
 GOAL = jnp.array([0.3, 1.0, -0.2], jnp.float32)  # the point the trivial score pulls cameras towards
 SOLUTION_DIMS = 9  # SimpleGA solutions: origin, look-at point and up, like a pose
@@ -171,7 +172,7 @@ def main(argv=None):
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--children", type=int, default=196, help="children per epoch (default 196: 980 poses)")
     parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--methods", default=",".join(PAPER_METHODS))
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
