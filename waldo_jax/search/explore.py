@@ -350,8 +350,7 @@ def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry,
     offset = population.num_train + (epoch - 1) * n
     population = write_children(population, children, c2w, scores, mask, epoch, offset)
     if method.stateful:
-        sign = 1.0 if population.direction == "max" else -1.0
-        fitness = jnp.where(mask & jnp.isfinite(scores), sign * scores, -jnp.inf)
+        fitness = jax.lax.dynamic_slice(population.fitness, (offset,), (n,))  # -inf where masked or failed
         state = method.told(tell_key, state, fitness, params, method_config)
     if config.progress:
         curves = epoch_metrics(population, config.epochs, config.top_n)
