@@ -183,6 +183,15 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "cma"), *tiny_run,
                  "--method", "evosax:CMA_ES"]) == 0
     assert json.loads((tmp_path / "cma" / "results.json").read_text())["method"] == "evosax:CMA_ES"
+    # A camera path through the trained run; its nerfstudio export renders back with the NeRF, and the
+    # room's analytic truth is written beside it.
+    assert main(["path", str(out / "nerf"), "--out", str(tmp_path / "path"), "--resolution", "16", "--keyframes", "3",
+                 "--frames", "6", "--epochs", "1", "--initial-paths", "4", "--paths-per-epoch", "3",
+                 "--max-speed", "0.5", "--max-turn", "60"]) == 0
+    assert (tmp_path / "path" / "path_truth.mp4").is_file()
+    assert main(["render", str(out / "nerf"), "--poses", str(tmp_path / "path" / "camera_path.json"),
+                 "--out", str(tmp_path / "path_render"), "--resolution", "12"]) == 0
+    assert len(list((tmp_path / "path_render").glob("*.png"))) == 6
 
 
 

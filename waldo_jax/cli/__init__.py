@@ -6,6 +6,7 @@ Commands:
   waldo render procedural[:SEED] --out DIR             the procedural room's training views, PNGs + sheet (`render`)
   waldo render RUN_DIR --poses FILE|train --out DIR    render poses with a trained field (`render`)
   waldo explore SOURCE --criterion NAME --method M     search a scene (GRS / PIBS / EGPS), write results (`explore`)
+  waldo path SOURCE --criterion NAME --keyframes K   search a camera path, export it (nerfstudio, NGP, MP4) (`path`)
   waldo demo [--out DIR] [--quick]                     the room end to end: train, search, report (`demo`)
   waldo score --criterion NAME IMAGE... [--json]        score image files with a criterion (`score`)
   waldo weights convert SRC DST                        criterion weights to the native .npz format (`weights`)
@@ -22,7 +23,7 @@ import sys
 import warnings
 from typing import List, Optional
 
-from waldo_jax.cli import demo, explore, render, scene, score, train, weights
+from waldo_jax.cli import demo, explore, path, render, scene, score, train, weights
 from waldo_jax.errors import WaldoError, check_seed
 
 __all__ = ["main", "build_parser"]
@@ -36,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
-    for command in (scene, train, explore, score, weights, demo, render):
+    for command in (scene, train, explore, path, score, weights, demo, render):
         command.add_command(commands)
     return parser
 

@@ -1,10 +1,11 @@
 """`waldo render`: views to PNGs, of the procedural room or of a trained run.
 
     waldo render procedural[:SEED] --out DIR [--resolution R] [--views N] [--samples S]
+    waldo render procedural[:SEED] --poses FILE --out DIR [--resolution R] [--samples S]
     waldo render RUN_DIR --poses FILE|train --out DIR [--resolution R]
 
 The room renders its training views analytically, with a contact sheet, transforms.json and
-room.json (Waldo's visibility per view). A run renders the poses of a file read by
+room.json (Waldo's visibility per view), or, with --poses, the cameras of a poses file. A run renders the poses of a file read by
 `waldo_jax.scenes.read_poses_file` (a JSON object with `frames[].transform_matrix`: instant-ngp /
 nerfstudio transforms, OpenGL camera-to-world in the scene's world frame, as the training poses;
 nerfstudio viewer camera paths are refused) or its training poses. Intrinsics come from the file
@@ -28,7 +29,10 @@ from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.trained import render_trained
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
-from waldo_jax.procedural import RoomCameraConfig, room_scene, waldo_visibility_batch
+from waldo_jax.procedural import RoomCameraConfig, make_room, room_field, room_render_config, room_scene, \
+    waldo_visibility_batch
+from waldo_jax.render import render_views
+from waldo_jax.types import Intrinsics
 from waldo_jax.scenes import read_poses_file
 
 __all__ = ["add_command", "cmd_render", "MAX_RENDER_POSES", "RENDER_GROUP_PIXELS"]
@@ -46,7 +50,8 @@ def add_command(subparsers) -> None:
     render.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or RUN_DIR")
     render.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     render.add_argument("--poses", default=None, metavar="FILE|train",
-                        help="RUN_DIR only: a transforms.json-like file, or 'train' for the training poses")
+                        help="a transforms.json-like file or a camera path of `waldo path`; RUN_DIR also takes "
+                             "'train' for its training poses")
     render.add_argument("--resolution", type=int, default=None,
                         help="procedural: image side (default 128); RUN_DIR: longer side (default: camera's)")
     render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default 0)")
@@ -72,10 +77,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     """`waldo render procedural[:SEED]`: the room's training views, a sheet, transforms.json, room.json."""
+    if args.poses is not None:
+        return _render_procedural_poses(args, seed)
     resolution = 128 if args.resolution is None else args.resolution
     args.resolution = resolution
-    if args.poses is not None:
-        raise WaldoError("--poses is for trained runs; the procedural room renders its own training views")
     args.views = check_views(DEFAULT_PROCEDURAL_VIEWS if args.views is None else args.views)
     check_resolution(args.resolution)
     args.samples = 128 if args.samples is None else args.samples
@@ -112,6 +117,47 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     print(f"wrote {args.views} views of procedural:{seed} at {args.resolution}x{args.resolution} to {out} "
           f"(contact_sheet.png, transforms.json, room.json) in {seconds:.1f} s; "
           f"best training-view Waldo visibility {visibility.max():.0%}")
+    return 0
+
+
+def _render_procedural_poses(args: argparse.Namespace, seed: int) -> int:
+    """`waldo render procedural[:SEED] --poses FILE`: the room's analytic renders of a poses file's cameras."""
+    if args.poses == "train":
+        raise WaldoError("--poses train is for trained runs; `waldo render procedural` renders the room's training "
+                         "views without --poses")
+    if args.views is not None:
+        raise WaldoError("--views: the procedural room renders the poses of --poses, not training views")
+    samples = 128 if args.samples is None else args.samples
+    if not 1 <= samples <= 1024:
+        raise WaldoError(f"--samples must be between 1 and 1024, got {samples}")
+    poses_path = Path(args.poses)
+    if not poses_path.exists():
+        raise WaldoError(f"{poses_path}: no such poses file")
+    default = Intrinsics.from_fov(128, 128, RoomCameraConfig().fov_x)
+    c2w, intrinsics, _ = read_poses_file(poses_path, default)
+    if args.resolution is not None:
+        check_resolution(args.resolution)
+        intrinsics = intrinsics.with_max_side(args.resolution)
+    if len(c2w) > MAX_RENDER_POSES:
+        raise WaldoError(f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} (split the file)")
+    out = io.prepare_output_dir(args.out, force=args.force)
+    names = [f"{i:04d}.png" for i in range(len(c2w))]
+    stale = io.stale_files(out, r"\d{4,}\.png", names)
+    room = make_room(seed)
+    config = room_render_config(room, num_samples=samples)
+    start = time.perf_counter()
+    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
+    for first in range(0, len(c2w), group):
+        part = c2w[first:first + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
+        images = np.asarray(render_views(room_field, room, jnp.asarray(padded), intrinsics, config).rgb)[:len(part)]
+        for name, image in zip(names[first:first + group], images):
+            io.save_png(out / name, image)
+    seconds = time.perf_counter() - start
+    for path in stale:
+        path.unlink()
+    print(f"wrote {len(names)} PNGs of procedural:{seed} at {intrinsics.width}x{intrinsics.height} to {out} "
+          f"in {seconds:.1f} s")
     return 0
 
 

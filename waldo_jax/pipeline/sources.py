@@ -238,6 +238,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     render, render_rgba = field_renderer(*renderer_args), field_renderer(*renderer_args, rgba=True)
     info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
             "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
+    if "scale" in record.metadata and "offset" in record.metadata:  # instant-ngp's frame, for its camera paths
+        info["ngp_scale"], info["ngp_offset"] = record.metadata["scale"], record.metadata["offset"]
     room, truth = None, None
     if record.format == "procedural":
         seed = int(record.metadata.get("seed", 0))

@@ -10,6 +10,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.scenes.camera_paths import is_camera_path, read_camera_path
 from waldo_jax.errors import (
     MAX_RESOLUTION,
     MIN_RESOLUTION,
@@ -87,9 +88,10 @@ def read_poses_file(
     be 4x4, 3x4 (the (0, 0, 0, 1) row is added) or 16 numbers; it must be finite and rigid (rotation
     orthonormal within `RIGID_TOL`, det +1). Intrinsics come from the file when it has a focal length
     (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`, with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`; a
-    missing size is taken from `default_intrinsics`), else they are `default_intrinsics`. nerfstudio
-    viewer camera paths (`camera_path`) are refused: they live in nerfstudio's normalised world, which
-    `load_scene` does not reproduce.
+    missing size is taken from `default_intrinsics`), else they are `default_intrinsics`. Camera paths
+    written by `waldo path` (nerfstudio `camera_path.json`, Instant-NGP paths; `waldo_jax.scenes.camera_paths`)
+    are read back into the scene's frame; other tools' camera paths are refused: their world frame
+    (nerfstudio's normalised one, NGP's scaled one) is not known.
 
     Args:
       path: the JSON file.
@@ -130,10 +132,15 @@ def read_poses_file(
             name = frame.get("file_path")
             names.append(None if name is None else str(name))
         return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
-    if "camera_path" in meta:
-        # nerfstudio's viewer writes camera paths in its own normalised world (after its dataparser's
-        # orientation and scale), not in the frame of the scene's transforms.json.
-        raise SceneFormatError(
-            path, "a nerfstudio camera path is in nerfstudio's normalised world frame, not the scene's; "
-            "pass a transforms.json-like file with frames[].transform_matrix in the scene's own frame")
+    if is_camera_path(meta):
+        try:
+            c2w, intrinsics = read_camera_path(meta, default_intrinsics)
+        except ValueError as e:
+            raise SceneFormatError(path, str(e)) from None
+        if not (MIN_RESOLUTION <= min(intrinsics.width, intrinsics.height)
+                and max(intrinsics.width, intrinsics.height) <= MAX_RESOLUTION):
+            raise SceneFormatError(path, f"camera of {intrinsics.width}x{intrinsics.height} pixels: sides must lie "
+                                   f"between {MIN_RESOLUTION} and {MAX_RESOLUTION}")
+        poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
+        return np.stack(poses).astype(np.float32), intrinsics, [None] * len(poses)
     raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")

@@ -45,3 +45,15 @@ from waldo_jax.search.refine import scene_box as scene_box
 from waldo_jax.search.registry import METHODS as METHODS
 from waldo_jax.search.registry import get_method as get_method
 from waldo_jax.search.registry import method_names as method_names
+from waldo_jax.search.path import PathLimits as PathLimits
+from waldo_jax.search.path import path_c2w as path_c2w
+from waldo_jax.search.path import path_motion as path_motion
+from waldo_jax.search.path import sample_path as sample_path
+from waldo_jax.search.path import straight_path as straight_path
+from waldo_jax.search.path_search import PATH_BUDGETS as PATH_BUDGETS
+from waldo_jax.search.path_search import PathConfig as PathConfig
+from waldo_jax.search.path_search import PathResult as PathResult
+from waldo_jax.search.path_search import path_limits as path_limits
+from waldo_jax.search.path_search import search_path as search_path
+from waldo_jax.search.path_search import search_path_loop as search_path_loop
+from waldo_jax.search.path_search import search_path_seeds as search_path_seeds

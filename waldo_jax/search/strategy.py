@@ -8,7 +8,7 @@ from the training poses: a distribution-based strategy (CMA-ES, SNES, ...) at th
 pose with `Params.std_init` (1.0: the training spread), a population-based one (SimpleGA, PSO, DE, ...)
 from the best `children_per_epoch` training poses (repeated when there are fewer) and their fitness.
 Each epoch asks `children_per_epoch` vectors (its population size), and tells their fitness back
-negated (evosax minimises; a failed or masked child gets `_WORST`, far worse than any score), inside
+negated (evosax minimises; a failed or masked child gets `WORST`, far worse than any score), inside
 the exploration's one `lax.scan`. Choices and their reasons: docs/design.md, "Search > evosax strategies".
 """
 
@@ -19,6 +19,7 @@ import functools
 from typing import Any, Tuple
 
 import flax.struct
+import jax
 import jax.numpy as jnp
 
 from waldo_jax.search import grs
@@ -26,14 +27,14 @@ from waldo_jax.search.method import SearchMethod
 from waldo_jax.search.population import Population, top_k_indices
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["PREFIX", "POSE_DIM", "Params", "Config", "EvosaxState", "strategy_names", "pose_scaling",
-           "to_vector", "to_pose", "evosax_method"]
+__all__ = ["PREFIX", "POSE_DIM", "WORST", "Params", "Config", "EvosaxState", "strategy_names", "make_strategy",
+           "is_distribution_based", "strategy_params", "pose_scaling", "to_vector", "to_pose", "evosax_method"]
 
 PREFIX = "evosax:"
 POSE_DIM = 9
 _SCALE_FLOOR = 0.05
 # evosax minimises: a failed child's loss. Large but finite, so that rankings and means stay finite.
-_WORST = 1e30
+WORST = 1e30
 
 
 @flax.struct.dataclass
@@ -59,7 +60,7 @@ class Config:
         if self.children_per_epoch < 2:
             raise ValueError(f"an evosax strategy needs a population of at least 2, got {self.children_per_epoch} "
                              "children per epoch")
-        _strategy(self.strategy, self.children_per_epoch)  # raises a clear error for an unusable one
+        make_strategy(self.strategy, self.children_per_epoch)  # raises a clear error for an unusable one
 
 
 @flax.struct.dataclass
@@ -86,24 +87,30 @@ def strategy_names() -> Tuple[str, ...]:
 
 
 @functools.lru_cache(maxsize=None)
-def _strategy(name: str, population_size: int):
+def make_strategy(name: str, population_size: int, dim: int = POSE_DIM):
+    """The evosax strategy `name` for `population_size` solutions of `dim` numbers (one object per
+    arguments, so compilations are shared). Raises ValueError naming an unknown or unusable strategy."""
     from evosax.algorithms import algorithms
 
     if name not in algorithms:
         raise ValueError(f"unknown evosax strategy {name!r}; choose one of {', '.join(strategy_names())}")
     try:
-        return algorithms[name](population_size=population_size, solution=jnp.zeros(POSE_DIM, jnp.float32))
+        # Cached: built eagerly even when first asked for inside a jit trace, so no tracer is kept.
+        with jax.ensure_compile_time_eval():
+            return algorithms[name](population_size=population_size, solution=jnp.zeros(dim, jnp.float32))
     except TypeError as error:  # strategies that need more than a population size (SV_CMA_ES, RandomSearch)
         raise ValueError(f"evosax strategy {name!r} cannot run as a pose search: {error}") from None
 
 
-def _is_distribution_based(strategy) -> bool:
+def is_distribution_based(strategy) -> bool:
+    """True for evosax's distribution-based strategies (CMA-ES, SNES, ...): they start from one mean."""
     from evosax.algorithms.distribution_based.base import DistributionBasedAlgorithm
 
     return isinstance(strategy, DistributionBasedAlgorithm)
 
 
-def _strategy_params(strategy, params: Params):
+def strategy_params(strategy, params: Params):
+    """The strategy's default evosax params with `Params.std_init` where it has one."""
     defaults = strategy.default_params
     if "std_init" in getattr(defaults, "__dataclass_fields__", {}):
         return defaults.replace(std_init=jnp.asarray(params.std_init, jnp.float32))
@@ -134,18 +141,18 @@ def pose_scaling(population: Population) -> Tuple[Array, Array]:
 
 
 def _init(key: PRNGKey, population: Population, params: Params, config: Config) -> EvosaxState:
-    strategy = _strategy(config.strategy, config.children_per_epoch)
+    strategy = make_strategy(config.strategy, config.children_per_epoch)
     shift, scale = pose_scaling(population)
     n = config.children_per_epoch
     order, ok = top_k_indices(population, min(n, population.num_train))
     order = jnp.tile(order, -(-n // order.shape[0]))[:n]  # the best training poses, repeated to n
     ok = jnp.tile(ok, -(-n // ok.shape[0]))[:n]
     start = (to_vector(population.poses)[order] - shift) / scale  # [n, 9]
-    es_params = _strategy_params(strategy, params)
-    if _is_distribution_based(strategy):
+    es_params = strategy_params(strategy, params)
+    if is_distribution_based(strategy):
         es_state = strategy.init(key, start[0], es_params)
     else:
-        loss = jnp.where(ok, -population.fitness[order], _WORST)
+        loss = jnp.where(ok, -population.fitness[order], WORST)
         es_state = strategy.init(key, start, loss, es_params)
     return EvosaxState(strategy=es_state, asked=jnp.zeros((n, POSE_DIM), jnp.float32), shift=shift, scale=scale)
 
@@ -153,8 +160,8 @@ def _init(key: PRNGKey, population: Population, params: Params, config: Config) 
 def _propose(key: PRNGKey, population: Population, state: EvosaxState, params: Params, config: Config,
              epoch: Array, objective) -> Tuple[Pose, Array, Population, EvosaxState]:
     del epoch, objective
-    strategy = _strategy(config.strategy, config.children_per_epoch)
-    asked, es_state = strategy.ask(key, state.strategy, _strategy_params(strategy, params))
+    strategy = make_strategy(config.strategy, config.children_per_epoch)
+    asked, es_state = strategy.ask(key, state.strategy, strategy_params(strategy, params))
     asked = jnp.asarray(asked, jnp.float32)
     children = to_pose(state.shift + state.scale * asked)
     return children, jnp.ones(config.children_per_epoch, bool), population, state.replace(
@@ -162,9 +169,9 @@ def _propose(key: PRNGKey, population: Population, state: EvosaxState, params: P
 
 
 def _tell(key: PRNGKey, state: EvosaxState, fitness: Array, params: Params, config: Config) -> EvosaxState:
-    strategy = _strategy(config.strategy, config.children_per_epoch)
-    loss = jnp.where(jnp.isfinite(fitness), -fitness, _WORST)
-    es_state, _ = strategy.tell(key, state.asked, loss, state.strategy, _strategy_params(strategy, params))
+    strategy = make_strategy(config.strategy, config.children_per_epoch)
+    loss = jnp.where(jnp.isfinite(fitness), -fitness, WORST)
+    es_state, _ = strategy.tell(key, state.asked, loss, state.strategy, strategy_params(strategy, params))
     return state.replace(strategy=es_state)
 
 

@@ -1,0 +1,352 @@
+"""A camera-path experiment: source + criterion + path search -> `PathRun`, and its files.
+
+`run_path` scores the anchor poses (the training views, as `explore` does, or the top poses of an
+earlier `explore` run), runs `waldo_jax.search.path_search.search_path` (one seed, or several vmapped),
+evaluates the two reference paths (the straight path between the two best anchors, and the
+training trajectory: the spline through every training camera in order, at the same F frames)
+under the same criterion and limits, and renders the best path's frames for the video.
+`write_path_outputs` writes camera_path.json (nerfstudio), instant_ngp_path.json, poses.json,
+path.mp4 and path.gif, path_sheet.png, scores.png, path_plot.png and results.json (and, for a NeRF
+of the room, path_truth.mp4: the NeRF beside the analytic room).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax import io
+from waldo_jax.scenes.camera_paths import NGP_DEFAULT_OFFSET, NGP_DEFAULT_SCALE, instant_ngp_camera_path, \
+    nerfstudio_camera_path
+from waldo_jax.search.path import PathLimits, path_c2w, straight_path
+from waldo_jax.search.path_search import PathConfig, aggregate_scores, search_path, search_path_seeds
+from waldo_jax.criteria import Criterion
+from waldo_jax.errors import WaldoError
+from waldo_jax.pipeline.experiment import EPOCH_BYTES_PER_PIXEL, initial_scores, memory_bytes, seed_keys
+from waldo_jax.pipeline.sources import Source
+from waldo_jax.search.population import training_poses
+from waldo_jax.cameras import camera_focus
+
+__all__ = ["PathRun", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
+           "paths_per_call", "evaluate_path"]
+
+VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
+
+
+def _frames_posed(criterion: Criterion, intrinsics, c2w):
+    return criterion.apply(criterion.params, c2w, intrinsics), jnp.ones(c2w.shape[0], jnp.float32)
+
+
+def _frames_rendered(render_rgba, criterion: Criterion, c2w):
+    rgba = render_rgba(c2w)
+    images = rgba if criterion.inputs == "renders" else rgba[..., :3]
+    return criterion.apply(criterion.params, images), jnp.mean(rgba[..., 3], axis=(1, 2))
+
+
+def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
+    """c2w [B, 4, 4] -> (scores [B], mean opacity [B]). A pose criterion renders nothing (opacity 1)."""
+    if criterion.inputs == "poses":
+        return jax.tree_util.Partial(_frames_posed, criterion, source.intrinsics)
+    if source.render_rgba is None:
+        raise WaldoError(f"{source.spec} cannot render opacity, which path limits need")
+    return jax.tree_util.Partial(_frames_rendered, source.render_rgba, criterion)
+
+
+def paths_per_call(source: Source, config: PathConfig) -> int:
+    """Paths scored per vectorised call so that one call's frames fit in memory (`EPOCH_BYTES_PER_PIXEL`)."""
+    per_path = config.frames * source.intrinsics.width * source.intrinsics.height * EPOCH_BYTES_PER_PIXEL
+    return int(max(1, memory_bytes() // max(per_path, 1)))
+
+
+def read_explore_anchors(run_dir: str) -> np.ndarray:
+    """The top poses [k, 4, 4] of an `explore` run folder (its poses.json)."""
+    from waldo_jax.scenes import read_poses_file
+    from waldo_jax.types import Intrinsics
+
+    path = Path(run_dir) / "poses.json"
+    if not path.is_file():
+        raise WaldoError(f"--from-explore {run_dir}: no poses.json (is it the --out folder of `waldo explore`?)")
+    c2w, _, _ = read_poses_file(path, Intrinsics.create(64, 64, 64.0))
+    return c2w
+
+
+def evaluate_path(frame_fn, c2w: np.ndarray, limits: PathLimits, config: PathConfig) -> Dict[str, Any]:
+    """Score, per-frame scores, violation and motion figures of frames c2w [F, 4, 4]."""
+    scores, opacity = frame_fn(jnp.asarray(c2w))
+    scores = np.asarray(scores, np.float32)
+    violation, motion = limits.violation(jnp.asarray(c2w), jnp.asarray(opacity, jnp.float32))
+    return {"score": float(aggregate_scores(jnp.asarray(scores), config)), "frame_scores": scores,
+            "mean": float(np.mean(scores)), "worst": float(np.min(scores) if config.direction == "max" else np.max(scores)),
+            "violation": float(violation), "opacity": np.asarray(opacity, np.float32), **_motion_figures(motion)}
+
+
+def _motion_figures(motion) -> Dict[str, float]:
+    return {"travel": float(jnp.sum(motion.speed)), "max_speed": float(jnp.max(motion.speed)),
+            "max_turn_degrees": float(jnp.max(motion.turn)),
+            "max_jerk": float(jnp.max(motion.jerk))}
+
+
+_evaluate_jit = jax.jit(lambda frame_fn, c2w: frame_fn(c2w))
+
+
+@dataclasses.dataclass
+class PathRun:
+    """A finished path search (host side).
+
+    Attributes:
+      source, criterion, config (resolved), limits: what ran.
+      seeds: the seeds; results: a `PathResult` per seed (NumPy leaves).
+      anchors: "training views" or "explore run DIR"; anchor_c2w [A, 4, 4], anchor_scores [A].
+      found: per seed, `evaluate_path` of its best path.
+      references: {"straight": ..., "training": ...} `evaluate_path` of the two reference paths.
+      frames: float32 [F, H, W, 3] the first seed's best path rendered for the video; opacity [F];
+        truth: the same frames by the analytic room (a NeRF of the room), or None.
+      seconds: {"setup", "search", "render", "total"}.
+    """
+
+    source: Source
+    criterion: Criterion
+    config: PathConfig
+    limits: PathLimits
+    seeds: List[int]
+    results: List[Any]
+    anchors: str
+    anchor_c2w: np.ndarray
+    anchor_scores: np.ndarray
+    found: List[Dict[str, Any]]
+    references: Dict[str, Dict[str, Any]]
+    frames: np.ndarray
+    truth: Optional[np.ndarray]
+    seconds: Dict[str, float]
+    video_source: Optional[Source] = None
+
+
+def _render_frames(render, c2w: np.ndarray, pixels: int) -> np.ndarray:
+    group = max(1, min(len(c2w), VIDEO_GROUP_PIXELS // pixels))
+    parts = []
+    for first in range(0, len(c2w), group):
+        part = c2w[first:first + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
+        parts.append(np.asarray(render(jnp.asarray(padded)), np.float32)[:len(part)])
+    return np.concatenate(parts)
+
+
+def _training_trajectory(train_c2w: np.ndarray, frames: int) -> np.ndarray:
+    poses = training_poses(train_c2w, camera_focus(train_c2w))
+    return np.asarray(path_c2w(poses, frames))
+
+
+def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: PathLimits, seed: int = 0,
+             seeds: int = 1, anchor_c2w: Optional[np.ndarray] = None, anchors: str = "training views",
+             initial: str = "images", video_source: Optional[Source] = None,
+             setup_seconds: float = 0.0) -> PathRun:
+    """Runs the path search (`seeds` seeds in one vmapped call) and renders the first seed's best path.
+
+    Args:
+      source, criterion: what renders and scores; the criterion's direction overrides config's.
+      config, limits: `PathConfig` and `PathLimits`.
+      seed, seeds: seeds seed, seed + 1, ... (`seed_keys`).
+      anchor_c2w: the anchor poses [A, 4, 4] (default: the training views, scored as `initial` says).
+      anchors: what the anchors are, in words (results.json).
+      video_source: the source rendering the video frames (another resolution); default `source`.
+    """
+    start = time.perf_counter()
+    config = dataclasses.replace(config, direction=criterion.direction).resolve()
+    if config.paths_per_call is None:
+        config = dataclasses.replace(config, paths_per_call=min(paths_per_call(source, config),
+                                                                max(config.paths_per_epoch, config.initial_paths)))
+    frame_fn = frame_function(source, criterion)
+    if anchor_c2w is None:
+        anchor_c2w = source.train_c2w
+        anchor_scores, used = initial_scores(source, criterion, initial)
+        anchors = f"training views (scored on {used})"
+    else:
+        anchor_scores = np.asarray(_evaluate_jit(frame_fn, jnp.asarray(anchor_c2w))[0], np.float32)
+    try:
+        if seeds == 1:
+            results = [jax.device_get(search_path(jax.random.key(seed), frame_fn, anchor_c2w, anchor_scores,
+                                                  source.train_c2w, limits, config))]
+        else:
+            out = jax.device_get(search_path_seeds(seed_keys(seed, seeds), frame_fn, anchor_c2w, anchor_scores,
+                                                   source.train_c2w, limits, config))
+            results = [jax.tree.map(lambda a, i=i: a[i], out) for i in range(seeds)]
+    except ValueError as e:
+        raise WaldoError(str(e)) from None
+    searched = time.perf_counter()
+    found = [evaluate_path(frame_fn, np.asarray(r.best_c2w), limits, config) for r in results]
+    order = np.argsort(-np.where(np.isfinite(anchor_scores), (1 if config.direction == "max" else -1) * anchor_scores,
+                                 -np.inf), kind="stable")
+    anchor_poses = training_poses(anchor_c2w, camera_focus(source.train_c2w))
+    pick = lambda i: jax.tree.map(lambda x: x[int(i)], anchor_poses)  # noqa: E731
+    straight = np.asarray(path_c2w(straight_path(pick(order[0]), pick(order[1]), config.keyframes), config.frames))
+    trajectory = _training_trajectory(source.train_c2w, config.frames)
+    references = {"straight": {**evaluate_path(frame_fn, straight, limits, config), "c2w": straight},
+                  "training": {**evaluate_path(frame_fn, trajectory, limits, config), "c2w": trajectory}}
+    video = video_source or source
+    best = np.asarray(results[0].best_c2w)
+    pixels = video.intrinsics.width * video.intrinsics.height
+    rgba = _render_frames(video.render_rgba or video.render, best, pixels)
+    frames = rgba[..., :3]
+    truth = None if video.truth_render is None else _render_frames(video.truth_render, best, pixels)
+    done = time.perf_counter()
+    seconds = {"setup": round(setup_seconds, 3), "search": round(searched - start, 3),
+               "render": round(done - searched, 3), "total": round(setup_seconds + done - start, 3)}
+    found[0]["video_opacity"] = rgba[..., 3].mean(axis=(1, 2)) if rgba.shape[-1] == 4 else None
+    return PathRun(source=source, criterion=criterion, config=config, limits=limits,
+                   seeds=list(range(seed, seed + seeds)), results=results, anchors=anchors, anchor_c2w=anchor_c2w,
+                   anchor_scores=anchor_scores, found=found, references=references, frames=frames, truth=truth,
+                   seconds=seconds, video_source=video)
+
+
+# ---------------------------------------------------------------------------------------------
+# Files.
+
+
+def _video(path: Path, frames: np.ndarray, fps: float) -> None:
+    """An MP4 (imageio-ffmpeg) or GIF of frames [F, H, W, 3], written beside `path` and renamed onto it."""
+    import imageio.v2 as imageio
+
+    data = [io.to_uint8(f) for f in frames]
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        with warnings.catch_warnings():
+            # imageio-ffmpeg starts ffmpeg in a subprocess, which execs at once: JAX's fork warning does not apply.
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
+            _write_video(imageio, tmp, data, fps)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_video(imageio, tmp: Path, data, fps: float) -> None:
+    if tmp.suffix.lower() == ".gif":
+        imageio.mimwrite(tmp, data, duration=1000.0 / fps, loop=0)
+    else:
+        imageio.mimwrite(tmp, data, fps=fps, macro_block_size=1, quality=8)
+
+
+def _plot_scores(path: Path, run: PathRun) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.2), dpi=120)
+    x = np.arange(run.config.frames)
+    ax.plot(x, run.found[0]["frame_scores"], label=f"found ({run.config.method})", lw=2)
+    ax.plot(x, run.references["straight"]["frame_scores"], label="straight (two best anchors)", ls="--")
+    ax.plot(x, run.references["training"]["frame_scores"], label="training trajectory", ls=":")
+    ax.set_xlabel("frame")
+    ax.set_ylabel(run.criterion.name)
+    ax.set_title(f"{run.criterion.name} per frame on {run.source.name}", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with io.atomic_file(path) as handle:
+        fig.savefig(handle, format="png")
+    plt.close(fig)
+
+
+def _plot_path(path: Path, run: PathRun) -> None:
+    """Top view (the two axes the training cameras spread most along) of the path, the references,
+    the training cameras and, for the room, Waldo."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train = run.source.train_c2w[:, :3, 3]
+    axes = np.argsort(-np.ptp(train, axis=0))[:2]
+    fig, ax = plt.subplots(figsize=(4.8, 4.8), dpi=120)
+    ax.scatter(train[:, axes[0]], train[:, axes[1]], s=10, c="0.6", label="training cameras")
+    best = np.asarray(run.results[0].best_c2w)
+    for name, c2w, style in (("found", best, "-"), ("straight", run.references["straight"]["c2w"], "--"),
+                             ("training trajectory", run.references["training"]["c2w"], ":")):
+        o = c2w[:, :3, 3]
+        ax.plot(o[:, axes[0]], o[:, axes[1]], style, label=name)
+    o, d = best[:, :3, 3], -best[:, :3, 2]
+    scale = 0.06 * max(float(np.ptp(train[:, axes]).max()), 1e-6)
+    ax.quiver(o[::2, axes[0]], o[::2, axes[1]], d[::2, axes[0]], d[::2, axes[1]], angles="xy", scale_units="xy",
+              scale=1.0 / scale, width=0.004, color="C0")
+    if run.source.room is not None:
+        w = np.asarray(run.source.room.waldo_center)
+        ax.scatter([w[axes[0]]], [w[axes[1]]], marker="*", s=160, c="red", label="Waldo")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("xyz"[axes[0]])
+    ax.set_ylabel("xyz"[axes[1]])
+    ax.legend(fontsize=7)
+    ax.set_title(f"{run.config.method} path on {run.source.name}", fontsize=9)
+    fig.tight_layout()
+    with io.atomic_file(path) as handle:
+        fig.savefig(handle, format="png")
+    plt.close(fig)
+
+
+def _summary(evaluation: Dict[str, Any]) -> Dict[str, Any]:
+    keys = ("score", "mean", "worst", "violation", "travel", "max_speed", "max_turn_degrees", "max_jerk")
+    out = {k: evaluation[k] for k in keys}
+    out["frame_scores"] = evaluation["frame_scores"]
+    return out
+
+
+def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
+                       dataparser: Optional[Tuple[np.ndarray, float]] = None) -> Dict[str, Any]:
+    """Writes the path's files into `out` (which must exist); returns the results dictionary."""
+    out = Path(out)
+    best = np.asarray(run.results[0].best_c2w)
+    video = run.video_source or run.source
+    info = {"criterion": run.criterion.name, "method": run.config.method, "source": run.source.spec}
+    io.write_json(out / "camera_path.json", nerfstudio_camera_path(best, video.intrinsics, fps, dataparser, info))
+    io.write_json(out / "instant_ngp_path.json", instant_ngp_camera_path(
+        best, video.intrinsics, fps, run.source.info.get("ngp_scale", NGP_DEFAULT_SCALE),
+        run.source.info.get("ngp_offset", NGP_DEFAULT_OFFSET), info))
+    names = [f"frame_{i:04d}" for i in range(len(best))]
+    io.write_transforms(out / "poses.json", best, video.intrinsics, names, extra={"waldo_path": info})
+    _video(out / "path.mp4", run.frames, fps)
+    _video(out / "path.gif", run.frames, fps)
+    if run.truth is not None:
+        _video(out / "path_truth.mp4", np.concatenate([run.frames, run.truth], axis=2), fps)
+    step = max(1, len(best) // 12)
+    picks = list(range(0, len(best), step))
+    scores = run.found[0]["frame_scores"]
+    io.save_png(out / "path_sheet.png", io.contact_sheet([run.frames[i] for i in picks],
+                                                         labels=[f"{i}: {scores[i]:.3g}" for i in picks]))
+    _plot_scores(out / "scores.png", run)
+    _plot_path(out / "path_plot.png", run)
+
+    limits = run.limits
+    results = {
+        "source": run.source.spec, "source_info": run.source.info, "criterion": run.criterion.name,
+        "direction": run.criterion.direction, "method": run.config.method, "seeds": run.seeds,
+        "config": {k: v for k, v in dataclasses.asdict(run.config).items()},
+        "cost": run.config.cost(),
+        "limits": {"max_speed_extent_per_frame": float(limits.max_speed), "max_turn_degrees_per_frame":
+                   float(limits.max_turn), "min_opacity": float(limits.min_opacity),
+                   "min_travel_extent": float(limits.min_travel),
+                   "box_low": np.asarray(limits.low), "box_high": np.asarray(limits.high),
+                   "extent": float(limits.extent)},
+        "anchors": run.anchors, "anchor_scores": run.anchor_scores,
+        "found": {**_summary(run.found[0]), "keyframes": {
+            "origin": np.asarray(run.results[0].best_keyframes.origin),
+            "target": np.asarray(run.results[0].best_keyframes.target),
+            "up": np.asarray(run.results[0].best_keyframes.up)},
+            "kept_limits": bool(run.results[0].found), "curve": np.asarray(run.results[0].curve),
+            "video_opacity_min": (None if run.found[0].get("video_opacity") is None
+                                  else float(np.min(run.found[0]["video_opacity"])))},
+        "references": {k: _summary(v) for k, v in run.references.items()},
+        "per_seed": [{"seed": s, **{k: v for k, v in _summary(f).items() if k != "frame_scores"},
+                      "kept_limits": bool(r.found)} for s, r, f in zip(run.seeds, run.results, run.found)],
+        "seconds": run.seconds,
+        "files": ["camera_path.json", "instant_ngp_path.json", "poses.json", "path.mp4", "path.gif",
+                  "path_sheet.png", "scores.png", "path_plot.png"] + (["path_truth.mp4"] if run.truth is not None
+                                                                      else []),
+    }
+    io.write_json(out / "results.json", results)
+    return results
