@@ -1,5 +1,6 @@
 """The pipeline: a scene to explore (`sources`), an experiment = source + criterion + method
-(`experiment`), its files (`outputs`, `figures`), camera paths (`path_run`) and the end-to-end demo on the procedural room (`demo`).
+(`experiment`), its files (`outputs`, `figures`), camera paths (`path_run`) and the end-to-end demo
+on the procedural room (`demo`).
 
     from waldo_jax import io
     from waldo_jax.criteria import CriterionContext, make_criterion
