@@ -267,3 +267,15 @@ def test_waldo_path_refuses_bad_flags_before_writing(tmp_path, capsys, flags, me
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_waldo_path_with_a_rendering_criterion_checks_opacity(tmp_path):
+    """A criterion that scores images renders every frame of every candidate (with its opacity, which
+    --min-opacity limits)."""
+    out = tmp_path / "colour"
+    assert main(["path", "procedural:1", "--out", str(out), "--criterion", "colorfulness", "--min-opacity", "0.5",
+                 "--method", "evosax:SNES", *CLI_TINY]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["criterion"] == "colorfulness" and results["limits"]["min_opacity"] == pytest.approx(0.5)
+    assert results["found"]["kept_limits"] and results["found"]["video_opacity_min"] >= 0.5
+    assert all(np.isfinite(results["found"]["frame_scores"]))
