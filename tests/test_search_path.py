@@ -260,6 +260,9 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     (["--min-opacity", "2"], "--min-opacity must lie"),
     (["--budget", "huge"], "unknown --budget"),
     (["--from-explore", "nowhere"], "no poses.json"),
+    (["--paths-per-epoch", "1"], "--paths-per-epoch must be between 2"),
+    (["--seeds", "1000", "--frames", "2000", "--budget", "high", "--initial-paths", "3", "--paths-per-epoch", "2",
+      "--epochs", "1", "--min-travel", "0"], "do not fit in memory"),
 ])
 def test_waldo_path_refuses_bad_flags_before_writing(tmp_path, capsys, flags, message):
     out = tmp_path / "bad"

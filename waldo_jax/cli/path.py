@@ -92,8 +92,8 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
     for flag, value, low, high in (("--keyframes", args.keyframes, 2, MAX_KEYFRAMES),
                                    ("--frames", args.frames, 4, MAX_FRAMES), ("--epochs", args.epochs, 1, 100),
                                    ("--initial-paths", args.initial_paths, 3, 10000), ("--seeds", args.seeds, 1, 1000),
-                                   ("--paths-per-epoch", args.paths_per_epoch or 2, 2, 10000)):
-        if not low <= value <= high:
+                                   ("--paths-per-epoch", args.paths_per_epoch, 2, 10000)):
+        if value is not None and not low <= value <= high:
             raise WaldoError(f"{flag} must be between {low} and {high}, got {value}")
     if args.aggregate not in AGGREGATES:
         raise WaldoError(f"unknown --aggregate {args.aggregate!r}: expected one of {', '.join(AGGREGATES)}")

@@ -62,7 +62,7 @@ def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partia
 def paths_per_call(source: Source, config: PathConfig) -> int:
     """Paths scored per vectorised call so that one call's frames fit in memory (`EPOCH_BYTES_PER_PIXEL`)."""
     per_path = config.frames * source.intrinsics.width * source.intrinsics.height * EPOCH_BYTES_PER_PIXEL
-    return int(max(1, memory_bytes() // max(per_path, 1)))
+    return int(memory_bytes() // max(per_path, 1))
 
 
 def read_explore_anchors(run_dir: str) -> np.ndarray:
@@ -159,8 +159,15 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     """
     start = time.perf_counter()
     config = dataclasses.replace(config, direction=criterion.direction).resolve()
+    if seeds < 1:
+        raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     if config.paths_per_call is None:
-        config = dataclasses.replace(config, paths_per_call=min(paths_per_call(source, config),
+        fits = paths_per_call(source, config)  # paths of all seeds at once: the seeds are vmapped
+        if fits < seeds:
+            raise WaldoError(f"--seeds {seeds}: one path's {config.frames} frames of {source.intrinsics.width}x"
+                             f"{source.intrinsics.height} for every seed at once do not fit in memory here; at most "
+                             f"--seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)")
+        config = dataclasses.replace(config, paths_per_call=min(fits // seeds,
                                                                 max(config.paths_per_epoch, config.initial_paths)))
     frame_fn = frame_function(source, criterion)
     if anchor_c2w is None:
