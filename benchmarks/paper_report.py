@@ -79,6 +79,7 @@ def criterion_table(criterion: str, cells: Dict[str, Any], scenes, budgets, meth
     if children:
         notes.append("* children per epoch overridden (" + ", ".join(f"{b}: {int(c)}" for b, c in children.items()) +
                      "): not the paper's budget.")
+    notes += paper_values.stand_in_notes(scenes)
     table = paper_values.table_for(criterion)
     if paper_rows:
         notes.append(f"(paper) rows: {label}.")
@@ -86,8 +87,8 @@ def criterion_table(criterion: str, cells: Dict[str, Any], scenes, budgets, meth
         notes.append(f"The paper has no table for {criterion}.")
     else:
         network = paper_values.TABLES[table]["paper_network"]
-        notes.append(f"Paper values ({network} on {paper_values.NERF}, {paper_values.SOURCE_URL}): not transcribed, "
-                     "see benchmarks/paper_values.py.")
+        notes.append(f"Paper values ({network} on {paper_values.NERF}, {paper_values.SOURCE_URL}): "
+                     f"{paper_values.TABLES[table]['note'] or 'none for these scenes'}.")
     text = "\n".join([f"### {criterion}", ""] + lines + [""] + notes)
     return {"columns": list(scenes), "rows": rows, "paper_rows": paper_rows, "paper_label": label,
             "notes": notes, "text": text}

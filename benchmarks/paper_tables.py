@@ -46,9 +46,11 @@ from every camera at the band's heights, so a 90 % goal cannot be reached there,
 seed 1 is the first whose search space holds views of Waldo above 90 %. The room's NeRF lives in
 `--runs DIR/room` (seed 0) or `DIR/room_seed<N>`, and a reused one must be of the same room.
 
-Paper values: `benchmarks/paper_values.py` holds the published fox / face numbers (BASNet,
-SAMP-Net, CONTRIQUE on Instant-NGP: different networks and NeRF, comparable in kind only); the
-paper rows say "not transcribed" while that file is empty, and the JSON says why.
+Paper values: `benchmarks/paper_values.py` reads the published fox / face numbers (BASNet,
+SAMP-Net, CONTRIQUE on Instant-NGP: different networks and NeRF, comparable in kind only) from
+`$WALDO_DATA/paper/finding_waldo_tables.json` and a `(paper)` row is printed under each of ours;
+fern and garden are marked as stand-ins for the paper's trex / horns and family. Without that file
+the paper rows are absent and the JSON says why.
 
 Commands (run from the repository root). Every cell (scene x criterion x method x budget) is its
 own XLA program (the method, the children per epoch and the scene's shapes are static), so on a CPU
