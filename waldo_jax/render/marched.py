@@ -43,6 +43,9 @@ class Packing:
       level_ratio: the ratio of successive pass sizes.
       level_fill: a pass size is left for the next smaller one when the live rays' requests would fill
         less than this fraction of its slots.
+      min_pass_slots: a pass size below this many slots is not used (the first size always is): each
+        size is one more copy of the field in the compiled program, and a pass this small saves less
+        than that compile costs (see `for_backend`). 1 keeps every size.
     """
 
     rays_per_block: int = 2**15
@@ -53,10 +56,11 @@ class Packing:
     pass_levels: int = 4
     level_ratio: int = 3
     level_fill: float = 0.8
+    min_pass_slots: int = 1
 
     def __post_init__(self):
         for name in ("rays_per_block", "slots_per_ray", "row_length", "max_rows_per_ray", "pass_levels",
-                     "level_ratio"):
+                     "level_ratio", "min_pass_slots"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"Packing.{name} must be a positive int, got {value!r}")
@@ -80,10 +84,18 @@ class Packing:
         that stay in cache; larger calls measured no faster). The pass sizes were chosen on the
         CPU-trained fox and lego_tiny at 144x256 (`docs/rendering.md`): 32 slots a ray and four sizes
         keep both under 10 passes per view with about 80 % of the evaluated slots in use.
+
+        Every backend: no pass size under 2**14 slots (`min_pass_slots`), so a block of under about
+        14k rays (its first pass holds 32 slots a ray) uses fewer sizes, under about 1.5k rays one.
+        Measured on the 2-core CPU on a trained room NeRF, 4 poses at 16 px (1024 rays): one size
+        compiles in 1.8 s and renders in 116 ms, four sizes take 4.6 s and 66 ms, so the smaller
+        sizes pay for their compile only after about 55 such calls (docs/rendering.md, "Pass sizes
+        that follow the work").
         """
         backend = backend or jax.default_backend()
         values = dict(rays_per_block=2**15, field_chunk=2**13) if backend == "cpu" else dict(
             rays_per_block=2**17, field_chunk=0)
+        values["min_pass_slots"] = 2**14
         values.update(overrides)
         return cls(**values)
 
@@ -102,13 +114,16 @@ class BlockShape(NamedTuple):
 
 
 def block_shape(packing: Packing, total_rays: int, max_samples: int) -> BlockShape:
-    """Balanced blocks of at most `rays_per_block` rays (the last block is padded, by under 8 rays a block)."""
+    """Balanced blocks of at most `rays_per_block` rays (the last block is padded, by under 8 rays a block),
+    and the pass sizes of `packing` that hold at least `min_pass_slots` slots (the first always)."""
     num_blocks = -(-total_rays // packing.rays_per_block)
     rays = -(-total_rays // num_blocks)
     rays = -(-rays // 8) * 8
     first = rays * packing.slots_per_ray // packing.row_length
-    rows = tuple(sorted({max(1, first // packing.level_ratio**level) for level in range(packing.pass_levels)},
-                        reverse=True))
+    sizes = [max(1, first // packing.level_ratio**level) for level in range(packing.pass_levels)]
+    sizes = [size for level, size in enumerate(sizes)
+             if level == 0 or size * packing.row_length >= packing.min_pass_slots]
+    rows = tuple(sorted(set(sizes), reverse=True))
     rows_per_ray = -(-max_samples // packing.row_length)
     # Every pass either fills all its rows or gives every live ray all it asked for (>= 1 row), so no
     # block can need more passes than this, even in passes of the smallest size: no ray is ever cut.
