@@ -58,8 +58,10 @@ def _least_aligned_axis(direction: Array) -> Array:
     return jnp.asarray(_WORLD_AXES)[jnp.argmin(jnp.abs(direction))]
 
 
+@jax.jit
 def look_at(origin: Array, target: Array, up: Array) -> Array:
-    """Camera-to-world matrix of a camera at `origin` looking at `target`.
+    """Camera-to-world matrix of a camera at `origin` looking at `target` (jitted: called from host
+    code, or vmapped there, it is one compiled program per shape).
 
     Args:
       origin: camera centre, [3].

@@ -14,9 +14,11 @@ The three inputs in detail: see docs/design.md, section "Criteria > The interfac
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import flax.struct
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -104,14 +106,21 @@ class Criterion:
             raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), "
                                  f"got shape {images.shape}")
         if self.inputs == "images":
-            return jnp.asarray(self.apply(self.params, images[..., :3]), jnp.float32)
-        return jnp.asarray(self.apply(self.params, with_opacity(images)), jnp.float32)
+            return jnp.asarray(_compiled(self.apply, self.params, images[..., :3]), jnp.float32)
+        return jnp.asarray(_compiled(self.apply, self.params, with_opacity(images)), jnp.float32)
 
     def score_poses(self, c2w: Array, intrinsics: Intrinsics) -> Array:
         """Scores [P] of cameras c2w [P, 4, 4] with the given intrinsics (a "poses" criterion)."""
         if self.inputs != "poses":
             raise CriterionError(f"criterion {self.name!r} scores images: render the poses first")
-        return jnp.asarray(self.apply(self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+        return jnp.asarray(_compiled(self.apply, self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _compiled(apply: Callable, *args) -> Array:
+    """`apply(*args)` as one compiled program: called from host code, a criterion runs as one XLA
+    program per input shape instead of one small program per operation (inside a trace it is inlined)."""
+    return apply(*args)
 
 
 def worst_score(direction: str, value_range: Tuple[float, float]) -> float:

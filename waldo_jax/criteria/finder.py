@@ -156,6 +156,7 @@ def _resample(target: Array, h: Array, w: Array, buffer: Tuple[int, int]) -> Tup
     return jnp.where(mask[..., None], out, 0.0), mask
 
 
+@functools.partial(jax.jit, static_argnames="size")
 def resample_target(target: Array, size: Tuple[int, int]) -> Array:
     """The target [h, w, 3] resampled to `size` as the finder does (bilinear at pixel centres, no low-pass filter)."""
     return _resample(jnp.asarray(target, jnp.float32), jnp.int32(size[0]), jnp.int32(size[1]), tuple(size))[0]

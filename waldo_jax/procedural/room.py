@@ -117,6 +117,12 @@ def _primitive_sdf(p: Array, kind: Array, center: Array, size: Array) -> Array:
     )
 
 
+@jax.jit
+def _sdf_to_primitives(points: Array, kind: Array, center: Array, size: Array) -> Array:
+    """Signed distances [M, K] of points [M, 3] to K primitives."""
+    return jax.vmap(lambda p: jax.vmap(_primitive_sdf, in_axes=(None, 0, 0, 0))(p, kind, center, size))(points)
+
+
 def _all_sdf(room: WaldoRoom, p: Array) -> Array:
     """Signed distances [K] from p [3] to every primitive.
 
@@ -351,9 +357,8 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         areas.append(a)
     points, normals, areas = np.concatenate(points), np.concatenate(normals), np.concatenate(areas)
     waldo_rows = np.flatnonzero(arrays["is_waldo"])
-    sdf_to_parts = np.asarray(jax.vmap(lambda p: jax.vmap(_primitive_sdf, in_axes=(None, 0, 0, 0))(
-        p, jnp.asarray(arrays["kind"][waldo_rows]), jnp.asarray(arrays["center"][waldo_rows]),
-        jnp.asarray(arrays["size"][waldo_rows])))(jnp.asarray(points, jnp.float32)))
+    sdf_to_parts = np.asarray(_sdf_to_primitives(jnp.asarray(points, jnp.float32), arrays["kind"][waldo_rows],
+                                                 arrays["center"][waldo_rows], arrays["size"][waldo_rows]))
     on_surface = np.all(sdf_to_parts > -1e-4, axis=1) & (points[:, 1] > 1e-3)  # not buried, not on the floor
     return WaldoRoom(
         waldo_points=jnp.asarray(points[on_surface], jnp.float32),

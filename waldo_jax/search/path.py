@@ -16,6 +16,7 @@ into one number that is 0 exactly when the path keeps every limit.
 
 from __future__ import annotations
 
+import functools
 from typing import Tuple
 
 import flax.struct
@@ -32,6 +33,7 @@ __all__ = ["DENSITY", "catmull_rom", "slerp_unit", "sample_path", "path_c2w", "s
 DENSITY = 8
 
 
+@jax.jit
 def catmull_rom(points: Array, u: Array) -> Array:
     """Uniform Catmull-Rom spline through points [K, D] (K >= 2) at parameters u [...] in [0, K - 1].
 
@@ -75,6 +77,7 @@ def _curve(keyframes: Pose, u: Array) -> Pose:
     return Pose(origin=catmull_rom(keyframes.origin, u), target=catmull_rom(keyframes.target, u), up=up)
 
 
+@functools.partial(jax.jit, static_argnames="frames")
 def sample_path(keyframes: Pose, frames: int) -> Pose:
     """F = `frames` poses ([F, 3] fields) evenly spaced along the path through `keyframes` ([K, 3], K >= 2).
 
@@ -94,11 +97,13 @@ def sample_path(keyframes: Pose, frames: int) -> Pose:
     return _curve(keyframes, u)
 
 
+@functools.partial(jax.jit, static_argnames="frames")
 def path_c2w(keyframes: Pose, frames: int) -> Array:
     """Camera-to-world matrices [F, 4, 4] of `sample_path`."""
     return jax.vmap(pose_to_c2w)(sample_path(keyframes, frames))
 
 
+@functools.partial(jax.jit, static_argnames="keyframes")
 def straight_path(start: Pose, end: Pose, keyframes: int) -> Pose:
     """K keyframes ([K, 3] fields) evenly spaced on the straight line from `start` to `end` ([3] fields):
     origin and look-at point linearly, up by SLERP. Sampled, it moves at constant speed."""
@@ -123,6 +128,7 @@ class Motion:
     jerk: Array
 
 
+@jax.jit
 def path_motion(c2w: Array, extent: Array) -> Motion:
     """`Motion` of frames c2w [F, 4, 4] (F >= 4) in a scene whose extent is `extent` []."""
     origin = c2w[:, :3, 3]
