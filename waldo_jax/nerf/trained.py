@@ -46,7 +46,8 @@ _CALIBRATION_VIEWS = 3
 
 
 def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aabb, background,
-                 step_scale: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, marching.MarchConfig]:
+                 step_scale: Optional[float] = None,
+                 sizes_of: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, marching.MarchConfig]:
     """What `render.marched` needs to render a trained field: (grid, render config, march config).
 
     Args:
@@ -54,6 +55,9 @@ def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aa
       sampler_state: the occupancy grid, or None (dense sampler).
       near, far: ray bounds (world units). aabb: [2, 3] box to sample in. background: colour [3].
       step_scale: the marching step over the training step (default `config.render_step_scale`, or 1).
+      sizes_of: a scale <= step_scale whose march's static sizes (candidates K, samples S) to use, so
+        several step scales render with one compiled program (`calibrate_render_step`). The image is
+        the same: the extra candidates lie beyond the grid's box and are masked. Default: step_scale's.
     """
     sampler = make_sampler(config)
     scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
@@ -62,14 +66,22 @@ def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aa
         raise TrainConfigError(f"the render step scale must be a positive number, got {step_scale!r}")
     render_config = RenderConfig.create(near=near, far=far, aabb=np.asarray(aabb, np.float32).reshape(2, 3),
                                         background=background, ray_chunk=1)
-    return sampler.view_grid(sampler_state), render_config, sampler.view_march(scale)
+    march = sampler.view_march(scale)
+    if sizes_of is not None:
+        if not 0 < float(sizes_of) <= scale:
+            raise TrainConfigError(f"sizes_of must lie in (0, step scale {scale}], got {sizes_of!r}")
+        sizes = sampler.view_march(float(sizes_of))
+        march = march.replace(max_steps=sizes.max_steps, max_samples=sizes.max_samples)
+    return sampler.view_grid(sampler_state), render_config, march
 
 
 def _render_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float, far: float,
-                    background, aabb, mesh, step_scale: Optional[float], packing: Optional[marched.Packing]):
+                    background, aabb, mesh, step_scale: Optional[float], packing: Optional[marched.Packing],
+                    sizes_of: Optional[float] = None):
     """(RenderOutput [P, H, W], evaluations int32 [P, H, W]) on one device, or sharded over several."""
     aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
-    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
+    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale,
+                                              sizes_of)
     field = make_field(config.field)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))
     if mesh is None and jax.local_device_count() == 1:
@@ -123,11 +135,11 @@ def eval_background(scene: Scene) -> np.ndarray:
 
 
 def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scale: Optional[float] = None,
-             views: Optional[Sequence[int]] = None) -> Dict[str, Any]:
+             views: Optional[Sequence[int]] = None, sizes_of: Optional[float] = None) -> Dict[str, Any]:
     """Held-out PSNR: renders the views of `scene` (all, or the indices `views`) and compares with its images.
 
     RGBA scenes are compared on the background their images were composited on (`scene.background`);
-    opaque ones are rendered on black.
+    opaque ones are rendered on black. `sizes_of`: see `render_setup`.
 
     Returns:
       {"psnr": mean of per-image PSNR (dB), "psnr_per_image": list, "mse": mean MSE,
@@ -138,7 +150,7 @@ def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scal
     index = np.arange(scene.n_images) if views is None else np.asarray(views, np.int64)
     c2w = np.asarray(scene.c2w, np.float32)[index]
     out, evaluations = _render_counted(params, sampler_state, config, c2w, scene.intrinsics, scene.near, scene.far,
-                                       eval_background(scene), scene.aabb, None, step_scale, None)
+                                       eval_background(scene), scene.aabb, None, step_scale, None, sizes_of)
     rendered = np.asarray(jax.device_get(out.rgb), np.float32)
     images = np.asarray(scene.images, np.float64)[index]
     mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))
@@ -158,7 +170,9 @@ def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Sce
     Renders up to `_CALIBRATION_VIEWS` held-out views (spread over the split) with the march `scale`
     times coarser than training, for each scale of `candidates` in increasing order, and keeps the
     largest whose PSNR on those views is within `tolerance_db` of the training step's (scale 1);
-    stops at the first that is not.
+    stops at the first that is not. Every scale renders with the static sizes of the finest march
+    (`render_setup`'s `sizes_of`), so the curve costs one compiled program, not one per scale (on the
+    2-core CPU a program of 3 views of lego_tiny takes seconds to compile, more than it runs).
 
     Args:
       params, sampler_state, config: the trained run.
@@ -173,8 +187,9 @@ def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Sce
     """
     count = min(_CALIBRATION_VIEWS, scene.n_images)
     views = np.unique(np.linspace(0, scene.n_images - 1, count).round().astype(np.int64))
+    finest = min([1.0] + [float(c) for c in candidates])
     if reference is None:
-        reference = evaluate(params, sampler_state, config, scene, step_scale=1.0, views=views)
+        reference = evaluate(params, sampler_state, config, scene, step_scale=1.0, views=views, sizes_of=finest)
         base = reference["psnr"]
     else:
         base = float(np.mean(np.asarray(reference["psnr_per_image"])[views]))
@@ -182,7 +197,7 @@ def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Sce
               "evaluations_per_ray": reference["evaluations_per_ray"]}]
     chosen = 1.0
     for scale in candidates:
-        result = evaluate(params, sampler_state, config, scene, step_scale=scale, views=views)
+        result = evaluate(params, sampler_state, config, scene, step_scale=scale, views=views, sizes_of=finest)
         delta = result["psnr"] - base
         curve.append({"step_scale": float(scale), "psnr_views": result["psnr"], "delta_db": delta,
                       "evaluations_per_ray": result["evaluations_per_ray"]})
