@@ -64,3 +64,48 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Pa
             build(folder)
             done.touch()
     return folder
+
+
+@pytest.fixture(scope="session")
+def trained_lego_fast(tmp_path_factory):
+    """lego_tiny trained once per session with the fast preset (250 steps, all 90 views, a small hash
+    grid, the render step calibrated on the 10 held-out views): a real field with surfaces and empty space.
+
+    Shared by the convergence test (test_train, which reads the run's summary) and the renderer tests
+    on a trained field (test_marched, which read the checkpoint). Returns (checkpoint path, summary):
+    the summary holds the `TrainResult`'s psnr_test, steps, n_train, n_test, history, render_step_curve,
+    render_step_scale, rays_per_second and seconds (the training's wall time).
+    """
+    import dataclasses
+    import json
+    import time
+
+    import jax
+
+    from waldo_jax.nerf import train as tr
+    from waldo_jax.nerf.checkpoint import save_checkpoint
+    from waldo_jax.nerf.config import TrainConfig
+    from waldo_jax.scenes import load_scene
+
+    path = require_scene("lego_tiny")
+
+    def build(folder):
+        train_scene = load_scene(path, split="train")
+        test_scene = load_scene(path, split="test")
+        config = TrainConfig.preset("fast", train_scene, steps=250, chunk=50, num_samples=128,
+                                    samples_per_batch=2**14, eval_samples=128)
+        hashgrid = dataclasses.replace(config.field.hashgrid, L=8, T=2**14)
+        config = config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
+        start = time.perf_counter()
+        result = tr.train(jax.random.key(0), train_scene, config, test_scene, progress=False)
+        seconds = time.perf_counter() - start
+        save_checkpoint(folder / "lego.ckpt", result.params, result.config, train_scene, result.occupancy)
+        summary = {"psnr_test": result.psnr_test, "steps": result.steps, "n_train": result.n_train,
+                   "n_test": result.n_test, "history": result.history, "render_step_curve": result.render_step_curve,
+                   "render_step_scale": result.config.render_step_scale, "sampler": config.sampler,
+                   "rays_per_second": result.rays_per_second, "seconds": seconds}
+        (folder / "summary.json").write_text(json.dumps(summary, default=float))
+
+    folder = built_once(tmp_path_factory, "trained_lego_fast", build)
+    return folder / "lego.ckpt", json.loads((folder / "summary.json").read_text())
+

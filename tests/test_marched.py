@@ -317,29 +317,15 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
 
 
 @pytest.fixture(scope="module")
-def trained_lego(tmp_path_factory):
-    """lego_tiny trained for 150 steps (a small hash grid): a real field with surfaces and empty space.
-
-    Trained once per session (`built_once`) and read back from its checkpoint by every worker.
-    """
-    import dataclasses
-
-    from conftest import built_once, require_scene
-    from waldo_jax.nerf import train as tr
-    from waldo_jax.nerf.checkpoint import load_checkpoint, save_checkpoint
-    from waldo_jax.nerf.config import TrainConfig
+def trained_lego(trained_lego_fast):
+    """lego_tiny trained with the fast preset (conftest's `trained_lego_fast`, trained once per session
+    and shared with the convergence test): a real field with surfaces and empty space."""
+    from conftest import require_scene
+    from waldo_jax.nerf.checkpoint import load_checkpoint
     from waldo_jax.scenes import load_scene
 
-    scene = load_scene(require_scene("lego_tiny"), split="train", max_images=30)
-
-    def build(folder):
-        config = TrainConfig.preset("fast", scene, steps=150, render_step_scale=1.0)
-        config = config.replace(field=dataclasses.replace(
-            config.field, hashgrid=dataclasses.replace(config.field.hashgrid, L=8, T=2**14)))
-        result = tr.train(jax.random.key(0), scene, config, progress=False)
-        save_checkpoint(folder / "lego.ckpt", result.params, result.config, scene, result.occupancy)
-
-    return scene, load_checkpoint(built_once(tmp_path_factory, "trained_lego", build) / "lego.ckpt")
+    checkpoint, _ = trained_lego_fast
+    return load_scene(require_scene("lego_tiny"), split="train"), load_checkpoint(checkpoint)
 
 
 @pytest.mark.parametrize("packing", PACKINGS[:2], ids=["cpu-default", "small-blocks"])

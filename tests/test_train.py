@@ -7,7 +7,6 @@ compiled chunk (same config), and only the convergence test trains for real.
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import waldo_jax  # noqa: F401  (XLA flags before the first computation)
 
@@ -66,37 +65,30 @@ def _leaves_bytes(tree):
 # Convergence: the real preset code on lego_tiny.
 
 
-def test_fast_preset_reaches_20db_on_lego_tiny():
-    """The fast preset (fewer steps, a smaller hash grid) beats 20 dB on lego_tiny's held-out views."""
-    path = require_scene("lego_tiny")
-    train_scene = load_scene(path, split="train")
-    test_scene = load_scene(path, split="test")
-    config = TrainConfig.preset("fast", train_scene, steps=250, chunk=50, num_samples=128,
-                                samples_per_batch=2**14, eval_samples=128)
-    hashgrid = dataclasses.replace(config.field.hashgrid, L=8, T=2**14)
-    config = config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
-    start = time.perf_counter()
-    result = tr.train(jax.random.key(0), train_scene, config, test_scene, progress=False)
-    seconds = time.perf_counter() - start
-    assert result.steps == 250
-    assert result.n_train == 90 and result.n_test == 10
-    assert result.psnr_test is not None and result.psnr_test >= 20.0, (result.psnr_test, result.history[-3:])
-    assert result.history[-1]["psnr_test"] == result.psnr_test
-    losses = [h["loss"] for h in result.history if "loss" in h]
+def test_fast_preset_reaches_20db_on_lego_tiny(trained_lego_fast):
+    """The fast preset (fewer steps, a smaller hash grid) beats 20 dB on lego_tiny's held-out views
+    (the run is conftest's `trained_lego_fast`, shared with the renderer tests on a trained field)."""
+    _, result = trained_lego_fast
+    assert result["steps"] == 250
+    assert result["n_train"] == 90 and result["n_test"] == 10
+    assert result["psnr_test"] is not None and result["psnr_test"] >= 20.0, (result["psnr_test"],
+                                                                             result["history"][-3:])
+    assert result["history"][-1]["psnr_test"] == result["psnr_test"]
+    losses = [h["loss"] for h in result["history"] if "loss" in h]
     assert losses[-1] < 0.5 * losses[0]
     # The run's rendering step comes from its own quality/speed curve on the held-out views: the
     # largest scale within the tolerance of the training step's PSNR, and the scales tried stop at
     # the first one that loses more.
-    chosen, curve = result.config.render_step_scale, result.render_step_curve
+    chosen, curve = result["render_step_scale"], result["render_step_curve"]
     assert curve[0]["step_scale"] == 1.0 and chosen in [c["step_scale"] for c in curve]
     assert all(c["delta_db"] >= -RENDER_STEP_TOLERANCE_DB for c in curve if c["step_scale"] <= chosen)
     assert curve[-1]["step_scale"] == chosen or curve[-1]["delta_db"] < -RENDER_STEP_TOLERANCE_DB
     evaluations = [c["evaluations_per_ray"] for c in curve]
     assert all(a > b for a, b in zip(evaluations, evaluations[1:]))  # coarser steps, fewer evaluations
-    assert result.history[-1]["render_step_scale"] == chosen
-    assert result.rays_per_second > 0 and np.isfinite(result.rays_per_second)
-    print(f"lego_tiny fast/test preset: {result.psnr_test:.2f} dB in {seconds:.1f} s "
-          f"({result.rays_per_second:.0f} rays/s, sampler {config.sampler})")
+    assert result["history"][-1]["render_step_scale"] == chosen
+    assert result["rays_per_second"] > 0 and np.isfinite(result["rays_per_second"])
+    print(f"lego_tiny fast/test preset: {result['psnr_test']:.2f} dB in {result['seconds']:.1f} s "
+          f"({result['rays_per_second']:.0f} rays/s, sampler {result['sampler']})")
 
 
 # ----------------------------------------------------------------------------------------------
