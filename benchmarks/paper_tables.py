@@ -84,10 +84,15 @@ the compilations, ~30-60 s each on the 2 development cores, set the time more th
       --runs runs/paper_nerfs_hour --out benchmarks/results/paper_tables_cpu_hour.json
 
   # full quality on a GPU (the paper's setup as far as this repository goes): the quality NeRF preset
-  # (hash table 2^19, 20k steps), the paper's budgets, 5 seeds, 128-pixel renders, fox at downscale 2,
-  # face / garden at their stored 512 px, fern from images_4; not yet measured.
+  # (hash table 2^19, 20k steps), the paper's budgets, 5 seeds, 256-pixel renders, fox at downscale 2,
+  # face / garden at their stored 512 px, fern from images_4; not yet measured. First the plan: the
+  # same flags with --plan print the work, the expected time ON THE DEVICE IT RUNS ON (probe NeRFs of
+  # --plan-steps steps and one timed EGPS cell per criterion; see benchmarks/paper_plan.py) and the
+  # commands of parts of at most 10 minutes; nothing is written.
+  python benchmarks/paper_tables.py --plan --preset quality --downscale fox=2,face=1 --scenes fox,face \
+      --seeds 5 --resolution 256 --methods grs,pibs,egps,egps+refine,evosax:CMA_ES --runs runs/paper_nerfs_gpu
   python benchmarks/paper_tables.py --preset quality --downscale fox=2,face=1,garden=1,fern=4 \
-      --seeds 5 --resolution 128 --runs runs/paper_nerfs_gpu --out benchmarks/results/paper_tables_gpu.json
+      --seeds 5 --resolution 256 --runs runs/paper_nerfs_gpu --out benchmarks/results/paper_tables_gpu.json
 
   # a long protocol one scene per run (each JSON is written when its run ends, so a stopped session
   # keeps the finished scenes, and each job is shorter), then one table per
@@ -104,7 +109,9 @@ the budgets' children per epoch; rows are then marked with `*`), `--epochs` (5),
 `--room-resolution R`, `--downscale K | scene=K,...`, `--weights DIR`, `--waldo-criteria`,
 `--visibility-goal`, `--reachable-samples`, `--room-seed`, `--no-waldo`, `--initial images|renders`,
 `--figures DIR`, `--figure-columns`, `--cloud-methods`,
-`--load-threshold` (wait up to 5 minutes for a quiet machine first), `--quick`, `--tables-from JSON...`.
+`--load-threshold` (wait up to 5 minutes for a quiet machine first), `--quick`, `--tables-from JSON...`,
+`--plan` (with `--plan-steps`, `--plan-part-minutes`). `--methods` takes any `waldo explore --method`
+(egps+refine, evosax:CMA_ES, ...); the paper's rows exist for GRS, PIBS and EGPS only.
 """
 
 from __future__ import annotations
@@ -166,7 +173,9 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--scenes", default=None, help=f"comma list (default {DEFAULTS['scenes']})")
     parser.add_argument("--criteria", default=None,
                         help=f"comma list (default {DEFAULTS['criteria']}); 'none' for the Waldo-room table only")
-    parser.add_argument("--methods", default=None, help="comma list of grs, pibs, egps (default all)")
+    parser.add_argument("--methods", default=None,
+                        help="comma list of grs, pibs, egps (default), or any `waldo explore --method` "
+                             "(egps+refine, evosax:CMA_ES, ...)")
     parser.add_argument("--budgets", default=None, help="comma list of low, high (default both)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per cell, one vmapped call (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
@@ -202,6 +211,12 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--out", default=None,
                         help="JSON path (default benchmarks/results/paper_tables_<platform>.json; quick: runs/)")
     parser.add_argument("--progress", action="store_true", help="training progress bars")
+    parser.add_argument("--plan", action="store_true",
+                        help="print the work these settings ask for and its expected time on this device, from a "
+                             "quick timing (probe NeRFs, one cell per criterion), with parts of at most "
+                             "--plan-part-minutes; nothing is written (benchmarks/paper_plan.py)")
+    parser.add_argument("--plan-steps", type=int, default=300, help="training steps of the plan's probe NeRFs")
+    parser.add_argument("--plan-part-minutes", type=float, default=10.0, help="the plan's longest part")
     parser.add_argument("--tables-from", default=None, nargs="+", metavar="JSON",
                         help="only print the tables of earlier runs' JSONs (also incomplete ones; several runs of "
                              "the same settings, e.g. one per scene, make one table) and exit")
@@ -221,6 +236,19 @@ def _names(text: str, allowed: Optional[Sequence[str]] = None, what: str = "name
         bad = [n for n in names if n not in allowed]
         if bad:
             raise SystemExit(f"unknown {what} {bad[0]!r}: choose from {', '.join(allowed)}")
+    return names
+
+
+def _method_names(text: str) -> List[str]:
+    """The methods of a comma list: the paper's three or any other `waldo explore --method`."""
+    from waldo_jax.search import get_method, method_names
+
+    names = _names(text, what="method")
+    for name in names:
+        try:
+            get_method(name)
+        except (KeyError, ValueError):
+            raise SystemExit(f"unknown method {name!r}: choose from {method_names()}") from None
     return names
 
 
@@ -383,7 +411,7 @@ def _run(args) -> Dict[str, Any]:
 
     scenes = _names(args.scenes, REAL_SCENES + (ROOM,), "scene")
     criteria = [] if args.criteria == "none" else _names(args.criteria, what="criterion")
-    methods = _names(args.methods, METHODS, "method")
+    methods = _method_names(args.methods)
     budgets = _names(args.budgets, BUDGETS, "budget")
     waldo_criteria = [] if args.no_waldo or ROOM not in scenes else _names(args.waldo_criteria, what="criterion")
     for name in criteria + waldo_criteria:
@@ -392,10 +420,18 @@ def _run(args) -> Dict[str, Any]:
     children = _pairs(args.children, "--children")
     if any(b not in BUDGETS for b in children):
         raise SystemExit(f"--children names budgets {', '.join(BUDGETS)}, got {args.children!r}")
-    args.cloud_methods = _names(args.cloud_methods, METHODS, "method") if args.cloud_methods else []
+    args.cloud_methods = _method_names(args.cloud_methods) if args.cloud_methods else []
     downscale = _downscales(args.downscale, scenes)
     if args.seeds < 1:
         raise SystemExit(f"--seeds must be >= 1, got {args.seeds}")
+    if args.plan:
+        import paper_plan
+
+        if args.plan_steps < 1 or not args.plan_part_minutes > 0:
+            raise SystemExit("--plan-steps must be >= 1 and --plan-part-minutes > 0")
+        return paper_plan.plan(args, scenes, criteria, methods, budgets, children, downscale, room=ROOM,
+                               run_dir_of=lambda s: Path(args.runs) / (room_folder(args.room_seed) if s == ROOM else s),
+                               train_real=_train_real, train_room=_train_room, say=say)
 
     quiet = (wait_for_quiet(args.load_threshold) if args.load_threshold is not None else
              {"loadavg_start": list(os.getloadavg()), "waited_s": 0.0, "loaded": None})

@@ -355,3 +355,25 @@ def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses)
     assert np.abs(out.rgb - expected.rgb).max() <= TAIL
     evaluations = np.asarray(views.evaluations).reshape(-1)
     assert np.all(evaluations <= counts)
+
+
+def test_a_coarser_march_with_the_finest_marchs_sizes_renders_the_same(trained_lego):
+    """`render_setup(..., sizes_of=1)`: a step scale rendered with the static sizes of the training step's
+    march (more candidate slots, the extra ones beyond the grid) gives the same image and evaluations,
+    so the render-step calibration needs one compiled program for all its scales."""
+    from waldo_jax.nerf.field import make_field
+    from waldo_jax.nerf.trained import render_setup
+
+    scene, result = trained_lego
+    field_fn = make_field(result.config.field)
+    c2w, intrinsics = jnp.asarray(scene.c2w[:1]), scene.intrinsics.scaled(20, 20)
+    views = []
+    for sizes_of in (None, 1.0):
+        grid, render_config, march = render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
+                                                  np.ones(3, np.float32), step_scale=3.0, sizes_of=sizes_of)
+        views.append((march.max_steps, marched.render_marched(field_fn, result.params, grid, c2w, intrinsics,
+                                                              render_config, march)))
+    (steps_own, own), (steps_finest, finest) = views
+    assert steps_finest > steps_own  # the finest march has more candidates
+    np.testing.assert_array_equal(np.asarray(own.output.rgb), np.asarray(finest.output.rgb))
+    np.testing.assert_array_equal(np.asarray(own.evaluations), np.asarray(finest.evaluations))

@@ -303,3 +303,34 @@ def test_stop_signals_raise_keyboard_interrupt_so_the_json_is_written():
     finally:
         for signum, handler in saved.items():
             signal.signal(signum, handler)
+
+
+def test_plan_counts_each_cells_renders_and_cuts_parts_of_the_limit():
+    """`--plan` counts what the budgets cost (training views excluded, refinement included, times the
+    seeds) and cuts the protocol into parts no longer than the limit, splitting by budget when needed."""
+    import argparse
+
+    import paper_plan
+    from waldo_jax.search import ExploreConfig
+
+    args = argparse.Namespace(epochs=5, top_k=10, seeds=3, initial="images")
+    cells = paper_plan._cells("fox", 43, ["saliency"], ["egps", "egps+refine"], ["low", "high"], args, {})
+    by = {(c["budget"], c["method"]): c["renders"] for c in cells}
+    for (budget, method), renders in by.items():
+        cost = ExploreConfig(method=method, budget=budget).cost(43)
+        assert renders == 3 * (cost["renders"] - 43)
+    assert 250 - 43 <= by[("low", "egps")] / 3 <= 300 - 43 and 900 - 43 <= by[("high", "egps")] / 3 <= 1000 - 43
+    args.initial = "renders"  # the training poses are rendered once more
+    assert paper_plan._cells("fox", 43, ["saliency"], ["egps"], ["low"], args, {})[0]["renders"] == by[("low", "egps")] + 43
+    timed = [dict(c, seconds=s) for c, s in zip(cells, (100.0, 100.0, 400.0, 400.0))]
+    parts = paper_plan._parts(timed, limit_s=600.0)
+    assert [(p["budgets"], p["seconds"], p.get("over_limit")) for p in parts] == [("low", 200.0, False),
+                                                                                  ("high", 800.0, True)]
+    assert paper_plan._parts(timed, limit_s=1000.0) == [
+        {"scene": "fox", "criterion": "saliency", "budgets": None, "seconds": 1000.0}]
+
+
+def test_methods_beyond_the_papers_are_accepted_and_unknown_ones_named():
+    assert paper_tables._method_names("grs,egps+refine,evosax:CMA_ES") == ["grs", "egps+refine", "evosax:CMA_ES"]
+    with pytest.raises(SystemExit, match="unknown method 'nope'"):
+        paper_tables._method_names("egps,nope")
