@@ -16,7 +16,8 @@ sample of it on the device it runs on and multiplies:
 
 The probe NeRF is briefly trained, so its occupancy grid is still nearly full: its renders march more
 samples than a trained NeRF's, and the render part of the plan is an upper bound. Other methods are
-assumed to cost what EGPS costs per render (their cost in renders already counts refinement).
+assumed to cost what EGPS costs per render (their cost in renders already counts refinement). Not
+counted: the Waldo-room table's cells (pose oracles, no render: seconds) and the figures.
 The plan then cuts the protocol into parts of at most `--plan-part-minutes` (default 10: the device's
 limit per command), one `--scenes S --criteria C [--budgets B]` run each, and prints their commands.
 """
