@@ -86,7 +86,6 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
         if event in _COMPILE_EVENTS:
             compiling.append(seconds)
 
-    monitoring.register_event_duration_secs_listener(listen)
     context = CriterionContext(room=source.room, weights_dir=args.weights, source=source.spec)
     # The budget's children per epoch (the batch each epoch renders), but one epoch: the scan compiles
     # its body once whatever the epochs, and a render costs the same in any epoch.
@@ -96,6 +95,7 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
     probe_args.epochs = 1
     probe_children = dict(children, **{budget: config.resolve(source.n_train).children_per_epoch})
     rates = {}
+    monitoring.register_event_duration_secs_listener(listen)
     try:
         for name in criteria:
             criterion = build_criterion(name, context)
@@ -105,6 +105,8 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
             total = time.perf_counter() - start
             compile_s = min(sum(compiling), total)
             renders = run.config.epochs * run.config.children_per_epoch * len(run.seeds)
+            if args.initial == "renders":
+                renders += source.n_train  # the training poses were rendered too
             rates[name] = {"compile_s": compile_s, "seconds_per_render": (total - compile_s) / max(renders, 1),
                            "probe_renders": renders, "probe_seconds": round(total, 3)}
     finally:
@@ -112,16 +114,23 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
     return rates
 
 
-def _train_probe(kind: str, train: Callable[[Path], Dict[str, Any]]) -> Dict[str, Any]:
-    """Trains a probe NeRF with `train(run_dir)` in a scratch folder; its steady seconds per step."""
-    scratch = Path(tempfile.mkdtemp(prefix=f".plan-{kind}-"))
-    stats = train(scratch / "run")
-    history = [h for h in stats["history"] if "loss" in h]
-    rays_per_step = history[-1]["rays"] if history else float("nan")
-    per_step = rays_per_step / stats["rays_per_second"] if stats.get("rays_per_second") else float("nan")
-    return {"run_dir": scratch / "run", "scratch": scratch, "seconds_per_step": per_step,
-            "compile_s": float(stats.get("compile_seconds") or 0.0), "steps": stats.get("steps"),
-            "seconds": stats.get("seconds")}
+def _train_probe(kind: str, train: Callable[[Path], Dict[str, Any]], scratch: List[Path]) -> Dict[str, Any]:
+    """Trains a probe NeRF with `train(run_dir)` in a scratch folder (listed in `scratch` at once, so it is
+    removed whatever happens). Its seconds per step: the fastest chunk's (a chunk that compiled is
+    slower by its compilation); its compile time: what the chunks took beyond that rate."""
+    folder = Path(tempfile.mkdtemp(prefix=f"waldo-plan-{kind}-"))
+    scratch.append(folder)
+    stats = train(folder / "run")
+    chunks, done, elapsed = [], 0, 0.0
+    for entry in stats["history"]:
+        if "loss" not in entry:  # a held-out evaluation, not a chunk
+            continue
+        chunks.append((entry["step"] - done, entry["seconds"] - elapsed))
+        done, elapsed = entry["step"], entry["seconds"]
+    per_step = min((t / n for n, t in chunks if n > 0), default=float("nan"))
+    compile_s = sum(max(t - n * per_step, 0.0) for n, t in chunks)
+    return {"run_dir": folder / "run", "seconds_per_step": per_step, "compile_s": compile_s,
+            "steps": stats.get("steps"), "seconds": stats.get("seconds"), "chunks": len(chunks)}
 
 
 def _parts(cells: Sequence[Dict[str, Any]], limit_s: float) -> List[Dict[str, Any]]:
@@ -186,11 +195,10 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
                 continue  # its cells are timed on its own NeRF
             say(f"plan: training a {kind} probe NeRF ({args.plan_steps} steps) ...")
             if kind == "room":
-                probes[kind] = _train_probe(kind, lambda d: _stats(train_room(d, probe_args), d, TRAIN_JSON))
+                probes[kind] = _train_probe(kind, lambda d: _stats(train_room(d, probe_args), d, TRAIN_JSON), scratch)
             else:
                 probes[kind] = _train_probe(kind, lambda d, s=scene: _stats(
-                    train_real(s, d, probe_args, downscale.get(s)), d, TRAIN_JSON))
-            scratch.append(probes[kind]["scratch"])
+                    train_real(s, d, probe_args, downscale.get(s)), d, TRAIN_JSON), scratch)
         first_kind = "room" if first == room else "real"
         probe_dir = run_dir_of(first) if work[first]["reused"] else probes[first_kind]["run_dir"]
         source = run_source(str(probe_dir), args.resolution)
@@ -240,7 +248,7 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
         text = _text(rows, rates, probes, parts, total, device, args, limit)
         print(text)
         return {"device": device, "rows": rows, "rates": rates, "parts": parts, "total_s": total,
-                "probes": {k: {n: v for n, v in p.items() if n not in ("run_dir", "scratch")} for k, p in probes.items()},
+                "probes": {k: {n: v for n, v in p.items() if n != "run_dir"} for k, p in probes.items()},
                 "plan_seconds": time.perf_counter() - t0, "text": text}
     finally:
         for folder in scratch:
@@ -273,8 +281,14 @@ def _text(rows, rates, probes, parts, total, device, args, limit) -> str:
     for name, r in rates.items():
         lines.append(f"  {name}: {r['compile_s']:.1f} s compiling per cell, {r['seconds_per_render'] * 1e3:.1f} ms "
                      "per render")
-    lines.append(f"\nParts of at most {limit / 60:.0f} minutes (the NeRFs first: `--criteria none --no-waldo` trains "
-                 "them; then one run per part, and `--tables-from` joins the JSONs):")
+    lines.append(f"\nParts of at most {limit / 60:.0f} minutes: the NeRFs first (`--criteria none --no-waldo` trains a "
+                 "scene's NeRF into --runs), then one run per part; `--tables-from` joins the JSONs:")
+    for r in rows:
+        if r["train_s"] > 0:
+            warn = "  # longer than a part: fewer --train-steps, or a machine with a longer limit" if (
+                r["train_s"] > limit) else ""
+            lines.append(f"  python benchmarks/paper_tables.py --scenes {r['scene']} --criteria none --no-waldo "
+                         f"--out runs/paper_{r['scene']}_nerf.json ...  # {_minutes(r['train_s'])}{warn}")
     for part in parts:
         budgets = f" --budgets {part['budgets']}" if part["budgets"] else ""
         warn = "  # longer than a part: fewer seeds or a smaller --resolution" if part.get("over_limit") else ""

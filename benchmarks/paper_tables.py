@@ -252,6 +252,22 @@ def _method_names(text: str) -> List[str]:
     return names
 
 
+def _check_refinable(methods: Sequence[str], criteria: Sequence[str]) -> None:
+    """Refuses, before anything runs, a `+refine` method with a criterion that gradient steps cannot
+    follow (no smooth stand-in: NIQE, BRISQUE; `Criterion.smooth`)."""
+    from waldo_jax.criteria import CRITERIA
+
+    refining = [m for m in methods if m.endswith("+refine")]
+    if not refining:
+        return
+    usable = ", ".join(sorted(name for name, spec in CRITERIA.items() if spec.smooth))
+    for name in criteria:
+        spec = CRITERIA.get(name)
+        if spec is not None and not spec.smooth:  # weighted:... is refused when its cell builds it
+            raise SystemExit(f"--methods {refining[0]} cannot refine on criterion {name!r} (no smooth stand-in); "
+                             f"criteria it can refine on: {usable}")
+
+
 def _pairs(text: str, what: str) -> Dict[str, float]:
     """`a=1,b=2` -> {"a": 1.0, "b": 2.0}."""
     out = {}
@@ -424,6 +440,7 @@ def _run(args) -> Dict[str, Any]:
     downscale = _downscales(args.downscale, scenes)
     if args.seeds < 1:
         raise SystemExit(f"--seeds must be >= 1, got {args.seeds}")
+    _check_refinable(methods, criteria)
     if args.plan:
         import paper_plan
 

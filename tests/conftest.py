@@ -69,7 +69,7 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Pa
 @pytest.fixture(scope="session")
 def trained_lego_fast(tmp_path_factory):
     """lego_tiny trained once per session with the fast preset (250 steps, all 90 views, a small hash
-    grid, the render step calibrated on the 10 held-out views): a real field with surfaces and empty space.
+    grid, the render step calibrated on 3 of the 10 held-out views): a real field with surfaces and empty space.
 
     Shared by the convergence test (test_train, which reads the run's summary) and the renderer tests
     on a trained field (test_marched, which read the checkpoint). Returns (checkpoint path, summary):

@@ -1,7 +1,6 @@
-"""Every image criterion of the registry: deterministic, one compilation per batch shape, batches of 8
-and 64 without batch coupling, finite on black / white images, the worst score (never NaN) for NaN
-images, usable by `waldo explore`; and the three quality criteria agree that blur hurts a real view.
-(Batches of one: test_csnet, test_niqe_brisque.)"""
+"""Every image criterion of the registry: deterministic, one compilation per batch shape, batches of 1,
+8 and 64 without batch coupling, finite on black / white images, the worst score (never NaN) for NaN
+images, usable by `waldo explore`; and the three quality criteria agree that blur hurts a real view."""
 
 from __future__ import annotations
 
@@ -78,8 +77,10 @@ def test_criterion_contract(name, images):
     assert np.all(np.isfinite(first))
     low, high = criterion.value_range
     assert np.all((first >= low) & (first <= high)), (name, first, criterion.value_range)
-    # A batch of 64 (the eight, then 56 other images): the eight score as they did in their own batch
-    # (no batch coupling; float32 fusion differs by batch), and the new batch size compiles once more.
+    # One image, and a batch of 64 (the eight, then 56 other images): the same scores as in the batch
+    # of eight (no batch coupling; float32 fusion differs by batch), each new batch size compiled once.
+    single = np.asarray(score(criterion, jnp.asarray(images[3:4])))
+    np.testing.assert_allclose(single, first[3:4], rtol=1e-3, atol=1e-3)
     others = [np.clip(images[:, ::-1] * gain, 0, 1) for gain in (0.5, 0.7, 0.9, 1.1, 1.3, 1.5, 1.7)]
     big = np.asarray(score(criterion, jnp.asarray(np.concatenate([images] + others))))
     assert big.shape == (64,) and np.all(np.isfinite(big))
@@ -93,7 +94,7 @@ def test_criterion_contract(name, images):
     assert np.all(np.isfinite(out)), (name, out)
     assert out[2] == pytest.approx(worst) and out[3] == pytest.approx(worst)
     np.testing.assert_allclose(out[4:], first[4:], rtol=1e-3, atol=1e-3)  # NaN in one view leaves the others alone
-    assert traces == [images.shape, (64,) + images.shape[1:]]
+    assert traces == [images.shape, (1,) + images.shape[1:], (64,) + images.shape[1:]]
 
 
 def _blur(image, sigma):

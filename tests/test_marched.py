@@ -377,3 +377,16 @@ def test_a_coarser_march_with_the_finest_marchs_sizes_renders_the_same(trained_l
     assert steps_finest > steps_own  # the finest march has more candidates
     np.testing.assert_array_equal(np.asarray(own.output.rgb), np.asarray(finest.output.rgb))
     np.testing.assert_array_equal(np.asarray(own.evaluations), np.asarray(finest.evaluations))
+
+
+def test_small_calls_use_fewer_pass_sizes():
+    """`Packing.min_pass_slots`: the backend default drops pass sizes under 2^14 slots (one size for a
+    thousand rays, all four from about 14k rays); the dataclass default keeps every size."""
+    default, every = marched.Packing.for_backend("cpu"), marched.Packing()
+    sizes = {rays: marched.block_shape(default, rays, 128).rows for rays in (1024, 4608, 16384)}
+    assert [len(rows) for rows in sizes.values()] == [1, 3, 4]
+    for rows in sizes.values():
+        assert all(r * default.row_length >= default.min_pass_slots for r in rows[1:])
+    assert len(marched.block_shape(every, 1024, 128).rows) == every.pass_levels
+    with pytest.raises(ValueError, match="min_pass_slots"):
+        marched.Packing(min_pass_slots=0)

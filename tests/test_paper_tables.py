@@ -326,6 +326,15 @@ def test_plan_counts_each_cells_renders_and_cuts_parts_of_the_limit():
     parts = paper_plan._parts(timed, limit_s=600.0)
     assert [(p["budgets"], p["seconds"], p.get("over_limit")) for p in parts] == [("low", 200.0, False),
                                                                                   ("high", 800.0, True)]
+    # A probe's rate is its fastest chunk's; what the other chunks took beyond it is compilation.
+    history = [{"step": 100, "seconds": 30.0, "loss": 1.0}, {"step": 200, "seconds": 40.0, "loss": 1.0},
+               {"step": 200, "seconds": 40.0, "psnr_test": 20.0}, {"step": 300, "seconds": 52.0, "loss": 1.0}]
+    scratch = []
+    probe = paper_plan._train_probe("real", lambda run_dir: {"history": history, "steps": 300, "seconds": 52.0},
+                                    scratch)
+    assert probe["seconds_per_step"] == pytest.approx(0.1) and probe["compile_s"] == pytest.approx(22.0)
+    assert probe["chunks"] == 3 and len(scratch) == 1
+    scratch[0].rmdir()
     assert paper_plan._parts(timed, limit_s=1000.0) == [
         {"scene": "fox", "criterion": "saliency", "budgets": None, "seconds": 1000.0}]
 
@@ -334,3 +343,7 @@ def test_methods_beyond_the_papers_are_accepted_and_unknown_ones_named():
     assert paper_tables._method_names("grs,egps+refine,evosax:CMA_ES") == ["grs", "egps+refine", "evosax:CMA_ES"]
     with pytest.raises(SystemExit, match="unknown method 'nope'"):
         paper_tables._method_names("egps,nope")
+    paper_tables._check_refinable(["egps+refine"], ["saliency", "iqa_cnn"])
+    paper_tables._check_refinable(["egps"], ["niqe"])
+    with pytest.raises(SystemExit, match="cannot refine on criterion 'niqe'"):
+        paper_tables._check_refinable(["grs", "egps+refine"], ["saliency", "niqe"])

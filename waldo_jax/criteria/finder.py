@@ -156,10 +156,14 @@ def _resample(target: Array, h: Array, w: Array, buffer: Tuple[int, int]) -> Tup
     return jnp.where(mask[..., None], out, 0.0), mask
 
 
-@functools.partial(jax.jit, static_argnames="size")
 def resample_target(target: Array, size: Tuple[int, int]) -> Array:
     """The target [h, w, 3] resampled to `size` as the finder does (bilinear at pixel centres, no low-pass filter)."""
-    return _resample(jnp.asarray(target, jnp.float32), jnp.int32(size[0]), jnp.int32(size[1]), tuple(size))[0]
+    return _resample_compiled(jnp.asarray(target, jnp.float32), tuple(int(v) for v in size))
+
+
+@functools.partial(jax.jit, static_argnames="size")
+def _resample_compiled(target: Array, size: Tuple[int, int]) -> Array:
+    return _resample(target, jnp.int32(size[0]), jnp.int32(size[1]), size)[0]
 
 
 def _groups(sizes: Sequence[Tuple[int, int]]) -> Tuple[Tuple[Tuple[int, int], ...], ...]:

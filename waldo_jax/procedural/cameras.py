@@ -14,7 +14,7 @@ import numpy as np
 from waldo_jax.cameras import look_at
 from waldo_jax.procedural.visibility import waldo_visibility_batch
 from waldo_jax.procedural.room import WaldoRoom
-from waldo_jax.types import Intrinsics, PRNGKey
+from waldo_jax.types import Array, Intrinsics, PRNGKey
 
 __all__ = ["RoomCameraConfig", "training_cameras"]
 
@@ -65,7 +65,8 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
       ValueError: when too few candidates qualify (ask for fewer views or a larger oversample).
     """
     n = num_views * config.oversample
-    c2w = _candidates(key, n, config)
+    c2w = _candidates(key, n, np.float32(config.band_radius), np.float32(config.band_height),
+                      np.float32(config.target_radius), np.float32(config.target_height))
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
     keep = np.flatnonzero(visibility <= config.max_visibility)
     if len(keep) < num_views:
@@ -78,18 +79,19 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
     return np.asarray(c2w)[chosen].astype(np.float32)
 
 
-@functools.partial(jax.jit, static_argnames=("n", "config"))
-def _candidates(key: PRNGKey, n: int, config: RoomCameraConfig) -> jax.Array:
-    """`n` candidate cameras c2w [n, 4, 4] spread evenly in angle (with jitter) over the band, each
-    looking at a random point near the centre."""
+@functools.partial(jax.jit, static_argnames="n")
+def _candidates(key: PRNGKey, n: int, band_radius: Array, band_height: Array, target_radius: Array,
+                target_height: Array) -> jax.Array:
+    """`n` candidate cameras c2w [n, 4, 4] spread evenly in angle (with jitter) over the band
+    (`RoomCameraConfig`'s ranges, as arrays), each looking at a random point near the centre."""
     k_angle, k_radius, k_height, k_target = jax.random.split(key, 4)
     angle = 2 * jnp.pi * (jnp.arange(n) + jax.random.uniform(k_angle, (n,))) / n
-    radius = jax.random.uniform(k_radius, (n,), minval=config.band_radius[0], maxval=config.band_radius[1])
-    height = jax.random.uniform(k_height, (n,), minval=config.band_height[0], maxval=config.band_height[1])
+    radius = jax.random.uniform(k_radius, (n,), minval=band_radius[0], maxval=band_radius[1])
+    height = jax.random.uniform(k_height, (n,), minval=band_height[0], maxval=band_height[1])
     origins = jnp.stack([radius * jnp.cos(angle), height, radius * jnp.sin(angle)], -1)
     kt_r, kt_a, kt_h = jax.random.split(k_target, 3)
-    t_r = config.target_radius * jnp.sqrt(jax.random.uniform(kt_r, (n,)))
+    t_r = target_radius * jnp.sqrt(jax.random.uniform(kt_r, (n,)))
     t_a = 2 * jnp.pi * jax.random.uniform(kt_a, (n,))
-    t_h = jax.random.uniform(kt_h, (n,), minval=config.target_height[0], maxval=config.target_height[1])
+    t_h = jax.random.uniform(kt_h, (n,), minval=target_height[0], maxval=target_height[1])
     targets = jnp.stack([t_r * jnp.cos(t_a), t_h, t_r * jnp.sin(t_a)], -1)
     return jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))

@@ -86,8 +86,8 @@ class Packing:
         keep both under 10 passes per view with about 80 % of the evaluated slots in use.
 
         Every backend: no pass size under 2**14 slots (`min_pass_slots`), so a block of under about
-        14k rays (its first pass holds 32 slots a ray) uses fewer sizes, under about 1.5k rays one.
-        Measured on the 2-core CPU on a trained room NeRF, 4 poses at 16 px (1024 rays): one size
+        14k rays (its first pass holds 32 slots a ray) uses fewer sizes, under about 1.5k rays one
+        (chosen from CPU measurements only; no GPU was at hand). Measured on the 2-core CPU on a trained room NeRF, 4 poses at 16 px (1024 rays): one size
         compiles in 1.8 s and renders in 116 ms, four sizes take 4.6 s and 66 ms, so the smaller
         sizes pay for their compile only after about 55 such calls (docs/rendering.md, "Pass sizes
         that follow the work").
