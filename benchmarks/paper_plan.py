@@ -189,10 +189,8 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
         probe_args.progress = False
         for scene in scenes:
             kind = "room" if scene == room else "real"
-            if kind in probes or (work[scene]["reused"] and scene != first):
+            if kind in probes or work[scene]["reused"]:  # a reused first scene's cells are timed on its own NeRF
                 continue
-            if work[scene]["reused"] and scene == first:
-                continue  # its cells are timed on its own NeRF
             say(f"plan: training a {kind} probe NeRF ({args.plan_steps} steps) ...")
             if kind == "room":
                 probes[kind] = _train_probe(kind, lambda d: _stats(train_room(d, probe_args), d, TRAIN_JSON), scratch)
