@@ -158,16 +158,23 @@ def test_early_stop_loses_only_the_tail(packing):
         assert stopped.sum() > 10
 
 
-def needed_samples(params, grid, c2w):
-    """Per ray, the samples an exact early stop evaluates: up to and including the first after which the
-    transmittance is below MIN_T (float64 optical depths), or all of them."""
+@jax.jit
+def _march_reference(params, grid, c2w):
+    """Every ray's full march (step sizes, mask) and the densities at its samples, in one program."""
     ids = jnp.arange(c2w.shape[0] * INTRINSICS.height * INTRINSICS.width)
     origins, directions, _, _ = view_rays(c2w[:, :3, :4], INTRINSICS, ids)
     t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
-    t, delta, mask = as_numpy(jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, FULL))(
-        origins, directions, t_start, t_end))
-    points = np.asarray(origins)[:, None] + t[..., None] * np.asarray(directions)[:, None]
-    sigma = np.asarray(jax.vmap(jax.vmap(density, in_axes=(None, 0)), in_axes=(None, 0))(params, jnp.asarray(points)))
+    t, delta, mask = jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, FULL))(
+        origins, directions, t_start, t_end)
+    points = origins[:, None] + t[..., None] * directions[:, None]
+    sigma = jax.vmap(jax.vmap(density, in_axes=(None, 0)), in_axes=(None, 0))(params, points)
+    return delta, mask, sigma
+
+
+def needed_samples(params, grid, c2w):
+    """Per ray, the samples an exact early stop evaluates: up to and including the first after which the
+    transmittance is below MIN_T (float64 optical depths), or all of them."""
+    delta, mask, sigma = as_numpy(_march_reference(params, grid, c2w))
     after = np.exp(-np.cumsum(np.where(mask, sigma.astype(np.float64) * delta, 0.0), axis=1))
     stopped = mask & (after < MIN_T)
     return np.where(stopped.any(1), np.argmax(stopped, axis=1) + 1, mask.sum(1))
@@ -252,7 +259,7 @@ def test_packing_is_validated():
 @given(st.lists(st.integers(0, 5), min_size=1, max_size=12), st.integers(1, 20))
 def test_layout_rows_and_segment_sums_match_numpy(requests, num_rows):
     rows = np.asarray(requests, np.int32)
-    layout = as_numpy(packed.layout_rows(jnp.asarray(rows), num_rows))
+    layout = as_numpy(jax.jit(packed.layout_rows, static_argnums=1)(jnp.asarray(rows), num_rows))
     start = np.cumsum(rows) - rows
     granted = np.clip(num_rows - start, 0, rows)
     np.testing.assert_array_equal(layout.granted, granted)
@@ -266,8 +273,9 @@ def test_layout_rows_and_segment_sums_match_numpy(requests, num_rows):
     np.testing.assert_array_equal(layout.rank[used], rank[used])
     np.testing.assert_array_equal(layout.last, np.where(granted > 0, start + granted - 1, num_rows))
     values = np.arange(1, num_rows + 1, dtype=np.float32) ** 1.5
-    sums = np.asarray(packed.segment_cumsum(jnp.asarray(np.where(used, values, 0.0)), jnp.asarray(layout.rank),
-                                            max(1, int(rows.max()))))
+    segment_cumsum = jax.jit(packed.segment_cumsum, static_argnums=2)  # one program, not op by op
+    sums = np.asarray(segment_cumsum(jnp.asarray(np.where(used, values, 0.0)), jnp.asarray(layout.rank),
+                                     max(1, int(rows.max()))))
     for ray, (a, n) in enumerate(zip(start, granted)):
         np.testing.assert_allclose(sums[a:a + n], np.cumsum(values[a:a + n]), rtol=1e-6)
 
@@ -301,13 +309,14 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
         return (jnp.sum(w[..., None] * rgb_rays, 1), jnp.sum(w, 1), jnp.sum(w * t_rays, 1),
                 jnp.sum(sigma * delta, 1))
 
+    packed_colour, reference_colour = jax.jit(packed_colour), jax.jit(reference_colour)  # not op by op
     for a, b in zip(packed_colour(sigma_rays), reference_colour(sigma_rays)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6, atol=1e-6 * max(1.0, peak * 0.1))
     weights = jnp.array([1.0, -2.0, 3.0])
     loss_packed = lambda x: jnp.sum(packed_colour(x)[0] * weights) + jnp.sum(packed_colour(x)[2])  # noqa: E731
     loss_reference = lambda x: jnp.sum(reference_colour(x)[0] * weights) + jnp.sum(reference_colour(x)[2])  # noqa: E731
-    grad_packed = np.asarray(jax.grad(loss_packed)(sigma_rays))
-    grad_reference = np.asarray(jax.grad(loss_reference)(sigma_rays))
+    grad_packed = np.asarray(jax.jit(jax.grad(loss_packed))(sigma_rays))
+    grad_reference = np.asarray(jax.jit(jax.grad(loss_reference))(sigma_rays))
     assert np.all(np.isfinite(grad_packed))
     np.testing.assert_allclose(grad_packed, grad_reference, rtol=1e-5, atol=1e-7)
 

@@ -115,11 +115,12 @@ def test_too_strict_camera_filter_is_a_clear_error(room):
 
 def test_field_is_finite_and_bounded(room):
     points = jax.random.uniform(jax.random.key(2), (512, 3), minval=-5.0, maxval=5.0)
-    sigma, rgb = jax.vmap(room_field, in_axes=(None, 0, None))(room, points, jnp.array([0.0, 0.0, -1.0]))
+    sigma, rgb = jax.jit(jax.vmap(room_field, in_axes=(None, 0, None)))(room, points, jnp.array([0.0, 0.0, -1.0]))
     assert np.all(np.isfinite(sigma)) and np.all(np.isfinite(rgb))
     assert np.all((sigma >= 0) & (sigma <= DENSITY)) and np.all((rgb >= 0) & (rgb <= 1))
-    inside_floor = room_field(room, jnp.array([0.0, -0.1, 0.0]), jnp.zeros(3))[0]
-    in_the_air = room_field(room, jnp.array([3.5, 2.5, 3.5]), jnp.zeros(3))[0]
+    field = jax.jit(room_field)
+    inside_floor = field(room, jnp.array([0.0, -0.1, 0.0]), jnp.zeros(3))[0]
+    in_the_air = field(room, jnp.array([3.5, 2.5, 3.5]), jnp.zeros(3))[0]
     assert float(inside_floor) > 0.99 * DENSITY and float(in_the_air) < 1e-3
 
 

@@ -4,6 +4,7 @@ much of its image he covers (`waldo_coverage`), by casting segments against the 
 
 from __future__ import annotations
 
+import functools
 from typing import Tuple
 
 import jax
@@ -83,6 +84,7 @@ def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, nea
     return jnp.sum(seen * weight), jnp.sum(weight)
 
 
+@functools.partial(jax.jit, static_argnames="softness")
 def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
                      softness: float = 0.0) -> Array:
     """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
@@ -104,11 +106,15 @@ def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: 
     Returns:
       visibility [] in [0, 1]: 0 when Waldo is behind the camera, out of frame or hidden; 1 when
       all of Waldo is in frame with nothing in between.
+
+    Jitted (softness static), so a call from the host is one compiled program, not a hundred
+    op-by-op ones; inside another jit, vmap or grad it is inlined as before.
     """
     seen, facing = _waldo_solid_angles(room, c2w, intrinsics, near, softness)
     return jnp.where(facing > 0.0, seen / jnp.maximum(facing, 1e-30), 0.0)
 
 
+@functools.partial(jax.jit, static_argnames="softness")
 def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
                    softness: float = 0.0) -> Array:
     """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
@@ -120,6 +126,7 @@ def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: fl
 
     Returns:
       coverage [] in [0, 1] (clipped; the small-angle pixel estimate can overshoot near the border).
+      Jitted as `waldo_visibility`.
     """
     seen, _ = _waldo_solid_angles(room, c2w, intrinsics, near, softness)
     pixels = seen * intrinsics.fx * intrinsics.fy
