@@ -87,10 +87,10 @@ class Packing:
 
         Every backend: no pass size under 2**14 slots (`min_pass_slots`), so a block of under about
         14k rays (its first pass holds 32 slots a ray) uses fewer sizes, under about 1.5k rays one
-        (chosen from CPU measurements only; no GPU was at hand). Measured on the 2-core CPU on a trained room NeRF, 4 poses at 16 px (1024 rays): one size
-        compiles in 1.8 s and renders in 116 ms, four sizes take 4.6 s and 66 ms, so the smaller
-        sizes pay for their compile only after about 55 such calls (docs/rendering.md, "Pass sizes
-        that follow the work").
+        (chosen from CPU measurements only; no GPU was at hand). Measured on the 2-core CPU on a
+        trained room NeRF, 4 poses at 16 px (1024 rays): one size compiles in 1.8 s and renders in
+        116 ms, four sizes take 4.6 s and 66 ms, so the smaller sizes pay for their compile only
+        after about 55 such calls (docs/rendering.md, "Pass sizes that follow the work").
         """
         backend = backend or jax.default_backend()
         values = dict(rays_per_block=2**15, field_chunk=2**13) if backend == "cpu" else dict(
