@@ -30,19 +30,13 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Sequence
 
 import jax
 
 
-def _n_train(scene: str, args, downscale: Optional[float], room: str) -> int:
-    if scene == room:
-        return int(args.room_views)
-    from waldo_jax.nerf.runs import load_splits
-    from waldo_jax.paths import scene_path
-
-    train_scene, _ = load_splits(str(scene_path(scene)), downscale, stacklevel=2)
-    return int(train_scene.n_images)
+def _n_train(scene: str, args, room: str, train_split: Callable) -> int:
+    return int(args.room_views) if scene == room else int(train_split(scene).n_images)
 
 
 def _cells(scene: str, n_train: int, criteria, methods, budgets, args, children) -> List[Dict[str, Any]]:
@@ -164,10 +158,18 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
     t0 = time.perf_counter()
     device = str(jax.devices()[0].device_kind)
     scratch: List[Path] = []
+    splits: Dict[str, Any] = {}
+
+    def train_split(scene: str):
+        """A real scene's training split, read once per plan (its count, step preset and aspect use it)."""
+        if scene not in splits:
+            splits[scene] = load_splits(str(scene_path(scene)), downscale.get(scene), stacklevel=3)[0]
+        return splits[scene]
+
     try:
         work = {}
         for scene in scenes:
-            n_train = _n_train(scene, args, downscale.get(scene), room)
+            n_train = _n_train(scene, args, room, train_split)
             reused = (run_dir_of(scene) / CHECKPOINT_NAME).exists()
             steps = None
             if not reused:
@@ -176,8 +178,7 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
                 elif args.train_steps is not None:
                     steps = int(args.train_steps)
                 else:
-                    train_scene, _ = load_splits(str(scene_path(scene)), downscale.get(scene), stacklevel=2)
-                    steps = TrainConfig.preset(args.preset, train_scene).steps
+                    steps = TrainConfig.preset(args.preset, train_split(scene)).steps
             work[scene] = {"n_train": n_train, "reused": reused, "train_steps": steps,
                            "cells": _cells(scene, n_train, criteria, methods, budgets, args, children)}
 
@@ -212,8 +213,7 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
             elif scene == room:
                 other = None  # the room renders square
             else:
-                train_scene, _ = load_splits(str(scene_path(scene)), downscale.get(scene), stacklevel=2)
-                other = train_scene.intrinsics
+                other = train_split(scene).intrinsics
             if other is None:
                 pixels[scene] = args.resolution ** 2
             else:

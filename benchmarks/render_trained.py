@@ -176,6 +176,9 @@ def main(argv=None):
     parser.add_argument("--baseline-psnr", type=float, default=None,
                         help="today's renderer's held-out PSNR on this run (default: this renderer at scale 1)")
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats (default 3; --quick 1)")
+    parser.add_argument("--field-chunk", type=int, default=None,
+                        help="slots per field call within a pass (default: the backend's, Packing.for_backend; "
+                             "0: the whole pass in one call)")
     parser.add_argument("--skip", default="", help="comma-separated parts to skip: loop, curve")
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
@@ -209,7 +212,7 @@ def main(argv=None):
                          f"{scene.intrinsics.width}x{scene.intrinsics.height}: pass the run's --downscale")
     background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
     params, grid = jax.device_put(checkpoint.params), jax.device_put(checkpoint.occupancy)
-    packing = marched.Packing.for_backend()
+    packing = marched.Packing.for_backend(**({} if args.field_chunk is None else {"field_chunk": args.field_chunk}))
 
     # Quality: the run's render step (calibrated by the training rule when the run predates it) and the curve.
     calibrated_here = config.render_step_scale is None

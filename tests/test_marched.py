@@ -112,7 +112,7 @@ def render(params, grid, c2w, march=MARCH, packing=None, field_fn=field):
 
 
 PACKINGS = [
-    # one block of the whole call, 16 slots a ray and pass, rows of 8 (the CPU defaults, small call)
+    # one block of the whole call, 32 slots a ray and pass, rows of 8, one field call a pass (the CPU defaults)
     marched.Packing.for_backend("cpu"),
     # blocks of 40 rays, 4 slots a ray and pass in rows of 2, at most 2 rows a ray: many passes
     marched.Packing(rays_per_block=40, slots_per_ray=4, row_length=2, max_rows_per_ray=2, field_chunk=0),
