@@ -109,3 +109,15 @@ def trained_lego_fast(tmp_path_factory):
     folder = built_once(tmp_path_factory, "trained_lego_fast", build)
     return folder / "lego.ckpt", json.loads((folder / "summary.json").read_text())
 
+
+# Test files by their time on the 2-core CPU, heaviest first (each over about 40 s there, fixtures
+# included; the rest keep their order after them). pyproject's `--dist loadfile` hands whole files to
+# the pytest-xdist workers, so a file's module fixtures and compiled programs are built once; taking
+# the heavy files first keeps one worker from running a long file alone at the end.
+HEAVY_FIRST = ("test_explore_cli.py", "test_paper_tables.py", "test_search_path.py", "test_marched.py",
+               "test_criteria_all.py", "test_notebooks.py", "test_finder.py", "test_sharding.py", "test_csnet.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: index for index, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's own order is kept
