@@ -261,6 +261,40 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_training(tmp_
     assert os.listdir(tmp_path / "ro") == []
 
 
+@pytest.mark.parametrize("command", ["explore", "path"])
+def test_a_bad_criterion_is_refused_before_the_source_loads(tmp_path, capsys, monkeypatch, command):
+    """The criterion's text, its guards' ranges, the target image and a method that needs gradients are
+    checked before the source (a room to render, a NeRF run to read) is loaded; the room's oracles,
+    which need the source, are still built after it."""
+    import waldo_jax.cli.explore as cli_explore
+    import waldo_jax.cli.path as cli_path
+
+    module = cli_explore if command == "explore" else cli_path
+    real_load = module.load_source
+    monkeypatch.setattr(module, "load_source", lambda *a, **k: pytest.fail("loaded the source before the criterion"))
+    bad = [(["--criterion", "weighted:composition"], "bad weight"),
+           (["--criterion", "weighted:opacity=1,opacity=2"], "names 'opacity' twice"),
+           (["--criterion", "colourfulness"], "unknown criterion 'colourfulness'"),
+           (["--criterion", "colorfulness", "--guard", "opacty:0.5"], "unknown criterion 'opacty'"),
+           (["--criterion", "colorfulness", "--guard", "opacity:2"], "fails every view"),
+           (["--criterion", "waldo", "--target", str(tmp_path / "missing.png")], "missing.png")]
+    if command == "explore":
+        bad.append((["--criterion", "niqe", "--method", "egps+refine"], "'niqe' is not differentiable"))
+    for flags, message in bad:
+        out = tmp_path / "new"
+        assert main([command, "procedural", "--out", str(out), *flags]) == 1
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1, (flags, err)
+        assert not out.exists()
+    # An oracle needs the room: the source loads first and the oracle is built from it (here it is then
+    # refused, as a poses criterion takes no guard).
+    calls = []
+    monkeypatch.setattr(module, "load_source", lambda *a, **k: calls.append(a) or real_load(*a, **k))
+    assert main([command, "procedural:1", "--out", str(tmp_path / "oracle"), "--criterion", "waldo_oracle",
+                 "--guard", "opacity:0.5"]) == 1
+    assert calls and "scores poses" in capsys.readouterr().err
+
+
 def test_a_full_disk_leaves_no_half_written_file_and_one_line(tmp_path, capsys, monkeypatch):
     """Every file goes through io.atomic_file: when the disk fills up mid-write, the file being written
     is absent (no 0-byte PNG), earlier files are whole, and the error is one line naming the file."""

@@ -13,7 +13,7 @@ import waldo_jax  # noqa: F401
 from waldo_jax.cli import main
 from waldo_jax.criteria import (Criterion, CriterionContext, CriterionError, build_criterion, constrained,
                                 make_criterion, weighted)
-from waldo_jax.criteria.combine import parse_guard
+from waldo_jax.criteria.combine import parse_guard, spec_names
 from waldo_jax.criteria.composition import composition_from_map, composition_terms
 
 
@@ -95,6 +95,10 @@ def test_build_criterion_parses_the_command_line_forms():
     w = build_criterion("weighted:opacity=2,composition=1")
     assert w.name == "weighted:opacity=2,composition=1"
     assert parse_guard("opacity:0.25") == ("opacity", 0.25)
+    # What a spec names, read from its text alone (a command checks it before it loads a scene).
+    assert spec_names("weighted:opacity=2,composition=1", ["opacity:0.5"]) == ("opacity", "composition", "opacity")
+    with pytest.raises(CriterionError, match="unknown criterion 'opacty'"):
+        spec_names("colorfulness", ["opacty:0.5"])
     for bad in ("opacity", "opacity:x", ":0.5", "opacity:nan"):
         with pytest.raises(CriterionError, match="bad --guard"):
             parse_guard(bad)

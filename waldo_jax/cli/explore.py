@@ -18,7 +18,7 @@ import time
 from typing import Optional
 
 from waldo_jax import io
-from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
+from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError
 from waldo_jax.pipeline import INITIAL_MODES, gradient_cost_for, load_source, run_explore, write_outputs
 from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
@@ -110,9 +110,13 @@ def cmd_explore(args: argparse.Namespace) -> int:
         raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")
     io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
-    source = load_source(args.source, args.resolution, args.views)
-    criterion = criterion_from_args(args, room=source.room, source=source.spec)
     method = get_method(config.method)
+    criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
+    if method.differentiable and criterion is not None:
+        criterion.smooth()
+    source = load_source(args.source, args.resolution, args.views)
+    if criterion is None:  # a poses criterion: the room's oracles need the source
+        criterion = criterion_from_args(args, room=source.room, source=source.spec)
     if method.differentiable:
         criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
         if args.gradient_cost is None:

@@ -2,7 +2,8 @@
 
 `--criterion` takes a registered name or `weighted:NAME=W,...`; `--guard NAME:THRESHOLD` wraps it with
 `constrained` (repeatable); `--weights DIR` replaces `WALDO_WEIGHTS`; `--target FILE` is the reference
-image of the `waldo` finder.
+image of the `waldo` finder. A command that loads a scene first calls `criterion_before_source`, so
+that a bad criterion, guard, weights folder or target is refused before the scene is loaded.
 """
 
 from __future__ import annotations
@@ -11,10 +12,10 @@ import argparse
 from typing import Optional
 
 from waldo_jax.criteria import CRITERIA, Criterion, CriterionContext
-from waldo_jax.criteria.combine import build_criterion
+from waldo_jax.criteria.combine import build_criterion, spec_names
 from waldo_jax.io import read_image
 
-__all__ = ["add_criterion_arguments", "criterion_from_args"]
+__all__ = ["add_criterion_arguments", "criterion_before_source", "criterion_from_args"]
 
 
 def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[str] = None) -> None:
@@ -39,3 +40,20 @@ def criterion_from_args(args: argparse.Namespace, room=None, source: str = "") -
         target = read_image(args.target, what="--target image", min_side=2)
     context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source)
     return build_criterion(args.criterion, context, getattr(args, "guard", []) or [])
+
+
+def criterion_before_source(args: argparse.Namespace) -> Optional[Criterion]:
+    """The criterion the flags name, built before the source is loaded when it needs nothing from it.
+
+    Checks the spec's text first (`spec_names`); a criterion that scores poses (the room's oracles)
+    needs the source's room, so for it this returns None and the caller builds it with
+    `criterion_from_args` once the source is loaded.
+
+    Raises:
+      CriterionError / DataNotFoundError / WeightsError / WaldoError: a bad spec, guard, weights
+        folder or target image (naming the value or file).
+    """
+    names = spec_names(args.criterion, getattr(args, "guard", []) or [])
+    if any(CRITERIA[name].inputs == "poses" for name in names):
+        return None
+    return criterion_from_args(args, source=args.source)

@@ -19,7 +19,7 @@ from pathlib import Path
 from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
-from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
+from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
 from waldo_jax.pipeline.path_run import read_explore_anchors, run_path, write_path_outputs
@@ -135,9 +135,11 @@ def cmd_path(args: argparse.Namespace) -> int:
     anchor_c2w = None if args.from_explore is None else read_explore_anchors(args.from_explore)
     io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
+    criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     source = load_source(args.source, args.resolution, args.views)
     video = source if args.video_resolution is None else load_source(args.source, args.video_resolution, args.views)
-    criterion = criterion_from_args(args, room=source.room, source=source.spec)
+    if criterion is None:  # a poses criterion: the room's oracles need the source
+        criterion = criterion_from_args(args, room=source.room, source=source.spec)
     limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
     run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, anchor_c2w=anchor_c2w,
                    anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",

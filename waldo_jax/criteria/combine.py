@@ -19,11 +19,11 @@ from typing import Callable, Optional, Sequence, Tuple
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, finite_or_worst,
-                                     make_criterion, register, worst_score)
+from waldo_jax.criteria.base import (CRITERIA, Criterion, CriterionContext, CriterionError, CriterionSpec,
+                                     finite_or_worst, make_criterion, register, worst_score)
 from waldo_jax.types import Array
 
-__all__ = ["opacity", "mean_opacity", "constrained", "weighted", "build_criterion", "parse_guard"]
+__all__ = ["opacity", "mean_opacity", "constrained", "weighted", "build_criterion", "parse_guard", "spec_names"]
 
 
 def mean_opacity(rgba: Array) -> Array:
@@ -175,27 +175,53 @@ def parse_guard(spec: str) -> Tuple[str, float]:
     return name, threshold
 
 
-def _parse_weighted(spec: str, context: CriterionContext) -> Criterion:
-    body = spec[len("weighted:"):]
-    criteria, weights = [], []
-    names = []
-    for item in filter(None, body.split(",")):
-        name, sep, value = item.partition("=")
+def _check_registered(name: str) -> None:
+    if name not in CRITERIA:
+        raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
+
+
+def _weighted_items(spec: str) -> Tuple[Tuple[str, float], ...]:
+    """`weighted:NAME=W,...` -> ((name, weight), ...), with a clear error for a malformed spec."""
+    items = []
+    for item in filter(None, spec[len("weighted:"):].split(",")):
+        name, _, value = item.partition("=")
         name = name.strip()
         try:
             weight = float(value)
         except ValueError:
             raise CriterionError(f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT "
                                  "for every criterion") from None
-        if name in names:
+        if name in (n for n, _ in items):
             raise CriterionError(f"{spec!r} names {name!r} twice: give each criterion once, with its weight")
-        names.append(name)
-        criteria.append(build_criterion(name, context))
-        weights.append(weight)
-    if len(criteria) < 2:
+        _check_registered(name)
+        items.append((name, weight))
+    if len(items) < 2:
         raise CriterionError(f"bad criterion {spec!r}: weighted needs at least two criteria, "
                              "weighted:NAME=WEIGHT,NAME=WEIGHT (for one, name it alone)")
-    return weighted(criteria, weights)
+    return tuple(items)
+
+
+def _parse_weighted(spec: str, context: CriterionContext) -> Criterion:
+    items = _weighted_items(spec)
+    return weighted([build_criterion(name, context) for name, _ in items], [weight for _, weight in items])
+
+
+def spec_names(spec: str, guards: Sequence[str] = ()) -> Tuple[str, ...]:
+    """The registered criteria a `build_criterion` spec and its guards name, without building any.
+
+    Checks what needs nothing but the text (the syntax, the names, a repeated name), so that a
+    command can refuse a bad spec before it loads a scene; what needs the criteria themselves (a
+    guard's range, weights files, a poses criterion in a combination) `build_criterion` checks.
+
+    Raises:
+      CriterionError: as `build_criterion` would for the same text.
+    """
+    spec = spec.strip()
+    names = [name for name, _ in _weighted_items(spec)] if spec.startswith("weighted:") else [spec]
+    names += [parse_guard(guard)[0] for guard in guards]
+    for name in names:
+        _check_registered(name)
+    return tuple(names)
 
 
 def build_criterion(spec: str, context: Optional[CriterionContext] = None, guards: Sequence[str] = ()) -> Criterion:
