@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from waldo_jax.cli import main
-from waldo_jax.criteria import CRITERIA, make_criterion
+from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion, make_criterion
+from waldo_jax.io import read_image
 from waldo_jax.pipeline.demo import DemoSettings, run_demo
+from waldo_jax.pipeline.experiment import _jit_score_images
 from waldo_jax.errors import WaldoError
 from waldo_jax.procedural import make_room, waldo_coverage
 from waldo_jax.pipeline.sources import procedural_source, run_source
@@ -203,17 +205,20 @@ def test_explore_accepts_each_criterion(tmp_path, criterion):
 
     if criterion != "waldo":
         require_weights({"saliency": "csnet", "composition": "csnet", "iqa_cnn": "cnniqa"}.get(criterion, criterion))
-    extra = []
-    source = procedural_source(1, resolution=16, views=8)
+    extra, target = [], None
+    size = 96 if criterion in ("niqe", "brisque") else 16  # NIQE and BRISQUE need whole 96 px patches
+    source = procedural_source(1, resolution=size, views=8)
     if criterion == "waldo":  # a crop of a training view as the reference image
-        target = tmp_path / "target.png"
-        iio.imwrite(target, (np.clip(source.train_images[0, 4:12, 4:12], 0, 1) * 255).astype(np.uint8))
-        extra = ["--target", str(target)]
+        path = tmp_path / "target.png"
+        iio.imwrite(path, (np.clip(source.train_images[0, 4:12, 4:12], 0, 1) * 255).astype(np.uint8))
+        extra, target = ["--target", str(path)], read_image(path)
     out = tmp_path / criterion
-    resolution = ["--resolution", "96"] if criterion in ("niqe", "brisque") else []  # whole 96 px patches
     assert explore(out, "--method", "egps", "--criterion", criterion, "--guard", "opacity:0.5", *extra,
-                   *resolution) == 0
+                   "--resolution", str(size)) == 0
     r = json.loads((out / "results.json").read_text())
     assert r["criterion"] == f"{criterion}|opacity>=0.5"
     assert r["direction"] == CRITERIA[criterion].direction
     assert r["n_generated"] == 12 and np.all(np.isfinite(r["scores_generated"]))
+    # The training images scored by the same criterion (the program `waldo explore` compiled: no new one).
+    guarded = build_criterion(criterion, CriterionContext(target=target), ["opacity:0.5"])
+    assert r["scores_train"] == np.asarray(_jit_score_images(guarded, source.train_images)).tolist()
