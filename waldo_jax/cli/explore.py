@@ -113,7 +113,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     method = get_method(config.method)
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     if method.differentiable and criterion is not None:
-        criterion.smooth()
+        criterion.smooth()  # a criterion gradient steps cannot follow, refused before the source loads too
     source = load_source(args.source, args.resolution, args.views)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
