@@ -6,7 +6,8 @@ background, which a criterion may like); a ray's accumulated opacity is ~0 where
   * `constrained(primary, guard, threshold)`: the primary where the guard passes, its worst score
     elsewhere (`--criterion saliency --guard opacity:0.9`);
   * `weighted(parts, weights)`: the weighted mean of the parts' scores, each mapped onto [0, 1]
-    (`--criterion weighted:saliency=0.7,iqa_cnn=0.3`); `build_criterion` parses such specs.
+    (`--criterion weighted:saliency=0.7,iqa_cnn=0.3`); `build_criterion` parses such specs, and
+    `spec_names` reads the criteria one names without building them.
 The definitions, and the inputs and parameters of a combination: see docs/design.md, section
 "Criteria > Guards and combinations".
 """
