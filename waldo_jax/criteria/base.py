@@ -33,6 +33,7 @@ __all__ = [
     "CriterionSpec",
     "register",
     "make_criterion",
+    "check_registered",
     "CRITERIA",
     "worst_score",
     "finite_or_worst",
@@ -210,14 +211,19 @@ def register(spec: CriterionSpec) -> CriterionSpec:
     return spec
 
 
+def check_registered(name: str) -> None:
+    """Raises `CriterionError` (listing the registered names) when `name` is not in the registry."""
+    if name not in CRITERIA:
+        raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
+
+
 def make_criterion(name: str, context: Optional[CriterionContext] = None) -> Criterion:
     """Builds the registered criterion `name`.
 
     Raises:
       CriterionError: unknown name (the message lists the registered ones) or missing context.
     """
-    if name not in CRITERIA:
-        raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
+    check_registered(name)
     criterion = CRITERIA[name].build(context or CriterionContext())
     if (criterion.name != name or criterion.direction != CRITERIA[name].direction
             or criterion.differentiable != CRITERIA[name].smooth):

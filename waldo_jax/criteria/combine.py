@@ -20,7 +20,7 @@ from typing import Callable, Optional, Sequence, Tuple
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import (CRITERIA, Criterion, CriterionContext, CriterionError, CriterionSpec,
+from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, check_registered,
                                      finite_or_worst, make_criterion, register, worst_score)
 from waldo_jax.types import Array
 
@@ -176,11 +176,6 @@ def parse_guard(spec: str) -> Tuple[str, float]:
     return name, threshold
 
 
-def _check_registered(name: str) -> None:
-    if name not in CRITERIA:
-        raise CriterionError(f"unknown criterion {name!r}; choose one of {', '.join(sorted(CRITERIA))}")
-
-
 def _weighted_items(spec: str) -> Tuple[Tuple[str, float], ...]:
     """`weighted:NAME=W,...` -> ((name, weight), ...), with a clear error for a malformed spec."""
     items = []
@@ -194,7 +189,7 @@ def _weighted_items(spec: str) -> Tuple[Tuple[str, float], ...]:
                                  "for every criterion") from None
         if name in (n for n, _ in items):
             raise CriterionError(f"{spec!r} names {name!r} twice: give each criterion once, with its weight")
-        _check_registered(name)
+        check_registered(name)
         items.append((name, weight))
     if len(items) < 2:
         raise CriterionError(f"bad criterion {spec!r}: weighted needs at least two criteria, "
@@ -221,7 +216,7 @@ def spec_names(spec: str, guards: Sequence[str] = ()) -> Tuple[str, ...]:
     names = [name for name, _ in _weighted_items(spec)] if spec.startswith("weighted:") else [spec]
     names += [parse_guard(guard)[0] for guard in guards]
     for name in names:
-        _check_registered(name)
+        check_registered(name)
     return tuple(names)
 
 
