@@ -13,6 +13,12 @@ from pathlib import Path
 from typing import Callable
 
 os.environ.setdefault("JAX_ENABLE_X64", "0")
+# XLA's legacy CPU fusion emitters (`waldo_jax._xla_flags`, docs/design.md "Faster CPU compiles on
+# request"): the suite compiles ~2,200 programs and runs short ones, so on the 2-core CPU it takes
+# about a fifth less time. Set before waldo_jax is imported (below), inherited by the subprocesses
+# (notebooks, sharding, benchmarks). `WALDO_FAST_COMPILE=0 pytest ...` runs the suite with XLA's
+# default emitters; tests/test_xla_guard.py checks both settings give the same answers.
+os.environ.setdefault("WALDO_FAST_COMPILE", "1")
 
 import pytest
 from filelock import FileLock

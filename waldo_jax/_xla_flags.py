@@ -6,6 +6,9 @@
   * GPU: `--xla_gpu_deterministic_ops=true`, so a seed fixes a run bit for bit
     (`WALDO_DETERMINISTIC=0` leaves it out).
   * Every backend: `jax_default_matmul_precision` = "highest" (full float32, no TF32).
+  * CPU, only when asked (`WALDO_FAST_COMPILE=1`): XLA's legacy CPU fusion emitters
+    (`--xla_cpu_use_fusion_emitters=false`), which compile faster and run the NeRF field slower; the
+    test suite turns it on (tests/conftest.py).
 
 A user's own setting of any of these is left alone. `apply()` adds the flags to XLA_FLAGS,
 `full_precision_matmuls()` sets the precision. Why, with what was measured: see docs/design.md,
@@ -20,6 +23,10 @@ import warnings
 _YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 # XLA flags that make GPU results deterministic; the first is the one added.
 _DETERMINISM_FLAGS = ("--xla_gpu_deterministic_ops", "--xla_gpu_exclude_nondeterministic_ops")
+# Opt-in faster XLA:CPU compiles, for short runs that compile more than they compute (tests, quick
+# notebook explorations): the suite on the 2-core CPU took 10:07 instead of 12:40-12:56 with it, a
+# fox training step 145 ms instead of 108 ms (docs/design.md, "Faster CPU compiles on request").
+_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters"
 
 
 def _jaxlib_version() -> tuple:
@@ -40,19 +47,27 @@ def _backends_started() -> bool:
         return False
 
 
+def _env_on(name: str, default: str) -> bool:
+    """Whether the environment variable `name` is on (unset or empty: `default`)."""
+    value = os.environ.get(name, "").strip().lower() or default
+    return value not in ("0", "false", "no", "off")
+
+
 def _wanted_flags(flags: str) -> list:
     """The flags to add to an XLA_FLAGS value `flags` (those the user has not set)."""
     wanted = []
     if _YNN_FLAG not in flags and _jaxlib_version() >= (0, 8, 0):
         wanted.append(f"{_YNN_FLAG}=")
-    opted_out = os.environ.get("WALDO_DETERMINISTIC", "1").strip().lower() in ("0", "false", "no", "off")
-    if not opted_out and not any(flag in flags for flag in _DETERMINISM_FLAGS):
+    if _env_on("WALDO_DETERMINISTIC", "1") and not any(flag in flags for flag in _DETERMINISM_FLAGS):
         wanted.append(f"{_DETERMINISM_FLAGS[0]}=true")
+    if _env_on("WALDO_FAST_COMPILE", "0") and _FAST_COMPILE_FLAG not in flags:
+        wanted.append(f"{_FAST_COMPILE_FLAG}=false")
     return wanted
 
 
 def apply() -> None:
-    """Adds the YNN-fusion workaround (jaxlib >= 0.8) and GPU determinism to XLA_FLAGS, unless set already."""
+    """Adds the YNN-fusion workaround (jaxlib >= 0.8), GPU determinism and, when asked, the faster CPU
+    compiles to XLA_FLAGS, unless set already."""
     flags = os.environ.get("XLA_FLAGS", "")
     wanted = _wanted_flags(flags)
     if not wanted:
