@@ -128,10 +128,12 @@ def test_output_paths_keep_the_limits(room, method):
         assert bool(jnp.all(out.population.violation[s][top] == 0.0))
         np.testing.assert_allclose(out.best_score[s], jnp.mean(out.best_frame_scores[s]), rtol=1e-5)
         assert np.all(np.diff(np.asarray(out.curve[s])) >= 0)  # best so far never falls
-    # Another program with the same strategy shape (a cached evosax object must hold no tracer).
-    softmin = search_path(jax.random.key(0), frame_fn, source.train_c2w, scores, source.train_c2w, limits,
-                          dataclasses.replace(config, aggregate="softmin"))
-    assert bool(softmin.found)
+    if method.startswith("evosax:"):
+        # Another program with the same strategy shape (a cached evosax object must hold no tracer),
+        # and the soft-minimum aggregate end to end.
+        softmin = search_path(jax.random.key(0), frame_fn, source.train_c2w, scores, source.train_c2w, limits,
+                              dataclasses.replace(config, aggregate="softmin"))
+        assert bool(softmin.found)
 
 
 def test_a_failed_frame_is_never_selected(room):
