@@ -116,12 +116,15 @@ def trained_lego_fast(tmp_path_factory):
     return folder / "lego.ckpt", json.loads((folder / "summary.json").read_text())
 
 
-# Test files by their time on the 2-core CPU, heaviest first (each over about 40 s there, fixtures
+# Test files by their time on the 2-core CPU, heaviest first (each over about 25 s there, fixtures
 # included; the rest keep their order after them). pyproject's `--dist loadfile` hands whole files to
-# the pytest-xdist workers, so a file's module fixtures and compiled programs are built once; taking
-# the heavy files first keeps one worker from running a long file alone at the end.
-HEAVY_FIRST = ("test_explore_cli.py", "test_paper_tables.py", "test_search_path.py", "test_marched.py",
-               "test_criteria_all.py", "test_notebooks.py", "test_finder.py", "test_sharding.py", "test_csnet.py")
+# the pytest-xdist workers, so a file's module fixtures and compiled programs are built once, and
+# `--no-loadscope-reorder` keeps this order (pytest-xdist 3.8 otherwise sorts the files by their
+# number of tests): taking the heavy files first keeps one worker from running a long file alone at
+# the end. test_marched builds the lego_tiny training that test_train then reads.
+HEAVY_FIRST = ("test_explore_cli.py", "test_paper_tables.py", "test_marched.py", "test_search_path.py",
+               "test_criteria_all.py", "test_notebooks.py", "test_finder.py", "test_train.py", "test_bad_input.py",
+               "test_csnet.py", "test_search_beyond.py", "test_sharding.py", "test_xla_guard.py")
 
 
 def pytest_collection_modifyitems(config, items):

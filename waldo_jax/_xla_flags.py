@@ -26,6 +26,7 @@ _DETERMINISM_FLAGS = ("--xla_gpu_deterministic_ops", "--xla_gpu_exclude_nondeter
 # Opt-in faster XLA:CPU compiles, for short runs that compile more than they compute (tests, quick
 # notebook explorations): the suite on the 2-core CPU took 10:07 instead of 12:40-12:56 with it, a
 # fox training step 145 ms instead of 108 ms (docs/design.md, "Faster CPU compiles on request").
+# jaxlib knows the flag from 0.7 (the oldest that pyproject allows) on.
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters"
 
 
