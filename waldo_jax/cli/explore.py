@@ -20,7 +20,7 @@ from typing import Optional
 from waldo_jax import io
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError
-from waldo_jax.pipeline import INITIAL_MODES, gradient_cost_for, load_source, run_explore, write_outputs
+from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
 from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
 
 __all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
@@ -33,7 +33,11 @@ def add_command(subparsers) -> None:
         description="Run one of the paper's searches (Algorithm 1) on SOURCE: start from the scored training "
                     "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
                     "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.")
-    p.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or a RUN_DIR of waldo train")
+    p.add_argument("source", metavar="SOURCE",
+                   help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)")
+    p.add_argument("--cameras", default=None, metavar="FILE",
+                   help="splat scenes: a transforms.json-like file of training poses (default: the model's "
+                        "cameras.json, else a ring of 24 views around the splats)")
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help=f"one of {method_names()} (default egps)")
     p.add_argument("--budget", default="low", help="low (250-300 images in total) or high (900-1000); default low")
@@ -114,14 +118,13 @@ def cmd_explore(args: argparse.Namespace) -> int:
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     if method.differentiable and criterion is not None:
         criterion.smooth()  # a criterion gradient steps cannot follow, refused before the source loads too
-    source = load_source(args.source, args.resolution, args.views)
+    source = load_source(args.source, args.resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
     if method.differentiable:
         criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
-        if args.gradient_cost is None:
-            config = dataclasses.replace(config, refine=dataclasses.replace(
-                config.refine, gradient_cost=gradient_cost_for(criterion)))
+        config = dataclasses.replace(config, refine=refine_for_source(config.refine, source, criterion,
+                                                                       args.gradient_cost is None))
     try:
         children = config.resolve(source.n_train).children_per_epoch
         method.make_config(children, refine=config.refine, epochs=config.epochs, top_c=config.top_c,

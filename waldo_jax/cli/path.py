@@ -39,7 +39,11 @@ def add_command(subparsers) -> None:
                     "criterion under speed, turn, scene-box and opacity limits; write camera_path.json "
                     "(nerfstudio), instant_ngp_path.json, poses.json, path.mp4, path.gif, scores.png, "
                     "path_plot.png and results.json.")
-    p.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or a RUN_DIR of waldo train")
+    p.add_argument("source", metavar="SOURCE",
+                   help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)")
+    p.add_argument("--cameras", default=None, metavar="FILE",
+                   help="splat scenes: a transforms.json-like file of training poses (default: the model's "
+                        "cameras.json, else a ring of 24 views around the splats)")
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help="egps (default) or evosax:NAME (e.g. evosax:CMA_ES)")
     p.add_argument("--keyframes", type=int, default=4, help="keyframes K of the path (default 4)")
@@ -136,8 +140,8 @@ def cmd_path(args: argparse.Namespace) -> int:
     io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
-    source = load_source(args.source, args.resolution, args.views)
-    video = source if args.video_resolution is None else load_source(args.source, args.video_resolution, args.views)
+    source = load_source(args.source, args.resolution, args.views, args.cameras)
+    video = source if args.video_resolution is None else load_source(args.source, args.video_resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
     limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)

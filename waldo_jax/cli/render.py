@@ -3,6 +3,7 @@
     waldo render procedural[:SEED] --out DIR [--resolution R] [--views N] [--samples S]
     waldo render procedural[:SEED] --poses FILE --out DIR [--resolution R] [--samples S]
     waldo render RUN_DIR --poses FILE|train --out DIR [--resolution R]
+    waldo render SPLATS --poses FILE|train --out DIR [--resolution R]     (a .ply or a 3DGS model folder)
 
 The room renders its training views analytically, with a contact sheet, transforms.json and
 room.json (Waldo's visibility per view), or, with --poses, the cameras of a poses file. A run renders the poses of a file read by
@@ -16,6 +17,7 @@ longer side has R pixels.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -29,6 +31,7 @@ from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.trained import render_trained
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
+from waldo_jax.pipeline.splat_sources import calibrate_max_pairs, is_splat_spec, splat_renderer, splat_source
 from waldo_jax.procedural import RoomCameraConfig, make_room, room_field, room_render_config, room_scene, \
     waldo_visibility_batch
 from waldo_jax.render import render_views
@@ -47,7 +50,8 @@ def add_command(subparsers) -> None:
         "render", help="render views to PNGs",
         description="Render the procedural Waldo room's training views (SOURCE = procedural[:SEED]), or "
                     "poses with a trained field (SOURCE = a run directory of `waldo train`, with --poses).")
-    render.add_argument("source", metavar="SOURCE", help="procedural, procedural:SEED, or RUN_DIR")
+    render.add_argument("source", metavar="SOURCE",
+                        help="procedural, procedural:SEED, RUN_DIR, or a splat scene (.ply or 3DGS folder)")
     render.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     render.add_argument("--poses", default=None, metavar="FILE|train",
                         help="a transforms.json-like file or a camera path of `waldo path`; RUN_DIR also takes "
@@ -64,7 +68,7 @@ def add_command(subparsers) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    """`waldo render`: the procedural room's training views, or poses rendered by a trained run."""
+    """`waldo render`: the procedural room's training views, or poses rendered by a trained run or splats."""
     seed = parse_procedural(args.source, args.seed)
     if seed is not None:
         return _render_procedural(args, seed)
@@ -72,7 +76,59 @@ def cmd_render(args: argparse.Namespace) -> int:
                if value is not None]
     if ignored:
         raise WaldoError(f"{', '.join(ignored)}: for procedural sources only; {args.source} renders its trained field")
+    if is_splat_spec(args.source):
+        return _render_splats(args)
     return _render_run(args)
+
+
+def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names) -> None:
+    """Renders `c2w` in groups of one size (the last padded by repeating a pose: one compiled program,
+    memory bounded by RENDER_GROUP_PIXELS however many poses) and writes out/names[i]."""
+    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
+    for first in range(0, len(c2w), group):
+        part = c2w[first:first + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
+        images = np.asarray(jax.device_get(render_group(padded)))[:len(part)]
+        for name, image in zip(names[first:first + group], images):
+            io.save_png(out / name, image)
+
+
+def _render_splats(args: argparse.Namespace) -> int:
+    """`waldo render SPLATS --poses FILE|train`: renders poses of a splat scene to DIR/0000.png, ..."""
+    if args.poses is None:
+        raise WaldoError("rendering a splat scene needs --poses FILE (a transforms.json) or --poses train "
+                         "(its cameras.json, else a ring of views around it)")
+    if args.poses != "train" and not Path(args.poses).exists():
+        raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
+    if args.resolution is not None:
+        check_resolution(args.resolution)
+    source = splat_source(args.source, args.resolution, images=False)
+    if args.poses == "train":
+        c2w, intrinsics = source.train_c2w, source.intrinsics
+    else:
+        c2w, intrinsics, _ = read_poses_file(Path(args.poses), source.intrinsics)
+        if args.resolution is not None:
+            intrinsics = intrinsics.with_max_side(args.resolution)
+    if len(c2w) > MAX_RENDER_POSES:
+        raise WaldoError(f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} "
+                         "(split the file)")
+    out = io.prepare_output_dir(args.out, force=args.force)
+    names = [f"{i:04d}.png" for i in range(len(c2w))]
+    stale = io.stale_files(out, r"\d{4,}\.png", names)
+    # Pairs sized to these very poses: no view drops a splat.
+    config = dataclasses.replace(source.splat_config, max_pairs=calibrate_max_pairs(
+        source.splats, c2w, intrinsics, source.splat_config, margin=1.0))
+    render = splat_renderer(source.splats, intrinsics, config)
+    print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
+    start = time.perf_counter()
+    _write_groups(lambda poses: render(jnp.asarray(poses)), np.asarray(c2w, np.float32), intrinsics, out, names)
+    seconds = time.perf_counter() - start
+    for path in stale:
+        path.unlink()
+    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
+    print(f"wrote {len(names)} PNGs of {source.info['splats']} splats to {out} in {seconds:.1f} s "
+          f"(max_pairs {config.max_pairs}: no view dropped a splat){removed}")
+    return 0
 
 
 def _render_procedural(args: argparse.Namespace, seed: int) -> int:
@@ -191,17 +247,9 @@ def _render_run(args: argparse.Namespace) -> int:
     background = scene.background if scene.background is not None else np.zeros(3, np.float32)
     print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
     start = time.perf_counter()
-    # Groups of poses of one size (the last padded by repeating a pose): one compiled program, and
-    # memory bounded by RENDER_GROUP_PIXELS however many poses the file holds.
-    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
-    for first in range(0, len(c2w), group):
-        part = c2w[first:first + group]
-        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
-        rendered = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, padded, intrinsics,
-                                  scene.near, scene.far, background, aabb=scene.aabb)
-        images = np.asarray(jax.device_get(rendered.rgb))[:len(part)]
-        for name, image in zip(names[first:first + group], images):
-            io.save_png(out / name, image)
+    _write_groups(lambda poses: render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, poses,
+                                               intrinsics, scene.near, scene.far, background, aabb=scene.aabb).rgb,
+                  c2w, intrinsics, out, names)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()

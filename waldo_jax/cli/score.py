@@ -1,9 +1,13 @@
-"""`waldo score --criterion NAME IMAGE... [--json] [--weights DIR] [--target FILE] [--guard NAME:T]`.
+"""`waldo score --criterion NAME IMAGE... [--json] [--weights DIR] [--target FILE] [--guard NAME:T]`,
+or `waldo score --criterion NAME --source SOURCE [--poses FILE|train] [--resolution R] [--json]`.
 
 Scores each image file at its own size (images of one size in one batched call) and prints
 `score  file` lines, or with `--json` exactly one object
 `{"criterion": NAME, "direction": "max"|"min", "scores": [...]}` with the scores in input order.
-RGBA files give their alpha to criteria that use opacity; other files count as opaque.
+RGBA files give their alpha to criteria that use opacity; other files count as opaque. With
+`--source`, the views of SOURCE (any SOURCE of `waldo explore`: the room, a NeRF run, a splat scene)
+at the poses of a transforms.json-like file, or at its training poses, are rendered and scored, as a
+search scores them (with the accumulated opacity for the criteria that use it).
 """
 
 from __future__ import annotations
@@ -14,7 +18,9 @@ import json
 import jax
 import numpy as np
 
-from waldo_jax.cli.flags import add_criterion_arguments, criterion_from_args
+from pathlib import Path
+
+from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError
 from waldo_jax.io import read_image
 
@@ -27,7 +33,12 @@ def add_command(subparsers) -> None:
         "score", help="score image files with a criterion",
         description="Score image files with a criterion of the registry (each at its own size). Prints "
                     "'score  file' lines, or with --json one object {criterion, direction, scores} in input order.")
-    p.add_argument("images", nargs="+", metavar="IMAGE", help="image files (PNG, JPEG, ...)")
+    p.add_argument("images", nargs="*", metavar="IMAGE", help="image files (PNG, JPEG, ...)")
+    p.add_argument("--source", default=None, metavar="SOURCE",
+                   help="score renders of SOURCE (procedural[:SEED], a RUN_DIR, a splat scene) instead of files")
+    p.add_argument("--poses", default="train", metavar="FILE|train",
+                   help="with --source: a transforms.json-like poses file, or 'train' (default) for its training poses")
+    p.add_argument("--resolution", type=int, default=None, help="with --source: longer side of the renders")
     add_criterion_arguments(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.set_defaults(handler=cmd_score)
@@ -35,6 +46,10 @@ def add_command(subparsers) -> None:
 
 def cmd_score(args: argparse.Namespace) -> int:
     """`waldo score`: prints the criterion's score of each image file."""
+    if (args.source is None) == (not args.images):
+        raise WaldoError("give IMAGE files or --source SOURCE (one of the two)")
+    if args.source is not None:
+        return _score_source(args)
     criterion = criterion_from_args(args)
     if criterion.inputs == "poses":
         raise WaldoError(f"criterion {criterion.name!r} scores camera poses of the procedural room, not image files")
@@ -47,12 +62,41 @@ def cmd_score(args: argparse.Namespace) -> int:
     for shape, indices in by_shape.items():  # one batched call per image size
         batch = np.stack([images[i] for i in indices])
         scores[indices] = np.asarray(score(batch), np.float64)
+    return _print(args, criterion, scores, args.images)
+
+
+def _print(args: argparse.Namespace, criterion, scores, labels) -> int:
     if args.json:
         print(json.dumps({"criterion": criterion.name, "direction": criterion.direction,
                           "scores": [float(s) for s in scores]}))
         return 0
     better = "higher" if criterion.direction == "max" else "lower"
     print(f"# {criterion.name} ({better} is better): {criterion.description}")
-    for path, value in zip(args.images, scores):
-        print(f"{value:12.6g}  {path}")
+    for label, value in zip(labels, scores):
+        print(f"{value:12.6g}  {label}")
     return 0
+
+
+def _score_source(args: argparse.Namespace) -> int:
+    """`waldo score --source SOURCE`: renders the poses with SOURCE and scores them as a search does."""
+    from waldo_jax.pipeline import load_source, score_function
+    from waldo_jax.scenes import read_poses_file
+
+    if args.poses != "train" and not Path(args.poses).exists():
+        raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
+    criterion = criterion_before_source(args)
+    source = load_source(args.source, args.resolution)
+    if criterion is None:  # a poses criterion: the room's oracles need the source
+        criterion = criterion_from_args(args, room=source.room, source=source.spec)
+    if args.poses == "train":
+        c2w, labels = source.train_c2w, list(source.train_names)
+    else:
+        c2w, intrinsics, files = read_poses_file(Path(args.poses), source.intrinsics)
+        if (intrinsics.width, intrinsics.height) != (source.intrinsics.width, source.intrinsics.height):
+            side = max(source.intrinsics.width, source.intrinsics.height)
+            raise WaldoError(f"{args.poses}: its cameras are {intrinsics.width}x{intrinsics.height}, SOURCE renders "
+                             f"{source.intrinsics.width}x{source.intrinsics.height} (--resolution {side}): "
+                             "pass the --resolution of the file's longer side")
+        labels = [f or f"pose {i}" for i, f in enumerate(files)]
+    scores = np.asarray(jax.jit(lambda c: score_function(source, criterion)(c))(np.asarray(c2w, np.float32)))
+    return _print(args, criterion, scores, labels)

@@ -1,19 +1,24 @@
-"""`waldo train SCENE_PATH --out RUN_DIR`: an Instant-NGP field trained on a scene on disk.
+"""`waldo train SCENE_PATH --out RUN_DIR`: an Instant-NGP field (or 3D Gaussian splats) fitted to a scene.
 
     waldo train SCENE_PATH --out RUN_DIR [--steps N] [--downscale K] [--seed S]
                 [--preset fast|quality] [--sampler auto|dense|occupancy] [--force] [--quiet]
+    waldo train SCENE_PATH --model splat --out RUN_DIR [--steps N] [--capacity C] [--downscale K] [--seed S]
 
-A run directory holds `checkpoint.ckpt` (see `waldo_jax.nerf.checkpoint`) and `train.json` (the
-statistics of the run; `waldo_jax.nerf.runs`). `--force` overwrites those two files in a non-empty
-run directory and leaves any other file there alone.
+A NeRF run directory holds `checkpoint.ckpt` (see `waldo_jax.nerf.checkpoint`) and `train.json` (the
+statistics of the run; `waldo_jax.nerf.runs`); a splat run the reference 3DGS layout
+(`point_cloud/iteration_N/point_cloud.ply`, `cameras.json`) and `train.json` (`waldo_jax.splats.runs`).
+`--force` overwrites the run files in a non-empty run directory and leaves any other file there alone.
 """
 
 from __future__ import annotations
 
 import argparse
 
+from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
 from waldo_jax.nerf.runs import train_scene_run
+
+MODELS = ("nerf", "splat")
 
 __all__ = ["add_command", "cmd_train"]
 
@@ -25,8 +30,13 @@ def add_command(subparsers) -> None:
         description="Train an Instant-NGP field on a scene's training split and report the held-out PSNR "
                     "on its test split (Blender: transforms_test.json; other formats: every 8th image).")
     p.add_argument("scene_path", metavar="SCENE_PATH", help="scene folder or scene file")
+    p.add_argument("--model", default="nerf", choices=MODELS,
+                   help="nerf (Instant-NGP, the default) or splat (3D Gaussian splats, the reference 3DGS layout)")
+    p.add_argument("--capacity", type=int, default=None,
+                   help="splat: the most splats the fit may hold (default 32768)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory to write")
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="training steps (default: the preset's; splat: 3000)")
     p.add_argument("--downscale", type=float, default=None, help="load images downscaled K times")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--preset", default="fast", help="fast or quality (default fast)")
@@ -41,7 +51,11 @@ def add_command(subparsers) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    """`waldo train`: trains, writes RUN_DIR/checkpoint.ckpt and RUN_DIR/train.json."""
+    """`waldo train`: trains, writes RUN_DIR/checkpoint.ckpt and RUN_DIR/train.json (or a splat run)."""
+    if args.model == "splat":
+        return _fit_splats(args)
+    if args.capacity is not None:
+        raise WaldoError("--capacity is for --model splat")
     result, _, out = train_scene_run(args.scene_path, args.out, preset=args.preset, steps=args.steps,
                                      downscale=args.downscale, seed=args.seed, sampler=args.sampler,
                                      render_step_scale=args.render_step_scale, force=args.force,
@@ -51,4 +65,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     step = "" if scale is None else f" (renders march x{scale:g} the training step)"
     print(f"trained {result.steps} steps in {result.seconds:.1f} s ({result.rays_per_second:,.0f} rays/s, "
           f"{result.device}); held-out PSNR {psnr}{step}; wrote {out / CHECKPOINT_NAME}")
+    return 0
+
+
+def _fit_splats(args: argparse.Namespace) -> int:
+    """`waldo train --model splat`: fits splats, writes the reference layout and train.json."""
+    from waldo_jax.splats.runs import fit_scene_run
+
+    nerf_only = [flag for flag, value, default in (("--preset", args.preset, "fast"), ("--sampler", args.sampler, "auto"),
+                                                   ("--render-step-scale", args.render_step_scale, None))
+                 if value != default]
+    if nerf_only:
+        raise WaldoError(f"{', '.join(nerf_only)}: for NeRF training only, not --model splat")
+    result, stats, out = fit_scene_run(args.scene_path, args.out, steps=args.steps, capacity=args.capacity,
+                                       downscale=args.downscale, seed=args.seed, force=args.force,
+                                       progress=not args.quiet)
+    psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
+    print(f"fitted {stats['splats']} splats in {result.steps} steps, {result.seconds:.1f} s ({stats['device']}); "
+          f"held-out PSNR {psnr}; wrote {out / stats['point_cloud']}")
     return 0

@@ -20,6 +20,7 @@ from waldo_jax.pipeline.experiment import generated_slots as generated_slots
 from waldo_jax.pipeline.experiment import gradient_cost_for as gradient_cost_for
 from waldo_jax.pipeline.experiment import initial_scores as initial_scores
 from waldo_jax.pipeline.experiment import objective_function as objective_function
+from waldo_jax.pipeline.experiment import refine_for_source as refine_for_source
 from waldo_jax.pipeline.experiment import run_explore as run_explore
 from waldo_jax.pipeline.experiment import score_function as score_function
 from waldo_jax.pipeline.experiment import seed_keys as seed_keys
@@ -37,6 +38,6 @@ from waldo_jax.pipeline.sources import run_source as run_source
 
 __all__ = [
     "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet",
-    "generated_slots", "gradient_cost_for", "initial_scores", "objective_function", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
+    "generated_slots", "gradient_cost_for", "initial_scores", "objective_function", "refine_for_source", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
     "run_explore", "run_source", "score_function", "seed_keys", "write_outputs",
 ]

@@ -23,10 +23,10 @@ import numpy as np
 
 from waldo_jax.criteria import Criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.search import ExploreConfig, Initial, Result, explore, explore_seeds, get_method
+from waldo_jax.search import ExploreConfig, Initial, RefineConfig, Result, explore, explore_seeds, get_method
 from waldo_jax.pipeline.sources import Source
 
-__all__ = ["ExploreRun", "INITIAL_MODES", "GRADIENT_COSTS", "gradient_cost_for", "score_function",
+__all__ = ["ExploreRun", "INITIAL_MODES", "GRADIENT_COSTS", "gradient_cost_for", "refine_for_source", "score_function",
            "objective_function", "initial_scores", "run_explore", "seed_keys",
            "generated_slots", "check_epoch_memory", "memory_bytes", "EPOCH_BYTES_PER_PIXEL"]
 
@@ -73,9 +73,21 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
 GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12}
 
 
-def gradient_cost_for(criterion: Criterion) -> int:
-    """The default `RefineConfig.gradient_cost` for a criterion (`GRADIENT_COSTS` by its inputs)."""
+def gradient_cost_for(criterion: Criterion, source: Optional[Source] = None) -> int:
+    """The default `RefineConfig.gradient_cost` for a criterion (`GRADIENT_COSTS` by its inputs), or the
+    source's own measured cost (`Source.gradient_cost`) for a criterion of its renders."""
+    if source is not None and source.gradient_cost is not None and criterion.inputs != "poses":
+        return int(source.gradient_cost)
     return GRADIENT_COSTS[criterion.inputs]
+
+
+def refine_for_source(refine: RefineConfig, source: Source, criterion: Criterion,
+                      default_cost: bool = True) -> RefineConfig:
+    """`refine` with the source's way of differentiating (`Source.gradient`) and, when `default_cost`,
+    the gradient cost for this source and criterion (`gradient_cost_for`)."""
+    mode = source.gradient if criterion.inputs != "poses" else refine.gradient
+    cost = gradient_cost_for(criterion, source) if default_cost else refine.gradient_cost
+    return dataclasses.replace(refine, gradient=mode, gradient_cost=cost)
 
 
 def _score_rendered(render, criterion: Criterion, c2w):

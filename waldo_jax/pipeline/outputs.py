@@ -92,6 +92,8 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "device": jax.devices()[0].platform + (f":{jax.devices()[0].device_kind}"
                                                if getattr(jax.devices()[0], "device_kind", "") else ""),
     }
+    if source.renderer_report is not None:  # what the renderer dropped over every view the run rendered
+        out["renderer"] = source.renderer_report(np.asarray(population.c2w)[np.asarray(population.valid)])
     if config.method.startswith("pibs"):
         out["pibs"] = {"top_c": config.top_c, "fallback": config.pibs_fallback}
     if config.gradient_renders():

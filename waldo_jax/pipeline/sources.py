@@ -56,7 +56,7 @@ class Source:
 
     Attributes:
       spec: the SOURCE string it came from.
-      kind: "procedural" or "run".
+      kind: "procedural", "run" (a NeRF of `waldo train`) or "splats" (`pipeline.splat_sources`).
       name: a short name for reports ("procedural:0", the run folder's name).
       train_c2w: float32 [N, 4, 4] training poses (OpenGL camera-to-world).
       intrinsics: the camera of every render of the search (its width/height set the image size).
@@ -71,6 +71,13 @@ class Source:
       train_images_note: why `train_images` is None ("" otherwise).
       render_rgba: as `render` but returning rgba [P, H, W, 4] with the accumulated opacity as alpha,
         for criteria that guard against empty views; None when the source cannot give opacity.
+      renderer_report: c2w [V, 4, 4] of every view a run rendered -> facts for results.json (what
+        the renderer dropped, ...), or None.
+      gradient: how a `+refine` method differentiates a render: "forward" (`jax.jvp`, six tangents:
+        the marched NeRF renderer's loops allow no reverse mode) or "reverse" (`jax.vjp`).
+      gradient_cost: renders one gradient evaluation through this source's renderer counts as (None:
+        the criterion's default, `pipeline.GRADIENT_COSTS`).
+      splats, splat_config: a splat source's splats and renderer settings (None otherwise).
     """
 
     spec: str
@@ -86,6 +93,11 @@ class Source:
     info: Dict[str, Any] = dataclasses.field(default_factory=dict)
     train_images_note: str = ""
     render_rgba: Optional[jax.tree_util.Partial] = None
+    renderer_report: Optional[Any] = None
+    gradient: str = "forward"
+    gradient_cost: Optional[int] = None
+    splats: Any = None
+    splat_config: Any = None
 
     @property
     def n_train(self) -> int:
@@ -225,7 +237,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     """
     run = Path(run_dir)
     if not run.is_dir():
-        raise SourceError(f"SOURCE {run_dir!r} is neither procedural[:SEED] nor an existing run directory")
+        raise SourceError(f"SOURCE {run_dir!r} is neither procedural[:SEED], an existing run directory nor a splat "
+                          "scene (a .ply or a 3DGS model folder)")
     checkpoint = load_checkpoint(run)
     record = checkpoint.scene
     intrinsics = record.intrinsics
@@ -264,20 +277,30 @@ def check_views(views) -> int:
     return views
 
 
-def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int] = None) -> Source:
-    """The Source of a SOURCE string: `procedural[:SEED]` or a run directory.
+def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int] = None,
+                cameras: Optional[str] = None) -> Source:
+    """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
+    (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
 
     `views` (default `DEFAULT_PROCEDURAL_VIEWS`) is for the procedural room only: a run's training
     views are those it was trained on, and passing `views` with a run is an error, not ignored.
+    `cameras` (a transforms.json-like poses file) gives a splat scene its training poses.
 
     Raises:
       SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint,
-      `views` with a run.
+      `views` with a run, `cameras` with anything but a splat scene.
     """
+    from waldo_jax.pipeline.splat_sources import is_splat_spec, splat_source
+
     seed = parse_procedural(spec)
+    splat = seed is None and is_splat_spec(spec)
+    if cameras is not None and not splat:
+        raise SourceError(f"--cameras gives a splat scene its poses; {spec} has its own")
     if seed is not None:
         return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
     if views is not None:
-        raise SourceError(f"--views is for procedural sources; the run {spec} explores from the views it was "
+        raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was "
                           "trained on")
+    if splat:
+        return splat_source(spec, resolution, cameras)
     return run_source(spec, resolution)

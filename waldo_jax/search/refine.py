@@ -13,9 +13,10 @@ The solver is optimistix's `OptaxMinimiser` around Adam (`optax.adam`, each upda
 `step_size`), stepped in a `lax.scan` of fixed length rather than `optimistix.minimise`'s while loop:
 the cost is known before the run, every iterate can be checked, and an iterate whose objective is
 not finite or whose origin leaves the scene box is never kept (the step that led there is undone).
-Gradients are forward-mode (`jax.jvp`, six tangents: origin and look-at point), because the marched
-renderer's `while_loop`s are not reverse-differentiable; optimistix still receives them through its
-reverse-mode API (see `_loss`). Each gradient evaluation of one pose counts as
+Gradients are forward-mode by default (`jax.jvp`, six tangents: origin and look-at point), because the
+marched NeRF renderer's `while_loop`s are not reverse-differentiable, or reverse-mode where the renderer
+allows it (`RefineConfig.gradient`, the splat renderer); optimistix receives them through its
+reverse-mode API either way (see `_loss`). Each gradient evaluation of one pose counts as
 `config.gradient_cost` renders in the budget. Why Adam, the units, the box and the measured cost:
 docs/design.md, section "Search > Gradient refinement".
 """
@@ -23,6 +24,7 @@ docs/design.md, section "Search > Gradient refinement".
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable, Tuple
 
 import flax.struct
@@ -40,6 +42,7 @@ from waldo_jax.types import Array, Pose, PRNGKey
 __all__ = [
     "REFINE_SUFFIX",
     "GRADIENT_COST",
+    "GRADIENT_MODES",
     "RefineConfig",
     "RefinedConfig",
     "RefineResult",
@@ -58,6 +61,7 @@ REFINE_SUFFIX = "+refine"
 # the 2-core CPU for the costliest case, a trained fox NeRF with the saliency network at 64 px (11.5;
 # benchmarks/gradient_cost.py). Pose oracles cost less (`waldo_jax.pipeline.gradient_cost_for`).
 GRADIENT_COST = 12
+GRADIENT_MODES = ("forward", "reverse")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +77,9 @@ class RefineConfig:
       epochs: a `+refine` method refines in its last `epochs` epochs.
       box_margin: the scene box is the training origins' bounding box grown by this fraction of the
         extent on every side; an origin outside it is never kept.
+      gradient: "forward" (six `jax.jvp` tangents: renderers with `while_loop`s, such as the marched
+        NeRF renderer, allow no other) or "reverse" (one `jax.vjp`: renderers without such loops, such
+        as the splat renderer; cheaper).
     """
 
     poses: int = 4
@@ -81,6 +88,7 @@ class RefineConfig:
     gradient_cost: int = GRADIENT_COST
     epochs: int = 1
     box_margin: float = 0.1
+    gradient: str = "forward"
 
     def __post_init__(self):
         for name in ("poses", "steps", "epochs"):
@@ -95,6 +103,8 @@ class RefineConfig:
                              f"got {self.step_size!r}")
         if not 0.0 <= self.box_margin <= 10.0:
             raise ValueError(f"RefineConfig.box_margin must be in [0, 10], got {self.box_margin!r}")
+        if self.gradient not in GRADIENT_MODES:
+            raise ValueError(f"RefineConfig.gradient must be one of {GRADIENT_MODES}, got {self.gradient!r}")
 
     def renders_per_epoch(self) -> int:
         """Renders one refining epoch's gradient steps count as: poses * steps * gradient_cost."""
@@ -153,19 +163,21 @@ class RefineResult:
 
 
 def values_and_gradients(objective: Callable[[Array], Array], start: Pose, extent: Array,
-                         offsets: Array) -> Tuple[Array, Array]:
-    """The objective and its gradient at poses moved by `offsets`, in forward mode.
+                         offsets: Array, mode: str = "forward") -> Tuple[Array, Array]:
+    """The objective and its gradient at poses moved by `offsets`.
 
     Pose p sits at origin start.origin[p] + extent * offsets[p, :3] and look-at point
-    start.target[p] + extent * offsets[p, 3:], with its up vector. One `jax.jvp` per coordinate moves
-    every pose along that coordinate at once, so six jvps (vmapped) give every pose's gradient, on the
-    condition that each view's score depends on its own pose only (true of every criterion).
+    start.target[p] + extent * offsets[p, 3:], with its up vector. Each view's score depends on its
+    own pose only (true of every criterion), so one derivative of all poses at once gives every
+    pose's gradient: in forward mode one `jax.jvp` per coordinate (six, vmapped), each moving every
+    pose along it; in reverse mode one `jax.vjp` of the sum of the values.
 
     Args:
       objective: c2w [P, 4, 4] -> scores [P].
       start: `Pose` with [P, 3] fields.
       extent: [] the unit of the offsets.
       offsets: float32 [P, 6].
+      mode: "forward" or "reverse" (static).
 
     Returns:
       (values [P], gradients [P, 6]) with respect to the offsets.
@@ -176,6 +188,10 @@ def values_and_gradients(objective: Callable[[Array], Array], start: Pose, exten
                      up=start.up)
         return jnp.asarray(objective(jax.vmap(pose_to_c2w)(poses)), jnp.float32).reshape(offsets.shape[0])
 
+    if mode == "reverse":
+        value, pullback = jax.vjp(values, offsets)
+        return value, pullback(jnp.ones_like(value))[0]
+
     def along(direction):
         return jax.jvp(values, (offsets,), (jnp.broadcast_to(direction, offsets.shape),))
 
@@ -183,7 +199,7 @@ def values_and_gradients(objective: Callable[[Array], Array], start: Pose, exten
     return value, tangents.T
 
 
-def _loss(offsets: Array, args) -> Tuple[Array, Array]:
+def _loss(offsets: Array, args, mode: str = "forward") -> Tuple[Array, Array]:
     """optimistix's objective: the signed loss summed over poses, with the forward-mode gradient.
 
     Its value is sum_p -sign * objective_p and its reverse-mode gradient is the forward-mode one:
@@ -194,11 +210,14 @@ def _loss(offsets: Array, args) -> Tuple[Array, Array]:
     """
     objective, start, extent, sign = args
     fixed = jax.lax.stop_gradient(offsets)
-    values, gradients = values_and_gradients(objective, start, extent, fixed)
+    values, gradients = values_and_gradients(objective, start, extent, fixed, mode)
     ok = jnp.isfinite(values) & jnp.all(jnp.isfinite(gradients), axis=-1)
     loss = jnp.where(ok, -sign * values, 0.0)
     grad = jax.lax.stop_gradient(jnp.where(ok[:, None], -sign * gradients, 0.0))
     return jnp.sum(loss) + jnp.sum(grad * (offsets - fixed)), values
+
+
+_loss_fns = {mode: functools.partial(_loss, mode=mode) for mode in GRADIENT_MODES}  # one object per mode
 
 
 def _solver(config: RefineConfig) -> optx.OptaxMinimiser:
@@ -224,17 +243,18 @@ def refine_poses(objective: Callable[[Array], Array], poses: Pose, box: SceneBox
     sign = direction_sign(direction)
     count = poses.origin.shape[0]
     args = (objective, poses, box.extent, jnp.float32(sign))
+    loss = _loss_fns[config.gradient]
     offsets = jnp.zeros((count, 6), jnp.float32)
     solver = _solver(config)
     aux_struct = jax.ShapeDtypeStruct((count,), jnp.float32)
-    state = solver.init(_loss, offsets, args, {}, jax.ShapeDtypeStruct((), jnp.float32), aux_struct, frozenset())
+    state = solver.init(loss, offsets, args, {}, jax.ShapeDtypeStruct((), jnp.float32), aux_struct, frozenset())
 
     def inside(offsets):
         return box.contains(poses.origin + box.extent * offsets[:, :3]) & jnp.all(jnp.isfinite(offsets), axis=-1)
 
     def step(carry, index):
         offsets, state, best, best_fitness, start_values, accepted = carry
-        proposed, state, values = solver.step(_loss, offsets, args, {}, state, frozenset())
+        proposed, state, values = solver.step(loss, offsets, args, {}, state, frozenset())
         # `values` are those of `offsets`, the point this step evaluated.
         fitness = jnp.where(jnp.isfinite(values) & inside(offsets), sign * values, -jnp.inf)
         better = fitness > best_fitness

@@ -1,0 +1,273 @@
+"""3D Gaussian Splatting scenes as search sources: a `.ply`, a reference-layout folder, or a splat run.
+
+SOURCE may be
+  * a `.ply` written by the reference 3DGS code, gsplat, nerfstudio's splatfacto export or a capture
+    app (`waldo_jax.splats.io.read_splat_ply`);
+  * a folder as the reference code writes it (`point_cloud/iteration_N/point_cloud.ply`, the highest N,
+    with `cameras.json` at its root), or a folder holding `point_cloud.ply`;
+  * a splat run of `waldo train --model splat` (that layout plus `train.json`, which names the
+    scene it was fitted to: its real images are then the training views, as for NeRF runs).
+
+The pose space (the training views a search starts from) comes from, in this order: `cameras` (a
+transforms.json-like file, `--cameras`), the model's `cameras.json`, or a ring of `RING_VIEWS` views
+around the splats' robust bounds looking at their centre (`ring_cameras`; said in `Source.info`).
+Without real images, the training views' "images" are the splats' own renders at those poses.
+
+The renderer is `waldo_jax.splats.render`, with `max_pairs` calibrated on the training views
+(`calibrate_max_pairs`); a view that needs more pairs drops its farthest splats and is counted
+(`Source.renderer_report`, written into results.json under "renderer").
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.cameras import look_at
+from waldo_jax.errors import WaldoError, check_resolution
+from waldo_jax.scenes import load_scene, read_poses_file
+from waldo_jax.splats.io import SplatModel, load_splat_model
+from waldo_jax.splats.model import Splats
+from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splats
+from waldo_jax.splats.runs import TRAIN_JSON
+from waldo_jax.types import Array, Intrinsics
+
+__all__ = ["is_splat_spec", "splat_source", "ring_cameras", "calibrate_max_pairs", "splat_renderer",
+           "SPLAT_RESOLUTION", "RING_VIEWS", "SPLAT_GRADIENT_COST", "TRAIN_JSON"]
+
+SPLAT_RESOLUTION = 256  # default longer side of a splat source's renders (the cameras' own size when smaller)
+RING_VIEWS = 24
+RING_ELEVATION_DEG = 30.0
+RING_FOV_DEG = 50.0
+# Renders one reverse-mode pose gradient through the splat renderer counts as in a +refine budget:
+# the measured ratio of its time to a render and exact score's, rounded up (benchmarks/gradient_cost.py).
+SPLAT_GRADIENT_COST = 3
+_PAIRS_MARGIN = 2.0  # max_pairs = this x the most pairs a training view needs (searches go closer)
+_PAIRS_QUANTUM = 4096
+
+
+def is_splat_spec(spec: str) -> bool:
+    """True when SOURCE names a splat scene: a `.ply` path, or a folder with `point_cloud/` or
+    `point_cloud.ply` (and no NeRF `checkpoint.ckpt`)."""
+    path = Path(spec)
+    if path.suffix.lower() == ".ply":
+        return True
+    if not path.is_dir() or (path / "checkpoint.ckpt").exists():
+        return False
+    return (path / "point_cloud").is_dir() or (path / "point_cloud.ply").is_file()
+
+
+def robust_bounds(means: np.ndarray, valid: np.ndarray, quantile: float = 0.02) -> Tuple[np.ndarray, np.ndarray]:
+    """(low, high) [3]: the `quantile` and 1 - `quantile` quantiles of the valid splats' means per axis
+    (stray splats far from the scene do not move them)."""
+    points = np.asarray(means, np.float64)[np.asarray(valid, bool)]
+    return np.quantile(points, quantile, axis=0), np.quantile(points, 1.0 - quantile, axis=0)
+
+
+def ring_cameras(means: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics, count: int = RING_VIEWS,
+                 up: Optional[np.ndarray] = None, elevation_deg: float = RING_ELEVATION_DEG) -> Tuple[np.ndarray, dict]:
+    """`count` cameras on a ring around the splats' robust bounds, looking at their centre.
+
+    The ring's axis is `up`, or, without it, the direction in which the splats' means vary least
+    (a scene's ground or a flat object's axis; sign: its largest component positive). The cameras sit
+    `elevation_deg` above the ring's plane, far enough that the bounds' sphere fills the narrower field
+    of view with a 10 % margin.
+
+    Returns:
+      (c2w float32 [count, 4, 4] OpenGL, a description for `Source.info`).
+    """
+    low, high = robust_bounds(means, valid)
+    centre = 0.5 * (low + high)
+    radius = max(0.5 * float(np.linalg.norm(high - low)), 1e-6)
+    if up is None:
+        points = np.asarray(means, np.float64)[np.asarray(valid, bool)]
+        points = points[np.all((points >= low) & (points <= high), axis=1)]
+        _, vectors = np.linalg.eigh(np.cov((points - points.mean(0)).T))
+        up = vectors[:, 0]
+        up = up * np.sign(up[np.argmax(np.abs(up))])
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    half_fov = 0.5 * min(2 * math.atan(0.5 * intrinsics.width / float(intrinsics.fx)),
+                         2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)))
+    distance = 1.1 * radius / math.sin(half_fov)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    forward = np.cross(up, side)
+    angles = 2 * np.pi * np.arange(count) / count
+    elevation = math.radians(elevation_deg)
+    directions = (math.cos(elevation) * (np.cos(angles)[:, None] * side + np.sin(angles)[:, None] * forward)
+                  + math.sin(elevation) * up)
+    origins = centre + distance * directions
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins, jnp.float32),
+                                                     jnp.asarray(centre, jnp.float32), jnp.asarray(up, jnp.float32))
+    info = {"poses": "ring", "views": int(count), "centre": centre.tolist(), "up": up.tolist(),
+            "distance": distance, "elevation_deg": elevation_deg, "bounds_quantiles": [0.02, 0.98],
+            "bounds": [low.tolist(), high.tolist()]}
+    return np.asarray(c2w, np.float32), info
+
+
+_count_pairs = jax.jit(count_pairs, static_argnames=("config",))
+
+
+def calibrate_max_pairs(splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig,
+                        margin: float = _PAIRS_MARGIN) -> int:
+    """`max_pairs` for views like `c2w`: `margin` x the most pairs one of them needs, rounded up to a
+    multiple of `_PAIRS_QUANTUM` (the renderer's work grows with it; a view that needs more is
+    counted, never silently cut). With margin 1 the views `c2w` themselves drop nothing."""
+    needed = int(np.max(np.asarray(_count_pairs(splats, jnp.asarray(c2w), intrinsics, config=config))))
+    return max(_PAIRS_QUANTUM, int(math.ceil(margin * needed / _PAIRS_QUANTUM)) * _PAIRS_QUANTUM)
+
+
+# ---------------------------------------------------------------------------------------------
+# Renderers (module-level functions: the Partials built from them compile once per shape).
+
+
+def _render(splats: Splats, intrinsics: Intrinsics, background: Array, c2w: Array, *, config: SplatRenderConfig,
+            rgba: bool = False) -> Array:
+    out = render_splats(splats, c2w, intrinsics, config, background)
+    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1) if rgba else out.rgb
+
+
+@functools.lru_cache(maxsize=None)
+def _render_fn(config: SplatRenderConfig, rgba: bool):
+    """One function object per (config, rgba), so that Partials of equal settings share compilations."""
+    return functools.partial(_render, config=config, rgba=rgba)
+
+
+def splat_renderer(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, background=None,
+                   rgba: bool = False) -> jax.tree_util.Partial:
+    """The splat renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4], alpha the
+    accumulated opacity); the splats are traced arguments, so it compiles once per image size."""
+    bg = jnp.asarray(config.background if background is None else background, jnp.float32)
+    return jax.tree_util.Partial(_render_fn(config, rgba), splats, intrinsics, bg)
+
+
+def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c2w: np.ndarray) -> Dict[str, Any]:
+    """What the renderer dropped over the views `c2w` of a run (for results.json)."""
+    c2w = np.asarray(c2w, np.float32).reshape(-1, 4, 4)
+    needed = (np.asarray(_count_pairs(splats, jnp.asarray(c2w), intrinsics, config=config)) if len(c2w)
+              else np.zeros(0, np.int64))
+    over = needed > config.max_pairs
+    return {"renderer": "splats", "max_pairs": config.max_pairs, "views": int(len(c2w)),
+            "views_over_max_pairs": int(np.sum(over)), "most_pairs_needed": int(needed.max(initial=0)),
+            "pairs_dropped": int(np.sum(np.maximum(needed - config.max_pairs, 0))),
+            "tile_size": config.tile_size, "chunk": config.chunk, "near": config.near,
+            "note": "a view over max_pairs drops its farthest splats' pairs (counted here; "
+                    "the renderer's SplatStats count the pixels that could change)"}
+
+
+# ---------------------------------------------------------------------------------------------
+# The source.
+
+
+def _read_train_json(folder: Path) -> Optional[dict]:
+    path = folder / TRAIN_JSON
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise WaldoError(f"{path}: cannot read the splat run's record ({e})") from None
+
+
+def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
+    """A splat run's real training images at `intrinsics`' size, or (None, why)."""
+    from waldo_jax.pipeline.sources import resize_images  # the NeRF sources' resizer
+
+    scene_path = record.get("scene_path")
+    if not scene_path or not Path(scene_path).exists():
+        return None, f"the training scene {scene_path or '(unnamed)'} is not on this machine"
+    try:
+        scene = load_scene(scene_path, downscale=record.get("downscale"), split=record.get("split") or None,
+                           background=record.get("background", (1.0, 1.0, 1.0)))
+    except WaldoError as e:
+        return None, f"cannot read the training scene again ({e})"
+    by_name = {name: i for i, name in enumerate(scene.file_names)}
+    missing = [name for name in names if name not in by_name]
+    if missing:
+        return None, f"{scene_path} no longer has the training image {missing[0]!r}"
+    images = scene.images[[by_name[name] for name in names]]
+    return resize_images(images, intrinsics.width, intrinsics.height), ""
+
+
+def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[str] = None,
+                 config: Optional[SplatRenderConfig] = None, images: bool = True):
+    """A splat scene (`.ply`, reference-layout folder or splat run) as a `Source`.
+
+    Args:
+      spec: the SOURCE string.
+      resolution: longer side of the renders (default: the cameras' own, at most SPLAT_RESOLUTION).
+      cameras: a transforms.json-like poses file giving the training poses (and intrinsics), or None.
+      config: renderer settings (default `SplatRenderConfig()`; `max_pairs` calibrated here).
+      images: read (or, without photos, render) the training views' images; False leaves them None.
+
+    Raises:
+      WaldoError (SceneFormatError, SourceError, ...): the file or folder cannot be read.
+    """
+    from waldo_jax.pipeline.sources import Source, SourceError
+
+    path = Path(spec)
+    if not path.exists():
+        raise SourceError(f"SOURCE {spec!r}: no such splat file or folder")
+    model: SplatModel = load_splat_model(path)
+    splats = jax.device_put(model.splats)
+    config = SplatRenderConfig() if config is None else config
+    folder = model.ply_path.parent if model.iteration is None else model.ply_path.parent.parent.parent
+    record = _read_train_json(folder) if path.is_dir() else None
+    means, valid = np.asarray(splats.means), np.asarray(splats.valid)
+    info: Dict[str, Any] = {"splat_file": str(model.ply_path.resolve()), "splats": int(valid.sum()),
+                            "sh_degree": splats.sh_degree, "iteration": model.iteration,
+                            "model": model.source}
+    names: Tuple[str, ...]
+    if resolution is not None:
+        check_resolution(resolution)
+    if cameras is not None:
+        default = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
+        c2w, intrinsics, files = read_poses_file(cameras, default)
+        names = tuple(f or f"pose_{i:04d}" for i, f in enumerate(files))
+        info["poses"] = f"--cameras {cameras}"
+    elif model.cameras is not None:
+        c2w, names = model.cameras.c2w, model.cameras.names
+        intrinsics = model.cameras.shared_intrinsics or model.cameras.intrinsics[0]
+        info["poses"] = "cameras.json" + ("" if model.cameras.shared_intrinsics else
+                                          " (cameras of several sizes: the first camera's intrinsics)")
+    else:
+        intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
+        c2w, ring = ring_cameras(means, valid, intrinsics)
+        names = tuple(f"ring_{i:02d}" for i in range(len(c2w)))
+        info["poses"] = "ring"
+        info["ring"] = ring
+    side = min(max(intrinsics.width, intrinsics.height), SPLAT_RESOLUTION) if resolution is None else resolution
+    intrinsics = intrinsics.with_max_side(int(side))
+    background = np.asarray(record.get("background", config.background) if record else config.background, np.float32)
+    config = SplatRenderConfig(**{**config.__dict__, "background": tuple(float(v) for v in background)})
+    max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config)
+    config = SplatRenderConfig(**{**config.__dict__, "max_pairs": max_pairs})
+    info["renderer"] = {"max_pairs": max_pairs, "calibrated_on": "the training views (x2)",
+                        "tile_size": config.tile_size, "chunk": config.chunk, "near": config.near,
+                        "background": list(config.background)}
+    render = splat_renderer(splats, intrinsics, config)
+    render_rgba = splat_renderer(splats, intrinsics, config, rgba=True)
+    train_images, note = None, "not loaded (images=False)"
+    if record is not None:
+        info.update({"run_dir": str(folder.resolve()), "scene_path": record.get("scene_path"),
+                     "psnr_test": record.get("psnr_test"), "train_steps": record.get("steps")})
+        if images:
+            train_images, note = _run_images(record, names, intrinsics)
+    if images and train_images is None:
+        # No photos come with a splat file: its training views are its own renders there.
+        train_images = np.asarray(render(jnp.asarray(c2w)), np.float32)
+        info["train_images"] = "renders at the training poses" + (f" ({note})" if record is not None else "")
+        note = ""
+    name = folder.name if path.is_dir() else path.stem
+    return Source(spec=str(spec), kind="splats", name=name, train_c2w=np.asarray(c2w, np.float32),
+                  intrinsics=intrinsics, render=render, render_rgba=render_rgba, train_images=train_images,
+                  train_names=tuple(names), info=info, train_images_note=note,
+                  renderer_report=functools.partial(_report, splats, intrinsics, config),
+                  gradient="reverse", gradient_cost=SPLAT_GRADIENT_COST, splats=splats, splat_config=config)

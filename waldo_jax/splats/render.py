@@ -1,0 +1,536 @@
+"""A batched, differentiable tile renderer for 3D Gaussian splats, in pure JAX.
+
+The semantics are those of the reference 3DGS rasteriser (Kerbl et al. 2023) and gsplat:
+
+  projection   each splat's mean is taken to the camera frame (OpenCV axes: x right, y down, z forward)
+               and projected with the pinhole, u = fx x / z + cx (pixel centres at i + 0.5, as everywhere
+               in waldo); splats nearer than `near` are culled. Its covariance Sigma = R S S^T R^T goes
+               through the perspective Jacobian J (EWA splatting), whose x/z and y/z are clamped to
+               +-1.3 tan(fov / 2) so that splats at the border of the view do not blow up, and a 0.3 px^2
+               low-pass is added to the 2D covariance's diagonal.
+  colour       spherical harmonics at the unit direction from the camera centre to the mean, + 0.5,
+               clamped at 0 (`waldo_jax.splats.sh`).
+  compositing  alpha = min(0.99, o exp(-d^T Sigma2^-1 d / 2)) at each pixel centre, skipped below 1/255;
+               front to back by camera depth; a pixel stops at the splat that would take its
+               transmittance below 1e-4 (that splat not included); background times the final
+               transmittance added.
+
+Fixed shapes with counted overflow. The image is cut into tiles of `tile_size`^2 pixels. A splat
+covers the tiles its exact support touches: the box around the ellipse where its alpha reaches 1/255,
+which depends on its opacity (so no splat is cut where it still counts). The (splat, tile) pairs of a
+view are made in depth order into `max_pairs` slots and sorted by tile (a stable sort keeps the depth
+order inside a tile); each tile composites its `tile_capacity` nearest splats. Pairs beyond either
+capacity are dropped, always the farthest first, and counted in `SplatStats`; `lossy_pixels` counts the
+pixels that such a drop could have changed (their transmittance had not reached 1e-4 when their
+list ended). Nothing is dropped silently.
+
+Batching: every view of a call runs the same program (`jax.vmap` over poses inside `jax.lax.map` over
+groups of `pose_chunk` poses, sized to the memory of the backend), and `render_splats_sharded`
+splits the poses over devices. Everything is differentiable in reverse mode with respect to the
+camera pose and the splats' parameters (the tile lists are integer bookkeeping; the gradient flows
+through the projected means, covariances, colours and opacities), which is what `egps+refine` and
+fitting (`waldo_jax.splats.fit`) use.
+
+Names: N splats, P poses, T tiles of a view, S = tile_size^2 pixels of a tile, C = tile_capacity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Optional, Tuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from waldo_jax.render.sharding import shard_over_poses
+from waldo_jax.splats.model import Splats
+from waldo_jax.splats.sh import sh_to_rgb
+from waldo_jax.types import Array, Intrinsics
+
+__all__ = [
+    "SplatRenderConfig",
+    "SplatStats",
+    "SplatRenderOutput",
+    "Projected",
+    "project",
+    "quat_to_rotmat",
+    "tile_lists",
+    "render_view",
+    "render_splats",
+    "render_splats_sharded",
+    "default_pose_chunk",
+    "count_pairs",
+]
+
+# Elements of the [poses, chunks, pixels, chunk] compositing arrays one step of the pose loop may
+# hold: 2^24 (64 MiB of float32 per array) on a CPU, 2^27 on an accelerator.
+_CHUNK_ELEMENTS = {"cpu": 2**24}
+_CHUNK_ELEMENTS_ACCELERATOR = 2**27
+
+
+@dataclasses.dataclass(frozen=True)
+class SplatRenderConfig:
+    """Static settings of the splat renderer (hashable: part of the jit's static configuration).
+
+    Attributes:
+      tile_size: tile side in pixels.
+      chunk: splats composited together (B): a tile's depth-ordered list is cut into chunks of this many.
+      max_pairs: (splat, tile) pairs a view may hold; more are dropped (farthest splats first) and counted.
+        The work of a view is about (max_pairs + T * chunk) * tile_size^2 alpha evaluations, whatever
+        the view needs: size it to the scene (`waldo_jax.splats.source` calibrates it).
+      near: splats whose camera depth is at most this are culled (scene units).
+      background: colour behind the splats (used when the call passes no `background`).
+      pose_chunk: poses rendered per step of the pose loop (None: as many as the backend's memory
+        budget allows for this image size, `default_pose_chunk`).
+      low_pass: added to the 2D covariance's diagonal, px^2 (the reference's 0.3).
+      jacobian_clamp: x/z and y/z of the EWA Jacobian are clamped to +-jacobian_clamp * tan(fov / 2).
+      alpha_min: alphas below this are skipped (the reference's 1/255).
+      alpha_max: alphas are clamped to this (0.99).
+      min_transmittance: a pixel ends at the splat that would take its transmittance below this (1e-4).
+    """
+
+    tile_size: int = 8
+    chunk: int = 32
+    max_pairs: int = 2**16
+    near: float = 0.01
+    background: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pose_chunk: Optional[int] = None
+    low_pass: float = 0.3
+    jacobian_clamp: float = 1.3
+    alpha_min: float = 1.0 / 255.0
+    alpha_max: float = 0.99
+    min_transmittance: float = 1e-4
+
+    def __post_init__(self):
+        for name in ("tile_size", "chunk", "max_pairs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"SplatRenderConfig.{name} must be an int >= 1, got {value!r}")
+        if self.pose_chunk is not None and (not isinstance(self.pose_chunk, int) or self.pose_chunk < 1):
+            raise ValueError(f"SplatRenderConfig.pose_chunk must be None or an int >= 1, got {self.pose_chunk!r}")
+        if not (math.isfinite(self.near) and self.near > 0):
+            raise ValueError(f"SplatRenderConfig.near must be a finite number > 0, got {self.near!r}")
+        if len(self.background) != 3 or not all(math.isfinite(float(c)) for c in self.background):
+            raise ValueError(f"SplatRenderConfig.background must be 3 finite numbers, got {self.background!r}")
+
+    def tiles(self, intrinsics: Intrinsics) -> Tuple[int, int]:
+        """(tiles across, tiles down) of an image of `intrinsics`' size."""
+        return -(-intrinsics.width // self.tile_size), -(-intrinsics.height // self.tile_size)
+
+    def chunk_slots(self, intrinsics: Intrinsics) -> int:
+        """Chunks a view may use (K): every tile's last chunk may be part-full, so max_pairs / chunk + T."""
+        tiles_x, tiles_y = self.tiles(intrinsics)
+        return -(-self.max_pairs // self.chunk) + tiles_x * tiles_y
+
+
+@flax.struct.dataclass
+class SplatStats:
+    """What a render dropped and how full its capacities were, per view (int32 [P] each).
+
+    Attributes:
+      visible: splats in front of the near plane, on screen, with alpha that can reach 1/255.
+      pairs: (splat, tile) pairs the view needed.
+      pair_overflow: pairs beyond `max_pairs`, dropped (the farthest splats' first).
+      chunks: chunks the view used (of `chunk_slots`).
+      max_tile_count: the most pairs one tile held.
+      lossy_pixels: pixels an overflow may have changed: those of tiles that lost pairs whose
+        transmittance had not reached `min_transmittance` (0 means none changed).
+    """
+
+    visible: Array
+    pairs: Array
+    pair_overflow: Array
+    chunks: Array
+    max_tile_count: Array
+    lossy_pixels: Array
+
+
+@flax.struct.dataclass
+class SplatRenderOutput:
+    """rgb [P, H, W, 3], depth [P, H, W] (alpha-weighted camera depth, 0 where empty), acc [P, H, W]
+    (accumulated opacity) and the per-view `SplatStats`."""
+
+    rgb: Array
+    depth: Array
+    acc: Array
+    stats: SplatStats
+
+
+@flax.struct.dataclass
+class Projected:
+    """The splats as one view sees them (N rows, float32 unless said).
+
+    Attributes:
+      mean2d: [N, 2] projected centre in pixels.
+      conic: [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]].
+      depth: [N] camera depth z.
+      opacity: [N] sigmoid of the logit.
+      rgb: [N, 3] colour from the SH at this view's direction.
+      extent: [N, 2] half sides of the box (px) outside which the splat's alpha stays below alpha_min.
+      visible: bool [N] in front of the near plane, finite and able to reach alpha_min.
+    """
+
+    mean2d: Array
+    conic: Array
+    depth: Array
+    opacity: Array
+    rgb: Array
+    extent: Array
+    visible: Array
+
+
+def quat_to_rotmat(quat: Array) -> Array:
+    """Rotation matrices [..., 3, 3] of unit quaternions (w, x, y, z) [..., 4]."""
+    w, x, y, z = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def world_to_camera(c2w: Array) -> Tuple[Array, Array]:
+    """(rotation [3, 3] world -> OpenCV camera axes, camera centre [3]) of an OpenGL c2w [3 or 4, 4]."""
+    flip = jnp.array([1.0, -1.0, -1.0], jnp.float32)
+    return c2w[:3, :3].T * flip[:, None], c2w[:3, 3]
+
+
+def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig) -> Projected:
+    """Projects every splat into one view (EWA splatting; see the module docstring).
+
+    Args:
+      splats: N splats.
+      c2w: [3 or 4, 4] OpenGL camera-to-world matrix.
+      intrinsics: the pinhole (its distortion is not applied: splats are rendered undistorted).
+      config: the renderer's settings.
+
+    Returns:
+      `Projected` with N rows.
+    """
+    w2c, centre = world_to_camera(c2w)
+    offset = splats.means - centre  # [N, 3]
+    p = offset @ w2c.T  # [N, 3] camera frame (OpenCV)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    in_front = z > config.near
+    z = jnp.where(in_front, z, 1.0)  # culled rows keep finite values (and gradients)
+    fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+    mean2d = jnp.stack([fx * x / z + cx, fy * y / z + cy], axis=-1)  # [N, 2]
+
+    rot = quat_to_rotmat(splats.rotations())  # [N, 3, 3]
+    m = rot * splats.scales()[:, None, :]  # R diag(s)
+    cov3 = m @ jnp.swapaxes(m, -1, -2)  # [N, 3, 3]
+    lim_x = config.jacobian_clamp * intrinsics.width / (2.0 * fx)
+    lim_y = config.jacobian_clamp * intrinsics.height / (2.0 * fy)
+    tx = z * jnp.clip(x / z, -lim_x, lim_x)
+    ty = z * jnp.clip(y / z, -lim_y, lim_y)
+    zero = jnp.zeros_like(z)
+    jac = jnp.stack([jnp.stack([fx / z, zero, -fx * tx / (z * z)], -1),
+                     jnp.stack([zero, fy / z, -fy * ty / (z * z)], -1)], axis=-2)  # [N, 2, 3]
+    t = jac @ w2c  # [N, 2, 3]
+    cov2 = t @ cov3 @ jnp.swapaxes(t, -1, -2)  # [N, 2, 2]
+    a = cov2[:, 0, 0] + config.low_pass
+    b = cov2[:, 0, 1]
+    c = cov2[:, 1, 1] + config.low_pass
+    det = a * c - b * b
+    ok = det > 0
+    det = jnp.where(ok, det, 1.0)
+    conic = jnp.stack([c / det, -b / det, a / det], axis=-1)  # [N, 3]
+
+    opacity = splats.opacities()
+    # The support: alpha = o exp(-q / 2) >= alpha_min <=> q <= 2 log(o / alpha_min); its bounding box
+    # has half sides sqrt(q_max * Sigma_xx), sqrt(q_max * Sigma_yy) (slightly grown against rounding).
+    q_max = jax.lax.stop_gradient(2.0 * jnp.log(jnp.maximum(opacity, 1e-30) / config.alpha_min))
+    q_max = jnp.maximum(q_max, 0.0) * 1.0001
+    extent = jnp.sqrt(jnp.stack([q_max * jax.lax.stop_gradient(a), q_max * jax.lax.stop_gradient(c)], -1)) + 1e-3
+
+    direction = offset / jnp.maximum(jnp.linalg.norm(offset, axis=-1, keepdims=True), 1e-12)
+    rgb = sh_to_rgb(splats.sh, direction)  # [N, 3]
+    finite = jnp.all(jnp.isfinite(mean2d), -1) & jnp.all(jnp.isfinite(conic), -1) & jnp.all(jnp.isfinite(rgb), -1)
+    visible = splats.valid & in_front & ok & (opacity >= config.alpha_min) & finite
+    return Projected(mean2d=mean2d, conic=conic, depth=p[:, 2], opacity=opacity, rgb=rgb, extent=extent,
+                     visible=visible)
+
+
+def _tile_spans(projected: Projected, intrinsics: Intrinsics, config: SplatRenderConfig):
+    """Each splat's tiles: first and last tile (x, y) int32 [N, 2] each, tiles covered int32 [N]
+    (0 when off screen or not visible) and whether it is on screen, bool [N]."""
+    tiles_x, tiles_y = config.tiles(intrinsics)
+    ts = float(config.tile_size)
+    lo = jnp.floor((projected.mean2d - projected.extent) / ts)  # [N, 2] unclipped
+    hi = jnp.floor((projected.mean2d + projected.extent) / ts)
+    limit = jnp.array([tiles_x - 1, tiles_y - 1], jnp.float32)
+    visible = projected.visible & jnp.all((hi >= 0) & (lo <= limit), axis=-1)
+    lo = jnp.clip(lo, 0, limit).astype(jnp.int32)
+    hi = jnp.clip(hi, 0, limit).astype(jnp.int32)
+    span = hi - lo + 1
+    return lo, hi, jnp.where(visible, span[:, 0] * span[:, 1], 0), visible
+
+
+def count_pairs(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig) -> Array:
+    """The (splat, tile) pairs each of P views needs, int32 [P]: what `max_pairs` must hold for them
+    (the projection alone, no sorting or compositing)."""
+
+    def one(pose):
+        return jnp.sum(_tile_spans(project(splats, pose, intrinsics, config), intrinsics, config)[2])
+
+    c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
+    return jax.lax.map(one, c2w, batch_size=min(c2w.shape[0], 64))
+
+
+def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRenderConfig):
+    """Each tile's splats, nearest first, cut into chunks of `chunk` splats in a fixed number of slots.
+
+    The (splat, tile) pairs are made in depth order into `max_pairs` slots (those beyond are the
+    farthest splats' and are dropped) and sorted by tile, stably, so each tile's run of pairs is in
+    depth order. The runs are cut into chunks, tile by tile; `chunk_slots` (max_pairs / chunk + T)
+    holds every chunk of any view whose pairs fit.
+
+    Returns:
+      ids: int32 [K, B] splat index of each chunk's slots (K = chunk_slots, B = chunk).
+      filled: bool [K, B] whether the slot holds a splat.
+      tile: int32 [K] the tile of each chunk (T for unused chunks).
+      first: bool [K] whether the chunk is its tile's first (unused chunks count as first).
+      last: int32 [T] each tile's last chunk (-1 when the tile has none).
+      counts: int32 [T] pairs each tile holds.
+      lost: bool [T] tiles that lost pairs to `max_pairs`.
+      pairs: int32 [] pairs the view needed (the first `max_pairs` were made).
+      visible: int32 [] splats on screen.
+    """
+    tiles_x, tiles_y = config.tiles(intrinsics)
+    num_tiles = tiles_x * tiles_y
+    lo, hi, n_tiles, visible = _tile_spans(projected, intrinsics, config)
+    span = hi - lo + 1  # [N, 2]
+
+    # Pairs in depth order, so that those beyond max_pairs are the farthest splats'.
+    order = jnp.argsort(jnp.where(visible, projected.depth, jnp.inf)).astype(jnp.int32)  # [N]
+    ends = jnp.cumsum(n_tiles[order])  # [N] inclusive
+    pairs = ends[-1]
+    slot = jnp.arange(config.max_pairs, dtype=jnp.int32)
+    rank = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), order.shape[0] - 1).astype(jnp.int32)
+    splat = order[rank]
+    local = slot - (ends[rank] - n_tiles[splat])
+    width = span[splat, 0]
+    pair_tile = (lo[splat, 1] + local // width) * tiles_x + lo[splat, 0] + local % width
+    pair_tile = jnp.where(slot < pairs, pair_tile, num_tiles)  # unused slots sort last
+    pair_tile, rank = _sort_by_tile(pair_tile, rank, num_tiles, config.max_pairs)
+
+    tile_ids = jnp.arange(num_tiles, dtype=jnp.int32)
+    start = jnp.searchsorted(pair_tile, tile_ids, side="left").astype(jnp.int32)
+    counts = jnp.searchsorted(pair_tile, tile_ids, side="right").astype(jnp.int32) - start  # [T]
+    b = config.chunk
+    n_chunks = (counts + b - 1) // b
+    chunk_end = jnp.cumsum(n_chunks)  # [T] inclusive
+    k = jnp.arange(config.chunk_slots(intrinsics), dtype=jnp.int32)
+    used = k < chunk_end[-1]
+    tile = jnp.minimum(jnp.searchsorted(chunk_end, k, side="right"), num_tiles - 1).astype(jnp.int32)
+    level = k - (chunk_end[tile] - n_chunks[tile])
+    index = (start[tile] + level * b)[:, None] + jnp.arange(b, dtype=jnp.int32)[None, :]  # [K, B]
+    filled = used[:, None] & (index < (start + counts)[tile][:, None])
+    ids = jnp.where(filled, order[rank[jnp.clip(index, 0, config.max_pairs - 1)]], 0)
+    last = jnp.where(n_chunks > 0, chunk_end - 1, -1)
+    # The tiles that lost pairs: those under the boxes of the splats whose pairs did not all fit
+    # (a 2D difference array over the tiles, scattered and summed; integers, so in any order exactly).
+    cut = visible & (ends[jnp.argsort(order)] > config.max_pairs)  # [N], in splat order
+    corners = jnp.stack([lo[:, 1], lo[:, 0], lo[:, 1], hi[:, 0] + 1, hi[:, 1] + 1, lo[:, 0], hi[:, 1] + 1,
+                         hi[:, 0] + 1], -1).reshape(-1, 4, 2)  # [N, 4, (row, column)]
+    signs = jnp.array([1, -1, -1, 1], jnp.int32)
+    marks = jnp.zeros((tiles_y + 1, tiles_x + 1), jnp.int32).at[corners[..., 0], corners[..., 1]].add(
+        jnp.where(cut[:, None], signs, 0))
+    lost = (jnp.cumsum(jnp.cumsum(marks, 0), 1)[:tiles_y, :tiles_x] > 0).reshape(-1)  # [T]
+    return (ids, filled, jnp.where(used, tile, num_tiles), (level == 0) | ~used, last, counts, lost, pairs,
+            jnp.sum(visible).astype(jnp.int32))
+
+
+def _sort_by_tile(pair_tile: Array, rank: Array, num_tiles: int, max_pairs: int) -> Tuple[Array, Array]:
+    """The pairs sorted by tile, stably (so in depth order within a tile): (tiles, ranks) [max_pairs].
+
+    One int32 key tile * max_pairs + slot when it fits (a single-operand sort is about three times
+    faster than a stable two-operand one on a CPU), else the stable sort of (tile, rank).
+    """
+    if (num_tiles + 1) * max_pairs < 2**31:
+        slot = jnp.arange(max_pairs, dtype=jnp.int32)
+        key = jax.lax.sort(pair_tile * max_pairs + slot)
+        return key // max_pairs, rank[key % max_pairs]
+    return jax.lax.sort((pair_tile, rank), num_keys=1, is_stable=True)
+
+
+def _pixel_offsets(tile_size: int) -> np.ndarray:
+    """Pixel centres of a tile relative to its corner, [S, 2] (x, y), row-major."""
+    j, i = np.meshgrid(np.arange(tile_size), np.arange(tile_size), indexing="ij")
+    return np.stack([i.reshape(-1), j.reshape(-1)], -1).astype(np.float32) + 0.5
+
+
+def _alphas(pixels: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array,
+            config: SplatRenderConfig) -> Array:
+    """alpha [K, S] of one splat per chunk (the i-th of each) at its tile's pixel centres (0 where skipped).
+
+    Args:
+      pixels: [K, S, 2] pixel centres of each chunk's tile.
+      mean2d [K, 2], conic [K, 3], opacity [K]: the splat of each chunk.
+      filled: bool [K] whether the chunk has an i-th splat.
+    """
+    dx = pixels[..., 0] - mean2d[:, None, 0]  # [K, S]
+    dy = pixels[..., 1] - mean2d[:, None, 1]
+    power = -0.5 * (conic[:, None, 0] * dx * dx + conic[:, None, 2] * dy * dy) - conic[:, None, 1] * dx * dy
+    alpha = jnp.minimum(config.alpha_max, opacity[:, None] * jnp.exp(jnp.minimum(power, 0.0)))
+    return jnp.where(filled[:, None] & (power <= 0.0) & (alpha >= config.alpha_min), alpha, 0.0)
+
+
+def _segmented(op, first: Array, values: Array) -> Array:
+    """Inclusive scan of `op` along axis 0 that restarts where `first` [K] is true."""
+
+    def combine(a, b):
+        flag_a, value_a = a
+        flag_b, value_b = b
+        flag = flag_b.reshape(flag_b.shape + (1,) * (value_b.ndim - flag_b.ndim))
+        return flag_a | flag_b, jnp.where(flag, value_b, op(value_a, value_b))
+
+    return jax.lax.associative_scan(combine, (first, values))[1]
+
+
+def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
+                background: Optional[Array] = None, mean2d_offset: Optional[Array] = None):
+    """Renders one view.
+
+    Every chunk is composited on its own, in parallel; the chunks of a tile are then chained in
+    depth order: the transmittance entering a chunk is the product of its tile's earlier chunks'
+    transmittances (a segmented product, computed without the early stop, which is exact wherever the
+    stop has not happened yet), a splat is kept while the transmittance after it stays at or above
+    `min_transmittance`, and the kept weights are summed per tile (a segmented sum).
+
+    Args:
+      splats: N splats.
+      c2w: [3 or 4, 4] OpenGL camera-to-world matrix.
+      intrinsics: the pinhole and image size.
+      config: the renderer's settings.
+      background: [3] colour behind the splats (default `config.background`).
+      mean2d_offset: [N, 2] added to the projected means (zeros: the gradient with respect to it is the
+        view-space positional gradient fitting densifies by), or None.
+
+    Returns:
+      (rgb [H, W, 3], depth [H, W], acc [H, W], `SplatStats` of scalars).
+    """
+    bg = jnp.asarray(config.background if background is None else background, jnp.float32)
+    projected = project(splats, c2w, intrinsics, config)
+    if mean2d_offset is not None:
+        projected = projected.replace(mean2d=projected.mean2d + mean2d_offset)
+    ids, filled, tile, first, last, counts, lost, pairs, visible = tile_lists(projected, intrinsics, config)
+    tiles_x, tiles_y = config.tiles(intrinsics)
+    ts = config.tile_size
+    tile_y, tile_x = jnp.divmod(jnp.minimum(tile, tiles_x * tiles_y - 1), tiles_x)
+    corners = jnp.stack([tile_x, tile_y], -1).astype(jnp.float32) * ts  # [K, 2]
+    pixels = corners[:, None, :] + _pixel_offsets(ts)[None]  # [K, S, 2]
+    splat = (projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T)  # [B, K, ...]
+    alphas = functools.partial(_alphas, pixels, config=config)
+
+    # The transmittance through each chunk, then entering it: the product of its tile's earlier chunks'.
+    @jax.checkpoint
+    def through(transmittance, xs):
+        return transmittance * (1.0 - alphas(*xs)), None
+
+    through, _ = jax.lax.scan(through, jnp.ones(pixels.shape[:2], jnp.float32), splat)  # [K, S]
+    entering = _segmented(jnp.multiply, first, through)  # inclusive
+    entering = jnp.where(first[:, None], 1.0, jnp.roll(entering, 1, axis=0))  # exclusive
+
+    # Front to back through every chunk at once, one splat of each per step (a scan over the B slots:
+    # each step is one fused pass over [K, S]). The transmittance is carried without the stop, so it
+    # falls monotonically and the kept splats are exactly those after which it is still >= min_transmittance.
+    @jax.checkpoint
+    def composite(carry, xs):
+        transmittance, values = carry
+        *geometry, rgb, depth = xs
+        alpha = alphas(*geometry)
+        after = transmittance * (1.0 - alpha)
+        weight = jnp.where(after >= config.min_transmittance, alpha * transmittance, 0.0)  # [K, S]
+        sample = jnp.concatenate([rgb, jnp.ones_like(rgb[:, :1]), depth[:, None]], axis=-1)  # [K, 5]
+        return (after, values + weight[..., None] * sample[:, None, :]), None
+
+    values = jnp.zeros(pixels.shape[:2] + (5,), jnp.float32)  # [K, S, (r, g, b, acc, depth)]
+    (_, values), _ = jax.lax.scan(composite, (entering, values),
+                                  splat + (projected.rgb[ids.T], projected.depth[ids.T]))
+    values = _segmented(jnp.add, first, values)  # [K, S, 5] summed over the tile's chunks so far
+    per_tile = jnp.where((last >= 0)[:, None, None], values[jnp.maximum(last, 0)], 0.0)  # [T, S, 5]
+    acc = per_tile[..., 3]
+    transmittance = jnp.maximum(1.0 - acc, 0.0)
+    colour = per_tile[..., :3] + transmittance[..., None] * bg
+
+    pair_overflow = jnp.maximum(pairs - config.max_pairs, 0)
+    pixel_corners = jnp.stack(jnp.divmod(jnp.arange(tiles_x * tiles_y), tiles_x)[::-1], -1).astype(jnp.float32) * ts
+    lossy = jnp.sum(lost[:, None] & (transmittance >= config.min_transmittance)
+                    & _inside(intrinsics, config, pixel_corners))
+    stats = SplatStats(visible=visible, pairs=pairs.astype(jnp.int32), pair_overflow=pair_overflow.astype(jnp.int32),
+                       chunks=jnp.sum(tile < tiles_x * tiles_y).astype(jnp.int32),
+                       max_tile_count=jnp.max(counts).astype(jnp.int32), lossy_pixels=lossy.astype(jnp.int32))
+
+    def image(a):  # [T, S, ...] -> [H, W, ...]
+        a = a.reshape((tiles_y, tiles_x, ts, ts) + a.shape[2:])
+        a = jnp.swapaxes(a, 1, 2).reshape((tiles_y * ts, tiles_x * ts) + a.shape[4:])
+        return a[: intrinsics.height, : intrinsics.width]
+
+    return image(colour), image(per_tile[..., 4]), image(acc), stats
+
+
+def _inside(intrinsics: Intrinsics, config: SplatRenderConfig, corners: Array) -> Array:
+    """bool [T, S]: which pixels of each tile lie inside the image (the last tiles may overhang it)."""
+    pixels = corners[:, None, :] + _pixel_offsets(config.tile_size)[None]
+    return (pixels[..., 0] < intrinsics.width) & (pixels[..., 1] < intrinsics.height)
+
+
+def default_pose_chunk(intrinsics: Intrinsics, config: SplatRenderConfig, backend: Optional[str] = None) -> int:
+    """Poses per step of the pose loop: as many as keep [poses, K, S, B] within the backend's budget."""
+    backend = jax.default_backend() if backend is None else backend
+    budget = _CHUNK_ELEMENTS.get(backend, _CHUNK_ELEMENTS_ACCELERATOR)
+    per_pose = config.chunk_slots(intrinsics) * config.tile_size**2 * config.chunk
+    return max(1, budget // per_pose)
+
+
+def render_splats(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
+                  background: Optional[Array] = None) -> SplatRenderOutput:
+    """Renders P poses in one program: `render_view` vmapped over groups of `pose_chunk` poses.
+
+    Args:
+      splats: N splats (replicated over the poses).
+      c2w: [P, 3 or 4, 4] OpenGL camera-to-world matrices.
+      intrinsics: the camera of every view.
+      config: the renderer's settings.
+      background: [3] colour behind the splats (default `config.background`).
+
+    Returns:
+      `SplatRenderOutput` with rgb [P, H, W, 3], depth and acc [P, H, W], stats of [P] each.
+    """
+    chunk = config.pose_chunk or default_pose_chunk(intrinsics, config)
+    c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
+    chunk = min(chunk, c2w.shape[0])
+
+    def one(pose):
+        rgb, depth, acc, stats = render_view(splats, pose, intrinsics, config, background)
+        return SplatRenderOutput(rgb=rgb, depth=depth, acc=acc, stats=stats)
+
+    return jax.lax.map(one, c2w, batch_size=chunk)
+
+
+def _render_local(config: SplatRenderConfig, replicated, posed):
+    splats, intrinsics, background = replicated
+    c2w, _ = posed
+    return render_splats(splats, c2w, intrinsics, config, background)
+
+
+@functools.lru_cache(maxsize=None)
+def _local_fn(config: SplatRenderConfig):
+    return functools.partial(_render_local, config)
+
+
+def render_splats_sharded(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
+                          background: Optional[Array] = None, mesh=None) -> SplatRenderOutput:
+    """`render_splats` with the poses split over the devices of `mesh` (default: all local devices).
+
+    The splats are replicated; each device renders its poses with the same program, so the images
+    equal the single-device ones. Multi-host: see `waldo_jax.render.sharding.shard_over_poses`.
+    """
+    bg = jnp.asarray(config.background if background is None else background, jnp.float32)
+    return shard_over_poses(_local_fn(config), (splats, intrinsics, bg), c2w, mesh)
