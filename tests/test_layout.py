@@ -8,7 +8,8 @@ and never sideways into another package of its layer:
   2 data      scenes (one module per format), weights; search (poses and scores only: no renderer,
               no criterion)
   3 render    the volume integral, occupancy marching, the marched renderer, sharding
-  4 models    nerf (hash grid, field, training, checkpoints, run directories), procedural (the room)
+  4 models    nerf (hash grid, field, training, checkpoints, run directories), procedural (the room),
+              splats (3D Gaussian splats: files, the tile renderer, fitting, splat runs)
   5 criteria  what scores a view
   6 pipeline  sources, experiments (source + criterion + method), their files, the demo
   7 cli       one module per command
@@ -32,7 +33,7 @@ LAYERS = {
     "waldo_jax.paths": 1, "waldo_jax.io": 1, "waldo_jax.cameras": 1,
     "waldo_jax.scenes": 2, "waldo_jax.weights": 2, "waldo_jax.search": 2,
     "waldo_jax.render": 3,
-    "waldo_jax.nerf": 4, "waldo_jax.procedural": 4,
+    "waldo_jax.nerf": 4, "waldo_jax.procedural": 4, "waldo_jax.splats": 4,
     "waldo_jax.criteria": 5,
     "waldo_jax.pipeline": 6,
     "waldo_jax.cli": 7,

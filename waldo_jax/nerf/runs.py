@@ -10,50 +10,23 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import warnings
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
 import jax
 
 from waldo_jax import io
-from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError
+from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
 from waldo_jax.nerf.train import TrainResult, train
-from waldo_jax.scenes import load_scene
+from waldo_jax.scenes import load_splits
 from waldo_jax.types import Scene
 
 __all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "load_splits", "train_stats", "train_run", "train_scene_run"]
 
 TRAIN_JSON = "train.json"
 SAMPLER_CHOICES = ("auto",) + SAMPLERS  # auto = occupancy
-
-
-def load_splits(scene_path: str, downscale: Optional[float], stacklevel: int = 2) -> Tuple[Scene, Optional[Scene]]:
-    """(training scene, held-out scene or None) with the format's own hold-out.
-
-    Blender scenes hold out transforms_test.json (else _val); other formats every 8th image. A scene
-    without held-out views warns (at `stacklevel`, pointing at the caller) and returns None for it.
-    """
-    train_scene = load_scene(scene_path, downscale=downscale, split="train")
-    if min(train_scene.width, train_scene.height) < MIN_RESOLUTION:
-        how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
-        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; a NeRF "
-                         f"needs sides of at least {MIN_RESOLUTION} pixels")
-    test_scene = None
-    splits = ("test", "val") if train_scene.format == "blender" else ("test",)
-    for split in splits:
-        try:
-            with warnings.catch_warnings():  # the train split already warned about skipped frames
-                warnings.simplefilter("ignore", UserWarning)
-                test_scene = load_scene(scene_path, downscale=downscale, split=split)
-            break
-        except SceneFormatError as e:
-            problem = str(e)
-    if test_scene is None:
-        warnings.warn(f"{scene_path}: no held-out views ({problem}); psnr_test will be null", stacklevel=stacklevel)
-    return train_scene, test_scene
 
 
 def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,

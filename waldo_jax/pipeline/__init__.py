@@ -32,7 +32,7 @@ from waldo_jax.pipeline.outputs import results_dict as results_dict
 from waldo_jax.pipeline.outputs import write_outputs as write_outputs
 from waldo_jax.pipeline.sources import Source as Source
 from waldo_jax.pipeline.sources import SourceError as SourceError
-from waldo_jax.pipeline.sources import load_source as load_source
+from waldo_jax.pipeline.load import load_source as load_source
 from waldo_jax.pipeline.sources import procedural_source as procedural_source
 from waldo_jax.pipeline.sources import run_source as run_source
 

@@ -36,7 +36,7 @@ from waldo_jax.render.marched import render_marched
 from waldo_jax.scenes import load_scene
 from waldo_jax.types import Array, Intrinsics, Scene
 
-__all__ = ["Source", "SourceError", "load_source", "procedural_source", "run_source", "resize_images",
+__all__ = ["Source", "SourceError", "procedural_source", "run_source", "resize_images",
            "parse_procedural", "room_renderer", "field_renderer", "DEFAULT_PROCEDURAL_RESOLUTION",
            "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "check_views"]
 
@@ -275,32 +275,3 @@ def check_views(views) -> int:
     if isinstance(views, bool) or not isinstance(views, int) or not 1 <= views <= MAX_PROCEDURAL_VIEWS:
         raise SourceError(f"--views must be an integer between 1 and {MAX_PROCEDURAL_VIEWS}, got {views!r}")
     return views
-
-
-def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int] = None,
-                cameras: Optional[str] = None) -> Source:
-    """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
-    (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
-
-    `views` (default `DEFAULT_PROCEDURAL_VIEWS`) is for the procedural room only: a run's training
-    views are those it was trained on, and passing `views` with a run is an error, not ignored.
-    `cameras` (a transforms.json-like poses file) gives a splat scene its training poses.
-
-    Raises:
-      SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint,
-      `views` with a run, `cameras` with anything but a splat scene.
-    """
-    from waldo_jax.pipeline.splat_sources import is_splat_spec, splat_source
-
-    seed = parse_procedural(spec)
-    splat = seed is None and is_splat_spec(spec)
-    if cameras is not None and not splat:
-        raise SourceError(f"--cameras gives a splat scene its poses; {spec} has its own")
-    if seed is not None:
-        return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
-    if views is not None:
-        raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was "
-                          "trained on")
-    if splat:
-        return splat_source(spec, resolution, cameras)
-    return run_source(spec, resolution)

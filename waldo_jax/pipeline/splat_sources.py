@@ -32,6 +32,7 @@ import numpy as np
 
 from waldo_jax.cameras import look_at
 from waldo_jax.errors import WaldoError, check_resolution
+from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
 from waldo_jax.splats.io import SplatModel, load_splat_model
 from waldo_jax.splats.model import Splats
@@ -178,8 +179,6 @@ def _read_train_json(folder: Path) -> Optional[dict]:
 
 def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
     """A splat run's real training images at `intrinsics`' size, or (None, why)."""
-    from waldo_jax.pipeline.sources import resize_images  # the NeRF sources' resizer
-
     scene_path = record.get("scene_path")
     if not scene_path or not Path(scene_path).exists():
         return None, f"the training scene {scene_path or '(unnamed)'} is not on this machine"
@@ -210,8 +209,6 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
     Raises:
       WaldoError (SceneFormatError, SourceError, ...): the file or folder cannot be read.
     """
-    from waldo_jax.pipeline.sources import Source, SourceError
-
     path = Path(spec)
     if not path.exists():
         raise SourceError(f"SOURCE {spec!r}: no such splat file or folder")

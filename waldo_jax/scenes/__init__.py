@@ -26,6 +26,7 @@ from waldo_jax.scenes.llff import LLFF_NEAR_MARGIN as LLFF_NEAR_MARGIN
 from waldo_jax.scenes.loader import load_scene as load_scene
 from waldo_jax.scenes.ply import read_ply_points as read_ply_points
 from waldo_jax.scenes.poses_file import read_poses_file as read_poses_file
+from waldo_jax.scenes.splits import load_splits as load_splits
 from waldo_jax.scenes.transforms import BLENDER_AABB as BLENDER_AABB
 from waldo_jax.scenes.transforms import BLENDER_FAR as BLENDER_FAR
 from waldo_jax.scenes.transforms import BLENDER_NEAR as BLENDER_NEAR
@@ -43,6 +44,7 @@ __all__ = [
     "camera_focus",
     "detect_format",
     "load_scene",
+    "load_splits",
     "read_ply_points",
     "read_poses_file",
 ]

@@ -23,6 +23,7 @@ import numpy as np
 
 from waldo_jax import io
 from waldo_jax.errors import WaldoError
+from waldo_jax.scenes import load_splits
 from waldo_jax.scenes.ply import read_ply_points
 from waldo_jax.splats.fit import FitConfig, FitResult, fit_splats
 from waldo_jax.splats.io import SplatCameras, write_splat_model
@@ -57,8 +58,6 @@ def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None,
     Raises:
       WaldoError: a bad value (named as its `waldo train` flag), scene or output folder.
     """
-    from waldo_jax.nerf.runs import load_splits  # the NeRF runs' split rule: one hold-out for both models
-
     config = FitConfig() if config is None else config
     overrides: Dict[str, Any] = {}
     if steps is not None:
@@ -72,7 +71,7 @@ def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None,
         overrides["init_count"] = min(config.init_count, capacity // 2)
     config = dataclasses.replace(config, **overrides)
     out = io.check_output_dir(out, force=force)
-    train_scene, test_scene = load_splits(scene_path, downscale, stacklevel=3)
+    train_scene, test_scene = load_splits(scene_path, downscale, stacklevel=3, model="a splat fit")
     points, colors, points_from = sparse_points(train_scene)
     out = io.prepare_output_dir(out, force=force)
     if not os.access(out, os.W_OK):
