@@ -48,9 +48,10 @@ def rotation(q: np.ndarray) -> np.ndarray:
 
 
 def render_reference(means, log_scales, quats, logits, sh, c2w, width, height, fx, fy, cx, cy, *, near=0.01,
-                     background=(0.0, 0.0, 0.0), low_pass=0.3, clamp=1.3):
+                     background=(0.0, 0.0, 0.0), low_pass=0.3, clamp=1.3, return_depth=False):
     """The image [H, W, 3] and accumulated opacity [H, W] of splats (raw parameters, float64) seen from
-    the OpenGL camera-to-world `c2w` [4, 4] through a pinhole."""
+    the OpenGL camera-to-world `c2w` [4, 4] through a pinhole; with `return_depth`, also the
+    alpha-weighted camera depth [H, W] (the same weights as the colour, 0 where empty)."""
     means, log_scales, quats = (np.asarray(a, np.float64) for a in (means, log_scales, quats))
     logits, sh, c2w = (np.asarray(a, np.float64) for a in (logits, sh, c2w))
     # OpenGL c2w -> world-to-camera in OpenCV axes (x right, y down, z forward).
@@ -78,9 +79,10 @@ def render_reference(means, log_scales, quats, logits, sh, c2w, width, height, f
     splats.sort(key=lambda s: (s[0], s[1]))
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
     image = np.zeros((height, width, 3))
+    depth = np.zeros((height, width))
     transmittance = np.ones((height, width))
     done = np.zeros((height, width), bool)
-    for _, _, uv, inv, opacity, colour in splats:
+    for z, _, uv, inv, opacity, colour in splats:
         dx, dy = xs - uv[0], ys - uv[1]
         power = -0.5 * (inv[0, 0] * dx * dx + inv[1, 1] * dy * dy) - inv[0, 1] * dx * dy
         alpha = np.minimum(0.99, opacity * np.exp(np.minimum(power, 0.0)))
@@ -90,5 +92,7 @@ def render_reference(means, log_scales, quats, logits, sh, c2w, width, height, f
         done |= stop
         use &= ~stop
         image += np.where(use[..., None], (alpha * transmittance)[..., None] * colour, 0.0)
+        depth += np.where(use, alpha * transmittance * z, 0.0)
         transmittance = np.where(use, after, transmittance)
-    return image + transmittance[..., None] * np.asarray(background, np.float64), 1.0 - transmittance
+    image = image + transmittance[..., None] * np.asarray(background, np.float64)
+    return (image, 1.0 - transmittance, depth) if return_depth else (image, 1.0 - transmittance)

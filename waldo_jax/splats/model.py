@@ -76,9 +76,10 @@ class Splats:
 
     def rotations(self) -> Array:
         """Unit quaternions (w, x, y, z), [N, 4] (a zero quaternion gives the identity)."""
-        norm = jnp.linalg.norm(self.quats, axis=-1, keepdims=True)
+        squared = jnp.sum(self.quats * self.quats, axis=-1, keepdims=True)
         identity = jnp.array([1.0, 0.0, 0.0, 0.0], self.quats.dtype)
-        return jnp.where(norm > 0, self.quats / jnp.where(norm > 0, norm, 1.0), identity)
+        # The guarded root keeps the gradient of a zero quaternion finite (no 0 * inf).
+        return jnp.where(squared > 0, self.quats * jax.lax.rsqrt(jnp.where(squared > 0, squared, 1.0)), identity)
 
 
 def make_splats(means, log_scales, quats, logits, sh, valid=None) -> Splats:

@@ -66,8 +66,8 @@ __all__ = [
     "count_pairs",
 ]
 
-# Elements of the [poses, chunks, pixels, chunk] compositing arrays one step of the pose loop may
-# hold: 2^24 (64 MiB of float32 per array) on a CPU, 2^27 on an accelerator.
+# Elements of the compositing arrays (a few [chunks, pixels] per view) one step of the pose loop may
+# hold: 2^24 (64 MiB of float32) on a CPU, 2^27 on an accelerator.
 _CHUNK_ELEMENTS = {"cpu": 2**24}
 _CHUNK_ELEMENTS_ACCELERATOR = 2**27
 
@@ -222,8 +222,7 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     mean2d = jnp.stack([fx * x / z + cx, fy * y / z + cy], axis=-1)  # [N, 2]
 
     rot = quat_to_rotmat(splats.rotations())  # [N, 3, 3]
-    m = rot * splats.scales()[:, None, :]  # R diag(s)
-    cov3 = m @ jnp.swapaxes(m, -1, -2)  # [N, 3, 3]
+    m = rot * splats.scales()[:, None, :]  # R diag(s): Sigma = m m^T
     lim_x = config.jacobian_clamp * intrinsics.width / (2.0 * fx)
     lim_y = config.jacobian_clamp * intrinsics.height / (2.0 * fy)
     tx = z * jnp.clip(x / z, -lim_x, lim_x)
@@ -231,12 +230,15 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     zero = jnp.zeros_like(z)
     jac = jnp.stack([jnp.stack([fx / z, zero, -fx * tx / (z * z)], -1),
                      jnp.stack([zero, fy / z, -fy * ty / (z * z)], -1)], axis=-2)  # [N, 2, 3]
-    t = jac @ w2c  # [N, 2, 3]
-    cov2 = t @ cov3 @ jnp.swapaxes(t, -1, -2)  # [N, 2, 2]
-    a = cov2[:, 0, 0] + config.low_pass
-    b = cov2[:, 0, 1]
-    c = cov2[:, 1, 1] + config.low_pass
-    det = a * c - b * b
+    # Sigma2 = A A^T with A = J W R diag(s) [N, 2, 3]. Its determinant is the sum of A's squared 2x2
+    # minors (Cauchy-Binet): no cancellation for needle-like splats, where a c - b^2 loses float32.
+    a_mat = jac @ w2c @ m  # [N, 2, 3]
+    r0, r1 = a_mat[:, 0], a_mat[:, 1]
+    a0, c0, b = jnp.sum(r0 * r0, -1), jnp.sum(r1 * r1, -1), jnp.sum(r0 * r1, -1)
+    minors = jnp.cross(r0, r1)  # [N, 3] the 2x2 minors of A
+    lp = config.low_pass
+    a, c = a0 + lp, c0 + lp
+    det = jnp.sum(minors * minors, -1) + lp * (a0 + c0) + lp * lp
     ok = det > 0
     det = jnp.where(ok, det, 1.0)
     conic = jnp.stack([c / det, -b / det, a / det], axis=-1)  # [N, 3]
@@ -248,7 +250,8 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     q_max = jnp.maximum(q_max, 0.0) * 1.0001
     extent = jnp.sqrt(jnp.stack([q_max * jax.lax.stop_gradient(a), q_max * jax.lax.stop_gradient(c)], -1)) + 1e-3
 
-    direction = offset / jnp.maximum(jnp.linalg.norm(offset, axis=-1, keepdims=True), 1e-12)
+    # A safe norm: a mean at the camera centre gives a finite direction and gradient, not 0 * inf.
+    direction = offset * jax.lax.rsqrt(jnp.maximum(jnp.sum(offset * offset, -1, keepdims=True), 1e-24))
     rgb = sh_to_rgb(splats.sh, direction)  # [N, 3]
     finite = jnp.all(jnp.isfinite(mean2d), -1) & jnp.all(jnp.isfinite(conic), -1) & jnp.all(jnp.isfinite(rgb), -1)
     visible = splats.valid & in_front & ok & (opacity >= config.alpha_min) & finite
@@ -311,9 +314,15 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     ends = jnp.cumsum(n_tiles[order])  # [N] inclusive
     pairs = ends[-1]
     slot = jnp.arange(config.max_pairs, dtype=jnp.int32)
-    rank = jnp.minimum(jnp.searchsorted(ends, slot, side="right"), order.shape[0] - 1).astype(jnp.int32)
+    # The rank (depth order) of each pair slot's splat: each splat marks the slot where its run of pairs
+    # starts and a running maximum fills the run (cheaper than a binary search per slot).
+    n_sorted = n_tiles[order]
+    starts = jnp.where(n_sorted > 0, ends - n_sorted, config.max_pairs)  # [N]
+    marks = jnp.zeros(config.max_pairs, jnp.int32).at[starts].max(
+        jnp.arange(order.shape[0], dtype=jnp.int32), mode="drop")
+    rank = jax.lax.cummax(marks)  # [max_pairs]
     splat = order[rank]
-    local = slot - (ends[rank] - n_tiles[splat])
+    local = slot - (ends[rank] - n_sorted[rank])
     width = span[splat, 0]
     pair_tile = (lo[splat, 1] + local // width) * tiles_x + lo[splat, 0] + local % width
     pair_tile = jnp.where(slot < pairs, pair_tile, num_tiles)  # unused slots sort last
@@ -335,7 +344,8 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     last = jnp.where(n_chunks > 0, chunk_end - 1, -1)
     # The tiles that lost pairs: those under the boxes of the splats whose pairs did not all fit
     # (a 2D difference array over the tiles, scattered and summed; integers, so in any order exactly).
-    cut = visible & (ends[jnp.argsort(order)] > config.max_pairs)  # [N], in splat order
+    inverse = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=jnp.int32))
+    cut = visible & (ends[inverse] > config.max_pairs)  # [N], in splat order
     corners = jnp.stack([lo[:, 1], lo[:, 0], lo[:, 1], hi[:, 0] + 1, hi[:, 1] + 1, lo[:, 0], hi[:, 1] + 1,
                          hi[:, 0] + 1], -1).reshape(-1, 4, 2)  # [N, 4, (row, column)]
     signs = jnp.array([1, -1, -1, 1], jnp.int32)
@@ -451,18 +461,21 @@ def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: Spla
         return (after, values + weight[..., None] * sample[:, None, :]), None
 
     values = jnp.zeros(pixels.shape[:2] + (5,), jnp.float32)  # [K, S, (r, g, b, acc, depth)]
-    (_, values), _ = jax.lax.scan(composite, (entering, values),
+    (leaving, values), _ = jax.lax.scan(composite, (entering, values),
                                   splat + (projected.rgb[ids.T], projected.depth[ids.T]))
-    values = _segmented(jnp.add, first, values)  # [K, S, 5] summed over the tile's chunks so far
-    per_tile = jnp.where((last >= 0)[:, None, None], values[jnp.maximum(last, 0)], 0.0)  # [T, S, 5]
+    # Summed per tile (chunks are in tile order; integer-free sums over a sorted segment, in a fixed order).
+    per_tile = jax.ops.segment_sum(values, tile, num_segments=tiles_x * tiles_y + 1,
+                                   indices_are_sorted=True)[:-1]  # [T, S, 5]
     acc = per_tile[..., 3]
     transmittance = jnp.maximum(1.0 - acc, 0.0)
     colour = per_tile[..., :3] + transmittance[..., None] * bg
 
     pair_overflow = jnp.maximum(pairs - config.max_pairs, 0)
     pixel_corners = jnp.stack(jnp.divmod(jnp.arange(tiles_x * tiles_y), tiles_x)[::-1], -1).astype(jnp.float32) * ts
-    lossy = jnp.sum(lost[:, None] & (transmittance >= config.min_transmittance)
-                    & _inside(intrinsics, config, pixel_corners))
+    # A pixel an overflow could change had not stopped when its list ended: the transmittance leaving its
+    # tile's last chunk, carried without the stop, is still >= min_transmittance.
+    open_end = jnp.where((last >= 0)[:, None], leaving[jnp.maximum(last, 0)], 1.0) >= config.min_transmittance
+    lossy = jnp.sum(lost[:, None] & open_end & _inside(intrinsics, config, pixel_corners))
     stats = SplatStats(visible=visible, pairs=pairs.astype(jnp.int32), pair_overflow=pair_overflow.astype(jnp.int32),
                        chunks=jnp.sum(tile < tiles_x * tiles_y).astype(jnp.int32),
                        max_tile_count=jnp.max(counts).astype(jnp.int32), lossy_pixels=lossy.astype(jnp.int32))
@@ -485,7 +498,8 @@ def default_pose_chunk(intrinsics: Intrinsics, config: SplatRenderConfig, backen
     """Poses per step of the pose loop: as many as keep [poses, K, S, B] within the backend's budget."""
     backend = jax.default_backend() if backend is None else backend
     budget = _CHUNK_ELEMENTS.get(backend, _CHUNK_ELEMENTS_ACCELERATOR)
-    per_pose = config.chunk_slots(intrinsics) * config.tile_size**2 * config.chunk
+    # A view's forward pass holds a few [K, S] arrays and the [K, S, 5] sums (the scans keep no [K, S, B]).
+    per_pose = config.chunk_slots(intrinsics) * config.tile_size**2 * 16
     return max(1, budget // per_pose)
 
 
