@@ -5,8 +5,10 @@ jitted, compilation excluded, best and median of `--repeats` taken alternately:
 
   score      the exact score function a search renders and scores children with (render + criterion);
   smooth     the smooth stand-in refinement follows (`Criterion.smooth`), forward only;
-  gradient   `search.refine.values_and_gradients`: the smooth value and its forward-mode gradient with
-             respect to origin and look-at point (six tangents), what one refinement step evaluates.
+  gradient   `search.refine.values_and_gradients`: the smooth value and its gradient with respect to
+             origin and look-at point, what one refinement step evaluates: forward mode (six tangents)
+             through the marched NeRF renderer, reverse mode (one vjp) through the splat renderer
+             (`Source.gradient`).
 
 `ratio` = gradient / score (best times): how many renders one gradient evaluation of one pose is
 worth. `RefineConfig.gradient_cost` is the largest ratio measured, rounded up (and at least 2).
@@ -51,12 +53,13 @@ def measure(spec: str, resolution: int, poses: int, repeats: int) -> dict:
 
     score = jax.jit(lambda c: score_fn(c))
     smooth = jax.jit(lambda c: objective(c))
-    gradient = jax.jit(lambda o: values_and_gradients(objective, start, extent, o))
+    mode = source.gradient if criterion.inputs != "poses" else "forward"  # as `pipeline.refine_for_source`
+    gradient = jax.jit(lambda o: values_and_gradients(objective, start, extent, o, mode))
     times = timed_alternately({"score": lambda: score(c2w), "smooth": lambda: smooth(c2w),
                                "gradient": lambda: gradient(offsets)}, repeats)
     values, grads = gradient(offsets)
     return {
-        "case": spec, "source": source.spec, "criterion": criterion.name, "poses": poses,
+        "case": spec, "source": source.spec, "criterion": criterion.name, "poses": poses, "gradient_mode": mode,
         "resolution": [source.intrinsics.width, source.intrinsics.height],
         "seconds_best": {k: round(v[0], 5) for k, v in times.items()},
         "seconds_median": {k: round(v[1], 5) for k, v in times.items()},

@@ -12,6 +12,7 @@ from conftest import built_once, require_scene
 from waldo_jax import paths
 from waldo_jax.cli import main
 from waldo_jax.pipeline import load_source
+from waldo_jax.pipeline.splat_sources import SPLAT_GRADIENT_COST
 from waldo_jax.scenes import load_scene
 from waldo_jax.splats.io import load_splat_model, read_cameras_json, write_cameras_json
 
@@ -83,7 +84,7 @@ def test_explore_the_donut_from_a_ring_with_reverse_mode_refinement(donut_explor
     assert r["source_info"]["poses"] == "ring" and r["n_train"] == 24
     assert r["source_info"]["splats"] == 45624 and r["source_info"]["sh_degree"] == 0
     assert r["initial_scores"] == "images"  # the ring's renders stand for the missing photos
-    assert r["refine"]["gradient"] == "reverse" and r["refine"]["gradient_cost"] == 3
+    assert r["refine"]["gradient"] == "reverse" and r["refine"]["gradient_cost"] == SPLAT_GRADIENT_COST
     assert r["renderer"]["views_over_max_pairs"] == 0
     assert np.isfinite(r["cvir"]) and r["topk"][0]["score"] >= max(r["scores_train"])
     image = iio.imread(out / "topk" / "00.png")

@@ -47,10 +47,12 @@ SPLAT_RESOLUTION = 256  # default longer side of a splat source's renders (the c
 RING_VIEWS = 24
 RING_ELEVATION_DEG = 30.0
 RING_FOV_DEG = 50.0
-# Renders one reverse-mode pose gradient through the splat renderer counts as in a +refine budget:
-# the measured ratio of its time to a render and exact score's, rounded up (benchmarks/gradient_cost.py).
-SPLAT_GRADIENT_COST = 3
-_PAIRS_MARGIN = 2.0  # max_pairs = this x the most pairs a training view needs (searches go closer)
+# Renders one reverse-mode pose gradient through the splat renderer counts as in a +refine budget: the
+# largest measured ratio of its time to a render and exact score's, rounded up (5.4 for saliency on the
+# fitted lego_tiny splats at 64 px, 3.1 to 3.4 with colorfulness, where the render dominates; the NeRF's
+# forward-mode gradient: 11.5; benchmarks/results/gradient_cost_splats_cpu.json).
+SPLAT_GRADIENT_COST = 6
+_PAIRS_MARGIN = 1.5  # max_pairs = this x the most pairs a training view needs (searches go closer)
 _PAIRS_QUANTUM = 4096
 
 
@@ -246,7 +248,7 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
     config = SplatRenderConfig(**{**config.__dict__, "background": tuple(float(v) for v in background)})
     max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config)
     config = SplatRenderConfig(**{**config.__dict__, "max_pairs": max_pairs})
-    info["renderer"] = {"max_pairs": max_pairs, "calibrated_on": "the training views (x2)",
+    info["renderer"] = {"max_pairs": max_pairs, "calibrated_on": f"the training views (x{_PAIRS_MARGIN:g})",
                         "tile_size": config.tile_size, "chunk": config.chunk, "near": config.near,
                         "background": list(config.background)}
     render = splat_renderer(splats, intrinsics, config)

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.render.sharding import shard_over_poses
+from waldo_jax.splats.composite import composite_chunks
 from waldo_jax.splats.model import Splats
 from waldo_jax.splats.sh import sh_to_rgb
 from waldo_jax.types import Array, Intrinsics
@@ -91,6 +92,8 @@ class SplatRenderConfig:
       alpha_min: alphas below this are skipped (the reference's 1/255).
       alpha_max: alphas are clamped to this (0.99).
       min_transmittance: a pixel ends at the splat that would take its transmittance below this (1e-4).
+      custom_gradient: differentiate the compositing by its hand-written reverse-mode rule
+        (`waldo_jax.splats.composite`; reverse mode only), or by JAX's own rules (forward mode too).
     """
 
     tile_size: int = 8
@@ -104,6 +107,7 @@ class SplatRenderConfig:
     alpha_min: float = 1.0 / 255.0
     alpha_max: float = 0.99
     min_transmittance: float = 1e-4
+    custom_gradient: bool = True
 
     def __post_init__(self):
         for name in ("tile_size", "chunk", "max_pairs"):
@@ -375,34 +379,6 @@ def _pixel_offsets(tile_size: int) -> np.ndarray:
     return np.stack([i.reshape(-1), j.reshape(-1)], -1).astype(np.float32) + 0.5
 
 
-def _alphas(pixels: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array,
-            config: SplatRenderConfig) -> Array:
-    """alpha [K, S] of one splat per chunk (the i-th of each) at its tile's pixel centres (0 where skipped).
-
-    Args:
-      pixels: [K, S, 2] pixel centres of each chunk's tile.
-      mean2d [K, 2], conic [K, 3], opacity [K]: the splat of each chunk.
-      filled: bool [K] whether the chunk has an i-th splat.
-    """
-    dx = pixels[..., 0] - mean2d[:, None, 0]  # [K, S]
-    dy = pixels[..., 1] - mean2d[:, None, 1]
-    power = -0.5 * (conic[:, None, 0] * dx * dx + conic[:, None, 2] * dy * dy) - conic[:, None, 1] * dx * dy
-    alpha = jnp.minimum(config.alpha_max, opacity[:, None] * jnp.exp(jnp.minimum(power, 0.0)))
-    return jnp.where(filled[:, None] & (power <= 0.0) & (alpha >= config.alpha_min), alpha, 0.0)
-
-
-def _segmented(op, first: Array, values: Array) -> Array:
-    """Inclusive scan of `op` along axis 0 that restarts where `first` [K] is true."""
-
-    def combine(a, b):
-        flag_a, value_a = a
-        flag_b, value_b = b
-        flag = flag_b.reshape(flag_b.shape + (1,) * (value_b.ndim - flag_b.ndim))
-        return flag_a | flag_b, jnp.where(flag, value_b, op(value_a, value_b))
-
-    return jax.lax.associative_scan(combine, (first, values))[1]
-
-
 def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
                 background: Optional[Array] = None, mean2d_offset: Optional[Array] = None):
     """Renders one view.
@@ -435,34 +411,12 @@ def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: Spla
     tile_y, tile_x = jnp.divmod(jnp.minimum(tile, tiles_x * tiles_y - 1), tiles_x)
     corners = jnp.stack([tile_x, tile_y], -1).astype(jnp.float32) * ts  # [K, 2]
     pixels = corners[:, None, :] + _pixel_offsets(ts)[None]  # [K, S, 2]
-    splat = (projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T)  # [B, K, ...]
-    alphas = functools.partial(_alphas, pixels, config=config)
-
-    # The transmittance through each chunk, then entering it: the product of its tile's earlier chunks'.
-    @jax.checkpoint
-    def through(transmittance, xs):
-        return transmittance * (1.0 - alphas(*xs)), None
-
-    through, _ = jax.lax.scan(through, jnp.ones(pixels.shape[:2], jnp.float32), splat)  # [K, S]
-    entering = _segmented(jnp.multiply, first, through)  # inclusive
-    entering = jnp.where(first[:, None], 1.0, jnp.roll(entering, 1, axis=0))  # exclusive
-
-    # Front to back through every chunk at once, one splat of each per step (a scan over the B slots:
-    # each step is one fused pass over [K, S]). The transmittance is carried without the stop, so it
-    # falls monotonically and the kept splats are exactly those after which it is still >= min_transmittance.
-    @jax.checkpoint
-    def composite(carry, xs):
-        transmittance, values = carry
-        *geometry, rgb, depth = xs
-        alpha = alphas(*geometry)
-        after = transmittance * (1.0 - alpha)
-        weight = jnp.where(after >= config.min_transmittance, alpha * transmittance, 0.0)  # [K, S]
-        sample = jnp.concatenate([rgb, jnp.ones_like(rgb[:, :1]), depth[:, None]], axis=-1)  # [K, 5]
-        return (after, values + weight[..., None] * sample[:, None, :]), None
-
-    values = jnp.zeros(pixels.shape[:2] + (5,), jnp.float32)  # [K, S, (r, g, b, acc, depth)]
-    (leaving, values), _ = jax.lax.scan(composite, (entering, values),
-                                  splat + (projected.rgb[ids.T], projected.depth[ids.T]))
+    rgb, depth = projected.rgb[ids.T], projected.depth[ids.T]  # [B, K, 3], [B, K]
+    sample = jnp.concatenate([rgb, jnp.ones_like(depth)[..., None], depth[..., None]], axis=-1)  # [B, K, 5]
+    values, leaving = composite_chunks(
+        pixels, first, projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T, sample,
+        config.alpha_min, config.alpha_max, config.min_transmittance, config.custom_gradient)  # [K, S, 5], [K, S]
+    leaving = jax.lax.stop_gradient(leaving)
     # Summed per tile (chunks are in tile order; integer-free sums over a sorted segment, in a fixed order).
     per_tile = jax.ops.segment_sum(values, tile, num_segments=tiles_x * tiles_y + 1,
                                    indices_are_sorted=True)[:-1]  # [T, S, 5]
