@@ -18,7 +18,7 @@ returns what it did.
                 alone, render efficiency); render_population.py batched vs loop at each size
   search        `waldo explore` on the fox: EGPS, saliency, low budget, at each resolution: seconds
   gradient      gradient_cost.py, the fox run's case included
-  (splats)      issue [2/5]'s renderer gets its step in STEPS once benchmarks/render_splats.py exists
+  splats        benchmarks/render_splats.py at the GPU targets' sizes; `waldo explore` on the donut
 
 What comes back, in --out (3 files, under the device machine's 8-file limit):
   device_check.json     every step's JSON (device, versions, commit, settings, result), the targets of
@@ -79,8 +79,8 @@ IMPORT_NAMES = {"pillow": "PIL", "imageio-ffmpeg": "imageio_ffmpeg", "pytest-xdi
 # What --pack copies from $WALDO_DATA. Required: the fox (whole: it loads exactly as from ../shared at
 # any --downscale, and the tests that read it need it at full size) and every criterion's weights. Then,
 # while they fit under the limit, the other data the suite reads (tests needing what is left out skip).
-PACK_REQUIRED = ("scenes/fox", "weights")
-PACK_OPTIONAL = ("scenes/lego_tiny", "scenes/face", "splats/donut", "scenes/fern", "scenes/garden")
+PACK_REQUIRED = ("scenes/fox", "weights", "splats/donut")
+PACK_OPTIONAL = ("scenes/lego_tiny", "scenes/face", "scenes/fern", "scenes/garden")
 # Parts of a folder to copy (relative names); the rest of it is left out.
 PACK_ONLY = {"scenes/fern": ("poses_bounds.npy", "images_8")}  # images_4 (24 MB): no test or step reads it
 # Room kept under the limit for the working tree to grow between --pack and the device call, and for
@@ -121,6 +121,11 @@ class Settings:
     gradient_resolution: int = 64
     gradient_poses: int = 4
     gradient_repeats: int = 5
+    # The splat renderer (issue [2/5]): the GPU targets' cells, then the donut explored.
+    splats_args: tuple = ("--counts", "100000,1000000", "--sizes", "128,256", "--populations", "256",
+                          "--repeats", "3", "--max-seconds-per-cell", "60")
+    splats_explore_args: tuple = ("--resolution", "128", "--criterion", "saliency", "--method", "egps+refine",
+                                  "--budget", "low")
 
 
 FULL = Settings()
@@ -138,7 +143,10 @@ SMOKE = Settings(
     explore_resolutions=(32,),
     explore_args=("--criterion", "colorfulness", "--method", "egps", "--epochs", "2", "--children-per-epoch", "4"),
     gradient_cases=("RUN:colorfulness",), gradient_resolution=16, gradient_poses=2,
-    gradient_repeats=1)
+    gradient_repeats=1,
+    splats_args=("--quick", "--populations", "2"),
+    splats_explore_args=("--resolution", "16", "--criterion", "colorfulness", "--method", "egps+refine",
+                         "--epochs", "2", "--children-per-epoch", "6", "--refine-poses", "2", "--refine-steps", "1"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -715,6 +723,26 @@ def step_gradient(ctx: Context, deadline: float) -> dict:
             **({"note": note} if note else {})}
 
 
+def step_splats(ctx: Context, deadline: float) -> dict:
+    """benchmarks/render_splats.py's synthetic cells (the GPU targets'), then `waldo explore` on the donut."""
+    settings = ctx.settings
+    path = ctx.work / "render_splats.json"
+    argv = ctx.python(HERE / "render_splats.py", *settings.splats_args, "--load-threshold", "1000", "--out", path)
+    commands = [ctx.run("render_splats", argv, 0.7 * (deadline - time.monotonic()))]
+    donut = ctx.data / "splats" / "donut" / "point_cloud.ply"
+    explore = None
+    if donut.is_file():
+        out = ctx.work / "explore_donut"
+        commands.append(ctx.run("explore donut", ctx.waldo("explore", donut, *settings.splats_explore_args,
+                                                           "--quiet", "--out", out), deadline - time.monotonic()))
+        r = read_json(out / "results.json")
+        explore = None if r is None else {k: r.get(k) for k in ("resolution", "seconds", "cost", "cvir", "mcvir",
+                                                                "renderer", "refine", "device")}
+    return {"status": command_status(commands), "commands": commands,
+            "result": {"render_splats": read_json(path), "explore_donut": explore,
+                       **({} if donut.is_file() else {"note": f"{donut} not packed: the donut explore left out"})}}
+
+
 @dataclasses.dataclass(frozen=True)
 class Step:
     """One step of the check: `share` is its time box in seconds of the default budget (scaled with
@@ -734,10 +762,7 @@ STEPS = (
     Step("rendering", 100, step_rendering, "render_trained.py on the fox run; render_population.py per size"),
     Step("search", 85, step_search, "waldo explore on the fox run (EGPS, saliency, low budget) per resolution"),
     Step("gradient", 40, step_gradient, "gradient_cost.py, the fox run's case included"),
-    # Issue [2/5] (splats): once benchmarks/render_splats.py exists, its step is one function like
-    # step_gradient above (ctx.python(HERE / "render_splats.py", ..., "--out", ctx.work / "splats.json"))
-    # and one line here, e.g. Step("splats", 40, step_splats, "..."); --pack then adds "splats/donut" to
-    # PACK_REQUIRED. Not written yet: no fake step stands in for it.
+    Step("splats", 60, step_splats, "render_splats.py: 100k and 1M splats at 128^2 / 256^2, 256 poses; the donut explored"),
 )
 STEP_NAMES = tuple(step.name for step in STEPS)
 
@@ -789,6 +814,9 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
         add("every test passes", None, None, "tests", "not measured")
     identical = result("determinism").get("identical")
     add("same-seed reruns byte-identical", identical, identical, "")
+    for row in (result("splats").get("render_splats") or {}).get("targets", []):
+        if row.get("target", "").startswith("GPU"):
+            add(row["target"], row.get("measured"), row.get("met"), row.get("unit", ""), row.get("note", ""))
     for row in rows:
         if row["measured"] is None:
             row["note"] = row["note"] or "not measured"

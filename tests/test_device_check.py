@@ -87,6 +87,11 @@ def test_smoke_runs_every_step_and_writes_its_json(smoke):
     assert set(steps["rendering"]["batched_over_loop"]) == {str(r) for r in device_check.SMOKE.population_resolutions}
     assert [run["seconds"]["search"] > 0 for run in steps["search"]["runs"]] == [True]
     assert steps["gradient"]["cases"][0]["gradient_finite"]
+    splats = steps["splats"]
+    cells = [c for c in splats["render_splats"]["synthetic"] if c.get("status") == "measured"]
+    assert cells and all(c["pair_overflow"] == 0 and c["views_per_s"] > 0 for c in cells)
+    assert splats["explore_donut"]["refine"]["gradient"] == "reverse"
+    assert splats["explore_donut"]["renderer"]["views_over_max_pairs"] == 0
     # The targets, each as target / measured / met (a CPU says so in the note).
     targets = report["summary"]["targets"]
     assert len(targets) >= 7 and all({"target", "measured", "met"} <= set(t) for t in targets)

@@ -143,8 +143,8 @@ def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scal
 
     Returns:
       {"psnr": mean of per-image PSNR (dB), "psnr_per_image": list, "mse": mean MSE,
-       "evaluations_per_ray": mean field evaluations per ray, "step_scale": the marching step used,
-       "images": float32 [P, H, W, 3] renders (host)}.
+        "evaluations_per_ray": mean field evaluations per ray, "step_scale": the marching step used,
+        "images": float32 [P, H, W, 3] renders (host)}.
     """
     check_scene(scene, "test scene")
     index = np.arange(scene.n_images) if views is None else np.asarray(views, np.int64)

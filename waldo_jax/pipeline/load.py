@@ -27,8 +27,8 @@ def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int
     `cameras` (a transforms.json-like poses file) gives a splat scene its training poses.
 
     Raises:
-      SourceError (or another `WaldoError`): a bad spec, a missing run directory, a bad checkpoint,
-      `views` with a run, `cameras` with anything but a splat scene.
+      SourceError: a bad spec, a missing run directory, a bad checkpoint, `views` with a run,
+        `cameras` with anything but a splat scene (or another `WaldoError` of the file it reads).
     """
     seed = parse_procedural(spec)
     splat = seed is None and is_splat_spec(spec)

@@ -191,8 +191,8 @@ class ExploreConfig:
 
         Returns:
           {"renders": total, "training_views": n_train, "children": epochs * children_per_epoch,
-           "gradient_evaluations": poses refined x steps (0 unless the method refines),
-           "renders_per_gradient_evaluation": `RefineConfig.gradient_cost` (0 unless it refines)}.
+            "gradient_evaluations": poses refined x steps (0 unless the method refines),
+            "renders_per_gradient_evaluation": `RefineConfig.gradient_cost` (0 unless it refines)}.
           A child counts whether or not its method masked it (a fixed-shape epoch renders it).
         """
         resolved = self.resolve(n_train)
