@@ -820,8 +820,8 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
     for row in rows:
         if row["measured"] is None:
             row["note"] = row["note"] or "not measured"
-        elif platform_name != "gpu":
-            where = f"measured on {platform_name or 'an unknown device'}, not a GPU"
+        if platform_name != "gpu":
+            where = f"{'measured' if row['measured'] is not None else 'run'} on {platform_name or 'an unknown device'}, not a GPU"
             row["note"] = (row["note"] + "; " if row["note"] else "") + where
     return rows
 
