@@ -1,17 +1,27 @@
 """The search methods compared at equal cost: GRS, PIBS, EGPS, EGPS + gradient refinement and evosax
-strategies, on the Waldo room (`waldo_oracle`) and on a trained fox NeRF (`saliency`), low and high
-budgets, K seeds per cell: mean, std and a 95 % bootstrap interval of CVIR and mCVIR.
+strategies, on the Waldo room (`waldo_found` by default) and on a trained fox NeRF (`saliency`), low and
+high budgets, K seeds per cell: mean, std and a 95 % bootstrap interval of CVIR and mCVIR; on the room
+also Waldo's visible share in each seed's best view and how many seeds found him (>= 90 % visible).
 
 Equal cost: every method of a (scene, budget) cell costs the same number of renders, training views
 included (`ExploreConfig.cost`); a `+refine` method pays for its gradient evaluations at
 `gradient_cost` renders each, measured here first for each scene with `gradient_cost.measure` (the
-time of a forward-mode gradient over that of a render and exact score, rounded up, at least 2), and
-so has fewer children. On the room the global methods follow the exact oracle; refinement follows
-its smooth stand-in (`Criterion.smooth`: a sigmoid at the image borders instead of the in-frame step)
-and every score reported is the exact oracle's. On fox, refinement follows the smooth salient
-fraction (a sigmoid instead of the 0.5 threshold); scores are the exact salient fraction.
+time of a gradient in the source's own mode over that of a render and exact score, rounded up, at
+least 2: reverse mode through a NeRF run, `Source.gradient`), and so has fewer children. On the room
+the global methods follow the exact oracle; refinement follows its smooth stand-in (`Criterion.smooth`:
+sigmoids at the image borders and at the 90 % bar instead of steps) and every score reported is the
+exact oracle's. On fox, refinement follows the smooth salient fraction (a sigmoid instead of the 0.5
+threshold); scores are the exact salient fraction.
 
-  python benchmarks/methods.py --fox-run RUN --seeds 8 --out benchmarks/results/methods_cpu.json
+The full table (many CPU-hours on 2 cores; the fox run: `waldo train ../shared/scenes/fox --downscale 8
+--out runs/fox_nerf`):
+
+  python benchmarks/methods.py --fox-run runs/fox_nerf --seeds 8 --out benchmarks/results/methods_cpu.json
+
+The room target (EGPS finds Waldo whole in >= 90 % of 16 seeds at the low budget, on several rooms):
+
+  python benchmarks/methods.py --scenes room --room-seeds 1,4,5,6,7 --budgets low --methods egps \\
+      --seeds 16 --out benchmarks/results/methods_room_found_cpu.json
   python benchmarks/methods.py --scenes room --budgets low --seeds 2 --quick   # a minute
 
 The interval is the 2.5 and 97.5 percentiles of the mean over `--bootstrap` resamples of the seeds
@@ -32,16 +42,18 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
 from gradient_cost import measure  # noqa: E402
 from waldo_jax.criteria import CriterionContext, build_criterion  # noqa: E402
 from waldo_jax.pipeline import load_source, run_explore  # noqa: E402
+from waldo_jax.procedural import FOUND_VISIBILITY, waldo_visibility_batch  # noqa: E402
 from waldo_jax.search import ExploreConfig, RefineConfig  # noqa: E402
 
 METHODS = ("grs", "pibs", "egps", "egps+refine", "evosax:CMA_ES", "evosax:SNES")
-SCENES = {"room": ("procedural:0", "waldo_oracle"), "fox": (None, "saliency")}
+SCENES = {"room": ("procedural:{room_seed}", None), "fox": (None, "saliency")}
 
 
 def bootstrap_interval(values, resamples: int, seed: int = 0):
@@ -67,10 +79,16 @@ def run_cell(source, criterion, method: str, budget: str, refine: RefineConfig, 
     cvir = [float(r.cvir) if np.isfinite(r.cvir) else None for r in run.results]
     mcvir = [float(r.mcvir) if np.isfinite(r.mcvir) else None for r in run.results]
     resolved = run.config
-    return {"method": method, "budget": budget, "cost": resolved.cost(source.n_train),
+    cell = {"method": method, "budget": budget, "cost": resolved.cost(source.n_train),
             "children_per_epoch": resolved.children_per_epoch, "initial_scores": run.initial,
             "cvir": summary(cvir, args.bootstrap), "mcvir": summary(mcvir, args.bootstrap),
             "best": [float(r.metrics.best[-1]) for r in run.results], "seconds": run.seconds}
+    if source.room is not None:  # the known answer: how much of Waldo each seed's best view shows
+        best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
+        visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics), np.float64)
+        cell["best_visible"] = [float(v) for v in visible]
+        cell["found_seeds"] = int(np.sum(visible >= FOUND_VISIBILITY))
+    return cell
 
 
 def compare(cells: list) -> None:
@@ -78,6 +96,9 @@ def compare(cells: list) -> None:
     egps = {(c["scene"], c["budget"]): c for c in cells if c["method"] == "egps"}
     for cell in cells:
         reference = egps.get((cell["scene"], cell["budget"]))
+        if reference is None:
+            cell["beats_egps"] = False
+            continue
         low = cell["mcvir"]["ci95"][0]
         high = reference["mcvir"]["ci95"][1] if reference else None
         cell["beats_egps"] = bool(reference is not None and low is not None and high is not None and low > high
@@ -91,18 +112,23 @@ def table(cells: list) -> str:
             return "n/a"
         return f"{s['mean']:.1f} ± {s['std']:.1f} [{s['ci95'][0]:.1f}, {s['ci95'][1]:.1f}]"
 
-    lines = ["| scene | budget | method | cost (renders) | CVIR % mean ± std [95 % CI] | mCVIR % mean ± std [95 % CI] |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| scene | budget | method | cost (renders) | CVIR % mean ± std [95 % CI] | mCVIR % mean ± std [95 % CI] "
+             "| Waldo found (seeds >= 90 % visible) |",
+             "|---|---|---|---|---|---|---|"]
     for c in cells:
         mark = " **(> EGPS)**" if c.get("beats_egps") else ""
+        found = (f"{c['found_seeds']}/{len(c['best_visible'])} ({np.mean(c['best_visible']):.0%} visible)"
+                 if "best_visible" in c else "")
         lines.append(f"| {c['scene']} | {c['budget']} | {c['method']}{mark} | {c['cost']['renders']} | "
-                     f"{fmt(c['cvir'])} | {fmt(c['mcvir'])} |")
+                     f"{fmt(c['cvir'])} | {fmt(c['mcvir'])} | {found} |")
     return "\n".join(lines)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", default="room,fox")
+    parser.add_argument("--room-seeds", default="1", help="comma-separated rooms (procedural:SEED); 1: the demo's")
+    parser.add_argument("--room-criterion", default="waldo_found", help="the room's criterion (a pose criterion)")
     parser.add_argument("--fox-run", default=None, help="run directory of `waldo train` on fox (needed for fox)")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--budgets", default="low,high")
@@ -126,24 +152,30 @@ def main(argv=None) -> None:
     result["settings"] = {k: v for k, v in vars(args).items()}
     cells, costs = [], {}
     start = time.perf_counter()
-    for scene in args.scenes.split(","):
-        spec, criterion_name = SCENES[scene]
-        resolution = args.room_resolution if scene == "room" else args.resolution
-        if scene == "fox":
+    scenes = [(scene, room_seed) for scene in args.scenes.split(",")
+              for room_seed in ([int(k) for k in args.room_seeds.split(",")] if scene == "room" else [None])]
+    for scene_kind, room_seed in scenes:
+        spec, criterion_name = SCENES[scene_kind]
+        resolution = args.room_resolution if scene_kind == "room" else args.resolution
+        several_rooms = len(args.room_seeds.split(",")) > 1
+        scene = f"room:{room_seed}" if scene_kind == "room" and several_rooms else scene_kind
+        if scene_kind == "room":
+            spec, criterion_name = spec.format(room_seed=room_seed), args.room_criterion
+        if scene_kind == "fox":
             if not args.fox_run:
                 raise SystemExit("--fox-run RUN is needed for the fox scene (a run directory of `waldo train`)")
             spec = args.fox_run
         source = load_source(spec, resolution)
         criterion = build_criterion(criterion_name, CriterionContext(room=source.room, source=source.spec))
         if args.gradient_cost is None:
-            measured = measure(f"{spec}:{criterion_name}", resolution, 4 if scene == "room" else 2,
+            measured = measure(f"{spec}:{criterion_name}", resolution, 4 if scene_kind == "room" else 2,
                                1 if args.quick else 3)
             costs[scene] = measured
             gradient_cost = max(2, math.ceil(measured["ratio"]))
         else:
             gradient_cost = args.gradient_cost
-        refine = RefineConfig(poses=args.refine_poses or (4 if scene == "room" else 2),
-                              steps=args.refine_steps or (4 if scene == "room" else 3), step_size=args.step_size,
+        refine = RefineConfig(poses=args.refine_poses or (4 if scene_kind == "room" else 2),
+                              steps=args.refine_steps or (4 if scene_kind == "room" else 3), step_size=args.step_size,
                               gradient_cost=gradient_cost)
         for budget in args.budgets.split(","):
             for method in args.methods.split(","):

@@ -122,7 +122,7 @@ def trained_lego_fast(tmp_path_factory):
 # `--no-loadscope-reorder` keeps this order (pytest-xdist 3.8 otherwise sorts the files by their
 # number of tests): taking the heavy files first keeps one worker from running a long file alone at
 # the end. test_marched builds the lego_tiny training that test_train then reads.
-HEAVY_FIRST = ("test_device_check.py", "test_splat_cli.py", "test_explore_cli.py", "test_splat_render.py", "test_paper_tables.py", "test_marched.py",
+HEAVY_FIRST = ("test_device_check.py", "test_splat_cli.py", "test_explore_cli.py", "test_splat_render.py", "test_exports_consumers.py", "test_paper_tables.py", "test_marched.py",
                "test_search_path.py", "test_criteria_all.py", "test_notebooks.py", "test_finder.py", "test_train.py",
                "test_bad_input.py", "test_csnet.py", "test_search_beyond.py", "test_sharding.py", "test_xla_guard.py")
 

@@ -1,5 +1,7 @@
 """Bad input through the real CLI entry point: a one-line error naming the value, exit status 1, no
-traceback, and nothing written or changed (issue [2/6]).
+traceback, and nothing written or changed (issues [2/6] and [3/5]: one case per kind of number that
+reaches a division, a float32 / int32 cast or a shape, per kind of broken checkpoint, per image
+outside its range).
 
 Each case runs `waldo_jax.cli.main(argv)` in-process with `{tmp}` in argv replaced by a fresh folder
 that holds an earlier run (`{tmp}/run/keep.txt`) and the inputs of `_inputs` (a small scene, scenes
@@ -81,6 +83,56 @@ CASES = [
     ("explore-nan-checkpoint", ["explore", "{tmp}/nan_run", "--criterion", "colorfulness", "--out", "{tmp}/new"],
      "nan_run/checkpoint.ckpt: the field's parameters hold NaN"),
     ("score-nan-pixel", ["score", "--criterion", "colorfulness", "{tmp}/nan.tiff"], "nan.tiff: the image has 1 NaN"),
+    # Numbers that reach a division, a float32 / int32 cast or a shape: checked where they enter
+    # (errors.check_float32 / check_int, scenes.common.focal_from_angle / intrinsics_problem).
+    ("scene-negative-w", ["scene", "info", "{tmp}/negative_w"], "negative_w/transforms.json: 'w' must be a positive"),
+    ("scene-zero-fov", ["scene", "info", "{tmp}/zero_fov"],
+     "zero_fov/transforms.json: 'camera_angle_x' must be a field of view between 0 and 3.14159 radians"),
+    ("train-zero-fov", ["train", "{tmp}/zero_fov", "--out", "{tmp}/new"], "'camera_angle_x' must be a field of view"),
+    ("render-poses-zero-fov", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_poses.json", "--out", "{tmp}/new"],
+     "zero_fov_poses.json: 'camera_angle_x' must be a field of view"),
+    ("render-camera-path-zero-fov", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_path.json", "--out",
+                                     "{tmp}/new"], "zero_fov_path.json: 'fov' must be a field of view between 0 and 180"),
+    ("scene-fov-of-180-degrees", ["scene", "info", "{tmp}/flat_fov"], "a pinhole camera needs 0.001 to 179"),
+    ("scene-focal-zero-in-float32", ["scene", "info", "{tmp}/tiny_focal"], "'fl_x' must be a positive number that float32"),
+    ("render-poses-focal-zero-in-float32", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/tiny_focal_poses.json",
+                                            "--out", "{tmp}/new"], "tiny_focal_poses.json: 'fl_x' must be a positive"),
+    ("render-poses-focal-inf-in-float32", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/huge_focal_poses.json",
+                                           "--out", "{tmp}/new"], "huge_focal_poses.json: 'fl_x' must be a finite number"),
+    ("train-steps-past-int32", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "1000000000000"],
+     "--steps must be a positive integer of at most 2147483647"),
+    ("explore-children-past-int32", ["explore", "procedural", "--children-per-epoch", "3000000000", "--out", "{tmp}/new"],
+     "--children-per-epoch must be an integer between 1 and 2147483647"),
+    ("explore-refine-step-zero-in-float32", ["explore", "procedural", "--method", "egps+refine", "--refine-step-size",
+                                             "1e-300", "--out", "{tmp}/new"], "--refine-step-size must be a positive"),
+    ("path-fps-zero-in-float32", ["path", "procedural", "--criterion", "colorfulness", "--fps", "1e-300", "--out",
+                                  "{tmp}/new"], "--fps must be a positive number that float32 holds"),
+    ("train-render-step-scale-zero-in-float32", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--render-step-scale",
+                                                "1e-300"], "--render-step-scale must be a positive number that float32"),
+    # Checkpoints checked as a whole when opened: camera, box, near/far, poses, background.
+    ("render-checkpoint-near-beyond-far", ["render", "{tmp}/near_far_run", "--poses", "train", "--out", "{tmp}/new"],
+     "near_far_run/checkpoint.ckpt: near/far bounds 5 / 1 do not satisfy 0 < near < far"),
+    ("explore-checkpoint-nan-pose", ["explore", "{tmp}/nan_pose_run", "--criterion", "colorfulness", "--out",
+                                     "{tmp}/new"], "nan_pose_run/checkpoint.ckpt: training pose 3: pose has non-finite"),
+    ("render-checkpoint-sheared-pose", ["render", "{tmp}/sheared_pose_run", "--poses", "train", "--out", "{tmp}/new"],
+     "sheared_pose_run/checkpoint.ckpt: training pose 0: pose is not rigid"),
+    ("render-checkpoint-nan-background", ["render", "{tmp}/nan_background_run", "--poses", "train", "--out",
+                                          "{tmp}/new"], "the background colour [nan, 0.5, 0.5] is not 3 numbers in [0, 1]"),
+    ("explore-checkpoint-nan-background", ["explore", "{tmp}/nan_background_run", "--criterion", "colorfulness",
+                                           "--out", "{tmp}/new"], "nan_background_run/checkpoint.ckpt: the background"),
+    ("render-checkpoint-zero-focal", ["render", "{tmp}/zero_focal_run", "--poses", "train", "--out", "{tmp}/new"],
+     "zero_focal_run/checkpoint.ckpt: the training camera: focal length fx = 0 px"),
+    ("render-checkpoint-huge-camera", ["render", "{tmp}/huge_camera_run", "--poses", "train", "--out", "{tmp}/new"],
+     "huge_camera_run/checkpoint.ckpt: the training camera: camera of 100000x100000 pixels"),
+    ("render-checkpoint-flipped-box", ["render", "{tmp}/flipped_box_run", "--poses", "train", "--out", "{tmp}/new"],
+     "flipped_box_run/checkpoint.ckpt: scene box"),
+    # Images outside the range they are read in: refused in one line, not clipped or misread.
+    ("score-float-tiff-beyond-1", ["score", "--criterion", "colorfulness", "{tmp}/hdr.tiff"],
+     "hdr.tiff: a float32 image with values in [0"),
+    ("explore-target-float-tiff-beyond-1", ["explore", "procedural", "--criterion", "waldo", "--target",
+                                            "{tmp}/hdr.tiff", "--out", "{tmp}/new"], "hdr.tiff: a float32 image"),
+    ("train-float-image-beyond-1", ["train", "{tmp}/float_scene", "--out", "{tmp}/new"],
+     "float_scene/images/1.tiff: a F-mode image with values in [0, 255], outside [0, 1]"),
     # Files that are not what they should be: said as they are, not "not found".
     ("score-a-directory", ["score", "--criterion", "colorfulness", "{tmp}/run"], "run: a directory"),
     ("score-a-fifo", ["score", "--criterion", "colorfulness", "{tmp}/fifo"], "fifo: a FIFO"),
@@ -95,8 +147,9 @@ CASES = [
 ]
 
 
-def _write_scene(folder, translation=None, **meta):
-    """A small instant-ngp scene: 8 cameras on a circle looking at the origin, 16x16 images."""
+def _write_scene(folder, translation=None, float_images=False, **meta):
+    """A small instant-ngp scene: 8 cameras on a circle looking at the origin, 16x16 images (8-bit PNGs,
+    or with `float_images` 32-bit float grey TIFFs with values up to 255)."""
     import imageio.v3 as iio
 
     from waldo_jax.cameras import look_at
@@ -110,17 +163,22 @@ def _write_scene(folder, translation=None, **meta):
         c2w = np.concatenate([c2w[:3], [[0, 0, 0, 1]]])
         if translation is not None:
             c2w[0, 3] = translation
-        iio.imwrite(folder / "images" / f"{i}.png", np.random.default_rng(i).integers(0, 256, (16, 16, 3), np.uint8))
-        frames.append({"file_path": f"images/{i}.png", "transform_matrix": c2w.tolist()})
+        pixels = np.random.default_rng(i).integers(0, 256, (16, 16, 3), np.uint8)
+        name = f"images/{i}.tiff" if float_images else f"images/{i}.png"
+        iio.imwrite(folder / name, pixels[..., 0].astype(np.float32) if float_images else pixels)
+        frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, **meta, "frames": frames}))
 
 
-def _write_run(folder, nan=False):
-    """A run folder with an untrained tiny field (rendering it is cheap); NaN parameters if `nan`."""
+def _write_run(folder, nan=False, **record):
+    """A run folder with an untrained tiny field (rendering it is cheap); NaN parameters if `nan`;
+    `record` replaces fields of the checkpoint's scene record (a broken camera, box, pose...)."""
+    import dataclasses
+
     import jax
 
     from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
-    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
+    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, SceneRecord, save_checkpoint
     from waldo_jax.nerf.config import TrainConfig
     from waldo_jax.scenes import load_scene
 
@@ -133,7 +191,8 @@ def _write_run(folder, nan=False):
     if nan:
         params = jax.tree.map(lambda a: np.full_like(a, np.nan), params)
     folder.mkdir()
-    save_checkpoint(folder / CHECKPOINT_NAME, params, config, scene)
+    save_checkpoint(folder / CHECKPOINT_NAME, params, config,
+                    dataclasses.replace(SceneRecord.from_scene(scene), **record) if record else scene)
 
 
 def _inputs(tmp):
@@ -158,6 +217,41 @@ def _inputs(tmp):
     c2w = json.loads((tmp / "scene" / "transforms.json").read_text())["frames"][0]["transform_matrix"]
     (tmp / "wide_poses.json").write_text(json.dumps({"fl_x": 100, "w": 100000, "h": 100,
                                                      "frames": [{"transform_matrix": c2w}]}))
+    _broken_camera_inputs(tmp, c2w)
+
+
+def _broken_camera_inputs(tmp, c2w):
+    """Scenes, poses files, camera paths, runs and images whose numbers cannot be used as they are."""
+    import imageio.v3 as iio
+
+    from waldo_jax.types import Intrinsics
+
+    _write_scene(tmp / "negative_w", w=-16, h=16, fl_x=20.0)
+    _write_scene(tmp / "zero_fov", camera_angle_x=0)
+    _write_scene(tmp / "flat_fov", camera_angle_x=3.14159265)  # a focal length of ~4e-8 px: all rays sideways
+    _write_scene(tmp / "tiny_focal", fl_x=1e-300)  # > 0 in float64, 0 in float32
+    _write_scene(tmp / "float_scene", float_images=True)
+    frames = [{"transform_matrix": c2w}]
+    for name, camera in (("zero_fov_poses", {"camera_angle_x": 0}), ("tiny_focal_poses", {"fl_x": 1e-300}),
+                         ("huge_focal_poses", {"fl_x": 1e300})):
+        (tmp / f"{name}.json").write_text(json.dumps({**camera, "w": 16, "h": 16, "frames": frames}))
+    flat = np.asarray(c2w, np.float64).reshape(-1).tolist()
+    (tmp / "zero_fov_path.json").write_text(json.dumps({  # a camera path as `waldo path` writes one, fov 0
+        "render_width": 16, "render_height": 16, "camera_path": [{"camera_to_world": flat, "fov": 0, "aspect": 1}],
+        "waldo": {"world": "scene"}}))
+    c2w_nan = np.stack([np.asarray(c2w, np.float32)] * 8)
+    c2w_nan[3, 0, 3] = np.nan
+    c2w_sheared = np.stack([np.asarray(c2w, np.float32)] * 8)
+    c2w_sheared[0, :3, :3] *= 2.0
+    _write_run(tmp / "near_far_run", near=5.0, far=1.0)
+    _write_run(tmp / "nan_pose_run", c2w=c2w_nan)
+    _write_run(tmp / "sheared_pose_run", c2w=c2w_sheared)
+    _write_run(tmp / "nan_background_run", background=np.array([np.nan, 0.5, 0.5], np.float32))
+    _write_run(tmp / "zero_focal_run", intrinsics=Intrinsics.create(16, 16, 0.0))
+    _write_run(tmp / "huge_camera_run", intrinsics=Intrinsics.create(100000, 100000, 50000.0))
+    _write_run(tmp / "flipped_box_run", aabb=np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]], np.float32))
+    hdr = np.random.default_rng(1).random((16, 16, 3)).astype(np.float32) * 252  # linear HDR values, not [0, 1]
+    iio.imwrite(tmp / "hdr.tiff", hdr)
 
 
 def _snapshot(folder):
@@ -201,6 +295,27 @@ def test_bad_input_is_one_line_and_changes_nothing(inputs, capsys, argv, expecte
     assert expected.replace("{tmp}", str(tmp_path)) in lines[0], lines[0]
     assert _snapshot(tmp_path) == before
     assert sorted(os.listdir(tmp_path)) == listing  # nothing created
+
+
+def test_a_backend_the_machine_lacks_is_one_line_before_anything_is_created(tmp_path):
+    """JAX_PLATFORMS naming a backend this machine cannot start (gpu on a CPU machine) is refused in
+    one line, exit 1, before the output folder exists (JAX would raise at its first computation). A
+    subprocess: this process's backend has started already."""
+    import subprocess
+    import sys
+
+    import jax
+
+    missing = "tpu" if jax.default_backend() == "gpu" else "gpu"
+    out = tmp_path / "new"
+    result = subprocess.run([sys.executable, "-m", "waldo_jax", "render", "procedural", "--views", "2",
+                             "--resolution", "8", "--out", str(out)], env={**os.environ, "JAX_PLATFORMS": missing},
+                            capture_output=True, text=True, timeout=300)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 1, result.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"waldo: error: JAX_PLATFORMS={missing}: this machine cannot "
+                                                   "start that backend"), result.stderr
+    assert not out.exists() and os.listdir(tmp_path) == []
 
 
 def test_demo_refusal_does_not_suggest_a_flag_it_lacks(tmp_path, capsys):
@@ -287,12 +402,13 @@ def test_a_bad_criterion_is_refused_before_the_source_loads(tmp_path, capsys, mo
         assert message in err and len(err.splitlines()) == 1, (flags, err)
         assert not out.exists()
     # An oracle needs the room: the source loads first and the oracle is built from it (here it is then
-    # refused, as a poses criterion takes no guard).
+    # refused, as its guard's threshold lies outside the guard's range), before any output exists.
     calls = []
     monkeypatch.setattr(module, "load_source", lambda *a, **k: calls.append(a) or real_load(*a, **k))
     assert main([command, "procedural:1", "--out", str(tmp_path / "oracle"), "--criterion", "waldo_oracle",
-                 "--guard", "opacity:0.5"]) == 1
-    assert calls and "scores poses" in capsys.readouterr().err
+                 "--guard", "waldo_visible:2"]) == 1
+    assert calls and "fails every view" in capsys.readouterr().err
+    assert not (tmp_path / "oracle").exists()
 
 
 def test_a_full_disk_leaves_no_half_written_file_and_one_line(tmp_path, capsys, monkeypatch):

@@ -81,12 +81,19 @@ def test_weighted_normalises_by_value_range_and_direction():
         weighted([a, b], [0, 0])
 
 
-def test_combinations_refuse_pose_oracles():
+def test_combinations_take_pose_oracles():
+    """Pose oracles combine (they were refused before): with each other into a pose criterion, with view
+    criteria into a "posed" one; the values are checked in tests/test_waldo_found.py."""
     from waldo_jax.procedural import make_room
 
-    oracle = make_criterion("waldo_oracle", CriterionContext(room=make_room(0)))
-    with pytest.raises(CriterionError, match="scores poses"):
-        constrained(oracle, make_criterion("opacity"), 0.5)
+    context = CriterionContext(room=make_room(0))
+    oracle = make_criterion("waldo_oracle", context)
+    assert constrained(oracle, make_criterion("opacity"), 0.5).inputs == "posed"
+    assert constrained(oracle, make_criterion("waldo_visible", context), 0.9).inputs == "poses"
+    assert weighted([oracle, _brightness()], [1, 1]).inputs == "posed"
+    assert build_criterion("weighted:waldo_oracle=1,opacity=1", context).inputs == "posed"
+    with pytest.raises(CriterionError, match="needs the procedural Waldo room"):
+        build_criterion("colorfulness", guards=["waldo_visible:0.9"])
 
 
 def test_build_criterion_parses_the_command_line_forms():

@@ -9,7 +9,8 @@ import pytest
 from waldo_jax.cli import main
 from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion, make_criterion
 from waldo_jax.io import read_image
-from waldo_jax.pipeline.demo import DemoSettings, run_demo
+from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, DemoSettings, run_demo
+from waldo_jax.pipeline.sources import NERF_GRADIENT_COST
 from waldo_jax.pipeline.experiment import _jit_score_images
 from waldo_jax.errors import WaldoError
 from waldo_jax.procedural import make_room, waldo_coverage
@@ -159,7 +160,13 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     for method in ("GRS", "PIBS", "EGPS"):
         assert f"| {method} |" in report
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["methods"]) == {"grs", "pibs", "egps"} and summary["seeds"] == [0, 1]
+    assert set(summary["methods"]) == {"grs", "pibs", "egps"} and summary["seeds"] == [DEMO_ROOM_SEED, DEMO_ROOM_SEED + 1]
+    assert summary["room_seed"] == DEMO_ROOM_SEED and summary["criterion"] == "waldo_found"
+    for method in ("grs", "pibs", "egps"):  # Waldo's visible share and the NeRF's PSNR at each seed's best view
+        m = summary["methods"][method]
+        assert len(m["best_visible_per_seed"]) == 2 and all(0.0 <= v <= 1.0 for v in m["best_visible_per_seed"])
+        assert len(m["best_psnr_per_seed"]) == 2 and all(np.isfinite(m["best_psnr_per_seed"]))
+    assert "Waldo visible in best view" in report and "NeRF render PSNR at best view" in report
     for method in ("grs", "pibs", "egps"):
         assert (out / method / "results.json").is_file() and (out / method / "pose_cloud.png").is_file()
     assert (out / "contact_sheet.png").is_file() and (out / "nerf" / "checkpoint.ckpt").is_file()
@@ -171,16 +178,17 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "again"), "--resolution", "16",
                  "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]) == 0
     again = json.loads((tmp_path / "again" / "results.json").read_text())
-    assert again["source_info"]["procedural_seed"] == 0 and (tmp_path / "again" / "topk" / "00_truth.png").is_file()
-    # Beyond the paper, on the trained run: gradient steps through the NeRF's marched render (forward
-    # mode) with an image criterion, and an evosax strategy.
+    assert again["source_info"]["procedural_seed"] == DEMO_ROOM_SEED
+    assert (tmp_path / "again" / "topk" / "00_truth.png").is_file()
+    # Beyond the paper, on the trained run: gradient steps through the NeRF's marched render (reverse
+    # mode, `Source.gradient`) with an image criterion, and an evosax strategy.
     tiny_run = ["--resolution", "16", "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]
     assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "refined"), *tiny_run,
                  "--method", "egps+refine", "--criterion", "colorfulness", "--refine-poses", "1",
                  "--refine-steps", "2"]) == 0
     refined = json.loads((tmp_path / "refined" / "results.json").read_text())
-    assert refined["cost"] == {"renders": 10 + 4 + 2 * 12, "training_views": 10, "children": 4,
-                               "gradient_evaluations": 2, "renders_per_gradient_evaluation": 12}
+    assert refined["cost"] == {"renders": 10 + 4 + 2 * NERF_GRADIENT_COST, "training_views": 10, "children": 4,
+                               "gradient_evaluations": 2, "renders_per_gradient_evaluation": NERF_GRADIENT_COST}
     assert refined["refine"]["poses"] == 1 and refined["n_generated"] == 4
     assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "cma"), *tiny_run,
                  "--method", "evosax:CMA_ES"]) == 0

@@ -107,7 +107,7 @@ def test_nerfstudio_camera_path_is_refused(tmp_path):
     ("[1, 2]", "expected a JSON object"),
     ('{"frames": []}', "'frames' is empty"),
     ('{"cameras": []}', "no 'frames' list"),
-    ('{"fl_x": -3, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "invalid camera"),
+    ('{"fl_x": -3, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "'fl_x' must be a positive number"),
     ('{"fl_x": true, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
      "'fl_x' must be a finite number"),
 ])

@@ -1,23 +1,36 @@
-"""User-facing errors.
+"""User-facing errors, and the checks of numbers where they enter the program.
 
 `WaldoError` is raised at the edges (files, configs, CLI arguments) with a message that names the
 offending path or value. The CLI prints it as one line and exits non-zero, without a traceback.
 Inside `jit`, failures are data (masks, -inf scores), never exceptions.
+
+Every number read from a file or a flag that reaches a division, a cast to float32 / int32, a shape
+or an allocation passes one of `check_float32`, `check_int`, `check_resolution` or `check_seed` where
+it enters: float64 and Python ints accept values (1e-300, 1e39, 10**12) that float32 / int32 turn into
+0, infinity or a wrapped integer far from the check.
 """
 
 from __future__ import annotations
 
 import errno
+import math
 import os
 import stat
 from pathlib import Path
 
-__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "MAX_SEED", "check_seed", "MIN_RESOLUTION",
-           "MAX_RESOLUTION", "check_resolution", "check_input_file"]
+import numpy as np
+
+__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "NumberError", "MAX_SEED", "MAX_INT32",
+           "check_seed", "MIN_RESOLUTION", "MAX_RESOLUTION", "check_resolution", "check_input_file", "check_float32",
+           "check_int"]
 
 # The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
 # the integer type of JAX keys and of the JSON readers of results.
 MAX_SEED = 2**31 - 1
+# The largest count (steps, epochs, views...) a run may use: counts become int32 arrays under jit.
+MAX_INT32 = 2**31 - 1
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+_FLOAT32_TINY = float(np.finfo(np.float32).smallest_subnormal)
 # Image sides, everywhere a user picks one (--resolution, a poses file's w/h, a --target, a scored
 # image): below 8 px no criterion sees anything; above 4096 px one view alone is 200 MB of float32
 # and the int32 ray indices of a population overflow.
@@ -40,6 +53,49 @@ class SceneFormatError(WaldoError):
 
 class DataNotFoundError(WaldoError, FileNotFoundError):
     """A data or weights file the project expects is missing."""
+
+
+class NumberError(WaldoError, ValueError):
+    """A number that cannot be used: not a number, not finite, out of range, or one that float32 or
+    int32 cannot hold (the message names it and its limits)."""
+
+
+def check_float32(value, what: str, positive: bool = False, minimum: float | None = None,
+                  maximum: float | None = None) -> float:
+    """`value` as a Python float if it is a real number (not a bool) that stays finite in float32 and
+    lies in [minimum, maximum]; with `positive`, one that is > 0 in float32 as well (1e-300 rounds to 0
+    there, 1e39 to infinity). Else a `NumberError` naming `what`."""
+    shown = _shown(value)
+    try:
+        number = math.nan if isinstance(value, (bool, str, bytes)) else float(value)
+    except (TypeError, ValueError, OverflowError):
+        number = math.nan
+    if not (math.isfinite(number) and abs(number) <= _FLOAT32_MAX):
+        raise NumberError(f"{what} must be a finite number (float32 holds |x| <= {_FLOAT32_MAX:.4g}), got {shown}")
+    if positive and not number > 0:
+        raise NumberError(f"{what} must be a positive number, got {shown}")
+    if positive and not np.float32(number) > 0:
+        raise NumberError(f"{what} must be a positive number that float32 holds (>= {_FLOAT32_TINY:.3g}), got "
+                          f"{shown}, which rounds to 0")
+    if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
+        span = (f"between {minimum:g} and {maximum:g}" if minimum is not None and maximum is not None
+                else f">= {minimum:g}" if minimum is not None else f"<= {maximum:g}")
+        raise NumberError(f"{what} must be {span}, got {shown}")
+    return number
+
+
+def _shown(value) -> str:
+    """`repr(value)`, shortened to 40 characters (an integer of 400 digits is not a message)."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def check_int(value, what: str, minimum: int = 1, maximum: int = MAX_INT32) -> int:
+    """`value` as an int if it is an integer (not a bool) in [minimum, maximum] (default: a positive
+    int32); else a `NumberError` naming `what` and the limits."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not minimum <= value <= maximum:
+        raise NumberError(f"{what} must be an integer between {minimum} and {maximum}, got {_shown(value)}")
+    return int(value)
 
 
 def check_seed(seed, what: str = "--seed", count: int = 1) -> int:

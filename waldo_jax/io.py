@@ -3,7 +3,9 @@ that never overwrite, JSON.
 
 Everything here runs on the host (NumPy / Pillow / imageio), at the edges of the program. Every file
 is written atomically (`atomic_file`: a temporary file beside it, renamed into place once complete),
-so a failed write (disk full, an interrupt) leaves no half-written or empty file behind.
+so a failed write (disk full, an interrupt) leaves no half-written or empty file behind; and an
+interrupted command removes the output folders it created (`discard_unfinished`, called by
+`waldo_jax.cli.interrupt`), so a folder of a run exists only once the run is whole.
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ import json
 import os
 import re
 import secrets
+import shutil
 import warnings
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator, Optional, Sequence
+from typing import Any, BinaryIO, Iterator, List, Optional, Sequence
 
 import imageio.v3 as iio
 import numpy as np
@@ -26,8 +29,15 @@ from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_i
 
 __all__ = [
     "atomic_file", "write_bytes", "write_text", "to_uint8", "png_bytes", "save_png", "contact_sheet",
-    "check_output_dir", "prepare_output_dir", "stale_files", "write_json", "write_transforms", "read_image",
+    "check_output_dir", "prepare_output_dir", "created_output_dirs", "discard_unfinished", "stale_files", "write_json",
+    "write_transforms", "read_image",
 ]
+
+
+# What an interrupted command may leave unfinished (see `discard_unfinished`): the temporary files of
+# atomic writes in progress, and the output folders `prepare_output_dir` created, in creation order.
+_PENDING: set = set()
+_CREATED_DIRS: List[Path] = []
 
 
 def _open_temp(path: Path) -> tuple:
@@ -43,6 +53,7 @@ def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
     renamed onto `path` when the block ends; removed (and `path` left as it was) if the block raises."""
     path = Path(path)
     name, f = _open_temp(path)
+    _PENDING.add(name)
     try:
         with f:
             yield f
@@ -53,6 +64,8 @@ def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(name)
         raise
+    finally:
+        _PENDING.discard(name)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -158,11 +171,40 @@ def prepare_output_dir(path: str | os.PathLike, force: bool = False, can_force: 
         created or written (see `check_output_dir`).
     """
     path = check_output_dir(path, force, can_force)
+    top = None  # the outermost folder this call creates (parents=True may create several)
+    missing = path.absolute()
+    while not os.path.lexists(missing) and missing != missing.parent:
+        top, missing = missing, missing.parent
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise WaldoError(f"{path}: cannot create the output directory ({e.strerror or e})") from None
+    if top is not None:
+        _CREATED_DIRS.append(top)
     return path
+
+
+def created_output_dirs() -> List[Path]:
+    """The output folders `prepare_output_dir` created in this process, oldest first (absolute paths;
+    the outermost folder each call created)."""
+    return list(_CREATED_DIRS)
+
+
+def discard_unfinished(folders: Sequence[Path] = ()) -> List[Path]:
+    """Removes what an interrupted command leaves: the temporary files of atomic writes in progress
+    (`atomic_file`) and `folders` (the new output folders it created, whose contents are by
+    definition incomplete). Never raises. Returns the folders removed."""
+    for name in list(_PENDING):
+        with contextlib.suppress(OSError):
+            os.unlink(name)
+    removed = []
+    for folder in reversed(list(folders)):
+        shutil.rmtree(folder, ignore_errors=True)
+        if not os.path.lexists(folder):
+            removed.append(Path(folder))
+        with contextlib.suppress(ValueError):
+            _CREATED_DIRS.remove(Path(folder))
+    return removed
 
 
 def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bool = True) -> Path:
@@ -264,11 +306,13 @@ def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "i
     """An image file as float32 [H, W, 3] in [0, 1] ([H, W, 4] with its alpha if `keep_alpha` and it has one).
 
     Sides must lie in [min_side, MAX_RESOLUTION] (read from the header, before any decoding; a scored
-    image needs MIN_RESOLUTION, a --target crop 2), and every value must be finite.
+    image needs MIN_RESOLUTION, a --target crop 2), and every value must be finite and in range: a
+    float image (TIFF, EXR) in [0, 1], an integer one in [0, its type's maximum]. An HDR or
+    unnormalised image is refused, not clipped.
 
     Raises:
       DataNotFoundError: no such file. WaldoError: not a regular file, not a readable image, too
-        small or too large, or with NaN / infinite values (the message names the file).
+        small or too large, with NaN / infinite values or values out of range (the message names the file).
     """
     path = check_input_file(path, what)
     try:
@@ -292,10 +336,17 @@ def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "i
     _check_image_size(path, image.shape[1], image.shape[0], min_side)
     if image.shape[-1] == 1:
         image = np.repeat(image, 3, axis=-1)
-    scale = float(np.iinfo(image.dtype).max) if np.issubdtype(image.dtype, np.integer) else 1.0
+    stored = image.dtype
+    scale = float(np.iinfo(stored).max) if np.issubdtype(stored, np.integer) else 1.0
     image = image.astype(np.float32) / scale
     if not np.all(np.isfinite(image)):
         raise WaldoError(f"{path}: the image has {int(np.sum(~np.isfinite(image)))} NaN or infinite values")
+    low, high = float(image.min()), float(image.max())
+    if low < 0.0 or high > 1.0:  # an HDR or unnormalised float image (or signed integers): not clipped silently
+        values = f"[{low * scale:g}, {high * scale:g}]"
+        raise WaldoError(f"{path}: a {stored.name} image with values in {values}, outside the [0, "
+                         f"{'1' if scale == 1.0 else f'{scale:g}'}] waldo reads; rescale it to [0, 1] (or save it as "
+                         "8- or 16-bit)")
     if image.shape[-1] == 4 and not keep_alpha:
         image = image[..., :3]
     return image

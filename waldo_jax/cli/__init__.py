@@ -13,20 +13,24 @@ Commands:
 
 Each command module has `add_command(subparsers)`, which registers its parser with the function that
 runs it as `handler`. Bad input (a missing file, a malformed scene, an existing output folder) prints
-one line `waldo: error: ...` on stderr and exits with status 1, without a traceback.
+one line `waldo: error: ...` on stderr and exits with status 1, without a traceback. Ctrl-C and
+SIGTERM print `waldo: interrupted` and exit with 130 / 143, leaving no unfinished output
+(`waldo_jax.cli.interrupt`).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 import warnings
 from typing import List, Optional
 
-from waldo_jax.cli import demo, explore, path, render, scene, score, train, weights
+from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, weights
 from waldo_jax.errors import WaldoError, check_seed
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "check_jax_platforms"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,7 +47,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    """Entry point of `waldo`; returns the exit status."""
+    """Entry point of `waldo`; returns the exit status.
+
+    `argv` None (the `waldo` process itself): SIGINT and SIGTERM end the process at once, cleanly,
+    with status 130 / 143 (`waldo_jax.cli.interrupt`). With an `argv` (called in-process), an
+    interrupt is cleaned up the same way and its status returned.
+    """
+    with interrupt.handled(exit_process=argv is None) as guard:
+        try:
+            return _run(argv)
+        except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM as `interrupt.Interrupted`
+            return guard.finish(getattr(e, "signum", signal.SIGINT))
+
+
+def _run(argv: Optional[List[str]]) -> int:
+    """Parses `argv` and runs its command; errors at the edges become one line and status 1."""
     parser = build_parser()
     args = parser.parse_args(argv)
     show = warnings.showwarning
@@ -52,6 +70,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
             check_seed(args.seed, "--seed", getattr(args, "seeds", 1) or 1)
+        check_jax_platforms()
         return int(args.handler(args) or 0)
     except WaldoError as e:
         print(f"waldo: error: {e}", file=sys.stderr)
@@ -60,9 +79,23 @@ def main(argv: Optional[List[str]] = None) -> int:
         where = f"{e.filename}: " if e.filename else ""
         print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("waldo: interrupted", file=sys.stderr)
-        return 130
     finally:
         warnings.showwarning = show
+
+
+def check_jax_platforms() -> None:
+    """Refuses a `JAX_PLATFORMS` this machine cannot start (e.g. gpu without one), before any output
+    folder is created: JAX would raise at its first computation, after the command began writing."""
+    wanted = os.environ.get("JAX_PLATFORMS", "").strip()
+    if not wanted:
+        return
+    import jax
+
+    try:
+        jax.devices()
+    except RuntimeError as e:
+        reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        reason = reason.split(" (set JAX_PLATFORMS")[0]
+        raise WaldoError(f"JAX_PLATFORMS={wanted}: this machine cannot start that backend ({reason[:200]}); "
+                         "unset JAX_PLATFORMS to run on what it has") from None
 

@@ -19,7 +19,7 @@ from typing import Optional
 
 from waldo_jax import io
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
 from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
 
@@ -83,11 +83,12 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     if args.budget not in BUDGETS:
         raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(BUDGETS)}")
     for flag, value, minimum in (("--epochs", args.epochs, 1), ("--top-k", args.top_k, 1), ("--top-c", args.top_c, 2),
-                                 ("--seeds", args.seeds, 1)):
-        if value < minimum:
-            raise WaldoError(f"{flag} must be >= {minimum}, got {value}")
-    if args.children_per_epoch is not None and args.children_per_epoch < 1:
-        raise WaldoError(f"--children-per-epoch must be >= 1, got {args.children_per_epoch}")
+                                 ("--seeds", args.seeds, 1), ("--children-per-epoch", args.children_per_epoch, 1),
+                                 ("--refine-poses", args.refine_poses, 1), ("--refine-steps", args.refine_steps, 1),
+                                 ("--gradient-cost", args.gradient_cost, 2)):
+        if value is not None:
+            check_int(value, flag, minimum)  # counts are int32 under jit
+    check_float32(args.refine_step_size, "--refine-step-size", positive=True)  # 1e-300: 0 in float32
     if args.pibs_fallback not in ("none", "grs"):
         raise WaldoError(f"unknown --pibs-fallback {args.pibs_fallback!r}: expected none or grs")
     try:

@@ -20,9 +20,9 @@ from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
-from waldo_jax.errors import WaldoError, check_input_file, check_resolution
+from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
-from waldo_jax.pipeline.path_run import read_explore_anchors, run_path, write_path_outputs
+from waldo_jax.pipeline.path_run import check_nerfstudio_export, read_explore_anchors, run_path, write_path_outputs
 
 __all__ = ["add_command", "cmd_path", "MAX_FRAMES", "MAX_KEYFRAMES"]
 
@@ -105,6 +105,8 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
                         ("--max-turn", args.max_turn)):
         if not (value > 0 and math.isfinite(value)):
             raise WaldoError(f"{flag} must be a positive number, got {value}")
+        check_float32(value, flag, positive=True)  # 1e-300 > 0 is 0 in float32 (and in a video's frame rate)
+    check_float32(args.fps, "--fps", minimum=0.01, maximum=1000.0)  # what a video's frame rate can be
     if not 0 <= args.min_opacity <= 1:
         raise WaldoError(f"--min-opacity must lie between 0 and 1, got {args.min_opacity}")
     if not (0 <= args.min_travel <= args.frames * args.max_speed):
@@ -141,6 +143,7 @@ def cmd_path(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     source = load_source(args.source, args.resolution, args.views, args.cameras)
+    check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
     video = source if args.video_resolution is None else load_source(args.source, args.video_resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)

@@ -2,13 +2,14 @@
 
 A `Criterion` is a pytree whose numeric `params` (network weights, the procedural room, ...) are
 traced leaves and whose name, direction and function are static. It scores P views in one call as
-float32 [P] (NaN marks a failure, never selected), from one of three `inputs`: "images" (float32
+float32 [P] (NaN marks a failure, never selected), from one of four `inputs`: "images" (float32
 [P, H, W, 3] in [0, 1]), "renders" (rgba float32 [P, H, W, 4]: the colour and the renderer's
-opacity) or "poses" (c2w float32 [P, 4, 4] and intrinsics, for oracles that need no render).
+opacity), "poses" (c2w float32 [P, 4, 4] and intrinsics, for oracles that need no render) or
+"posed" (renders and their poses: a combination of pose and view criteria, `criteria.combine`).
 `make_criterion(name, context)` builds one from the registry; `CriterionContext` carries what some
 criteria need (the procedural room, a weights folder, a target image).
 
-The three inputs in detail: see docs/design.md, section "Criteria > The interface".
+The inputs in detail: see docs/design.md, section "Criteria > The interface".
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ __all__ = [
     "with_opacity",
 ]
 
-INPUTS = ("images", "renders", "poses")
+INPUTS = ("images", "renders", "poses", "posed")
 
 
 class CriterionError(WaldoError, ValueError):
@@ -57,9 +58,9 @@ class Criterion:
       name: registry name, e.g. "waldo_oracle".
       direction: "max" when higher scores are better, "min" when lower ones are.
       value_range: (low, high) of the scores (inf where unbounded), for plots and reports.
-      inputs: "images", "renders" or "poses" (see docs/design.md, "Criteria").
-      apply: the pure function, `apply(params, images)`, `apply(params, rgba)` or
-        `apply(params, c2w, intrinsics)`.
+      inputs: "images", "renders", "poses" or "posed" (see docs/design.md, "Criteria").
+      apply: the pure function, `apply(params, images)`, `apply(params, rgba)`,
+        `apply(params, c2w, intrinsics)` or `apply(params, rgba, c2w, intrinsics)`.
       description: one line for reports and `--help`.
       smooth_apply: a differentiable stand-in for `apply` (same params and inputs) that gradient
         refinement follows, or None when the criterion has none (`smooth` refuses it). For a
@@ -102,6 +103,9 @@ class Criterion:
         """
         if self.inputs == "poses":
             raise CriterionError(f"criterion {self.name!r} scores camera poses, not images")
+        if self.inputs == "posed":
+            raise CriterionError(f"criterion {self.name!r} scores renders together with their camera poses, "
+                                 "not images alone (`score_posed`)")
         images = jnp.asarray(images, jnp.float32)
         if images.ndim != 4 or images.shape[-1] not in (3, 4):
             raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), "
@@ -115,6 +119,16 @@ class Criterion:
         if self.inputs != "poses":
             raise CriterionError(f"criterion {self.name!r} scores images: render the poses first")
         return jnp.asarray(_compiled(self.apply, self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+
+    def score_posed(self, images: Array, c2w: Array, intrinsics: Intrinsics) -> Array:
+        """Scores [P] of renders [P, H, W, 4] (or photographs [P, H, W, 3], opacity 1) taken from cameras
+        c2w [P, 4, 4] with `intrinsics`: any criterion but an image criterion given poses alone."""
+        c2w = jnp.asarray(c2w, jnp.float32)
+        if self.inputs == "poses":
+            return self.score_poses(c2w, intrinsics)
+        if self.inputs != "posed":
+            return self.score_images(images)
+        return jnp.asarray(_compiled(self.apply, self.params, with_opacity(images), c2w, intrinsics), jnp.float32)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -182,7 +196,7 @@ class CriterionSpec:
     Attributes:
       name: the registry name.
       direction: "max" or "min".
-      inputs: "images" or "poses".
+      inputs: one of `INPUTS`.
       description: one line.
       build: `build(context) -> Criterion`; raises `CriterionError` naming anything missing.
       smooth: the criterion it builds has a `smooth_apply` (gradient refinement can use it).

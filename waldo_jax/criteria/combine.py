@@ -8,6 +8,9 @@ background, which a criterion may like); a ray's accumulated opacity is ~0 where
   * `weighted(parts, weights)`: the weighted mean of the parts' scores, each mapped onto [0, 1]
     (`--criterion weighted:saliency=0.7,iqa_cnn=0.3`); `build_criterion` parses such specs, and
     `spec_names` reads the criteria one names without building them.
+Parts may score poses (the room's oracles): pose criteria alone combine into a pose criterion
+(`--criterion waldo_oracle --guard waldo_visible:0.9`), pose and view criteria into a "posed" one that
+scores renders with their poses. A combination of parts with smooth stand-ins has one.
 The definitions, and the inputs and parameters of a combination: see docs/design.md, section
 "Criteria > Guards and combinations".
 """
@@ -15,8 +18,10 @@ The definitions, and the inputs and parameters of a combination: see docs/design
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Optional, Sequence, Tuple
+import math
+from typing import Any, Callable, NamedTuple, Optional, Sequence, Tuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -57,27 +62,61 @@ class _Part:
     """The static side of a criterion inside a combination (hashable: it is part of a jit cache key)."""
 
     apply: Callable
+    smooth_apply: Optional[Callable]
     inputs: str
     direction: str
     value_range: Tuple[float, float]
 
     @classmethod
     def of(cls, criterion: Criterion) -> "_Part":
-        if criterion.inputs == "poses":
-            raise CriterionError(f"criterion {criterion.name!r} scores poses, not views: it cannot be combined")
-        return cls(criterion.apply, criterion.inputs, criterion.direction, tuple(criterion.value_range))
+        return cls(criterion.apply, criterion.smooth_apply, criterion.inputs, criterion.direction,
+                   tuple(criterion.value_range))
 
-    def scores(self, params, rgba: Array) -> Array:
-        return self.apply(params, rgba[..., :3] if self.inputs == "images" else rgba)
+    def scores(self, params, views: "_Views", smooth: bool = False) -> Array:
+        apply = self.smooth_apply if smooth else self.apply
+        if self.inputs == "poses":
+            return apply(params, views.c2w, views.intrinsics)
+        if self.inputs == "posed":  # a combination inside a combination
+            return apply(params, views.rgba, views.c2w, views.intrinsics)
+        return apply(params, views.rgba[..., :3] if self.inputs == "images" else views.rgba)
 
-    def normalised(self, params, rgba: Array) -> Array:
+    def normalised(self, params, views: "_Views", smooth: bool = False) -> Array:
         low, high = self.value_range
-        unit = (self.scores(params, rgba) - low) / (high - low)
+        unit = (self.scores(params, views, smooth) - low) / (high - low)
         return jnp.clip(unit if self.direction == "max" else 1.0 - unit, 0.0, 1.0)
 
 
+class _Views(NamedTuple):
+    """What a combination's parts score: renders (None for pose criteria alone) and poses (None for views alone)."""
+
+    rgba: Optional[Array]  # [P, H, W, 3 or 4]
+    c2w: Optional[Array]  # [P, 4, 4]
+    intrinsics: Any
+
+
 def _inputs(parts: Sequence[_Part]) -> str:
-    return "renders" if any(p.inputs == "renders" for p in parts) else "images"
+    """The combination's inputs: "poses" when every part scores poses, "posed" when some score poses and
+    some views (`Criterion.inputs`), else "renders" when any part needs the opacity, else "images"."""
+    kinds = {p.inputs for p in parts}
+    if kinds == {"poses"}:
+        return "poses"
+    if "poses" in kinds or "posed" in kinds:
+        return "posed"
+    return "renders" if "renders" in kinds else "images"
+
+
+def _views(inputs: str, args) -> _Views:
+    """The `apply` arguments of a combination with these inputs, as `_Views`."""
+    if inputs == "poses":
+        return _Views(None, *args)
+    if inputs == "posed":
+        return _Views(*args)
+    return _Views(args[0], None, None)
+
+
+def _smooth_apply(apply, parts: Sequence[_Part]):
+    """`apply`'s smooth stand-in when every part has one, else None."""
+    return dataclasses.replace(apply, smooth=True) if all(p.smooth_apply is not None for p in parts) else None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,11 +124,20 @@ class _ConstrainedApply:
     primary: _Part
     guard: _Part
     worst: float
+    inputs: str
+    smooth: bool = False
 
-    def __call__(self, params, rgba: Array) -> Array:
+    def __call__(self, params, *args) -> Array:
         primary_params, guard_params, threshold = params
-        score = self.primary.scores(primary_params, rgba)
-        guard = self.guard.scores(guard_params, rgba)
+        views = _views(self.inputs, args)
+        score = self.primary.scores(primary_params, views, self.smooth)
+        guard = self.guard.scores(guard_params, views, self.smooth)
+        if self.smooth:  # a sigmoid of 5 % of the guard's range (or of 1 where it is unbounded) for the step
+            low, high = self.guard.value_range
+            width = 0.05 * ((high - low) if math.isfinite(high - low) else 1.0)
+            margin = (guard - threshold) if self.guard.direction == "max" else (threshold - guard)
+            passes = jax.nn.sigmoid(margin / width)
+            return self.worst + passes * (score - self.worst)
         passes = guard >= threshold if self.guard.direction == "max" else guard <= threshold
         return finite_or_worst(jnp.where(passes, score, self.worst), jnp.zeros(score.shape, bool), self.worst)
 
@@ -97,13 +145,18 @@ class _ConstrainedApply:
 def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Criterion:
     """`primary` where `guard` passes `threshold`, else the primary's worst score.
 
+    Either may score poses (the room's oracles): a combination of pose criteria scores poses, one of
+    pose and view criteria scores renders with their poses (inputs "posed").
+
     Args:
-      primary: the criterion to optimise ("images" or "renders").
-      guard: the criterion that must pass ("images" or "renders"), e.g. `opacity`.
+      primary: the criterion to optimise.
+      guard: the criterion that must pass, e.g. `opacity` or `waldo_visible`.
       threshold: a "max" guard passes at or above it, a "min" guard at or below it.
 
     Returns:
       A criterion named "PRIMARY|GUARD>=THRESHOLD" (or "<=") with the primary's direction and range.
+      It has a smooth stand-in when both have one: their stand-ins, the step at the threshold a
+      sigmoid 5 % of the guard's range wide.
     """
     parts = (_Part.of(primary), _Part.of(guard))
     try:
@@ -122,8 +175,9 @@ def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Crite
             f"{'fails' if fails_all else 'passes'} every view; choose one inside that range")
     name = f"{primary.name}|{guard.name}{relation}{threshold:g}"
     params = (primary.params, guard.params, jnp.float32(threshold))
+    apply = _ConstrainedApply(parts[0], parts[1], worst, _inputs(parts))
     return Criterion(params=params, name=name, direction=primary.direction, value_range=primary.value_range,
-                     inputs=_inputs(parts), apply=_ConstrainedApply(parts[0], parts[1], worst),
+                     inputs=_inputs(parts), apply=apply, smooth_apply=_smooth_apply(apply, parts),
                      description=f"{primary.description}; the worst score where {guard.name} {relation} "
                                  f"{threshold:g} fails")
 
@@ -131,15 +185,21 @@ def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Crite
 @dataclasses.dataclass(frozen=True)
 class _WeightedApply:
     parts: Tuple[_Part, ...]
+    inputs: str
+    smooth: bool = False
 
-    def __call__(self, params, rgba: Array) -> Array:
+    def __call__(self, params, *args) -> Array:
         part_params, weights = params
-        units = jnp.stack([p.normalised(q, rgba) for p, q in zip(self.parts, part_params)])  # [K, P]
+        views = _views(self.inputs, args)
+        units = jnp.stack([p.normalised(q, views, self.smooth) for p, q in zip(self.parts, part_params)])  # [K, P]
         return jnp.sum(weights[:, None] * units, axis=0)
 
 
 def weighted(criteria: Sequence[Criterion], weights: Sequence[float]) -> Criterion:
     """The weighted mean of criteria normalised to [0, 1] by their value ranges (1 = good end).
+
+    Pose criteria (the room's oracles) may take part, alone or beside view criteria (see `constrained`).
+    It has a smooth stand-in when every part has one (the weighted mean of their stand-ins).
 
     Raises:
       CriterionError: no criteria, a length mismatch, a negative or all-zero weight, or a criterion
@@ -159,8 +219,9 @@ def weighted(criteria: Sequence[Criterion], weights: Sequence[float]) -> Criteri
     parts = tuple(_Part.of(c) for c in criteria)
     name = "weighted:" + ",".join(f"{c.name}={x:g}" for c, x in zip(criteria, weights))
     params = (tuple(c.params for c in criteria), jnp.asarray(w / w.sum(), jnp.float32))
+    apply = _WeightedApply(parts, _inputs(parts))
     return Criterion(params=params, name=name, direction="max", value_range=(0.0, 1.0), inputs=_inputs(parts),
-                     apply=_WeightedApply(parts),
+                     apply=apply, smooth_apply=_smooth_apply(apply, parts),
                      description="weighted mean of " + ", ".join(c.name for c in criteria) + " normalised to [0, 1]")
 
 
@@ -207,7 +268,7 @@ def spec_names(spec: str, guards: Sequence[str] = ()) -> Tuple[str, ...]:
 
     Checks what needs nothing but the text (the syntax, the names, a repeated name), so that a
     command can refuse a bad spec before it loads a scene; what needs the criteria themselves (a
-    guard's range, weights files, a poses criterion in a combination) `build_criterion` checks.
+    guard's range, weights files) `build_criterion` checks.
 
     Raises:
       CriterionError: as `build_criterion` would for the same text.

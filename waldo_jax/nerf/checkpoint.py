@@ -1,9 +1,10 @@
 """Checkpoints of trained fields: one self-checking file with params, occupancy grid, config and scene.
 
 `save_checkpoint` writes it atomically; `load_checkpoint` checks magic, header, version, size,
-SHA-256 digest and every array's dtype and shape against the stored config, raising
-`CheckpointError` naming the file. A round trip is bit-exact. The file layout: docs/design.md,
-"Checkpoints".
+SHA-256 digest and every array's dtype and shape against the stored config, then the contents as a
+whole (finite field parameters, a usable camera, box and near < far, finite rigid training poses, a
+background in [0, 1]; the occupancy grid's densities may hold NaN: its update sanitises them), raising `CheckpointError` naming the file. A round trip
+is bit-exact. The file layout: docs/design.md, "Checkpoints".
 """
 
 from __future__ import annotations
@@ -20,11 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
+from waldo_jax.errors import MAX_RESOLUTION, DataNotFoundError, SceneFormatError, WaldoError, check_input_file
 from waldo_jax.io import atomic_file
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError
 from waldo_jax.nerf.field import init_field
 from waldo_jax.nerf.samplers import make_sampler
+from waldo_jax.scenes.common import check_rigid, extent_problem, intrinsics_problem
 from waldo_jax.types import Intrinsics, Scene
 
 __all__ = [
@@ -365,6 +367,30 @@ def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRe
         raise CheckpointError(path, f"corrupt checkpoint (bad scene record: {e!r})") from None
 
 
+def _check_scene_record(path: Path, scene: SceneRecord) -> None:
+    """Refuses a scene record that renders nothing or nonsense: a camera with a side beyond
+    MAX_RESOLUTION or a degenerate focal length (`intrinsics_problem`), a flipped box or near >= far
+    (`extent_problem`), a training pose that is not finite and rigid, a background colour that is
+    not 3 numbers in [0, 1]."""
+    problem = intrinsics_problem(scene.intrinsics, sides=(1, MAX_RESOLUTION))  # renders of it allocate that much
+    if problem:
+        raise CheckpointError(path, f"the training camera: {problem}")
+    problem = extent_problem(scene.aabb, scene.near, scene.far)
+    if problem:
+        raise CheckpointError(path, problem)
+    if len(scene.c2w) == 0:
+        raise CheckpointError(path, "the checkpoint holds no training poses")
+    for i, matrix in enumerate(np.asarray(scene.c2w, np.float64)):
+        try:
+            check_rigid(matrix, path, f"training pose {i}")
+        except SceneFormatError as e:
+            raise CheckpointError(path, e.problem) from None
+    if scene.background is not None:
+        background = np.asarray(scene.background, np.float64)
+        if not (np.all(np.isfinite(background)) and np.all((background >= 0) & (background <= 1))):
+            raise CheckpointError(path, f"the background colour {background.tolist()} is not 3 numbers in [0, 1]")
+
+
 def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     """Reads and validates a checkpoint written by `save_checkpoint`.
 
@@ -420,5 +446,6 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     c2w = np.frombuffer(payload, dtype=e["dtype"], count=int(np.prod(e["shape"])), offset=e["offset"])
     c2w = c2w.reshape(e["shape"]).astype(np.float32)
     scene = _scene_record(path, header.get("scene", {}), c2w)
+    _check_scene_record(path, scene)
     return Checkpoint(params=params, occupancy=occupancy, config=config, scene=scene,
                       info=dict(header.get("info", {})), path=str(path), format_version=FORMAT_VERSION)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import camera_focus
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MAX_INT32, NumberError, WaldoError, check_float32
 from waldo_jax.nerf.field import NGPFieldConfig
 from waldo_jax.nerf.hashgrid import HashGridConfig
 from waldo_jax.types import Array, Scene
@@ -46,19 +46,20 @@ class TrainConfigError(WaldoError, ValueError):
 
 
 def _positive_int(name: str, value: Any, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise TrainConfigError(f"TrainConfig.{name} must be an int >= {minimum}, got {value!r}")
+    """An int in [minimum, MAX_INT32]: counts become int32 arrays under jit (10**12 steps would wrap)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not minimum <= value <= MAX_INT32:
+        raise TrainConfigError(f"TrainConfig.{name} must be an int >= {minimum} (at most {MAX_INT32}), got {value!r}")
     return int(value)
 
 
 def _positive_float(name: str, value: Any, allow_zero: bool = False) -> float:
+    """A finite number that stays finite (and, unless `allow_zero`, > 0) in float32, where it is used."""
     try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise TrainConfigError(f"TrainConfig.{name} must be a number, got {value!r}") from None
-    if isinstance(value, bool) or not math.isfinite(number) or number < 0 or (number == 0 and not allow_zero):
-        raise TrainConfigError(f"TrainConfig.{name} must be a {'non-negative' if allow_zero else 'positive'} "
-                               f"finite number, got {value!r}")
+        number = check_float32(value, f"TrainConfig.{name}", positive=not allow_zero)
+    except NumberError as e:
+        raise TrainConfigError(str(e)) from None
+    if number < 0:
+        raise TrainConfigError(f"TrainConfig.{name} must be a non-negative finite number, got {value!r}")
     return number
 
 

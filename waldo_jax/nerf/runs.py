@@ -8,7 +8,6 @@ run directory has the same `train.json` keys (`train_stats`), whoever trained it
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
@@ -16,7 +15,7 @@ from typing import Any, Dict, Optional, Tuple
 import jax
 
 from waldo_jax import io
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
 from waldo_jax.nerf.train import TrainResult, train
@@ -99,8 +98,9 @@ def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional
 
 
 def _positive(flag: str, value: Optional[float]) -> None:
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise WaldoError(f"{flag} must be a positive number, got {value}")
+    """Refuses a flag's value that is not positive and finite in float32, where it is used."""
+    if value is not None:
+        check_float32(value, flag, positive=True)
 
 
 def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", steps: Optional[int] = None,
@@ -122,8 +122,8 @@ def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", step
         raise WaldoError(f"unknown preset {preset!r}: expected one of {', '.join(PRESETS)}")
     if sampler not in SAMPLER_CHOICES:
         raise WaldoError(f"unknown sampler {sampler!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
-    if steps is not None and steps < 1:
-        raise WaldoError(f"--steps must be a positive integer, got {steps}")
+    if steps is not None and not 1 <= steps <= MAX_INT32:  # an int32 under jit: 10**12 would wrap
+        raise WaldoError(f"--steps must be a positive integer of at most {MAX_INT32}, got {steps}")
     _positive("--downscale", downscale)
     _positive("--render-step-scale", render_step_scale)
     out = io.check_output_dir(out, force=force)

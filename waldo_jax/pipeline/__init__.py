@@ -35,9 +35,10 @@ from waldo_jax.pipeline.sources import SourceError as SourceError
 from waldo_jax.pipeline.load import load_source as load_source
 from waldo_jax.pipeline.sources import procedural_source as procedural_source
 from waldo_jax.pipeline.sources import run_source as run_source
+from waldo_jax.pipeline.sources import with_gradient as with_gradient
 
 __all__ = [
     "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet",
     "generated_slots", "gradient_cost_for", "initial_scores", "objective_function", "refine_for_source", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
-    "run_explore", "run_source", "score_function", "seed_keys", "write_outputs",
+    "run_explore", "run_source", "score_function", "seed_keys", "with_gradient", "write_outputs",
 ]

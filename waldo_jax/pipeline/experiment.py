@@ -69,8 +69,11 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
 # Renders one refinement gradient evaluation counts as, by what the criterion scores (>= 2): the
 # ratio of a forward-mode gradient's time to an exact score's, rounded up, measured on the 2-core CPU
 # with benchmarks/gradient_cost.py: 1.7 for the room's oracle on poses; 4.9 for saliency on the
-# room's renders and 11.5 on a trained fox NeRF's (64 px), the costlier taken for every render.
-GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12}
+# room's renders and 11.5 on a trained fox NeRF's (64 px), the costlier taken for every render (and
+# for "posed" combinations, which render). Sources that differentiate in reverse mode carry their own
+# measured cost (`Source.gradient_cost`): a NeRF run 4 (`sources.NERF_GRADIENT_COST`, 3.76 measured
+# against 10.57 in forward mode), splats `splat_sources.SPLAT_GRADIENT_COST`.
+GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12, "posed": 12}
 
 
 def gradient_cost_for(criterion: Criterion, source: Optional[Source] = None) -> int:
@@ -98,10 +101,17 @@ def _score_posed(criterion: Criterion, intrinsics, c2w):
     return criterion.apply(criterion.params, c2w, intrinsics)
 
 
+def _score_rendered_posed(render, criterion: Criterion, intrinsics, c2w):
+    return criterion.apply(criterion.params, render(c2w), c2w, intrinsics)
+
+
 def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
-    """c2w [P, 4, 4] -> scores [P]: render with the source and score, or score the poses directly."""
+    """c2w [P, 4, 4] -> scores [P]: render with the source and score, or score the poses directly (a
+    "posed" combination: both)."""
     if criterion.inputs == "poses":
         return jax.tree_util.Partial(_score_posed, criterion, source.intrinsics)
+    if criterion.inputs == "posed":
+        return jax.tree_util.Partial(_score_rendered_posed, _renderer(source, criterion), criterion, source.intrinsics)
     return jax.tree_util.Partial(_score_rendered, _renderer(source, criterion), criterion)
 
 
@@ -116,7 +126,7 @@ def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Pa
 
 def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
     """The source's renderer for the criterion: colour, or colour + opacity for a "renders" criterion."""
-    if criterion.inputs != "renders":
+    if criterion.inputs not in ("renders", "posed"):
         return source.render
     if source.render_rgba is None:
         raise WaldoError(f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give")
@@ -127,6 +137,7 @@ def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
 # (CSNet on 16 images: 22 s eager vs 2.6 s jitted on the 2-core CPU).
 _jit_score_images = jax.jit(lambda criterion, images: criterion.score_images(images))
 _jit_score_poses = jax.jit(lambda criterion, c2w, intrinsics: criterion.score_poses(c2w, intrinsics))
+_jit_score_posed = jax.jit(lambda criterion, images, c2w, intrinsics: criterion.score_posed(images, c2w, intrinsics))
 
 
 def initial_scores(source: Source, criterion: Criterion, initial: str = "images") -> Tuple[np.ndarray, str]:
@@ -140,8 +151,14 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
         if source.train_images is None:
             raise WaldoError(f"cannot score the real training images of {source.spec}: {source.train_images_note}; "
                              "use --initial renders to score renders at the training poses instead")
-        return np.asarray(_jit_score_images(criterion, jnp.asarray(source.train_images)), np.float32), "images"
-    return np.asarray(_jit_score_images(criterion, _renderer(source, criterion)(train_c2w)), np.float32), "renders"
+        images = jnp.asarray(source.train_images)
+    else:
+        images = _renderer(source, criterion)(train_c2w)
+    if criterion.inputs == "posed":
+        scores = _jit_score_posed(criterion, images, train_c2w, source.intrinsics)
+    else:
+        scores = _jit_score_images(criterion, images)
+    return np.asarray(scores, np.float32), initial
 
 
 def seed_keys(seed: int, count: int):
@@ -189,7 +206,8 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     Args:
       source: what renders.
       criterion: what scores; its direction overrides `config.direction`.
-      config: the search's static settings (method, budget, epochs, top_k, ...).
+      config: the search's static settings (method, budget, epochs, top_k, ...); a `+refine` method
+        differentiates as the source allows (`refine_for_source`: its gradient mode, the cost as given).
       seed: the first seed; `seeds` > 1 runs seeds seed, seed + 1, ... (`seed_keys`).
       seeds: number of seeds.
       initial: "images" or "renders" (see the module docstring).
@@ -198,6 +216,9 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     if seeds < 1:
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     start = time.perf_counter()
+    if get_method(config.method).differentiable:  # the source's renderer sets the gradient mode it allows
+        config = dataclasses.replace(config, refine=refine_for_source(config.refine, source, criterion,
+                                                                      default_cost=False))
     config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
     check_epoch_memory(source, config, seeds)
     objective = objective_function(source, criterion) if get_method(config.method).differentiable else None

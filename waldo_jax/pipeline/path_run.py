@@ -23,8 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
-from waldo_jax.scenes.camera_paths import NGP_DEFAULT_OFFSET, NGP_DEFAULT_SCALE, instant_ngp_camera_path, \
-    nerfstudio_camera_path
+from waldo_jax.scenes.camera_paths import NgpFrame, instant_ngp_camera_path, nerfstudio_camera_path
 from waldo_jax.search.path import PathLimits, path_c2w, straight_path
 from waldo_jax.search.path_search import PathConfig, aggregate_scores, search_path, search_path_seeds
 from waldo_jax.criteria import Criterion
@@ -35,7 +34,7 @@ from waldo_jax.search.population import training_poses
 from waldo_jax.cameras import camera_focus
 
 __all__ = ["PathRun", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
-           "paths_per_call", "evaluate_path"]
+           "paths_per_call", "evaluate_path", "check_nerfstudio_export"]
 
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
 
@@ -50,12 +49,19 @@ def _frames_rendered(render_rgba, criterion: Criterion, c2w):
     return criterion.apply(criterion.params, images), jnp.mean(rgba[..., 3], axis=(1, 2))
 
 
+def _frames_rendered_posed(render_rgba, criterion: Criterion, intrinsics, c2w):
+    rgba = render_rgba(c2w)
+    return criterion.apply(criterion.params, rgba, c2w, intrinsics), jnp.mean(rgba[..., 3], axis=(1, 2))
+
+
 def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
     """c2w [B, 4, 4] -> (scores [B], mean opacity [B]). A pose criterion renders nothing (opacity 1)."""
     if criterion.inputs == "poses":
         return jax.tree_util.Partial(_frames_posed, criterion, source.intrinsics)
     if source.render_rgba is None:
         raise WaldoError(f"{source.spec} cannot render opacity, which path limits need")
+    if criterion.inputs == "posed":  # pose and view criteria combined
+        return jax.tree_util.Partial(_frames_rendered_posed, source.render_rgba, criterion, source.intrinsics)
     return jax.tree_util.Partial(_frames_rendered, source.render_rgba, criterion)
 
 
@@ -216,21 +222,37 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
 # Files.
 
 
-def _video(path: Path, frames: np.ndarray, fps: float) -> None:
-    """An MP4 (imageio-ffmpeg) or GIF of frames [F, H, W, 3], written beside `path` and renamed onto it."""
+def _video(path: Path, frames: np.ndarray, fps: float) -> Tuple[int, int]:
+    """An MP4 (imageio-ffmpeg) or GIF of frames [F, H, W, 3], written beside `path` and renamed onto it.
+
+    H.264 (yuv420p) needs even sides: an MP4 of odd-sided frames repeats their last row / column
+    (with a warning that says so). Returns the (width, height) written.
+
+    Raises:
+      WaldoError: the encoder wrote nothing (nothing is left at `path`).
+    """
     import imageio.v2 as imageio
 
-    data = [io.to_uint8(f) for f in frames]
+    data = np.stack([io.to_uint8(f) for f in frames])
+    height, width = data.shape[1:3]
+    if path.suffix.lower() == ".mp4" and (height % 2 or width % 2):
+        data = np.pad(data, ((0, 0), (0, height % 2), (0, width % 2), (0, 0)), mode="edge")
+        warnings.warn(f"{path.name}: {width}x{height} frames padded to {data.shape[2]}x{data.shape[1]} (H.264 needs "
+                      "even sides; the last row / column repeated)", stacklevel=2)
     tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
     try:
         with warnings.catch_warnings():
             # imageio-ffmpeg starts ffmpeg in a subprocess, which execs at once: JAX's fork warning does not apply.
             warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
-            _write_video(imageio, tmp, data, fps)
+            _write_video(imageio, tmp, list(data), fps)
+        if not tmp.is_file() or tmp.stat().st_size == 0:  # ffmpeg reports encoder failures only on its stderr
+            raise WaldoError(f"{path}: the video encoder wrote nothing for {len(data)} frames of "
+                             f"{data.shape[2]}x{data.shape[1]}")
         tmp.replace(path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return int(data.shape[2]), int(data.shape[1])
 
 
 def _write_video(imageio, tmp: Path, data, fps: float) -> None:
@@ -238,6 +260,23 @@ def _write_video(imageio, tmp: Path, data, fps: float) -> None:
         imageio.mimwrite(tmp, data, duration=1000.0 / fps, loop=0)
     else:
         imageio.mimwrite(tmp, data, fps=fps, macro_block_size=1, quality=8)
+
+
+def check_nerfstudio_export(source: Source, dataparser: Optional[Tuple[np.ndarray, float]]) -> None:
+    """Refuses `--nerfstudio-transforms` for a source whose nerfstudio `applied_transform` is not known.
+
+    A checkpoint saved before waldo recorded it, whose scene file is not on this machine: the model's
+    dataparser_transforms.json folds that transform in, so the export cannot undo it.
+    """
+    if dataparser is not None and source.info.get("nerfstudio_applied_source") == "unknown":
+        raise WaldoError(f"--nerfstudio-transforms: {source.spec} does not record its scene's applied_transform and "
+                         f"its scene file {source.info.get('scene_path') or '(unnamed)'} is not here to read it from")
+
+
+def _ngp_frame(source: Source) -> NgpFrame:
+    info = source.info
+    return NgpFrame.create(info.get("ngp_scale", NgpFrame.scale), info.get("ngp_offset", NgpFrame.offset),
+                           bool(info.get("ngp_from_mitsuba", False)))
 
 
 def _plot_scores(path: Path, run: PathRun) -> None:
@@ -310,13 +349,17 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
     best = np.asarray(run.results[0].best_c2w)
     video = run.video_source or run.source
     info = {"criterion": run.criterion.name, "method": run.config.method, "source": run.source.spec}
-    io.write_json(out / "camera_path.json", nerfstudio_camera_path(best, video.intrinsics, fps, dataparser, info))
+    check_nerfstudio_export(run.source, dataparser)
+    applied = run.source.info.get("nerfstudio_applied_transform")
+    io.write_json(out / "camera_path.json", nerfstudio_camera_path(
+        best, video.intrinsics, fps, dataparser, info,
+        applied_transform=None if applied is None else np.asarray(applied, np.float64),
+        applied_scale=float(run.source.info.get("nerfstudio_applied_scale", 1.0))))
     io.write_json(out / "instant_ngp_path.json", instant_ngp_camera_path(
-        best, video.intrinsics, fps, run.source.info.get("ngp_scale", NGP_DEFAULT_SCALE),
-        run.source.info.get("ngp_offset", NGP_DEFAULT_OFFSET), info))
+        best, video.intrinsics, fps, extra=info, frame=_ngp_frame(run.source)))
     names = [f"frame_{i:04d}" for i in range(len(best))]
     io.write_transforms(out / "poses.json", best, video.intrinsics, names, extra={"waldo_path": info})
-    _video(out / "path.mp4", run.frames, fps)
+    mp4_size = _video(out / "path.mp4", run.frames, fps)
     _video(out / "path.gif", run.frames, fps)
     if run.truth is not None:
         _video(out / "path_truth.mp4", np.concatenate([run.frames, run.truth], axis=2), fps)
@@ -351,6 +394,8 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
         "per_seed": [{"seed": s, **{k: v for k, v in _summary(f).items() if k != "frame_scores"},
                       "kept_limits": bool(r.found)} for s, r, f in zip(run.seeds, run.results, run.found)],
         "seconds": run.seconds,
+        "video": {"frame_size": [int(run.frames.shape[2]), int(run.frames.shape[1])], "mp4_size": list(mp4_size),
+                  "fps": float(fps)},
         "files": ["camera_path.json", "instant_ngp_path.json", "poses.json", "path.mp4", "path.gif",
                   "path_sheet.png", "scores.png", "path_plot.png"] + (["path_truth.mp4"] if run.truth is not None
                                                                       else []),

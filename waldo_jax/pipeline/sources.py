@@ -34,11 +34,14 @@ from waldo_jax.procedural import make_room, room_field, room_render_config, room
 from waldo_jax.render import render_views
 from waldo_jax.render.marched import render_marched
 from waldo_jax.scenes import load_scene
+from waldo_jax.scenes.tool_frames import NgpFrame, nerfstudio_applied, ngp_frame
+from waldo_jax.scenes.common import read_json
 from waldo_jax.types import Array, Intrinsics, Scene
 
 __all__ = ["Source", "SourceError", "procedural_source", "run_source", "resize_images",
            "parse_procedural", "room_renderer", "field_renderer", "DEFAULT_PROCEDURAL_RESOLUTION",
-           "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "check_views"]
+           "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "NERF_GRADIENT", "NERF_GRADIENT_COST", "check_views",
+           "export_info"]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
 DEFAULT_PROCEDURAL_VIEWS = 24
@@ -73,8 +76,8 @@ class Source:
         for criteria that guard against empty views; None when the source cannot give opacity.
       renderer_report: c2w [V, 4, 4] of every view a run rendered -> facts for results.json (what
         the renderer dropped, ...), or None.
-      gradient: how a `+refine` method differentiates a render: "forward" (`jax.jvp`, six tangents:
-        the marched NeRF renderer's loops allow no reverse mode) or "reverse" (`jax.vjp`).
+      gradient: how a `+refine` method differentiates a render: "forward" (`jax.jvp`, six tangents) or
+        "reverse" (`jax.vjp`: the splat renderer, and the marched NeRF renderer's own backward pass).
       gradient_cost: renders one gradient evaluation through this source's renderer counts as (None:
         the criterion's default, `pipeline.GRADIENT_COSTS`).
       splats, splat_config: a splat source's splats and renderer settings (None otherwise).
@@ -131,8 +134,9 @@ _render_room_rgba = functools.partial(_render_room, rgba=True)
 
 
 def _render_field(params, grid, intrinsics: Intrinsics, render_config, march, c2w: Array, *, field,
-                  rgba: bool = False) -> Array:
-    return _output(render_marched(field, params, grid, c2w, intrinsics, render_config, march).output, rgba)
+                  rgba: bool = False, gradient: str = "forward") -> Array:
+    return _output(render_marched(field, params, grid, c2w, intrinsics, render_config, march,
+                                  gradient=gradient).output, rgba)
 
 
 def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
@@ -142,21 +146,52 @@ def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_
 
 
 @functools.lru_cache(maxsize=None)
-def _field_fn(field_config, rgba: bool = False):
+def _field_fn(field_config, rgba: bool = False, gradient: str = "forward"):
     """One function object per field config, so that Partials of equal configs share compilations."""
-    return functools.partial(_render_field, field=make_field(field_config), rgba=rgba)
+    return functools.partial(_render_field, field=make_field(field_config), rgba=rgba, gradient=gradient)
+
+
+# How a `+refine` method differentiates a trained field's renders (`Source.gradient`): reverse mode through
+# the marched renderer's own backward pass (`render.marched_vjp`), one pass over the composited samples.
+NERF_GRADIENT = "reverse"
+# Renders one refinement gradient of a NeRF source counts as (`Source.gradient_cost`): the ratio of a
+# reverse-mode gradient's time to a render and exact score's, rounded up: 3.76 for saliency on the fox
+# NeRF at 64 px (4 poses) on the shared 2-core CPU, where forward mode took 10.57 in the same run
+# (benchmarks/gradient_cost.py; benchmarks/results/gradient_cost_fox_reverse_cpu_loaded.json). Of the
+# 3.76, the render's gradient is about 3 renders (the render, then a pass over its samples that evaluates
+# the field again and pulls back through it) and CSNet's gradient about 1.
+NERF_GRADIENT_COST = 4
 
 
 def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: float, far: float, aabb,
-                   background, rgba: bool = False) -> jax.tree_util.Partial:
+                   background, rgba: bool = False, gradient: str = "forward") -> jax.tree_util.Partial:
     """The renderer of a trained field (`waldo_jax.render.marched`, as `waldo render`) as a Partial c2w -> rgb.
 
-    With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity.
+    With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity. `gradient`:
+    how its images differentiate with respect to c2w, "forward" (`jax.jvp`) or "reverse" (`jax.vjp`)
+    (`render.marched.render_marched`); the images are the same.
     """
     params = jax.tree.map(jnp.asarray, params)
     occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
     grid, render_config, march = render_setup(config, occupancy, near, far, np.asarray(aabb, np.float32), background)
-    return jax.tree_util.Partial(_field_fn(config.field, rgba), params, grid, intrinsics, render_config, march)
+    return jax.tree_util.Partial(_field_fn(config.field, rgba, gradient), params, grid, intrinsics, render_config,
+                                 march)
+
+
+def with_gradient(source: "Source", gradient: str) -> "Source":
+    """`source` with its trained-field renderers differentiating in `gradient` mode ("forward" or
+    "reverse"; the images are the same), e.g. to compare the two, with the gradient cost of that mode.
+    Other sources are returned as they are."""
+    def rebuilt(partial):
+        if partial is None or getattr(partial.func, "func", None) is not _render_field:
+            return partial
+        return jax.tree_util.Partial(functools.partial(partial.func, gradient=gradient), *partial.args)
+
+    if source.kind != "run":
+        return source
+    cost = NERF_GRADIENT_COST if gradient == NERF_GRADIENT else None  # None: the default, `GRADIENT_COSTS`
+    return dataclasses.replace(source, render=rebuilt(source.render), render_rgba=rebuilt(source.render_rgba),
+                               gradient=gradient, gradient_cost=cost)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -207,7 +242,55 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
                   render=room_renderer(room, intrinsics), render_rgba=room_renderer(room, intrinsics, rgba=True),
                   train_images=np.asarray(images, np.float32),
                   train_names=tuple(scene.file_names), room=room,
-                  info={"procedural_seed": int(seed), "views": int(views)})
+                  info={"procedural_seed": int(seed), "views": int(views),
+                        **export_info("procedural", {}, scene.aabb, "")})
+
+
+def export_info(fmt: str, metadata: Dict[str, Any], aabb, folder: str) -> Dict[str, Any]:
+    """What `waldo path`'s exports need of a training scene, as `Source.info` keys.
+
+    `ngp_scale`, `ngp_offset`, `ngp_from_mitsuba`: the frame NGP's loader makes of the scene's
+    transforms.json (the room's, as `waldo render procedural` writes it, has the room's `aabb`).
+    `nerfstudio_applied_transform` / `_scale` / `_source`: what a nerfstudio model folds into its
+    dataparser_transforms.json; source "unknown" for a checkpoint saved before waldo recorded it
+    whose scene file is gone. Older instant-ngp checkpoints re-read their scene file when it is there.
+    """
+    scene_file = Path(folder) / str(metadata.get("scene_file", "transforms.json")) if folder else None
+    meta = None
+    needs_file = fmt in ("instant-ngp", "nerfstudio") and (
+        "nerfstudio_applied" not in metadata or (fmt == "instant-ngp" and "from_mitsuba" not in metadata))
+    if needs_file and scene_file is not None and scene_file.is_file():
+        try:
+            meta = read_json(scene_file)
+        except WaldoError:
+            meta = None
+    ngp = NgpFrame()
+    if fmt == "procedural":
+        ngp = ngp_frame({"aabb": np.asarray(aabb, np.float64).tolist()})
+    elif fmt == "instant-ngp" and meta is not None and "from_mitsuba" not in metadata:
+        try:
+            ngp = ngp_frame(meta)
+        except ValueError:
+            pass
+    elif fmt == "instant-ngp" and "scale" in metadata and "offset" in metadata:
+        ngp = NgpFrame.create(float(metadata["scale"]), metadata["offset"], bool(metadata.get("from_mitsuba", False)))
+    info: Dict[str, Any] = {"ngp_scale": ngp.scale, "ngp_offset": list(ngp.offset),
+                            "ngp_from_mitsuba": ngp.from_mitsuba}
+    applied, scale, source = None, 1.0, "none"
+    if "nerfstudio_applied" in metadata:
+        recorded = metadata["nerfstudio_applied"]
+        applied, scale, source = recorded.get("transform"), float(recorded.get("scale", 1.0)), recorded.get("source")
+    elif fmt in ("instant-ngp", "nerfstudio"):
+        source = "unknown"
+        if meta is not None:
+            try:
+                found, scale, source = nerfstudio_applied(meta, scene_file.parent)
+                applied = None if found is None else found.tolist()
+            except ValueError:
+                source = "unknown"
+    info.update(nerfstudio_applied_transform=applied, nerfstudio_applied_scale=scale,
+                nerfstudio_applied_source=source)
+    return info
 
 
 def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
@@ -248,11 +331,11 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     background = record.background if record.background is not None else np.zeros(3, np.float32)
     renderer_args = (checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near, record.far,
                      record.aabb, background)
-    render, render_rgba = field_renderer(*renderer_args), field_renderer(*renderer_args, rgba=True)
+    render = field_renderer(*renderer_args, gradient=NERF_GRADIENT)
+    render_rgba = field_renderer(*renderer_args, rgba=True, gradient=NERF_GRADIENT)
     info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
             "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
-    if "scale" in record.metadata and "offset" in record.metadata:  # instant-ngp's frame, for its camera paths
-        info["ngp_scale"], info["ngp_offset"] = record.metadata["scale"], record.metadata["offset"]
+    info.update(export_info(record.format, record.metadata, record.aabb, record.path))
     room, truth = None, None
     if record.format == "procedural":
         seed = int(record.metadata.get("seed", 0))
@@ -267,7 +350,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     return Source(spec=str(run_dir), kind="run", name=run.resolve().name, train_c2w=np.asarray(record.c2w, np.float32),
                   intrinsics=intrinsics, render=render, render_rgba=render_rgba, train_images=images,
                   train_names=tuple(record.file_names),
-                  room=room, truth_render=truth, info=info, train_images_note=note)
+                  room=room, truth_render=truth, info=info, train_images_note=note, gradient=NERF_GRADIENT,
+                  gradient_cost=NERF_GRADIENT_COST)
 
 
 def check_views(views) -> int:

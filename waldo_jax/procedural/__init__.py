@@ -6,7 +6,8 @@ trained and `waldo_jax.render` renders it like any other field:
   * `make_room(seed) -> WaldoRoom`, the geometry and the field's params; `room_field(room, x, d)`;
   * `training_cameras(key, room, ...)`: views that see Waldo at most partly; `room_scene(seed, ...)`:
     those views rendered as a `waldo_jax.types.Scene`;
-  * `waldo_visibility`, `waldo_coverage(room, c2w, intrinsics)`: exact oracles from the geometry.
+  * `waldo_visibility`, `waldo_coverage(room, c2w, intrinsics)`, both at once `waldo_view`: exact
+    oracles from the geometry; `FOUND_VISIBILITY` (0.9), the share of Waldo a view must show to find him.
 Modules, bottom to top: `room` (geometry and field), `visibility` (the oracles), `cameras`, `scene`.
 Units are metres, +y is up, the floor is y = 0. The cameras, the oracle and the density model: see
 docs/design.md, section "Procedural room".
@@ -14,8 +15,10 @@ docs/design.md, section "Procedural room".
 
 from waldo_jax.procedural.cameras import RoomCameraConfig as RoomCameraConfig
 from waldo_jax.procedural.cameras import training_cameras as training_cameras
+from waldo_jax.procedural.visibility import FOUND_VISIBILITY as FOUND_VISIBILITY
 from waldo_jax.procedural.visibility import waldo_coverage as waldo_coverage
 from waldo_jax.procedural.visibility import waldo_visibility as waldo_visibility
+from waldo_jax.procedural.visibility import waldo_view as waldo_view
 from waldo_jax.procedural.visibility import waldo_visibility_batch as waldo_visibility_batch
 from waldo_jax.procedural.room import DENSITY as DENSITY
 from waldo_jax.procedural.room import WaldoRoom as WaldoRoom
@@ -28,6 +31,7 @@ from waldo_jax.procedural.scene import room_scene as room_scene
 
 __all__ = [
     "DENSITY",
+    "FOUND_VISIBILITY",
     "RoomCameraConfig",
     "WaldoRoom",
     "held_out_scene",
@@ -38,6 +42,7 @@ __all__ = [
     "room_sdf",
     "training_cameras",
     "waldo_coverage",
+    "waldo_view",
     "waldo_visibility",
     "waldo_visibility_batch",
 ]

@@ -13,7 +13,7 @@ import numpy as np
 
 from waldo_jax.cameras import look_at
 from waldo_jax.procedural.visibility import waldo_visibility_batch
-from waldo_jax.procedural.room import WaldoRoom
+from waldo_jax.procedural.room import WaldoRoom, room_sdf
 from waldo_jax.types import Array, Intrinsics, PRNGKey
 
 __all__ = ["RoomCameraConfig", "training_cameras"]
@@ -32,6 +32,8 @@ class RoomCameraConfig:
       fov_x: horizontal field of view in radians.
       max_visibility: a camera is kept only if it sees at most this fraction of Waldo.
       oversample: candidate cameras drawn per kept camera.
+      min_clearance: a camera is kept only if its centre lies at least this far (metres) outside every
+        solid (a band that reaches into the clutter would otherwise put cameras inside boxes).
     """
 
     band_radius: Tuple[float, float] = (2.9, 3.4)
@@ -41,6 +43,7 @@ class RoomCameraConfig:
     fov_x: float = math.radians(60.0)
     max_visibility: float = 0.5
     oversample: int = 6
+    min_clearance: float = 0.15
 
 
 def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: Intrinsics,
@@ -48,8 +51,8 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
     """Training cameras on a band around the room that see Waldo at most partly.
 
     Candidates are spread evenly in angle (with jitter) over the band, each looking at a random
-    point near the centre; the first `num_views` candidates (in angular order) whose oracle
-    visibility is at most `config.max_visibility` are kept.
+    point near the centre; of those whose oracle visibility is at most `config.max_visibility` and
+    that stand in free space (`config.min_clearance`), `num_views` spread over the band are kept.
 
     Args:
       key: PRNG key.
@@ -68,11 +71,12 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
     c2w = _candidates(key, n, np.float32(config.band_radius), np.float32(config.band_height),
                       np.float32(config.target_radius), np.float32(config.target_height))
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
-    keep = np.flatnonzero(visibility <= config.max_visibility)
+    clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
+    keep = np.flatnonzero((visibility <= config.max_visibility) & (clearance >= config.min_clearance))
     if len(keep) < num_views:
         raise ValueError(
-            f"only {len(keep)} of {n} candidate cameras see Waldo at most {config.max_visibility:.0%}; "
-            f"ask for fewer than {num_views} views or raise oversample"
+            f"only {len(keep)} of {n} candidate cameras see Waldo at most {config.max_visibility:.0%} from free "
+            f"space; ask for fewer than {num_views} views or raise oversample"
         )
     # Spread the kept cameras over the whole band rather than taking the first ones in angle.
     chosen = keep[np.round(np.linspace(0, len(keep) - 1, num_views)).astype(int)]

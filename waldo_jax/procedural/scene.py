@@ -64,10 +64,12 @@ def room_scene(seed: int = 0, num_views: int = 24, resolution: int = 64, num_sam
     return scene, room
 
 
-def held_out_scene(room: WaldoRoom, seed: int, count: int, train_scene: Scene) -> Scene:
-    """`count` views of the room from cameras its NeRF has not seen (another key), rendered analytically,
-    at `train_scene`'s intrinsics: the NeRF's held-out test split."""
-    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics)
+def held_out_scene(room: WaldoRoom, seed: int, count: int, train_scene: Scene,
+                   camera_config: RoomCameraConfig = RoomCameraConfig()) -> Scene:
+    """`count` views of the room from cameras its NeRF has not seen (another key, the training views'
+    `camera_config`), rendered analytically at `train_scene`'s intrinsics: the NeRF's held-out test split."""
+    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics,
+                           camera_config)
     images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics,
                                      room_render_config(room)).rgb, np.float32)
     return dataclasses.replace(train_scene, images=images, c2w=c2w, split="test",

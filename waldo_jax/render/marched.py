@@ -6,7 +6,8 @@ flat list cut into blocks of N rays; a block marches each ray through the grid
 (`marching.march_ray`), then runs passes in which the live rays' next samples are packed into M rows
 of s slots (`packed.layout_rows`), the field runs once and the rows are composited
 (`packed.composite_rows`), until every ray is done or opaque. `render_marched_sharded` splits the
-poses over devices; `Packing` holds the per-backend sizes.
+poses over devices; `Packing` holds the per-backend sizes. The images differentiate with respect to
+the poses in forward mode, or with `gradient="reverse"` in reverse mode (`render.marched_vjp`).
 
 Design and measurements: docs/rendering.md; the steps in `Packing`'s terms, early termination's
 error bound and the names: docs/design.md, section "Rendering > The marched renderer".
@@ -21,12 +22,13 @@ from typing import Callable, NamedTuple, Optional, Tuple
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.render import marching, occupancy, packed
+from waldo_jax.render import marched_vjp, marching, occupancy, packed
 from waldo_jax.render.sharding import shard_over_poses
 from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
 from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
 
-__all__ = ["BlockShape", "MarchedViews", "Packing", "block_shape", "field_slots", "render_marched", "render_marched_sharded"]
+__all__ = ["BlockShape", "GRADIENTS", "MarchedViews", "Packing", "block_shape", "field_slots", "render_marched",
+           "render_marched_sharded"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,72 +174,172 @@ def field_slots(field: Field, params, points: Array, directions: Array, chunk: i
     return jax.lax.map(lambda pd: field(params, pd[0], pd[1]), (points, directions), batch_size=chunk)
 
 
-def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
-                  real: Array, render_config: RenderConfig, march: marching.MarchConfig, shape: BlockShape):
-    """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
-    evaluations int32 [N], passes int32 [], slots int32 [])."""
-    num_rays, row_length = shape.rays, shape.row_length
-    num_samples = march.max_samples
+def _march_block(grid: occupancy.OccupancyGrid, origins: Array, directions: Array, real: Array,
+                 render_config: RenderConfig, march: marching.MarchConfig) -> Tuple[Array, Array, Array]:
+    """The marched samples of N rays [N, 3] (`real` [N] False for padding): t [N, S], delta [N, S] and
+    the counts int32 [N]. Constants of the rays: a gradient moves the samples with the ray, not along it."""
+    origins, directions = jax.lax.stop_gradient((origins, directions))
     t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, render_config))(origins, directions)
     t_end = jnp.where(real, t_end, t_start)  # padding rays march an empty interval
     t, delta, mask = jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, march))(
         origins, directions, t_start, t_end)  # [N, S] each
-    count = jnp.sum(mask, axis=1, dtype=jnp.int32)  # [N]
+    return t, delta, jnp.sum(mask, axis=1, dtype=jnp.int32)
 
-    def requests(rows: int, state: _Rays) -> Array:
-        """Rows each live ray asks for in a pass of `rows` rows: min(rows // live, R_max, what it has left),
-        and a ray that has not started yet at most its nominal share (`slots_per_ray`): nothing tells
-        yet whether it will stop early."""
-        live = jnp.sum(state.alive, dtype=jnp.int32)
-        rows_per_ray = jnp.clip(rows // jnp.maximum(live, 1), 1, shape.max_rows_per_ray)  # []
-        rows_per_ray = jnp.where(state.next_sample == 0, jnp.minimum(rows_per_ray, shape.first_rows), rows_per_ray)
-        need = -(-(count - state.next_sample) // row_length)  # [N]
-        return jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0)  # [N]
 
-    def one_pass(rows: int, state: _Rays) -> _Rays:
-        layout = packed.layout_rows(requests(rows, state), rows)
-        index, valid = packed.row_samples(layout, state.next_sample, count, row_length)  # [M, s]
-        owner = layout.owner[:, None]  # [M, 1]
-        index = jnp.minimum(index, num_samples - 1)
-        t_rows = t[owner, index]  # [M, s]
-        delta_rows = jnp.where(valid, delta[owner, index], 0.0)  # [M, s]
-        ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (rows, row_length, 3))  # [M, s, 3]
-        points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
-        sigma, rgb = field_slots(field, params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3), shape.field_chunk)
-        sums = packed.composite_rows(sigma.reshape(rows, row_length), rgb.reshape(rows, row_length, 3), t_rows,
-                                     delta_rows, layout, state.optical_depth, shape.max_rows_per_ray)
-        taken = jnp.minimum(layout.granted * row_length, count - state.next_sample)  # [N]
-        next_sample = state.next_sample + taken
-        optical_depth = state.optical_depth + sums.optical_depth
-        alive = state.alive & (next_sample < count) & (jnp.exp(-optical_depth) >= march.min_transmittance)
-        return _Rays(next_sample=next_sample, alive=alive, optical_depth=optical_depth, rgb=state.rgb + sums.rgb,
-                     depth=state.depth + sums.depth, acc=state.acc + sums.acc,
-                     evaluations=state.evaluations + taken, passes=state.passes + 1,
-                     slots=state.slots + rows * row_length)
+def _requests(shape: BlockShape, rows: int, state: _Rays, count: Array, first_rows: int) -> Array:
+    """Rows each live ray asks for in a pass of `rows` rows: min(rows // live, R_max, what it has left),
+    and a ray that has not started yet at most `first_rows` (its nominal share, `slots_per_ray`, while
+    nothing tells yet whether it will stop early)."""
+    live = jnp.sum(state.alive, dtype=jnp.int32)
+    rows_per_ray = jnp.clip(rows // jnp.maximum(live, 1), 1, shape.max_rows_per_ray)  # []
+    rows_per_ray = jnp.where(state.next_sample == 0, jnp.minimum(rows_per_ray, first_rows), rows_per_ray)
+    need = -(-(count - state.next_sample) // shape.row_length)  # [N]
+    return jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0)  # [N]
 
-    def keep_going(rows: int, last: bool, state: _Rays) -> Array:
+
+def _pass_rows(evaluate: Callable, shape: BlockShape, layout: packed.RowLayout, state: _Rays, origins: Array,
+               directions: Array, t: Array, delta: Array, count: Array) -> packed.RowSums:
+    """One pass: the samples `layout` lays out from each ray's `next_sample`, evaluated (`evaluate(points
+    [B, 3], directions [B, 3]) -> (sigma [B], rgb [B, 3])`) and composited onto the rays' optical depth.
+    Differentiable in origins and directions [N, 3] (the points move with them)."""
+    rows, row_length = layout.owner.shape[0], shape.row_length
+    index, valid = packed.row_samples(layout, state.next_sample, count, row_length)  # [M, s]
+    owner = layout.owner[:, None]  # [M, 1]
+    index = jnp.minimum(index, t.shape[1] - 1)
+    t_rows = t[owner, index]  # [M, s]
+    delta_rows = jnp.where(valid, delta[owner, index], 0.0)  # [M, s]
+    ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (rows, row_length, 3))  # [M, s, 3]
+    points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
+    sigma, rgb = evaluate(points.reshape(-1, 3), ray_dirs.reshape(-1, 3))
+    return packed.composite_rows(sigma.reshape(rows, row_length), rgb.reshape(rows, row_length, 3), t_rows,
+                                 delta_rows, layout, state.optical_depth, shape.max_rows_per_ray)
+
+
+def _advance(state: _Rays, layout: packed.RowLayout, sums: packed.RowSums, count: Array, row_length: int) -> _Rays:
+    """The rays after a pass: samples taken, sums added (`alive` is left to the caller)."""
+    rows = layout.owner.shape[0]
+    taken = jnp.minimum(layout.granted * row_length, count - state.next_sample)  # [N]
+    return state._replace(next_sample=state.next_sample + taken, optical_depth=state.optical_depth + sums.optical_depth,
+                          rgb=state.rgb + sums.rgb, depth=state.depth + sums.depth, acc=state.acc + sums.acc,
+                          evaluations=state.evaluations + taken, passes=state.passes + 1,
+                          slots=state.slots + rows * row_length)
+
+
+def _run_passes(shape: BlockShape, count: Array, one_pass: Callable, state, rays: Callable, first_rows: int):
+    """Passes over packed rows until no ray is live: one `lax.while_loop` per pass size of `shape.rows`.
+
+    Args:
+      shape: the block's sizes. count: int32 [N], samples each ray has.
+      one_pass: (rows, layout, state) -> state, one pass of `rows` rows.
+      state: the loop state; `rays(state)` is its `_Rays`.
+      first_rows: the most rows a ray that has not started may ask for.
+    """
+
+    def keep_going(rows: int, last: bool, state) -> Array:
         """Passes of this size go on while rays are live and (but for the smallest size) the live rays'
         requests would fill `level_fill` of the pass; else the next smaller size takes over."""
-        going = jnp.any(state.alive) & (state.passes < shape.max_passes)
+        going = jnp.any(rays(state).alive) & (rays(state).passes < shape.max_passes)
         if last:
             return going
-        return going & (jnp.sum(requests(rows, state)) >= shape.level_fill * rows)
+        return going & (jnp.sum(_requests(shape, rows, rays(state), count, first_rows)) >= shape.level_fill * rows)
 
-    zeros = jnp.zeros((num_rays,), jnp.float32)
-    state = _Rays(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=count > 0, optical_depth=zeros,
-                  rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
-                  evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0), slots=jnp.int32(0))
+    def step(rows: int, state):
+        layout = packed.layout_rows(_requests(shape, rows, rays(state), count, first_rows), rows)
+        return one_pass(rows, layout, state)
+
     # One while loop per pass size; each reads its predicate once per pass of millions of slots on an
     # accelerator (see `Packing.for_backend`), and the sizes shrink as the block's work runs out.
     for level, rows in enumerate(shape.rows):
         last = level + 1 == len(shape.rows)
-        state = jax.lax.while_loop(functools.partial(keep_going, rows, last), functools.partial(one_pass, rows), state)
-    rgb = state.rgb + (1.0 - state.acc)[:, None] * render_config.background
-    return RenderOutput(rgb=rgb, depth=state.depth, acc=state.acc), state.evaluations, state.passes, state.slots
+        state = jax.lax.while_loop(functools.partial(keep_going, rows, last), functools.partial(step, rows), state)
+    return state
+
+
+def _start(count: Array) -> _Rays:
+    num_rays = count.shape[0]
+    zeros = jnp.zeros((num_rays,), jnp.float32)
+    return _Rays(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=count > 0, optical_depth=zeros,
+                 rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
+                 evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0), slots=jnp.int32(0))
+
+
+def _composite(field: Field, shape: BlockShape, params, origins: Array, directions: Array, t: Array, delta: Array,
+               count: Array, min_transmittance: Array) -> _Rays:
+    """The passes of one block: every ray's samples composited until it is done or opaque."""
+    evaluate = functools.partial(field_slots, field, params, chunk=shape.field_chunk)
+
+    def one_pass(rows: int, layout: packed.RowLayout, state: _Rays) -> _Rays:
+        sums = _pass_rows(evaluate, shape, layout, state, origins, directions, t, delta, count)
+        state = _advance(state, layout, sums, count, shape.row_length)
+        alive = state.alive & (state.next_sample < count) & (jnp.exp(-state.optical_depth) >= min_transmittance)
+        return state._replace(alive=alive)
+
+    return _run_passes(shape, count, one_pass, _start(count), lambda state: state, shape.first_rows)
+
+
+def _finish(state: _Rays, background: Array):
+    """(rgb [N, 3] on the background, depth [N], acc [N], evaluations [N], passes [], slots [])."""
+    rgb = state.rgb + (1.0 - state.acc)[:, None] * background
+    return rgb, state.depth, state.acc, state.evaluations, state.passes, state.slots
+
+
+def _composite_forward(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
+    """`_finish(_composite(...))`: differentiable in forward mode only (its `while_loop`s)."""
+    return _finish(_composite(field, shape, params, origins, directions, t, delta, count, min_transmittance),
+                   background)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _composite_reverse(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
+    """`_composite_forward` with a reverse-mode gradient with respect to origins and directions
+    (`marched_vjp.composite_vjp`); no forward mode. Other inputs get no gradient."""
+    return _composite_forward(field, shape, params, origins, directions, t, delta, count, min_transmittance,
+                              background)
+
+
+def _composite_reverse_fwd(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
+    state = _composite(field, shape, params, origins, directions, t, delta, count, min_transmittance)
+    residuals = (params, origins, directions, t, delta, state.next_sample, state.rgb, state.depth, state.acc,
+                 background)
+    return _finish(state, background), residuals
+
+
+def _composite_reverse_bwd(field, shape, residuals, cotangents):
+    params, origins, directions, t, delta, used, rgb, depth, acc, background = residuals
+    g_rgb, g_depth, g_acc = cotangents[:3]
+    evaluate = functools.partial(field_slots, field, params, chunk=shape.field_chunk)
+
+    def pass_rows(rows, layout, state, o, d):
+        return _pass_rows(evaluate, shape, layout, state, o, d, t, delta, used)
+
+    def advance(state, layout, sums):
+        state = _advance(state, layout, sums, used, shape.row_length)
+        return state._replace(alive=state.next_sample < used)
+
+    # The samples each ray composited (`used`) are known: no ray needs to hold back in its first pass.
+    d_origins, d_directions = marched_vjp.composite_vjp(
+        pass_rows, advance, functools.partial(_run_passes, shape, used), _start(used), origins, directions,
+        (rgb, depth, acc), (g_rgb, g_depth, g_acc), background, shape.max_rows_per_ray)
+    return None, d_origins, d_directions, None, None, None, None, None
+
+
+_composite_reverse.defvjp(_composite_reverse_fwd, _composite_reverse_bwd)
+
+
+def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
+                  real: Array, render_config: RenderConfig, march: marching.MarchConfig, shape: BlockShape,
+                  gradient: str = "forward"):
+    """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
+    evaluations int32 [N], passes int32 [], slots int32 []). `gradient`: see `render_marched`."""
+    t, delta, count = _march_block(grid, origins, directions, real, render_config, march)
+    composite = _composite_reverse if gradient == "reverse" else _composite_forward
+    rgb, depth, acc, evaluations, passes, slots = composite(field, shape, params, origins, directions, t, delta, count,
+                                                            march.min_transmittance, render_config.background)
+    return RenderOutput(rgb=rgb, depth=depth, acc=acc), evaluations, passes, slots
 
 
 def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
-            march: marching.MarchConfig, packing: Packing) -> MarchedViews:
+            march: marching.MarchConfig, packing: Packing, gradient: str = "forward") -> MarchedViews:
     """`render_marched` unjitted (for `shard_over_poses`)."""
     c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
     num_poses = c2w.shape[0]
@@ -247,7 +349,7 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
     def block(ids: Array):
         origins, directions, _, _ = view_rays(c2w, intrinsics, ids)
         out, evaluations, passes, slots = _render_block(field, params, grid, origins, directions, ids < total,
-                                                        render_config, march, shape)
+                                                        render_config, march, shape, gradient)
         return out, evaluations, jnp.broadcast_to(jnp.stack([passes, slots]), ids.shape + (2,))
 
     out, evaluations, counts = map_ray_chunks(block, total, shape.rays)
@@ -258,10 +360,13 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
                         slots=counts[:, 1])
 
 
-@functools.partial(jax.jit, static_argnames=("field", "packing"))
+GRADIENTS = ("forward", "reverse")
+
+
+@functools.partial(jax.jit, static_argnames=("field", "packing", "gradient"))
 def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
                    render_config: RenderConfig, march: marching.MarchConfig,
-                   packing: Optional[Packing] = None) -> MarchedViews:
+                   packing: Optional[Packing] = None, gradient: str = "forward") -> MarchedViews:
     """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
     One compilation per (field, packing, grid geometry, march sizes, image size, P).
@@ -276,11 +381,19 @@ def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Arr
         `ray_chunk` are not used.
       march: the marching step, cone angle, K candidates and S samples per ray, `min_transmittance`.
       packing: static sizes (default `Packing.for_backend()`).
+      gradient: how the images may be differentiated with respect to c2w (static; the image is the same):
+        "forward" (`jax.jvp` through the passes' `while_loop`s; no reverse mode) or "reverse" (`jax.vjp`,
+        one backward pass over the samples each ray composited, `render.marched_vjp`; no forward mode).
+        Either way the samples move with the rays, their distances along them fixed by the march, and
+        nothing is differentiated with respect to params, grid or configs.
 
     Returns:
       `MarchedViews`: the images and the evaluations and passes they took.
     """
-    return _render(field, params, grid, c2w, intrinsics, render_config, march, packing or Packing.for_backend())
+    if gradient not in GRADIENTS:
+        raise ValueError(f"render_marched: gradient must be one of {GRADIENTS}, got {gradient!r}")
+    return _render(field, params, grid, c2w, intrinsics, render_config, march, packing or Packing.for_backend(),
+                   gradient)
 
 
 @functools.lru_cache(maxsize=None)

@@ -1,45 +1,69 @@
 """Camera paths in the files other tools read, and back.
 
-* nerfstudio (`ns-render camera-path --camera-path-filename camera_path.json`): top-level
-  `camera_type`, `render_height`, `render_width`, `fps`, `seconds` and `camera_path`, a list of
-  {`camera_to_world`: the 4x4 OpenGL camera-to-world matrix flattened row by row, `fov`: vertical
-  field of view in degrees, `aspect`: width / height}. nerfstudio renders in its own normalised
-  world (its dataparser orients, centres and scales the poses and saves that as
-  `dataparser_transforms.json`: {"transform": 3x4, "scale": s}); given that file, the matrices are
-  written in nerfstudio's world (c2w' = T c2w, then its translation times s), else in the scene's
-  own frame (what nerfstudio uses when trained with `--orientation-method none --center-method none
-  --auto-scale-poses False`). nerfstudio's camera has fx = fy and a centred principal point.
-* Instant-NGP (`testbed.load_camera_path`, the GUI's camera path window): {`path`: keyframes
-  {`R`: quaternion (x, y, z, w), `T`: position, `fov`: vertical degrees, `timestamp`, `slice`,
-  `scale`, `dof`, `aperture_size`}, `loop`, `time`, `duration_seconds`, `spline_order`} in NGP's
-  internal frame (`to_ngp`: y and z axes flipped, position x scale + offset, axes cycled xyz <- yzx,
-  with the scene's transforms.json `scale` / `offset`, defaults 0.33 / 0.5). Every frame is written as
-  a keyframe, so NGP's own spline between them stays on our path.
+* nerfstudio (`ns-render camera-path --camera-path-filename camera_path.json`, and the viewer's "Load
+  Path"): top-level `camera_type`, `render_height`, `render_width`, `fps`, `seconds`, `camera_path`
+  (what `ns-render` renders: per frame {`camera_to_world`: the 4x4 OpenGL camera-to-world matrix
+  flattened row by row, `fov`: vertical degrees, `aspect`: width / height}) and `keyframes` (what the
+  viewer loads and edits: one keyframe per frame, {`matrix`, `fov`, `aspect`}, `default_transition_sec`
+  = 1 / fps, so the viewer's spline meets every frame). nerfstudio renders in its own normalised world.
+  Its saved `dataparser_transforms.json` ({"transform": D [3, 4], "scale": s}) maps the *original*
+  data frame (before `applied_transform`) and s includes `applied_scale`; its nerfstudio-data (and
+  colmap) dataparser gives a pose P of transforms.json the pose D A^-1 P, translation times
+  s / applied_scale, where A is the file's `applied_transform` (or, with no such key and a
+  colmap/sparse/0 folder, nerfstudio's legacy COLMAP one). Without D, matrices stay in the scene's own
+  frame (a model trained with `--orientation-method none --center-method none --auto-scale-poses False`).
+  nerfstudio's camera has fx = fy and a centred principal point.
+* Instant-NGP (`testbed.load_camera_path`, `scripts/run.py --video_camera_path`, the GUI's camera
+  path window): {`path`: keyframes {`R`: quaternion (x, y, z, w), `T`, `fov`: vertical degrees,
+  `timestamp`, `slice`, `scale`, `dof`}, `loop`, `time`, `duration_seconds`, `spline_order`} in NGP's
+  frame (`to_ngp`: y and z axes flipped, position x scale + offset, axes cycled xyz <- yzx unless
+  `from_mitsuba`), with the `NgpFrame` NGP's loader derives from the scene's transforms.json
+  (`ngp_frame`: `scale`, `offset`, `aabb`, `from_mitsuba`). Playback stays on our frames: one keyframe
+  per frame plus a copy of the last, linear spline (order 1 passes through its keyframes; NGP's
+  default, order 3, is a B-spline that does not), timed so that keyframe i sits at time i / F, where
+  `run.py` renders frame i of F (`--video_n_seconds S --video_fps R` with S x R = F).
 
-Both files carry a `waldo` block (ignored by those tools) with what reading them back needs: the
-world the matrices are in and the NGP scale / offset. `read_camera_path` reads either back into the
-scene's frame; `waldo_jax.scenes.read_poses_file` (and so `waldo render --poses`) uses it.
+The frames themselves (`NgpFrame`, `ngp_frame`, `nerfstudio_applied`, ...) live in
+`waldo_jax.scenes.tool_frames`, re-exported here. Both files carry a `waldo` block (ignored by those
+tools) with what reading them back needs; `read_camera_path` reads either back into the scene's frame
+(`waldo render --poses` uses it).
+docs/cli.md ("waldo path") has the consumers' side and the measured tolerances.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
+from waldo_jax.scenes.tool_frames import (
+    MITSUBA_TO_OPENGL,
+    NERFSTUDIO_COLMAP_APPLIED_TRANSFORM,
+    NGP_DEFAULT_OFFSET,
+    NGP_DEFAULT_SCALE,
+    NgpFrame,
+    from_ngp,
+    ngp_frame,
+    nerfstudio_applied,
+    nerfstudio_pose_transform,
+    read_dataparser_transform,
+    to_ngp,
+)
 from waldo_jax.types import Intrinsics
 
-__all__ = ["NGP_DEFAULT_SCALE", "NGP_DEFAULT_OFFSET", "nerfstudio_camera_path", "instant_ngp_camera_path",
-           "read_camera_path", "is_camera_path", "to_ngp", "from_ngp", "read_dataparser_transform"]
-
-NGP_DEFAULT_SCALE = 0.33
-NGP_DEFAULT_OFFSET = (0.5, 0.5, 0.5)
-_CYCLE = [1, 2, 0]  # NGP's rows: x <- y, y <- z, z <- x
+__all__ = ["NGP_DEFAULT_SCALE", "NGP_DEFAULT_OFFSET", "NERFSTUDIO_COLMAP_APPLIED_TRANSFORM", "MITSUBA_TO_OPENGL",
+           "NgpFrame", "ngp_frame", "nerfstudio_applied", "nerfstudio_pose_transform", "nerfstudio_camera_path",
+           "instant_ngp_camera_path", "run_py_video_args", "read_camera_path", "is_camera_path", "to_ngp",
+           "from_ngp", "read_dataparser_transform"]
 
 
-def _vertical_fov(intrinsics: Intrinsics) -> float:
-    return math.degrees(2.0 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)))
+def _homogeneous(m: np.ndarray) -> np.ndarray:
+    return np.concatenate([np.asarray(m, np.float64)[:3, :4], [[0.0, 0.0, 0.0, 1.0]]])
+
+
+# ---------------------------------------------------------------------------------------------
+# Quaternions (x, y, z, w), as NGP's JSON stores them.
 
 
 def _quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
@@ -68,82 +92,108 @@ def _rotation_xyzw(q) -> np.ndarray:
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
-def to_ngp(c2w: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET) -> np.ndarray:
-    """Instant-NGP's camera matrix [3, 4] of an OpenGL camera-to-world matrix in the transforms.json frame."""
-    m = np.array(c2w, np.float64)[:3, :4]
-    m[:, 1:3] *= -1.0
-    m[:, 3] = m[:, 3] * scale + np.asarray(offset, np.float64)
-    return m[_CYCLE]
+# ---------------------------------------------------------------------------------------------
+# nerfstudio.
 
 
-def from_ngp(matrix: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET) -> np.ndarray:
-    """The inverse of `to_ngp`: a [4, 4] OpenGL camera-to-world matrix in the transforms.json frame."""
-    m = np.empty((3, 4))
-    m[_CYCLE] = np.asarray(matrix, np.float64)[:3, :4]
-    m[:, 3] = (m[:, 3] - np.asarray(offset, np.float64)) / scale
-    m[:, 1:3] *= -1.0
-    return np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
+def _vertical_fov(intrinsics: Intrinsics) -> float:
+    return math.degrees(2.0 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)))
 
 
-def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
-    """(transform [4, 4], scale) of a nerfstudio `dataparser_transforms.json` dict; ValueError when malformed."""
-    try:
-        transform = np.asarray(meta["transform"], np.float64)
-        scale = float(meta["scale"])
-    except (KeyError, TypeError, ValueError):
-        raise ValueError("expected nerfstudio's dataparser_transforms.json: {\"transform\": 3x4, \"scale\": s}") from None
-    if transform.shape == (3, 4):
-        transform = np.concatenate([transform, [[0.0, 0.0, 0.0, 1.0]]])
-    if transform.shape != (4, 4) or not np.all(np.isfinite(transform)) or not (scale > 0 and math.isfinite(scale)):
-        raise ValueError(f"dataparser transform must be a finite 3x4 matrix with a positive scale, got shape "
-                         f"{list(transform.shape)} and scale {scale}")
-    return transform, scale
+def _focal(fov_degrees: float, height: int) -> float:
+    """The focal length of a vertical field of view; a NumberError (a ValueError) for a fov outside (0, 180)."""
+    from waldo_jax.scenes.common import focal_from_angle  # the one check of a field of view
+
+    return focal_from_angle(fov_degrees, height, "'fov'", degrees=True)
 
 
 def nerfstudio_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float,
                            dataparser: Optional[Tuple[np.ndarray, float]] = None,
-                           extra: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+                           extra: Optional[Dict[str, Any]] = None, applied_transform: Optional[np.ndarray] = None,
+                           applied_scale: float = 1.0) -> Dict[str, Any]:
     """nerfstudio's camera_path.json dict of frames c2w [F, 4, 4] (scene frame) rendered with `intrinsics`.
 
-    `dataparser`: (transform [4, 4], scale) of the nerfstudio model's dataparser_transforms.json, to
-    write in nerfstudio's world; None writes the scene's own frame.
+    Args:
+      dataparser: (transform [4, 4], scale) of the model's dataparser_transforms.json, to write in
+        nerfstudio's world; None writes the scene's own frame.
+      applied_transform, applied_scale: the scene's (`nerfstudio_applied`), which that file folds in.
     """
     c2w = np.asarray(c2w, np.float64)
+    waldo: Dict[str, Any] = {"world": "scene"}
     if dataparser is not None:
-        transform, scale = dataparser
+        transform, scale = nerfstudio_pose_transform(dataparser, applied_transform, applied_scale)
         c2w = transform @ c2w
         c2w[:, :3, 3] *= scale
-    fov, aspect = _vertical_fov(intrinsics), intrinsics.width / intrinsics.height
-    waldo = {"world": "scene" if dataparser is None else "nerfstudio",
-             "dataparser_transform": None if dataparser is None else dataparser[0][:3].tolist(),
-             "dataparser_scale": None if dataparser is None else dataparser[1],
-             "note": "nerfstudio renders with fx = fy from fov and a centred principal point"}
+        waldo = {"world": "nerfstudio", "dataparser_transform": dataparser[0][:3].tolist(),
+                 "dataparser_scale": float(dataparser[1]),
+                 "applied_transform": None if applied_transform is None else np.asarray(applied_transform)[:3].tolist(),
+                 "applied_scale": float(applied_scale), "pose_transform": transform[:3].tolist(), "pose_scale": scale}
+    waldo["note"] = ("nerfstudio renders with fx = fy from fov and a centred principal point; to open the path in "
+                     "the viewer, copy this file into the data folder's camera_paths/")
     waldo.update(extra or {})
+    fov, aspect = _vertical_fov(intrinsics), intrinsics.width / intrinsics.height
+    flat = [np.round(m, 8).reshape(-1).tolist() for m in c2w]
     return {"camera_type": "perspective", "render_height": int(intrinsics.height),
             "render_width": int(intrinsics.width), "fps": float(fps), "seconds": len(c2w) / float(fps),
-            "smoothness_value": 0.0, "is_cycle": False, "keyframes": [],
-            "camera_path": [{"camera_to_world": np.round(m, 8).reshape(-1).tolist(), "fov": fov, "aspect": aspect}
-                            for m in c2w],
+            "smoothness_value": 0.0, "is_cycle": False, "default_fov": fov, "default_transition_sec": 1.0 / float(fps),
+            "keyframes": [{"matrix": m, "fov": fov, "aspect": aspect, "override_transition_enabled": False,
+                           "override_transition_sec": None} for m in flat],
+            "camera_path": [{"camera_to_world": m, "fov": fov, "aspect": aspect} for m in flat],
             "waldo": waldo}
+
+
+# ---------------------------------------------------------------------------------------------
+# Instant-NGP.
+
+
+def run_py_video_args(frames: int, fps: float) -> Tuple[int, int]:
+    """(--video_n_seconds, --video_fps) with which NGP's run.py renders exactly `frames` frames.
+
+    run.py takes both as integers and renders their product; when `fps` is not an integer that
+    divides `frames`, the only exact choice is (1, frames) (the frames are right, the video plays
+    at `frames` per second: re-time it).
+    """
+    rounded = round(fps)
+    if abs(fps - rounded) < 1e-9 and rounded > 0 and frames % rounded == 0:
+        return frames // rounded, rounded
+    return 1, frames
 
 
 def instant_ngp_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float, scale: float = NGP_DEFAULT_SCALE,
-                            offset=NGP_DEFAULT_OFFSET, extra: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
-    """Instant-NGP's camera path dict of frames c2w [F, 4, 4] (transforms.json frame), one keyframe per frame."""
+                            offset=NGP_DEFAULT_OFFSET, extra: Optional[Dict[str, Any]] = None,
+                            from_mitsuba: bool = False, frame: Optional[NgpFrame] = None) -> Dict[str, Any]:
+    """Instant-NGP's camera path dict of frames c2w [F, 4, 4] (scene frame).
+
+    F + 1 keyframes (the frames and a copy of the last), `spline_order` 1, timestamps (j + 1) / fps:
+    NGP's `get_pos` puts keyframe j at play time timestamp[j - 1] / timestamp[F - 1] = j / F, the
+    time at which run.py starts frame j of F, and a linear spline meets its keyframes. The copy
+    holds the last frame still while run.py's shutter (half a frame) is open.
+    """
+    frame = frame if frame is not None else NgpFrame.create(scale, offset, from_mitsuba)
     c2w = np.asarray(c2w, np.float64)
-    seconds = len(c2w) / float(fps)
+    count = len(c2w)
     fov = _vertical_fov(intrinsics)
     path = []
-    for i, m in enumerate(c2w):
-        ngp = to_ngp(m, scale, offset)
-        path.append({"R": np.round(_quaternion_xyzw(ngp[:, :3]), 8).tolist(), "T": np.round(ngp[:, 3], 8).tolist(),
-                     "fov": fov, "timestamp": seconds * (i + 1) / len(c2w), "slice": 0.0, "scale": 1.0,
-                     "dof": 0.0, "aperture_size": 0.0})
-    waldo = {"ngp_scale": float(scale), "ngp_offset": [float(v) for v in np.broadcast_to(offset, (3,))],
-             "render_width": int(intrinsics.width), "render_height": int(intrinsics.height)}
+    for i, m in enumerate(np.concatenate([c2w, c2w[-1:]])):
+        ngp = to_ngp(m, frame=frame)
+        path.append({"R": np.round(_quaternion_xyzw(ngp[:, :3]), 9).tolist(), "T": np.round(ngp[:, 3], 9).tolist(),
+                     "fov": fov, "timestamp": (i + 1) / float(fps), "slice": 0.0, "scale": 1.0, "dof": 0.0,
+                     "aperture_size": 0.0})
+    seconds, rate = run_py_video_args(count, fps)
+    waldo = {"ngp_scale": frame.scale, "ngp_offset": list(frame.offset), "ngp_from_mitsuba": frame.from_mitsuba,
+             "frames": count, "render_width": int(intrinsics.width), "render_height": int(intrinsics.height),
+             "run_py": ["--video_camera_path", "instant_ngp_path.json", "--video_n_seconds", str(seconds),
+                        "--video_fps", str(rate), "--width", str(int(intrinsics.width)),
+                        "--height", str(int(intrinsics.height))],
+             "note": f"{count} frames + a copy of the last as keyframes; render all {count} with run.py's "
+                     "--video_n_seconds x --video_fps equal to that count"}
     waldo.update(extra or {})
-    return {"loop": False, "time": 0.0, "duration_seconds": seconds, "spline_order": 3, "path": path,
+    return {"loop": False, "time": 0.0, "duration_seconds": count / float(fps), "spline_order": 1, "path": path,
             "waldo": waldo}
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading back.
 
 
 def is_camera_path(meta: Dict[str, Any]) -> bool:
@@ -151,8 +201,27 @@ def is_camera_path(meta: Dict[str, Any]) -> bool:
     return "camera_path" in meta or (isinstance(meta.get("path"), list) and "frames" not in meta)
 
 
-def _focal(fov_degrees: float, height: int) -> float:
-    return 0.5 * height / math.tan(0.5 * math.radians(fov_degrees))
+def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
+    if "pose_transform" in waldo:
+        transform = _homogeneous(np.asarray(waldo["pose_transform"], np.float64))
+        scale = float(waldo["pose_scale"])
+    else:  # written before applied transforms were undone: the dataparser transform was the pose transform
+        transform, scale = read_dataparser_transform({"transform": waldo["dataparser_transform"],
+                                                      "scale": waldo["dataparser_scale"]})
+    if not (scale > 0 and math.isfinite(scale)) or not np.all(np.isfinite(transform)):
+        raise ValueError("the waldo block's pose transform is not finite")
+    c2w = c2w.copy()
+    c2w[:, :3, 3] /= scale
+    return np.linalg.inv(transform) @ c2w
+
+
+def _ngp_back(meta: Dict[str, Any], waldo: Dict[str, Any]) -> np.ndarray:
+    frame = NgpFrame.create(float(waldo["ngp_scale"]), waldo["ngp_offset"], bool(waldo.get("ngp_from_mitsuba", False)))
+    keys: Sequence[Dict[str, Any]] = meta["path"]
+    if "frames" in waldo:  # the last keyframe repeats the last frame
+        keys = keys[:int(waldo["frames"])]
+    return np.stack([from_ngp(np.concatenate([_rotation_xyzw(k["R"]), np.asarray(k["T"], np.float64)[:, None]],
+                                             axis=1), frame=frame) for k in keys])
 
 
 def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndarray, Intrinsics]:
@@ -174,20 +243,15 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
         if "camera_path" in meta:
             c2w = np.stack([np.asarray(e["camera_to_world"], np.float64).reshape(4, 4) for e in meta["camera_path"]])
             if waldo.get("world") == "nerfstudio":
-                transform, scale = read_dataparser_transform({"transform": waldo["dataparser_transform"],
-                                                              "scale": waldo["dataparser_scale"]})
-                c2w[:, :3, 3] /= scale
-                c2w = np.linalg.inv(transform) @ c2w
+                c2w = _nerfstudio_back(c2w, waldo)
             width, height = int(meta["render_width"]), int(meta["render_height"])
             fov = float(meta["camera_path"][0]["fov"])
         else:
-            scale, offset = float(waldo["ngp_scale"]), waldo["ngp_offset"]
-            c2w = np.stack([from_ngp(np.concatenate([_rotation_xyzw(k["R"]), np.asarray(k["T"], np.float64)[:, None]],
-                                                    axis=1), scale, offset) for k in meta["path"]])
+            c2w = _ngp_back(meta, waldo)
             width = int(waldo.get("render_width", default.width))
             height = int(waldo.get("render_height", default.height))
             fov = float(meta["path"][0]["fov"])
-    except (KeyError, TypeError, ValueError, IndexError) as e:
+    except (KeyError, TypeError, ValueError, IndexError, np.linalg.LinAlgError) as e:
         raise ValueError(f"malformed camera path ({type(e).__name__}: {e})") from None
     if len(c2w) == 0:
         raise ValueError("the camera path has no frames")

@@ -3,7 +3,10 @@
 `locate` finds a scene's format and file; `check_rigid` holds every pose to the conventions of
 `waldo_jax.types` (finite, rotation orthonormal with det +1, origin within `MAX_COORDINATE`);
 `camera_bounds` gives near/far that cover a box; `holdout` and `subsample` pick a split's images.
-Problems with files raise `SceneFormatError(path, problem)`, bad arguments `SceneArgumentError`.
+`number` reads a file's number for float32 use, `focal_from_angle` turns a field of view into a
+focal length, and `intrinsics_problem` says what makes a camera unusable (every loader, poses file
+and checkpoint asks it). Problems with files raise `SceneFormatError(path, problem)`, bad arguments
+`SceneArgumentError`.
 See docs/design.md, "Scenes".
 """
 
@@ -19,7 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, NumberError, SceneFormatError, WaldoError, check_float32
 from waldo_jax.types import Intrinsics
 
 __all__ = [
@@ -44,6 +47,12 @@ __all__ = [
     "natural_key",
     "relative",
     "number",
+    "focal_from_angle",
+    "intrinsics_problem",
+    "extent_problem",
+    "MIN_FIELD_OF_VIEW",
+    "MAX_FIELD_OF_VIEW",
+    "MAX_RAY_SLOPE",
     "warn_off_image_principal_point",
 ]
 
@@ -57,6 +66,13 @@ RIGID_TOL = 1e-3  # max |R^T R - I| and |bottom row - (0,0,0,1)| of a pose.
 MAX_COORDINATE = 1e6
 TEST_EVERY = 8  # hold-out stride of formats without splits (NeRF's `llffhold`).
 MIN_NEAR_FRACTION = 0.02
+# A pinhole camera's field of view (degrees, per axis, from its focal length and image side): near 180
+# the focal length is ~0 and every ray leaves the image plane sideways (renders come out blank); near
+# 0 every pixel sees the same ray.
+MIN_FIELD_OF_VIEW, MAX_FIELD_OF_VIEW = 1e-3, 179.0
+# Largest |x - c| / f of a pixel (x) from a principal point (c): the squared ray direction must stay
+# finite in float32. An off-image principal point below it is legal (and warned about).
+MAX_RAY_SLOPE = 1e6
 
 _NERFSTUDIO_KEYS = ("camera_model", "applied_transform")
 
@@ -247,14 +263,88 @@ def relative(path: Path, folder: Path) -> str:
     return Path(os.path.relpath(path, folder)).as_posix()
 
 
-def number(meta: Dict[str, Any], key: str, path: Path) -> Optional[float]:
-    """meta[key] as a finite float, None when absent."""
+def number(meta: Dict[str, Any], key: str, path: Path, positive: bool = False) -> Optional[float]:
+    """meta[key] as a float that stays finite in float32 (and > 0 there if `positive`), None when absent."""
     if key not in meta or meta[key] is None:
         return None
     value = meta[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneFormatError(path, f"{key!r} must be a finite number, got {value!r}")
-    return float(value)
+    try:
+        return check_float32(value, repr(key), positive=positive)
+    except NumberError as e:
+        raise SceneFormatError(path, str(e)) from None
+
+
+def focal_from_angle(angle: float, size: float, what: str, degrees: bool = False) -> float:
+    """The focal length (pixels) of a field of view `angle` across `size` pixels: 0.5 size / tan(angle / 2).
+
+    Raises:
+      NumberError (a ValueError): the angle is not finite or not in (0, 180) degrees (0 divides by
+        zero; 180 and beyond give a zero or negative focal length), or the focal length does not fit
+        float32; the message names `what`.
+    """
+    limit = 180.0 if degrees else math.pi
+    angle = check_float32(angle, what)
+    if not 0 < angle < limit:
+        raise NumberError(f"{what} must be a field of view between 0 and {limit:.6g} {'degrees' if degrees else 'radians'} "
+                          f"(exclusive), got {angle:g}")
+    radians = math.radians(angle) if degrees else angle
+    return check_float32(0.5 * size / math.tan(0.5 * radians), f"the focal length of {what} = {angle:g}",
+                         positive=True)
+
+
+def extent_problem(aabb: Any, near: Any, far: Any) -> Optional[str]:
+    """What makes a scene box or ray bounds unusable, or None: a box [2, 3] that is not finite, lies
+    beyond `MAX_COORDINATE` or is empty or flipped on an axis (its sides are divided by); near / far
+    that are not 0 < near < far in float32 (far - near is divided by)."""
+    try:
+        box = np.asarray(aabb, np.float64).reshape(2, 3)
+        near, far = float(near), float(far)
+    except (TypeError, ValueError):
+        return f"scene box {aabb!r} / near {near!r} / far {far!r} are not numbers of the right shape"
+    if not (np.all(np.isfinite(box)) and np.max(np.abs(box)) <= MAX_COORDINATE):
+        return f"scene box {_box_text(box)} is not finite or lies beyond {MAX_COORDINATE:g} (rescale the scene)"
+    if not np.all(box[0].astype(np.float32) < box[1].astype(np.float32)):
+        return f"scene box {_box_text(box)} is empty or flipped: its minimum corner must lie below its maximum"
+    usable = math.isfinite(near) and math.isfinite(far) and 0 < near < far <= float(np.finfo(np.float32).max)
+    if not (usable and 0 < np.float32(near) < np.float32(far)):
+        return f"near/far bounds {near:g} / {far:g} do not satisfy 0 < near < far (in float32)"
+    return None
+
+
+def _box_text(box: np.ndarray) -> str:
+    """[[x, y, z], [x, y, z]] with 6 significant digits."""
+    return "[" + ", ".join("[" + ", ".join(f"{v:.6g}" for v in corner) + "]" for corner in box) + "]"
+
+
+def intrinsics_problem(intrinsics: Intrinsics, sides: Optional[Tuple[int, int]] = (MIN_RESOLUTION, MAX_RESOLUTION)
+                       ) -> Optional[str]:
+    """What makes a camera unusable, or None: image sides outside `sides` (None: any size >= 1), focal
+    lengths that are not positive and finite in float32 or give a field of view outside
+    [MIN_FIELD_OF_VIEW, MAX_FIELD_OF_VIEW], a principal point that is not finite or lies beyond
+    MAX_RAY_SLOPE focal lengths, non-finite distortion. Reads the float32 values that render."""
+    width, height = int(intrinsics.width), int(intrinsics.height)
+    low, high = sides or (1, None)
+    if min(width, height) < low or (high is not None and max(width, height) > high):
+        limits = f"between {low} and {high}" if high is not None else f"at least {low}"
+        return f"camera of {width}x{height} pixels: sides must lie {limits}"
+    values = {k: float(np.asarray(getattr(intrinsics, k), np.float32)) for k in ("fx", "fy", "cx", "cy")}
+    for key, size in (("fx", width), ("fy", height)):
+        f = values[key]
+        if not (math.isfinite(f) and f > 0):
+            return f"focal length {key} = {f:g} px: must be a positive finite number"
+        fov = math.degrees(2.0 * math.atan(0.5 * size / f))
+        if not MIN_FIELD_OF_VIEW <= fov <= MAX_FIELD_OF_VIEW:
+            return (f"focal length {key} = {f:g} px gives a {fov:.4g} degree field of view across {size} pixels; "
+                    f"a pinhole camera needs {MIN_FIELD_OF_VIEW:g} to {MAX_FIELD_OF_VIEW:g}")
+    for key, size, f in (("cx", width, values["fx"]), ("cy", height, values["fy"])):
+        c = values[key]
+        if not math.isfinite(c) or max(abs(c), abs(size - c)) / f > MAX_RAY_SLOPE:
+            return f"principal point {key} = {c:g} px: must be finite and within {MAX_RAY_SLOPE:g} focal lengths of the image"
+    if not np.all(np.isfinite(np.asarray(intrinsics.distortion, np.float32))):
+        return "distortion coefficients (k1, k2, p1, p2) must be finite float32 numbers"
+    return None
 
 
 def warn_off_image_principal_point(intrinsics: Intrinsics, path: Path) -> None:

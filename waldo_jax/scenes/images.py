@@ -45,10 +45,11 @@ def _box_resize(array: np.ndarray, size: Tuple[int, int]) -> np.ndarray:
     return np.stack(channels, -1).astype(np.float32)
 
 
-def _decode(img: Image.Image, size: Tuple[int, int]) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+def _decode(img: Image.Image, size: Tuple[int, int], path: Path) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """An opened PIL image as (float32 [h, w, 3] colour, float32 [h, w] straight alpha or None).
 
-    With alpha, the colour returned is premultiplied (rgb * a), filtered at `size` = (w, h).
+    With alpha, the colour returned is premultiplied (rgb * a), filtered at `size` = (w, h). 16/32-bit
+    grey outside [0, 1] (after / 65535 for integers) is refused, not clipped.
     """
     mode = img.mode
     has_alpha = mode in ("RGBA", "LA", "PA", "RGBa", "La") or (mode == "P" and "transparency" in img.info)
@@ -56,6 +57,10 @@ def _decode(img: Image.Image, size: Tuple[int, int]) -> Tuple[np.ndarray, Option
         grey = np.asarray(img, np.float32)
         if mode != "F":
             grey = grey / 65535.0
+        if np.all(np.isfinite(grey)) and not (grey.min() >= 0.0 and grey.max() <= 1.0):  # NaN: refused below
+            scale = 1.0 if mode == "F" else 65535.0
+            raise SceneFormatError(path, f"a {mode}-mode image with values in [{grey.min() * scale:g}, "
+                                   f"{grey.max() * scale:g}], outside [0, {scale:g}]; rescale it (it is not clipped)")
         rgb = np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, -1)
         return _box_resize(rgb, size), None
     if has_alpha:
@@ -110,7 +115,7 @@ def load_images(
                         f"{full[0]}x{full[1]}: all images of a scene must have the same size",
                     )
                 img.load()
-                rgb, alpha = _decode(img, size)
+                rgb, alpha = _decode(img, size, path)
         except SceneFormatError:
             raise
         except Exception as e:  # corrupt or truncated files raise OSError, SyntaxError, ValueError...

@@ -15,7 +15,7 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import NumberError, SceneFormatError, check_float32
 from waldo_jax.scenes.common import (
     SPLITS,
     check_rigid,
@@ -71,8 +71,13 @@ def load_llff(
     if np.any(np.abs(hwf - hwf[0]) > 1e-6 * np.abs(hwf[0])):
         raise SceneFormatError(path, "the [h, w, f] column differs between poses: several cameras are not supported")
     full_h, full_w, focal = hwf[0]
-    if min(full_h, full_w, focal) <= 0:
-        raise SceneFormatError(path, f"[h, w, f] must be positive, got {hwf[0].tolist()}")
+    try:
+        for value, what in ((full_h, "h"), (full_w, "w"), (focal, "f")):
+            check_float32(value, f"[h, w, f] {what}", positive=True)
+    except NumberError as e:
+        raise SceneFormatError(path, str(e)) from None
+    if min(full_h, full_w) < 1:
+        raise SceneFormatError(path, f"[h, w, f] = {hwf[0].tolist()}: image sides must be at least 1 pixel")
     if np.any(bounds[:, 0] <= 0) or np.any(bounds[:, 1] <= bounds[:, 0]):
         raise SceneFormatError(path, "near/far bounds must satisfy 0 < near < far for every pose")
     # LLFF columns are [down, right, backward]; OpenGL wants [right, up, backward].

@@ -12,10 +12,11 @@ import numpy as np
 
 from waldo_jax.errors import SceneFormatError
 from waldo_jax.scenes.common import (
-    MAX_COORDINATE,
     SPLITS,
     SceneArgumentError,
     check_split,
+    extent_problem,
+    intrinsics_problem,
     locate,
     warn_off_image_principal_point,
 )
@@ -47,8 +48,8 @@ def _check_background(background: Any) -> np.ndarray:
         bg = np.zeros(0, np.float32)
     if bg.shape == (1,):
         bg = np.repeat(bg, 3)
-    if bg.shape != (3,) or not np.all(np.isfinite(bg)):
-        raise SceneArgumentError(f"background must be 3 finite numbers (an RGB colour), got {background!r}")
+    if bg.shape != (3,) or not np.all(np.isfinite(bg)) or not np.all((bg >= 0) & (bg <= 1)):
+        raise SceneArgumentError(f"background must be 3 numbers in [0, 1] (an RGB colour), got {background!r}")
     return bg
 
 
@@ -62,14 +63,14 @@ def _check_max_images(max_images: Any) -> Optional[int]:
 
 
 def _check_extent(parts: Dict[str, Any], path: Path) -> None:
-    """Refuses a scene box or near/far that is not finite or lies beyond `MAX_COORDINATE`."""
-    aabb = np.asarray(parts["aabb"], np.float64)
-    near, far = float(parts["near"]), float(parts["far"])
-    if not (np.all(np.isfinite(aabb)) and np.max(np.abs(aabb)) <= MAX_COORDINATE):
-        raise SceneFormatError(path, f"scene box {aabb.tolist()} is not finite or lies beyond {MAX_COORDINATE:g} "
-                               "(rescale the scene)")
-    if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
-        raise SceneFormatError(path, f"near/far bounds {near:g} / {far:g} do not satisfy 0 < near < far")
+    """Refuses a scene box, near/far or camera that is not finite, lies beyond `MAX_COORDINATE`, is
+    empty or flipped (the box's sides and far - near are divided by), or that rounds to 0 in float32."""
+    problem = extent_problem(parts["aabb"], parts["near"], parts["far"])
+    if problem:
+        raise SceneFormatError(path, problem)
+    problem = intrinsics_problem(parts["intrinsics"], sides=None)
+    if problem:
+        raise SceneFormatError(path, f"camera: {problem}")
 
 
 def _warn_about_cameras(parts: Dict[str, Any], path: Path) -> None:

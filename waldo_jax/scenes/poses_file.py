@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -14,12 +13,15 @@ from waldo_jax.scenes.camera_paths import is_camera_path, read_camera_path
 from waldo_jax.errors import (
     MAX_RESOLUTION,
     MIN_RESOLUTION,
+    NumberError,
     SceneFormatError,
     check_input_file,
 )
 from waldo_jax.scenes.common import (
     RIGID_TOL,
     check_origin,
+    focal_from_angle,
+    intrinsics_problem,
     number,
     warn_off_image_principal_point,
 )
@@ -51,8 +53,8 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
 
 def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics) -> Intrinsics:
     """Intrinsics of a poses file, or `default` when it has no focal length."""
-    w, h = number(meta, "w", path), number(meta, "h", path)
-    fl_x, fl_y = number(meta, "fl_x", path), number(meta, "fl_y", path)
+    w, h = number(meta, "w", path, positive=True), number(meta, "h", path, positive=True)
+    fl_x, fl_y = number(meta, "fl_x", path, positive=True), number(meta, "fl_y", path, positive=True)
     angle_x, angle_y = number(meta, "camera_angle_x", path), number(meta, "camera_angle_y", path)
     if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
         return default
@@ -60,22 +62,31 @@ def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics
         # A focal length without an image size: assume the default camera's size (and aspect).
         w = w or (h * default.width / default.height if h else float(default.width))
         h = h or (w * default.height / default.width)
-    if fl_x is None and angle_x is not None:
-        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
-    if fl_y is None and angle_y is not None:
-        fl_y = 0.5 * h / math.tan(0.5 * angle_y)
-    fl_x = fl_x if fl_x is not None else fl_y
-    fl_y = fl_y if fl_y is not None else fl_x
-    if not (fl_x > 0 and fl_y > 0 and w >= 1 and h >= 1):
-        raise SceneFormatError(path, f"invalid camera (fl_x={fl_x}, fl_y={fl_y}, w={w}, h={h})")
     if not (MIN_RESOLUTION <= min(w, h) and max(w, h) <= MAX_RESOLUTION):
         raise SceneFormatError(path, f"camera of {w:g}x{h:g} pixels: sides must lie between {MIN_RESOLUTION} and "
                                f"{MAX_RESOLUTION} (--resolution R renders at another size)")
+    try:
+        if fl_x is None and angle_x is not None:
+            fl_x = focal_from_angle(angle_x, w, "'camera_angle_x'")
+        if fl_y is None and angle_y is not None:
+            fl_y = focal_from_angle(angle_y, h, "'camera_angle_y'")
+    except NumberError as e:
+        raise SceneFormatError(path, str(e)) from None
+    fl_x = fl_x if fl_x is not None else fl_y
+    fl_y = fl_y if fl_y is not None else fl_x
     distortion = [number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
     intrinsics = Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, number(meta, "cx", path),
                                    number(meta, "cy", path), distortion)
+    _check_camera(intrinsics, path)
     warn_off_image_principal_point(intrinsics, path)
     return intrinsics
+
+
+def _check_camera(intrinsics: Intrinsics, path: Path) -> None:
+    """Refuses a camera a render cannot use (`intrinsics_problem`), naming the file."""
+    problem = intrinsics_problem(intrinsics)
+    if problem:
+        raise SceneFormatError(path, problem if problem.startswith("camera of") else f"camera: {problem}")
 
 
 def read_poses_file(
@@ -137,10 +148,7 @@ def read_poses_file(
             c2w, intrinsics = read_camera_path(meta, default_intrinsics)
         except ValueError as e:
             raise SceneFormatError(path, str(e)) from None
-        if not (MIN_RESOLUTION <= min(intrinsics.width, intrinsics.height)
-                and max(intrinsics.width, intrinsics.height) <= MAX_RESOLUTION):
-            raise SceneFormatError(path, f"camera of {intrinsics.width}x{intrinsics.height} pixels: sides must lie "
-                                   f"between {MIN_RESOLUTION} and {MAX_RESOLUTION}")
+        _check_camera(intrinsics, path)
         poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
         return np.stack(poses).astype(np.float32), intrinsics, [None] * len(poses)
     raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from typing import Optional, Tuple
 
-from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, SceneFormatError, WaldoError
 from waldo_jax.scenes.loader import load_scene
 from waldo_jax.types import Scene
 
@@ -26,6 +26,10 @@ def load_splits(scene_path: str, downscale: Optional[float], stacklevel: int = 2
         how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
         raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
                          f"needs sides of at least {MIN_RESOLUTION} pixels")
+    if max(train_scene.width, train_scene.height) > MAX_RESOLUTION:  # renders of its poses and int32 ray indices
+        how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
+        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
+                         f"takes sides of at most {MAX_RESOLUTION} pixels (pass --downscale)")
     test_scene = None
     splits = ("test", "val") if train_scene.format == "blender" else ("test",)
     for split in splits:

@@ -1,15 +1,17 @@
 """instant-ngp, nerfstudio and Blender scenes: `transforms.json` and `transforms_<split>.json`.
 
-All three store OpenGL camera-to-world matrices, used as they are in the file's own world
-(instant-ngp's `scale`/`offset` enter only `aabb`; nerfstudio's `applied_transform` is recorded, not
-re-applied). Boxes: instant-ngp the cube NGP marches in, mapped back to the world; nerfstudio the
-padded 1st-99th percentile box of its point cloud (else of the camera origins and focus); Blender
-[-1.5, 1.5]^3 with near 2, far 6. See docs/design.md, "Scenes".
+All three store OpenGL camera-to-world matrices, used as they are in the file's own world, except
+instant-ngp's `from_mitsuba` files, whose camera axes are Mitsuba's (turned into OpenGL's here).
+instant-ngp's `scale`, `offset`, `aabb` and `from_mitsuba` enter the box and the exports as NGP's
+loader reads them (`tool_frames.ngp_frame`); nerfstudio's `applied_transform` (or its COLMAP default)
+and `applied_scale` are recorded (`tool_frames.nerfstudio_applied`), not re-applied. Boxes:
+instant-ngp the cube NGP marches in, mapped back to the world; nerfstudio the padded 1st-99th
+percentile box of its point cloud (else of the camera origins and focus); Blender [-1.5, 1.5]^3 with
+near 2, far 6. See docs/design.md, "Scenes".
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -17,7 +19,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from waldo_jax.cameras import camera_focus
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import NumberError, SceneFormatError
 from waldo_jax.scenes.common import (
     BLENDER_SPLITS,
     SPLITS,
@@ -25,6 +27,7 @@ from waldo_jax.scenes.common import (
     camera_bounds,
     check_rigid,
     check_split,
+    focal_from_angle,
     holdout,
     natural_key,
     number,
@@ -32,6 +35,7 @@ from waldo_jax.scenes.common import (
     relative,
     subsample,
 )
+from waldo_jax.scenes.tool_frames import MITSUBA_TO_OPENGL, NgpFrame, nerfstudio_applied, ngp_frame
 from waldo_jax.scenes.images import load_images, resolve_image
 from waldo_jax.scenes.ply import read_ply_points
 from waldo_jax.types import Intrinsics
@@ -113,16 +117,21 @@ def _camera_meta(meta: Dict[str, Any], frames: List[Dict[str, Any]], path: Path)
 def _json_intrinsics(camera: Dict[str, Any], image_size: Tuple[int, int], path: Path) -> Intrinsics:
     """Intrinsics of a transforms file at the size of its images on disk."""
     width, height = image_size
-    w = number(camera, "w", path) or float(width)
-    h = number(camera, "h", path) or float(height)
-    fl_x = number(camera, "fl_x", path)
-    fl_y = number(camera, "fl_y", path)
+    w = number(camera, "w", path, positive=True) or float(width)
+    h = number(camera, "h", path, positive=True) or float(height)
+    if min(w, h) < 1:
+        raise SceneFormatError(path, f"'w' x 'h' = {w:g}x{h:g}: image sides must be at least 1 pixel")
+    fl_x = number(camera, "fl_x", path, positive=True)
+    fl_y = number(camera, "fl_y", path, positive=True)
     angle_x = number(camera, "camera_angle_x", path)
     angle_y = number(camera, "camera_angle_y", path)
-    if fl_x is None and angle_x is not None:
-        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
-    if fl_y is None and angle_y is not None:
-        fl_y = 0.5 * h / math.tan(0.5 * angle_y)
+    try:
+        if fl_x is None and angle_x is not None:
+            fl_x = focal_from_angle(angle_x, w, "'camera_angle_x'")
+        if fl_y is None and angle_y is not None:
+            fl_y = focal_from_angle(angle_y, h, "'camera_angle_y'")
+    except NumberError as e:
+        raise SceneFormatError(path, str(e)) from None
     if fl_x is None:
         fl_x = fl_y
     if fl_x is None:
@@ -206,7 +215,6 @@ def load_transforms(
     frames = _read_frames(meta, path)
     camera = _camera_meta(meta, frames, path)
     metadata: Dict[str, Any] = {"scene_file": relative(path, folder)}
-    applied = None
     if fmt == "nerfstudio":
         model = meta.get("camera_model", "OPENCV")
         if model not in _NERFSTUDIO_MODELS:
@@ -214,14 +222,22 @@ def load_transforms(
                 path, f"unsupported camera_model {model!r} (supported: {', '.join(sorted(_NERFSTUDIO_MODELS))})"
             )
         metadata["camera_model"] = model
-        if "applied_transform" in meta:
-            try:
-                applied = np.asarray(meta["applied_transform"], np.float64)
-            except (TypeError, ValueError):
-                applied = np.zeros(0)
-            if applied.shape != (3, 4) or not np.all(np.isfinite(applied)):
-                raise SceneFormatError(path, "'applied_transform' must be a finite 3x4 matrix")
-            applied = applied.astype(np.float32)
+    try:  # what a nerfstudio model of this file folds into its dataparser_transforms.json
+        applied, applied_scale, applied_source = nerfstudio_applied(meta, folder)
+    except ValueError as e:
+        raise SceneFormatError(path, str(e)) from None
+    metadata["nerfstudio_applied"] = {"transform": None if applied is None else applied.tolist(),
+                                      "scale": applied_scale, "source": applied_source}
+    applied = None if applied is None else applied.astype(np.float32)
+    ngp = NgpFrame()
+    if fmt == "instant-ngp":
+        try:
+            ngp = ngp_frame(meta)
+        except ValueError as e:
+            raise SceneFormatError(path, str(e)) from None
+        if ngp.from_mitsuba:  # Mitsuba's camera axes (x left, y up, z forward) -> OpenGL's
+            for frame in frames:
+                frame["_c2w"] = frame["_c2w"] @ MITSUBA_TO_OPENGL
     found, skipped = _existing_frames(frames, folder, path)
     found.sort(key=lambda fi: natural_key(fi[0]["file_path"]))
     index = subsample(holdout(len(found), split), max_images)
@@ -236,20 +252,17 @@ def load_transforms(
     if fmt == "instant-ngp":
         aabb_scale = number(meta, "aabb_scale", path)
         aabb_scale = 1.0 if aabb_scale is None else aabb_scale
-        scale = number(meta, "scale", path)
-        scale = NGP_DEFAULT_SCALE if scale is None else scale
-        if aabb_scale <= 0 or scale <= 0:
-            raise SceneFormatError(path, f"'aabb_scale' and 'scale' must be positive, got {aabb_scale:g} and {scale:g}")
-        offset = meta.get("offset", NGP_DEFAULT_OFFSET)
-        try:
-            offset_vec = np.broadcast_to(np.asarray(offset, np.float64), (3,))
-        except (TypeError, ValueError):
-            raise SceneFormatError(path, f"'offset' must be a number or 3 numbers, got {offset!r}") from None
+        if aabb_scale <= 0:
+            raise SceneFormatError(path, f"'aabb_scale' and 'scale' must be positive, got {aabb_scale:g} and "
+                                         f"{ngp.scale:g}")
+        # NGP marches in the cube 0.5 +- aabb_scale / 2 of its frame; the cube is symmetric under NGP's
+        # axis cycle, so its world box is (cube - offset) / scale per axis.
+        offset_vec = np.asarray(ngp.offset, np.float64)
         ngp_lo, ngp_hi = 0.5 - 0.5 * aabb_scale, 0.5 + 0.5 * aabb_scale
-        corners = (np.stack([np.full(3, ngp_lo), np.full(3, ngp_hi)]) - offset_vec) / scale
+        corners = (np.stack([np.full(3, ngp_lo), np.full(3, ngp_hi)]) - offset_vec) / ngp.scale
         aabb = np.stack([corners.min(0), corners.max(0)]).astype(np.float32)
-        metadata.update(aabb_scale=aabb_scale, scale=scale, offset=offset_vec.tolist(),
-                        ngp_aabb=[[ngp_lo] * 3, [ngp_hi] * 3])
+        metadata.update(aabb_scale=aabb_scale, scale=ngp.scale, offset=offset_vec.tolist(),
+                        from_mitsuba=ngp.from_mitsuba, ngp_aabb=[[ngp_lo] * 3, [ngp_hi] * 3])
     else:
         ply_name = meta.get("ply_file_path", "sparse_pc.ply")
         ply = folder / ply_name if isinstance(ply_name, str) else None

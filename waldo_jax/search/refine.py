@@ -13,10 +13,10 @@ The solver is optimistix's `OptaxMinimiser` around Adam (`optax.adam`, each upda
 `step_size`), stepped in a `lax.scan` of fixed length rather than `optimistix.minimise`'s while loop:
 the cost is known before the run, every iterate can be checked, and an iterate whose objective is
 not finite or whose origin leaves the scene box is never kept (the step that led there is undone).
-Gradients are forward-mode by default (`jax.jvp`, six tangents: origin and look-at point), because the
-marched NeRF renderer's `while_loop`s are not reverse-differentiable, or reverse-mode where the renderer
-allows it (`RefineConfig.gradient`, the splat renderer); optimistix receives them through its
-reverse-mode API either way (see `_loss`). Each gradient evaluation of one pose counts as
+Gradients are forward-mode by default (`jax.jvp`, six tangents: origin and look-at point), which any
+renderer allows, or reverse-mode (`RefineConfig.gradient`: one `jax.vjp`, cheaper) where the source's
+renderer supports it (the splat renderer; the marched NeRF renderer through its own backward pass,
+`render.marched_vjp`); optimistix receives them through its reverse-mode API either way (see `_loss`). Each gradient evaluation of one pose counts as
 `config.gradient_cost` renders in the budget. Why Adam, the units, the box and the measured cost:
 docs/design.md, section "Search > Gradient refinement".
 """
@@ -77,9 +77,9 @@ class RefineConfig:
       epochs: a `+refine` method refines in its last `epochs` epochs.
       box_margin: the scene box is the training origins' bounding box grown by this fraction of the
         extent on every side; an origin outside it is never kept.
-      gradient: "forward" (six `jax.jvp` tangents: renderers with `while_loop`s, such as the marched
-        NeRF renderer, allow no other) or "reverse" (one `jax.vjp`: renderers without such loops, such
-        as the splat renderer; cheaper).
+      gradient: "forward" (six `jax.jvp` tangents: any renderer, including the marched NeRF renderer's
+        forward-mode variant) or "reverse" (one `jax.vjp`, cheaper: the splat renderer, the marched
+        NeRF renderer with `gradient="reverse"`; `Source.gradient` says which a source allows).
     """
 
     poses: int = 4

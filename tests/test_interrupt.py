@@ -1,0 +1,165 @@
+"""Ctrl-C (SIGINT) and SIGTERM end `waldo` cleanly at every stage (issue [3/5], waldo_jax.cli.interrupt):
+exit status 130 / 143, one line `waldo: interrupted`, no traceback (before the fix: a segmentation
+fault, exit 139, after the line), no half-written file, no unfinished new output folder, earlier
+output folders byte-identical.
+
+The subprocess tests send the signal after the first progress line: a training interrupted while its
+first chunk compiles (where the segfault was) and while it trains, a search interrupted while its
+jitted epochs run (where the main thread waits inside XLA and Python runs no signal handler). The
+in-process tests interrupt the writing of outputs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from test_bad_input import _write_scene
+from waldo_jax import io
+from waldo_jax.cli import interrupt, main
+
+# A process started in the background by a non-interactive shell inherits SIGINT as ignored, and
+# waldo keeps an inherited "ignore" (as Python does): the child starts from Python's default handler.
+_WALDO = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+          "runpy.run_module('waldo_jax', run_name='__main__')")
+
+
+def _tree(folder):
+    """{relative path: sha256} of every file under folder."""
+    out = {}
+    for root, _, files in os.walk(folder):
+        for name in files:
+            path = os.path.join(root, name)
+            with open(path, "rb") as f:
+                out[os.path.relpath(path, folder)] = hashlib.sha256(f.read()).hexdigest()
+    return out
+
+
+def _signal_after(argv, ready, signum, cwd, timeout=300.0):
+    """Runs `waldo argv`, sends `signum` once `ready` has appeared in its output (stdout and stderr,
+    progress bars included), and returns (exit status, output, seconds from the signal to the exit)."""
+    proc = subprocess.Popen([sys.executable, "-c", _WALDO, *argv], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)
+    output, sent, deadline = b"", None, time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            readable, _, _ = select.select([proc.stdout], [], [], 1.0)
+            chunk = os.read(proc.stdout.fileno(), 65536) if readable else b""
+            if readable and not chunk:
+                break
+            output += chunk
+            if sent is None and ready.encode() in output:
+                proc.send_signal(signum)
+                sent = time.monotonic()
+        status = proc.wait(timeout=max(1.0, deadline - time.monotonic()))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = output.decode(errors="replace")
+    assert sent is not None, f"{ready!r} never appeared:\n{text[-3000:]}"
+    return status, text, time.monotonic() - sent
+
+
+def _assert_clean(status, text, signum):
+    assert status == interrupt.EXIT_STATUS[signum], f"exit status {status}:\n{text[-3000:]}"
+    lines = [line for line in text.replace("\r", "\n").splitlines() if line.startswith("waldo: ")]
+    assert len(lines) == 1 and lines[0].startswith("waldo: interrupted"), text[-3000:]
+    assert "Traceback" not in text and "Fatal Python error" not in text, text[-3000:]
+
+
+@pytest.fixture
+def scene_and_earlier_run(tmp_path):
+    _write_scene(tmp_path / "scene")
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "keep.txt").write_text("an earlier run")
+    (earlier / "results.json").write_text('{"cvir": 1.0}')
+    return tmp_path, _tree(earlier)
+
+
+@pytest.mark.parametrize("signum, ready", [(signal.SIGINT, "/2000"),  # the first bar: the first chunk compiles
+                                           (signal.SIGTERM, "loss=")],  # a chunk trained: training runs
+                         ids=["sigint-while-compiling", "sigterm-while-training"])
+def test_an_interrupted_training_exits_cleanly_and_leaves_no_run_folder(scene_and_earlier_run, signum, ready):
+    tmp, earlier = scene_and_earlier_run
+    status, text, seconds = _signal_after(["train", "scene", "--out", "new", "--steps", "2000"], ready, signum, tmp)
+    _assert_clean(status, text, signum)
+    assert "removed the unfinished output folder" in text
+    assert not (tmp / "new").exists()  # created before training (checked writable), removed on the interrupt
+    assert _tree(tmp / "earlier") == earlier
+    assert seconds < 60, seconds
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_an_interrupted_search_exits_at_once_and_leaves_the_earlier_run_as_it_was(scene_and_earlier_run, signum):
+    """Into the earlier run's folder with --force: the search stops before anything is written. The
+    epochs run in one jitted call: the exit must not wait for the remaining epochs."""
+    tmp, earlier = scene_and_earlier_run
+    status, text, seconds = _signal_after(
+        ["explore", "procedural", "--criterion", "colorfulness", "--resolution", "16", "--views", "8", "--epochs", "1000",
+         "--children-per-epoch", "8", "--out", "earlier", "--force"], "epoch 1/1000", signum, tmp)
+    _assert_clean(status, text, signum)
+    assert "epoch 1000/1000" not in text
+    assert _tree(tmp / "earlier") == earlier
+    assert sorted(os.listdir(tmp)) == ["earlier", "scene"]
+    assert seconds < 30, seconds
+
+
+def _interrupt_on_call(monkeypatch, module, name, call, exception):
+    """Makes module.name raise `exception` on its `call`-th call (1-based)."""
+    real, calls = getattr(module, name), []
+
+    def wrapper(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            raise exception
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, wrapper)
+
+
+RENDER = ["render", "procedural", "--views", "3", "--resolution", "8", "--samples", "8"]
+
+
+def test_an_interrupt_while_writing_removes_the_new_folder(tmp_path, capsys, monkeypatch):
+    """Ctrl-C between two files of a new output folder: status 130, the folder (which holds a part of
+    the run) removed, no temporary file anywhere."""
+    _interrupt_on_call(monkeypatch, io, "write_bytes", 2, KeyboardInterrupt())
+    out = tmp_path / "deep" / "views"
+    assert main([*RENDER, "--out", str(out)]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == f"waldo: interrupted (removed the unfinished output folder {tmp_path / 'deep'})", err
+    assert os.listdir(tmp_path) == []
+
+
+def test_sigterm_while_writing_into_an_earlier_folder_keeps_every_file_whole(tmp_path, capsys, monkeypatch):
+    """SIGTERM (as `interrupt.Interrupted`) during a --force render into an earlier folder: status 143;
+    the folder stays (it is not new): each file in it is whole, either the earlier one or the new one,
+    and no temporary file is left."""
+    out = tmp_path / "views"
+    assert main([*RENDER, "--out", str(out)]) == 0
+    before = _tree(out)
+    _interrupt_on_call(monkeypatch, io, "_open_temp", 2, interrupt.Interrupted(signal.SIGTERM))
+    assert main([*RENDER, "--out", str(out), "--force", "--seed", "1"]) == 143
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "waldo: interrupted by SIGTERM", err
+    after = _tree(out)
+    assert sorted(after) == sorted(before)  # no temporary file
+    assert after["view_000.png"] != before["view_000.png"] and after["view_001.png"] == before["view_001.png"]
+
+
+def test_discard_unfinished_removes_the_temporary_file_of_a_write_in_progress(tmp_path):
+    with pytest.raises(FileNotFoundError):  # the rename finds no temporary file: the cut write never lands
+        with io.atomic_file(tmp_path / "results.json") as f:
+            f.write(b"half")
+            assert len(os.listdir(tmp_path)) == 1  # the temporary file
+            assert io.discard_unfinished() == []
+            assert os.listdir(tmp_path) == []
+    assert os.listdir(tmp_path) == []
