@@ -73,7 +73,7 @@ def explore_cells(source, criterion, budgets, methods, args, children: Dict[str,
 def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str, Any], args, budget: str) -> List[str]:
     """The views sheet and the pose clouds (threshold: the best training score) of one scene and criterion."""
     from waldo_jax import io
-    from waldo_jax.pipeline import methods_sheet, pose_cloud
+    from waldo_jax.pipeline import criterion_label, methods_sheet, pose_cloud
 
     written = []
     path = folder / f"{scene}_{criterion_name}_views.png"
@@ -91,7 +91,8 @@ def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str,
                    np.asarray(population.epoch)[filled], run.criterion.direction,
                    title=(f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed {run.seeds[0]}: "
                           f"green = better than the best training view ({threshold:.3g})"),
-                   threshold=threshold, marker=marker)
+                   threshold=threshold, marker=marker, score_label=criterion_label(run.criterion),
+                   marker_label="Waldo (the target)")
         written.append(str(path))
     return written
 

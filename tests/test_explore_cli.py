@@ -38,6 +38,8 @@ def test_results_json_has_what_the_issue_lists(egps_run):
                 "scores_generated", "cvir", "mcvir", "topk", "epochs", "seconds"):
         assert key in r, key
     assert (r["method"], r["criterion"], r["direction"], r["seed"]) == ("egps", "waldo_oracle", "max", 3)
+    assert r["criterion_caption"] == ("waldo_oracle: share of the image showing un-occluded Waldo (exact, procedural "
+                                      "room); higher is better, in [0, 1]")
     assert r["n_train"] == 8 and len(r["scores_train"]) == 8
     assert r["n_generated"] == 12 == len(r["scores_generated"]) and r["generated_epochs"] == [1] * 6 + [2] * 6
     assert len(r["epochs"]) == 3 and r["epochs"][0]["best"] == max(r["scores_train"])
@@ -167,6 +169,8 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
         assert len(m["best_visible_per_seed"]) == 2 and all(0.0 <= v <= 1.0 for v in m["best_visible_per_seed"])
         assert len(m["best_psnr_per_seed"]) == 2 and all(np.isfinite(m["best_psnr_per_seed"]))
     assert "Waldo visible in best view" in report and "NeRF render PSNR at best view" in report
+    assert f"Scores in every table and figure: {summary['criterion_caption']}." in report
+    assert summary["criterion_caption"].startswith("waldo_found: ") and "higher is better, in [0, 2]" in report
     for method in ("grs", "pibs", "egps"):
         assert (out / method / "results.json").is_file() and (out / method / "pose_cloud.png").is_file()
     assert (out / "contact_sheet.png").is_file() and (out / "nerf" / "checkpoint.ckpt").is_file()

@@ -244,9 +244,14 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     assert results["found"]["kept_limits"] and results["found"]["violation"] == 0.0
     assert results["found"]["max_speed"] <= results["limits"]["max_speed_extent_per_frame"] + 1e-6
     assert set(results["references"]) == {"straight", "training"}
+    assert results["criterion_caption"].startswith("waldo_oracle: share of the image")  # what the scores are
+    assert results["criterion_caption"].endswith("; higher is better, in [0, 1]")
     import imageio.v3 as iio
+    from PIL import Image
 
     assert iio.imread(out / "path.mp4").shape[0] == 8  # eight frames
+    with Image.open(out / "path.gif") as gif:  # the default 12 fps: 83.3 ms, to the centisecond
+        assert gif.n_frames == 8 and gif.info["duration"] == results["video"]["gif_frame_ms"] == 80
     # The exports load back through `waldo render --poses` for the procedural room.
     for name in ("camera_path.json", "instant_ngp_path.json"):
         rendered = tmp_path / f"render_{name}"

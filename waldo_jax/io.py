@@ -112,6 +112,7 @@ def contact_sheet(
     pad: int = 2,
     min_cell: int = 96,
     row_titles: Optional[Sequence[str]] = None,
+    caption: Optional[str] = None,
 ) -> np.ndarray:
     """Tiles images into one uint8 picture, with an optional label written on each tile.
 
@@ -123,6 +124,7 @@ def contact_sheet(
       min_cell: small images are enlarged (nearest neighbour) so that a tile is at least this wide,
         keeping labels readable.
       row_titles: optional title per row, drawn in a band left of the row.
+      caption: optional text above the tiles (wrapped to the sheet's width): what the labels' scores are.
 
     Returns:
       uint8 [H_sheet, W_sheet, 3].
@@ -140,11 +142,17 @@ def contact_sheet(
     font = _font(max(10, min(16, tw // 8)))
     if row_titles:
         title_w = 12 + max(int(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(t, font=font)) for t in row_titles)
-    sheet = Image.new("RGB", (title_w + columns * tw + (columns + 1) * pad, rows * th + (rows + 1) * pad), (255, 255, 255))
+    width = title_w + columns * tw + (columns + 1) * pad
+    lines = _wrap(caption, font, width - 12) if caption else []
+    line_h = font.getbbox("Ag")[3] + 3
+    top = len(lines) * line_h + 6 if lines else 0
+    sheet = Image.new("RGB", (width, top + rows * th + (rows + 1) * pad), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
+    for n, line in enumerate(lines):
+        draw.text((6, 4 + n * line_h), line, fill=(0, 0, 0), font=font)
     for i, image in enumerate(images):
         r, c = divmod(i, columns)
-        x0, y0 = title_w + pad + c * (tw + pad), pad + r * (th + pad)
+        x0, y0 = title_w + pad + c * (tw + pad), top + pad + r * (th + pad)
         if image is None:
             continue
         tile = to_uint8(image) if np.asarray(image).dtype != np.uint8 else np.asarray(image)
@@ -157,8 +165,23 @@ def contact_sheet(
             draw.rectangle((box[0] - 2, box[1] - 1, box[2] + 2, box[3] + 1), fill=(0, 0, 0))
             draw.text((x0 + 3, y0 + 2), labels[i], fill=(255, 255, 255), font=font)
     for r, title in enumerate(row_titles or []):
-        draw.text((6, pad + r * (th + pad) + th // 2 - 6), title, fill=(0, 0, 0), font=font)
+        draw.text((6, top + pad + r * (th + pad) + th // 2 - 6), title, fill=(0, 0, 0), font=font)
     return np.asarray(sheet)
+
+
+def _wrap(text: str, font, width: int) -> List[str]:
+    """`text` in lines no wider than `width` pixels in `font` (a longer single word keeps its own line)."""
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    lines: List[str] = []
+    line = ""
+    for word in text.split():
+        trial = f"{line} {word}" if line else word
+        if line and measure.textlength(trial, font=font) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    return lines + [line] if line else lines
 
 
 def prepare_output_dir(path: str | os.PathLike, force: bool = False, can_force: bool = True) -> Path:

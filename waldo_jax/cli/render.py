@@ -157,7 +157,10 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     for path in stale:
         path.unlink()
     labels = [f"{i}: waldo {v:.0%}" for i, v in enumerate(visibility)]
-    io.save_png(out / "contact_sheet.png", io.contact_sheet(list(scene.images), labels=labels))
+    io.save_png(out / "contact_sheet.png", io.contact_sheet(
+        list(scene.images), labels=labels,
+        caption="View: Waldo visible, the share of his projected area in frame and unoccluded (exact, from the "
+                "room's geometry)"))
     io.write_transforms(out / "transforms.json", scene.c2w, scene.intrinsics, scene.file_names,
                         extra={"waldo_procedural_seed": seed, "aabb": scene.aabb.tolist()})
     io.write_json(out / "room.json", {

@@ -24,9 +24,14 @@ from waldo_jax.pipeline.experiment import refine_for_source as refine_for_source
 from waldo_jax.pipeline.experiment import run_explore as run_explore
 from waldo_jax.pipeline.experiment import score_function as score_function
 from waldo_jax.pipeline.experiment import seed_keys as seed_keys
+from waldo_jax.pipeline.figures import PlotFrame as PlotFrame
 from waldo_jax.pipeline.figures import contact_sheet as contact_sheet
+from waldo_jax.pipeline.figures import criterion_caption as criterion_caption
+from waldo_jax.pipeline.figures import criterion_label as criterion_label
 from waldo_jax.pipeline.figures import methods_sheet as methods_sheet
+from waldo_jax.pipeline.figures import plot_frame as plot_frame
 from waldo_jax.pipeline.figures import pose_cloud as pose_cloud
+from waldo_jax.pipeline.figures import scene_up as scene_up
 from waldo_jax.pipeline.outputs import RESULTS_JSON as RESULTS_JSON
 from waldo_jax.pipeline.outputs import results_dict as results_dict
 from waldo_jax.pipeline.outputs import write_outputs as write_outputs
@@ -38,7 +43,9 @@ from waldo_jax.pipeline.sources import run_source as run_source
 from waldo_jax.pipeline.sources import with_gradient as with_gradient
 
 __all__ = [
-    "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "Source", "SourceError", "contact_sheet",
-    "generated_slots", "gradient_cost_for", "initial_scores", "objective_function", "refine_for_source", "load_source", "methods_sheet", "pose_cloud", "procedural_source", "results_dict",
-    "run_explore", "run_source", "score_function", "seed_keys", "with_gradient", "write_outputs",
+    "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "PlotFrame", "Source", "SourceError",
+    "contact_sheet", "criterion_caption", "criterion_label", "generated_slots", "gradient_cost_for",
+    "initial_scores", "objective_function", "refine_for_source", "load_source", "methods_sheet", "plot_frame",
+    "pose_cloud", "procedural_source", "results_dict", "run_explore", "run_source", "scene_up", "score_function",
+    "seed_keys", "with_gradient", "write_outputs",
 ]

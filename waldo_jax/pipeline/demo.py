@@ -33,7 +33,7 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.config import TrainConfig
 from waldo_jax.nerf.runs import train_run
 from waldo_jax.pipeline.experiment import run_explore
-from waldo_jax.pipeline.figures import methods_sheet
+from waldo_jax.pipeline.figures import criterion_caption, methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import NERF_GRADIENT, Source, field_renderer, room_renderer
 from waldo_jax.procedural import (FOUND_VISIBILITY, RoomCameraConfig, held_out_scene, room_scene,
@@ -143,6 +143,8 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
         "image when found, else his visible fraction (exact, from the room's geometry; direction max). Budget `low`: "
         f"{summary['n_train']} training + 5 x {summary['children_per_epoch']} generated views; top-k = 10. "
         f"{s['seeds']} seeds per method (seeds {seeds[0]}..{seeds[-1]}), one vmapped call each.",
+        "",
+        f"Scores in every table and figure: {summary['criterion_caption']}.",
         "",
         "| method | CVIR % (mean ± std) | mCVIR % (mean ± std) | best score (mean) | Waldo visible in best view "
         "(mean; seeds >= 90 %) | NeRF render PSNR at best view (dB, mean) | PSNR over seed "
@@ -259,6 +261,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     summary = {
         "room_seed": seed,
         "criterion": criterion.name,
+        "criterion_caption": criterion_caption(criterion),
         "settings": dataclasses.asdict(settings),
         "seeds": first.seeds,
         "n_train": scene.n_images,

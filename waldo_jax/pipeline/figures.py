@@ -2,11 +2,15 @@
 
 `contact_sheet` (one run) and `methods_sheet` (several methods side by side, the paper's qualitative
 figure) are uint8 arrays; `pose_cloud` writes the paper's pose-cloud figure with host-side
-Matplotlib (no display needed).
+Matplotlib (no display needed). Every figure names what its scores are (`criterion_label`,
+`criterion_caption`: the criterion, its direction and range), and 3D figures stand the scene's own up
+axis vertical (`scene_up`, `plot_frame`: the mean of the training cameras' up vectors, as nerfstudio's
+and multinerf's orientation does).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import List, Mapping, Optional, Sequence, Tuple
 
@@ -18,9 +22,126 @@ from waldo_jax.io import atomic_file
 from waldo_jax.pipeline.experiment import ExploreRun
 from waldo_jax.pipeline.sources import resize_images
 
-__all__ = ["pose_cloud", "STAGES", "contact_sheet", "methods_sheet", "training_tiles"]
+__all__ = ["pose_cloud", "STAGES", "contact_sheet", "methods_sheet", "training_tiles", "criterion_label",
+           "criterion_caption", "scene_up", "plot_frame", "PlotFrame", "UP_SNAP_DEGREES"]
 
 STAGES = ("start", "epoch 1", "final")
+# A mean of a few cameras' up vectors leans a few degrees off the scene's up (lego_tiny's: 5.6 degrees
+# off +z); scenes are nearly always made with a world axis up, so an axis this close is taken as up.
+UP_SNAP_DEGREES = 15.0
+
+
+# ---------------------------------------------------------------------------------------------
+# What the scores are.
+
+
+def _range_text(value_range: Tuple[float, float]) -> str:
+    """A criterion's value range in words: 'in [0, 1]', '>= 0', '<= 5', or '' when unbounded."""
+    low, high = (float(v) for v in value_range)
+    if np.isfinite(low) and np.isfinite(high):
+        return f"in [{low:g}, {high:g}]"
+    if np.isfinite(low):
+        return f">= {low:g}"
+    return f"<= {high:g}" if np.isfinite(high) else ""
+
+
+def _direction_text(criterion) -> str:
+    """'higher is better' or 'lower is better', then the range when it is bounded."""
+    words = "higher is better" if criterion.direction == "max" else "lower is better"
+    bounds = _range_text(getattr(criterion, "value_range", (-np.inf, np.inf)))
+    return f"{words}, {bounds}" if bounds else words
+
+
+def criterion_label(criterion) -> str:
+    """Short axis / colour-bar label of a criterion's scores: name, direction and range.
+
+    E.g. "waldo_oracle (higher is better, in [0, 1])".
+    """
+    return f"{criterion.name} ({_direction_text(criterion)})"
+
+
+def criterion_caption(criterion) -> str:
+    """One sentence on what a criterion's scores are, for captions and reports: name, description,
+    direction and range. E.g. "brisque: BRISQUE (Mittal et al. 2012) ...; lower is better, in [0, 100]"."""
+    description = getattr(criterion, "description", "")
+    return f"{criterion.name}: {description}; {_direction_text(criterion)}" if description \
+        else criterion_label(criterion)
+
+
+# ---------------------------------------------------------------------------------------------
+# The scene's up axis.
+
+
+def scene_up(c2w: np.ndarray) -> np.ndarray:
+    """The scene's up direction float64 [3] (unit): the normalised mean of the cameras' up vectors
+    c2w[:, :3, 1] (OpenGL cameras: +y is the image's up), as nerfstudio's and multinerf's "up"
+    orientation takes it. +z when there are no cameras or their up vectors cancel out.
+
+    Args:
+      c2w: float [N, 4, 4] (or [N, 3, 4]) camera-to-world poses, the training cameras.
+    """
+    c2w = np.asarray(c2w, np.float64)
+    mean = c2w[:, :3, 1].mean(axis=0) if len(c2w) else np.zeros(3)
+    norm = float(np.linalg.norm(mean))
+    return mean / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class PlotFrame:
+    """World -> plot coordinates that stand the scene's up vertical (the plot's third axis).
+
+    Attributes:
+      rotation: float64 [3, 3], a rotation; row i is the world direction of the plot's axis i.
+      labels: the plot's three axis labels (world axes, e.g. ("x", "y", "z (up)"), or directions).
+      up: float64 [3] the world direction plotted vertical (unit).
+      up_text: the up direction in words, e.g. "+z" or "(0.27, 0.00, 0.96)".
+    """
+
+    rotation: np.ndarray
+    labels: Tuple[str, str, str]
+    up: np.ndarray
+    up_text: str
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """Plot coordinates [..., 3] of world points or directions [..., 3]."""
+        return np.asarray(points, np.float64) @ self.rotation.T
+
+
+def _vector_text(v: np.ndarray) -> str:
+    return "(" + ", ".join(f"{x:.2f}" for x in v) + ")"
+
+
+def plot_frame(up: np.ndarray, snap_degrees: float = UP_SNAP_DEGREES) -> PlotFrame:
+    """The right-handed frame whose vertical axis is `up`, snapped to a world axis within `snap_degrees`.
+
+    Snapped (the usual case: +z for Blender scenes, +y for the procedural room, -y for LLFF), the
+    plot's axes are world axes and keep their names, e.g. up +y plots (z, x, y). Otherwise the plot's
+    vertical is `up` itself and its horizontal axes are named by their world directions.
+
+    Args:
+      up: float [3] the scene's up (`scene_up`); need not be unit.
+      snap_degrees: largest angle between `up` and a world axis taken as that axis.
+    """
+    up = np.asarray(up, np.float64)
+    up = up / max(float(np.linalg.norm(up)), 1e-12)
+    k = int(np.argmax(np.abs(up)))
+    sign = 1.0 if up[k] > 0 else -1.0
+    eye = np.eye(3)
+    if np.degrees(np.arccos(min(abs(float(up[k])), 1.0))) <= snap_degrees:
+        # The cyclic order (k+1, k+2, k) is right-handed; a downward world axis swaps the horizontals.
+        first, second = ((k + 1) % 3, (k + 2) % 3) if sign > 0 else ((k + 2) % 3, (k + 1) % 3)
+        name = "-" if sign < 0 else ""
+        axis_up = f"{name}{'xyz'[k]}"
+        return PlotFrame(rotation=np.stack([eye[first], eye[second], sign * eye[k]]),
+                         labels=("xyz"[first], "xyz"[second], f"{axis_up} (up)"), up=sign * eye[k],
+                         up_text=axis_up if sign < 0 else f"+{axis_up}")
+    across = eye[int(np.argmin(np.abs(up)))]  # the world axis least aligned with up
+    first = across - np.dot(across, up) * up
+    first /= np.linalg.norm(first)
+    second = np.cross(up, first)
+    return PlotFrame(rotation=np.stack([first, second, up]),
+                     labels=(f"along {_vector_text(first)}", f"along {_vector_text(second)}",
+                             f"up {_vector_text(up)}"), up=up, up_text=_vector_text(up))
 
 
 def _camera_axes(c2w: np.ndarray):
@@ -28,18 +149,50 @@ def _camera_axes(c2w: np.ndarray):
     return c2w[:, :3, 3], -c2w[:, :3, 2]
 
 
-def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epoch: np.ndarray, direction: str,
-               title: str = "", threshold: Optional[float] = None, marker: Optional[np.ndarray] = None,
-               stages: Sequence[int] = (0, 1, -1), arrow_length: Optional[float] = None) -> None:
+# Pose-cloud colours of a score better than the threshold, of any other score, and of a failed view.
+_GOOD, _BAD, _FAILED = (0.1, 0.65, 0.2, 1.0), (0.85, 0.15, 0.15, 1.0), (0.6, 0.6, 0.6, 1.0)
+
+
+def _legend_handles(epoch: np.ndarray, threshold: Optional[float], direction: str, failed: bool,
+                    marker_label: Optional[str]):
+    """Proxy artists naming every kind of mark `pose_cloud` draws (training and generated views where present)."""
+    from matplotlib.lines import Line2D
+
+    def point(mark, label, face="0.75", edge="k", size=7):
+        return Line2D([], [], ls="none", marker=mark, markersize=size, markerfacecolor=face, markeredgecolor=edge,
+                      label=label)
+
+    handles = [point("^", "training view")] if np.any(epoch == 0) else []
+    if np.any(epoch > 0):
+        handles.append(point("o", "generated view", edge="none", size=5))
+    handles.append(Line2D([], [], color="0.4", lw=0.8, label="view direction"))
+    if threshold is not None:
+        better = ">" if direction == "max" else "<"
+        handles += [point("s", f"score {better} {threshold:g}", face=_GOOD, edge="none"),
+                    point("s", "other scores", face=_BAD, edge="none")]
+    if failed:
+        handles.append(point("s", "failed (no score)", face=_FAILED, edge="none"))
+    if marker_label:
+        handles.append(point("*", marker_label, face="k", size=11))
+    return handles
+
+
+def pose_cloud(path: Optional[str | os.PathLike], c2w: np.ndarray, scores: np.ndarray, epoch: np.ndarray,
+               direction: str, title: str = "", threshold: Optional[float] = None,
+               marker: Optional[np.ndarray] = None, stages: Sequence[int] = (0, 1, -1),
+               arrow_length: Optional[float] = None, score_label: Optional[str] = None,
+               marker_label: str = "target", up: Optional[np.ndarray] = None):
     """Writes a figure with one 3D panel per stage: the poses that exist at that stage, coloured by score.
 
     Stage e shows the training views (epoch 0) and every child born in epochs 1..e (-1: all epochs).
     Training views are drawn as triangles, children as dots; a short line shows each view direction.
     With `threshold`, views better than it are green and the others red (the paper's colouring);
-    otherwise a colour map of the score (brighter = better in the criterion's direction).
+    otherwise a colour map of the score (brighter = better in the criterion's direction). The scene's
+    up (`up`, default `scene_up` of the training views) is vertical (`plot_frame`); a legend names
+    every mark, and a caption the up direction.
 
     Args:
-      path: PNG to write.
+      path: PNG to write (None: write nothing, only return the figure).
       c2w: float [C, 4, 4] poses of the population (valid slots only).
       scores: float [C] their raw scores (NaN: failed, drawn grey).
       epoch: int [C] epoch of birth (0: training view).
@@ -49,6 +202,12 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
       marker: optional [3] point to mark (e.g. Waldo's position), drawn as a black star.
       stages: epochs to show, one panel each (-1: the final epoch).
       arrow_length: length of the view-direction lines (default: 4 % of the cloud's extent).
+      score_label: what the scores are, for the colour bar (`criterion_label`; default: the direction).
+      marker_label: the legend's name of `marker`.
+      up: float [3] the world direction drawn vertical (default: `scene_up` of the epoch-0 poses).
+
+    Returns:
+      The Matplotlib `Figure`.
     """
     # A bare Figure (no pyplot): draws off-screen without switching a notebook's backend.
     import matplotlib
@@ -57,57 +216,68 @@ def pose_cloud(path: str | os.PathLike, c2w: np.ndarray, scores: np.ndarray, epo
     c2w = np.asarray(c2w, np.float64)
     scores = np.asarray(scores, np.float64)
     epoch = np.asarray(epoch)
-    centres, views = _camera_axes(c2w)
+    training = c2w[epoch == 0] if np.any(epoch == 0) else c2w
+    frame = plot_frame(scene_up(training) if up is None else up)
+    centres, views = (frame(a) for a in _camera_axes(c2w))  # plot coordinates: the scene's up is the third
     last = int(epoch.max()) if epoch.size else 0
     finite = np.isfinite(scores)
     lo, hi = (np.min(scores[finite]), np.max(scores[finite])) if finite.any() else (0.0, 1.0)
     extent = float(np.max(np.ptp(centres, axis=0))) if len(centres) > 1 else 1.0
     arrow = arrow_length if arrow_length is not None else 0.04 * max(extent, 1e-6)
     cmap = matplotlib.colormaps["viridis" if direction == "max" else "viridis_r"]
+    score_label = score_label or f"score ({'higher' if direction == 'max' else 'lower'} is better)"
 
     fig = Figure(figsize=(4.2 * len(stages), 4.4))
-    points = centres if marker is None else np.concatenate([centres, np.asarray(marker, np.float64).reshape(1, 3)])
+    star = None if marker is None else frame(np.asarray(marker, np.float64).reshape(3))
+    points = centres if star is None else np.concatenate([centres, star[None]])
     bounds = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.ones(3))
+    if threshold is not None:
+        good = (scores > threshold) if direction == "max" else (scores < threshold)
+        colours = np.where(good[:, None], np.array([_GOOD]), np.array([_BAD]))
+    else:
+        colours = cmap((scores - lo) / max(hi - lo, 1e-12))
+    colours[~finite] = _FAILED
     for panel, stage in enumerate(stages):
         upto = last if stage < 0 else min(stage, last)
         ax = fig.add_subplot(1, len(stages), panel + 1, projection="3d")
         shown = epoch <= upto
-        if threshold is not None:
-            good = (scores > threshold) if direction == "max" else (scores < threshold)
-            colours = np.where(good[:, None], np.array([[0.1, 0.65, 0.2, 1.0]]), np.array([[0.85, 0.15, 0.15, 1.0]]))
-        else:
-            colours = cmap((scores - lo) / max(hi - lo, 1e-12))
-        colours[~finite] = (0.6, 0.6, 0.6, 1.0)
         for is_train, mark, size in ((True, "^", 34), (False, "o", 12)):
             sel = shown & ((epoch == 0) == is_train)
             if not sel.any():
                 continue
-            # Plot y (up) as the vertical axis: (x, z, y).
-            ax.scatter(centres[sel, 0], centres[sel, 2], centres[sel, 1], c=colours[sel], marker=mark, s=size,
+            ax.scatter(centres[sel, 0], centres[sel, 1], centres[sel, 2], c=colours[sel], marker=mark, s=size,
                        depthshade=False, edgecolors="k" if is_train else "none", linewidths=0.4)
             tips = centres[sel] + arrow * views[sel]
             for a, b, col in zip(centres[sel], tips, colours[sel]):
-                ax.plot([a[0], b[0]], [a[2], b[2]], [a[1], b[1]], color=col, linewidth=0.6)
-        if marker is not None:
-            m = np.asarray(marker, np.float64)
-            ax.scatter([m[0]], [m[2]], [m[1]], c="k", marker="*", s=120, depthshade=False)
+                ax.plot([a[0], b[0]], [a[1], b[1]], [a[2], b[2]], color=col, linewidth=0.6)
+        if star is not None:
+            ax.scatter([star[0]], [star[1]], [star[2]], c="k", marker="*", s=120, depthshade=False)
         name = "start (training views)" if upto == 0 else (f"epoch {upto}" if stage >= 0 else f"final (epoch {upto})")
         ax.set_title(f"{name}: {int(shown.sum())} views", fontsize=9)
         ax.set_xlim(bounds[0][0], bounds[1][0])
-        ax.set_ylim(bounds[0][2], bounds[1][2])
-        ax.set_zlim(bounds[0][1], bounds[1][1])
-        ax.set_xlabel("x", fontsize=8)
-        ax.set_ylabel("z", fontsize=8)
-        ax.set_zlabel("y (up)", fontsize=8)
+        ax.set_ylim(bounds[0][1], bounds[1][1])
+        ax.set_zlim(bounds[0][2], bounds[1][2])
+        ax.set_xlabel(frame.labels[0], fontsize=8)
+        ax.set_ylabel(frame.labels[1], fontsize=8)
+        ax.set_zlabel(frame.labels[2], fontsize=8)
         ax.tick_params(labelsize=6)
         ax.view_init(elev=28, azim=-60)
     if threshold is None and finite.any():
         mappable = matplotlib.cm.ScalarMappable(cmap=cmap, norm=matplotlib.colors.Normalize(lo, hi))
-        fig.colorbar(mappable, ax=fig.axes, shrink=0.6, label="score")
+        fig.colorbar(mappable, ax=fig.axes, shrink=0.6, label=score_label)
+    handles = _legend_handles(epoch, threshold, direction, bool((~finite).any()),
+                              None if star is None else marker_label)
+    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.45, 0.06), ncol=len(handles), fontsize=8,
+               frameon=False)
+    colour = f"Colour: {score_label}." if threshold is None else f"Scores: {score_label}."
+    fig.text(0.45, -0.02, f"Vertical: the scene's up, {frame.up_text} (the mean of the training cameras' up "
+             f"vectors). {colour}", ha="center", va="top", fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    with atomic_file(path) as f:
-        fig.savefig(f, format="png", dpi=90, bbox_inches="tight")
+    if path is not None:
+        with atomic_file(path) as f:
+            fig.savefig(f, format="png", dpi=90, bbox_inches="tight")
+    return fig
 
 
 # ---------------------------------------------------------------------------------------------
@@ -141,7 +311,8 @@ def training_tiles(run: ExploreRun, indices: Sequence[int]) -> Tuple[List[np.nda
 
 
 def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
-    """uint8 sheet: best training views (first row), best found views (second), analytic truth (third, if any)."""
+    """uint8 sheet: best training views (first row), best found views (second), analytic truth (third, if any),
+    under a caption naming the criterion, its direction and range (`criterion_caption`)."""
     k = len(run.top_images)
     columns = columns or max(k, 1)
     shape = run.top_images.shape[1:3] if k else (run.source.intrinsics.height, run.source.intrinsics.width)
@@ -159,7 +330,12 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
         images += list(run.top_truth) + [None] * (columns - k)
         labels += [None] * columns
         titles.append("analytic truth")
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)
+    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles,
+                            caption=_sheet_caption(run.criterion))
+
+
+def _sheet_caption(criterion) -> str:
+    return f"Scores on the tiles: {criterion_caption(criterion)}"
 
 
 def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
@@ -169,7 +345,7 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
     order of `runs`) its top views of the first seed as the source renders them, labelled with rank
     and score; a top view that is a training pose is marked "train" (its score is the training
     view's, the tile the render). For a NeRF of the procedural room each method's row is followed
-    by the same views rendered by the analytic room (the truth).
+    by the same views rendered by the analytic room (the truth). A caption names the criterion.
     """
     first = next(iter(runs.values()))
     best_train = _best_training(first, columns)
@@ -194,4 +370,5 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
             truth = row(run.top_truth, [])
             images, labels = images + truth[0], labels + truth[1]
             titles += [f"{method.upper()} (NeRF)", f"{method.upper()} (truth)"]
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles)
+    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles,
+                            caption=_sheet_caption(first.criterion))

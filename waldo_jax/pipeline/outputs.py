@@ -1,13 +1,16 @@
 """The files of an experiment (what `waldo explore` promises), written by `write_outputs`:
 
-  results.json      the run: method, criterion, direction, seed(s), budget, n_train, n_generated,
+  results.json      the run: method, criterion (its description, and criterion_caption: what the scores
+                    are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
                     scores_train, scores_generated (generation order), cvir, mcvir, topk
                     [{score, c2w, image, ...}], epochs (per-epoch best and mean-top-N), seconds;
                     with several seeds also per_seed and the mean / std of CVIR and mCVIR
   topk/NN.png       the top-k views, best first (the first seed's)
-  contact_sheet.png best training views in the first row, best found views below, scores on them
+  contact_sheet.png best training views in the first row, best found views below, scores on them, the
+                    criterion named above
   poses.json        the top-k poses in transforms.json form (instant-ngp / nerfstudio can render them)
-  pose_cloud.png    every pose coloured by score at the start, after epoch 1 and at the end
+  pose_cloud.png    every pose coloured by score at the start, after epoch 1 and at the end, the scene's
+                    up vertical, with a legend
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 
 from waldo_jax import io
 from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
-from waldo_jax.pipeline.figures import contact_sheet, pose_cloud
+from waldo_jax.pipeline.figures import contact_sheet, criterion_caption, criterion_label, pose_cloud
 from waldo_jax.search import Result
 
 __all__ = ["RESULTS_JSON", "results_dict", "write_outputs"]
@@ -66,6 +69,7 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "method": config.method,
         "criterion": run.criterion.name,
         "criterion_description": run.criterion.description,
+        "criterion_caption": criterion_caption(run.criterion),
         "direction": run.criterion.direction,
         "source": source.spec,
         "source_info": source.info,
@@ -139,7 +143,7 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     pose_cloud(out / "pose_cloud.png", np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
                np.asarray(population.epoch)[filled], run.criterion.direction,
                title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
-               marker=marker)
+               marker=marker, score_label=criterion_label(run.criterion), marker_label="Waldo (the target)")
     results = results_dict(run, names)
     io.write_json(out / RESULTS_JSON, results)
     return results

@@ -6,13 +6,16 @@ evaluates the two reference paths (the straight path between the two best anchor
 training trajectory: the spline through every training camera in order, at the same F frames)
 under the same criterion and limits, and renders the best path's frames for the video.
 `write_path_outputs` writes camera_path.json (nerfstudio), instant_ngp_path.json, poses.json,
-path.mp4 and path.gif, path_sheet.png, scores.png, path_plot.png and results.json (and, for a NeRF
-of the room, path_truth.mp4: the NeRF beside the analytic room).
+path.mp4 and path.gif (at `gif_frame_ms`: the fps to the centisecond), path_sheet.png, scores.png,
+path_plot.png (a top view down the scene's up, each path's start and end marked) and results.json (and,
+for a NeRF of the room, path_truth.mp4: the NeRF beside the analytic room). Every figure names the
+criterion, its direction and range.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import textwrap
 import time
 import warnings
 from pathlib import Path
@@ -29,12 +32,13 @@ from waldo_jax.search.path_search import PathConfig, aggregate_scores, search_pa
 from waldo_jax.criteria import Criterion
 from waldo_jax.errors import WaldoError
 from waldo_jax.pipeline.experiment import EPOCH_BYTES_PER_PIXEL, initial_scores, memory_bytes, seed_keys
+from waldo_jax.pipeline.figures import criterion_caption, criterion_label, plot_frame, scene_up
 from waldo_jax.pipeline.sources import Source
 from waldo_jax.search.population import training_poses
 from waldo_jax.cameras import camera_focus
 
 __all__ = ["PathRun", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
-           "paths_per_call", "evaluate_path", "check_nerfstudio_export"]
+           "paths_per_call", "evaluate_path", "check_nerfstudio_export", "gif_frame_ms"]
 
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
 
@@ -255,9 +259,19 @@ def _video(path: Path, frames: np.ndarray, fps: float) -> Tuple[int, int]:
     return int(data.shape[2]), int(data.shape[1])
 
 
+def gif_frame_ms(fps: float) -> int:
+    """Milliseconds each GIF frame lasts at `fps`: 1000 / fps to the nearest centisecond (a GIF stores
+    centiseconds; Python's rounding, ties to even), at least 2 cs (browsers slow 0-1 cs frames to 10 cs).
+
+    Pillow's writer truncates milliseconds to centiseconds (15 fps: 66.7 ms -> 60 ms, 16.7 fps), so the
+    rounded value is passed in whole centiseconds.
+    """
+    return 10 * max(2, round(100.0 / fps))
+
+
 def _write_video(imageio, tmp: Path, data, fps: float) -> None:
     if tmp.suffix.lower() == ".gif":
-        imageio.mimwrite(tmp, data, duration=1000.0 / fps, loop=0)
+        imageio.mimwrite(tmp, data, duration=gif_frame_ms(fps), loop=0)  # imageio's Pillow plugin: milliseconds
     else:
         imageio.mimwrite(tmp, data, fps=fps, macro_block_size=1, quality=8)
 
@@ -279,60 +293,71 @@ def _ngp_frame(source: Source) -> NgpFrame:
                            bool(info.get("ngp_from_mitsuba", False)))
 
 
-def _plot_scores(path: Path, run: PathRun) -> None:
-    import matplotlib
+def _score_figure(run: PathRun):
+    """Per-frame scores of the found path and the two references (a bare Matplotlib `Figure`)."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.4, 3.2), dpi=120)
+    fig = Figure(figsize=(6.4, 3.4), dpi=120)
+    ax = fig.add_subplot()
     x = np.arange(run.config.frames)
     ax.plot(x, run.found[0]["frame_scores"], label=f"found ({run.config.method})", lw=2)
     ax.plot(x, run.references["straight"]["frame_scores"], label="straight (two best anchors)", ls="--")
     ax.plot(x, run.references["training"]["frame_scores"], label="training trajectory", ls=":")
-    ax.set_xlabel("frame")
-    ax.set_ylabel(run.criterion.name)
-    ax.set_title(f"{run.criterion.name} per frame on {run.source.name}", fontsize=9)
+    ax.set_xlabel("frame (0: start)")
+    ax.set_ylabel(criterion_label(run.criterion), fontsize=8)
+    ax.set_title(textwrap.fill(f"{criterion_caption(run.criterion)}; per frame on {run.source.name}", 90),
+                 fontsize=8)
     ax.legend(fontsize=7)
-    fig.tight_layout()
+    return fig
+
+
+def _plot_scores(path: Path, run: PathRun) -> None:
     with io.atomic_file(path) as handle:
-        fig.savefig(handle, format="png")
-    plt.close(fig)
+        _score_figure(run).savefig(handle, format="png", bbox_inches="tight")
+
+
+def _path_figure(run: PathRun):
+    """Top view of the path, the references, the training cameras and, for the room, Waldo: looking down
+    the scene's up (`plot_frame` of the training cameras), each path's start and end marked."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    frame = plot_frame(scene_up(run.source.train_c2w))
+    train = frame(run.source.train_c2w[:, :3, 3])
+    fig = Figure(figsize=(4.8, 5.2), dpi=120)
+    ax = fig.add_subplot()
+    ax.scatter(train[:, 0], train[:, 1], s=10, c="0.6", label="training cameras")
+    best = np.asarray(run.results[0].best_c2w)
+    for colour, (name, c2w, style) in enumerate((
+            (f"found ({run.config.method})", best, "-"), ("straight", run.references["straight"]["c2w"], "--"),
+            ("training trajectory", run.references["training"]["c2w"], ":"))):
+        o = frame(np.asarray(c2w)[:, :3, 3])
+        ax.plot(o[:, 0], o[:, 1], style, color=f"C{colour}", label=name)
+        ax.scatter(o[:1, 0], o[:1, 1], marker="o", s=36, color=f"C{colour}", edgecolors="k", zorder=3, gid="start")
+        ax.scatter(o[-1:, 0], o[-1:, 1], marker="s", s=36, color=f"C{colour}", edgecolors="k", zorder=3, gid="end")
+    o, d = frame(best[:, :3, 3]), frame(-best[:, :3, 2])
+    scale = 0.06 * max(float(np.ptp(train[:, :2], axis=0).max()), 1e-6)
+    ax.quiver(o[::2, 0], o[::2, 1], d[::2, 0], d[::2, 1], angles="xy", scale_units="xy", scale=1.0 / scale,
+              width=0.004, color="C0", label="view direction (found)")
+    if run.source.room is not None:
+        w = frame(np.asarray(run.source.room.waldo_center))
+        ax.scatter([w[0]], [w[1]], marker="*", s=160, c="red", label="Waldo (the target)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(frame.labels[0])
+    ax.set_ylabel(frame.labels[1])
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Line2D([], [], ls="none", marker="o", color="0.8", markeredgecolor="k", label="start (frame 0)"),
+                Line2D([], [], ls="none", marker="s", color="0.8", markeredgecolor="k",
+                       label=f"end (frame {len(best) - 1})")]
+    ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, frameon=False)
+    ax.set_title(f"{run.config.method} path on {run.source.name}, top view\n(looking down the scene's up, "
+                 f"{frame.up_text}: the mean of the training cameras' up vectors)", fontsize=8)
+    return fig
 
 
 def _plot_path(path: Path, run: PathRun) -> None:
-    """Top view (the two axes the training cameras spread most along) of the path, the references,
-    the training cameras and, for the room, Waldo."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train = run.source.train_c2w[:, :3, 3]
-    axes = np.argsort(-np.ptp(train, axis=0))[:2]
-    fig, ax = plt.subplots(figsize=(4.8, 4.8), dpi=120)
-    ax.scatter(train[:, axes[0]], train[:, axes[1]], s=10, c="0.6", label="training cameras")
-    best = np.asarray(run.results[0].best_c2w)
-    for name, c2w, style in (("found", best, "-"), ("straight", run.references["straight"]["c2w"], "--"),
-                             ("training trajectory", run.references["training"]["c2w"], ":")):
-        o = c2w[:, :3, 3]
-        ax.plot(o[:, axes[0]], o[:, axes[1]], style, label=name)
-    o, d = best[:, :3, 3], -best[:, :3, 2]
-    scale = 0.06 * max(float(np.ptp(train[:, axes]).max()), 1e-6)
-    ax.quiver(o[::2, axes[0]], o[::2, axes[1]], d[::2, axes[0]], d[::2, axes[1]], angles="xy", scale_units="xy",
-              scale=1.0 / scale, width=0.004, color="C0")
-    if run.source.room is not None:
-        w = np.asarray(run.source.room.waldo_center)
-        ax.scatter([w[axes[0]]], [w[axes[1]]], marker="*", s=160, c="red", label="Waldo")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("xyz"[axes[0]])
-    ax.set_ylabel("xyz"[axes[1]])
-    ax.legend(fontsize=7)
-    ax.set_title(f"{run.config.method} path on {run.source.name}", fontsize=9)
-    fig.tight_layout()
     with io.atomic_file(path) as handle:
-        fig.savefig(handle, format="png")
-    plt.close(fig)
+        _path_figure(run).savefig(handle, format="png", bbox_inches="tight")
 
 
 def _summary(evaluation: Dict[str, Any]) -> Dict[str, Any]:
@@ -366,14 +391,16 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
     step = max(1, len(best) // 12)
     picks = list(range(0, len(best), step))
     scores = run.found[0]["frame_scores"]
-    io.save_png(out / "path_sheet.png", io.contact_sheet([run.frames[i] for i in picks],
-                                                         labels=[f"{i}: {scores[i]:.3g}" for i in picks]))
+    io.save_png(out / "path_sheet.png", io.contact_sheet(
+        [run.frames[i] for i in picks], labels=[f"{i}: {scores[i]:.3g}" for i in picks],
+        caption=f"Frame: score. Scores: {criterion_caption(run.criterion)}"))
     _plot_scores(out / "scores.png", run)
     _plot_path(out / "path_plot.png", run)
 
     limits = run.limits
     results = {
         "source": run.source.spec, "source_info": run.source.info, "criterion": run.criterion.name,
+        "criterion_description": run.criterion.description, "criterion_caption": criterion_caption(run.criterion),
         "direction": run.criterion.direction, "method": run.config.method, "seeds": run.seeds,
         "config": {k: v for k, v in dataclasses.asdict(run.config).items()},
         "cost": run.config.cost(),
@@ -395,7 +422,7 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
                       "kept_limits": bool(r.found)} for s, r, f in zip(run.seeds, run.results, run.found)],
         "seconds": run.seconds,
         "video": {"frame_size": [int(run.frames.shape[2]), int(run.frames.shape[1])], "mp4_size": list(mp4_size),
-                  "fps": float(fps)},
+                  "fps": float(fps), "gif_frame_ms": gif_frame_ms(fps)},
         "files": ["camera_path.json", "instant_ngp_path.json", "poses.json", "path.mp4", "path.gif",
                   "path_sheet.png", "scores.png", "path_plot.png"] + (["path_truth.mp4"] if run.truth is not None
                                                                       else []),
