@@ -233,14 +233,14 @@ def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--preset", "best"], "unknown preset 'best'"),
+    (["--preset", "best"], "unknown --preset 'best'"),  # refused by the parser (choices), one line too
     (["--steps", "0"], "--steps must be a positive integer"),
     (["--downscale", "-2"], "--downscale must be a positive number"),
     (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
 ])
 def test_train_rejects_bad_arguments(tmp_path, argv, message):
-    args = _parse(["train", str(tmp_path), "--out", str(tmp_path / "run")] + argv)
     with pytest.raises(WaldoError, match=message):
+        args = _parse(["train", str(tmp_path), "--out", str(tmp_path / "run")] + argv)
         args.handler(args)
 
 

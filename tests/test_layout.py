@@ -3,7 +3,7 @@
 Layers, bottom to top; a module may import from a lower layer or from its own package, never upward
 and never sideways into another package of its layer:
 
-  0 core      types, errors, _xla_flags
+  0 core      types, errors, _xla_flags, version
   1 base      paths, io, cameras
   2 data      scenes (one module per format), weights; search (poses and scores only: no renderer,
               no criterion)
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "waldo_jax"
 
 LAYERS = {
-    "waldo_jax.types": 0, "waldo_jax.errors": 0, "waldo_jax._xla_flags": 0,
+    "waldo_jax.types": 0, "waldo_jax.errors": 0, "waldo_jax._xla_flags": 0, "waldo_jax.version": 0,
     "waldo_jax.paths": 1, "waldo_jax.io": 1, "waldo_jax.cameras": 1,
     "waldo_jax.scenes": 2, "waldo_jax.weights": 2, "waldo_jax.search": 2,
     "waldo_jax.render": 3,

@@ -10,10 +10,12 @@ Commands:
   waldo demo [--out DIR] [--quick]                     the room end to end: train, search, report (`demo`)
   waldo score --criterion NAME IMAGE... [--json]        score image files with a criterion (`score`)
   waldo weights convert SRC DST                        criterion weights to the native .npz format (`weights`)
+  waldo --version                                      prints `waldo X.Y.Z` (`waldo_jax.version`)
 
 Each command module has `add_command(subparsers)`, which registers its parser with the function that
 runs it as `handler`. Bad input (a missing file, a malformed scene, an existing output folder) prints
-one line `waldo: error: ...` on stderr and exits with status 1, without a traceback. Ctrl-C and
+one line `waldo: error: ...` on stderr and exits with status 1, without a traceback; so do bad arguments
+(an unknown flag or choice: `waldo_jax.cli.conventions`, which also holds `--quiet` and progress). Ctrl-C and
 SIGTERM print `waldo: interrupted` and exit with 130 / 143, leaving no unfinished output
 (`waldo_jax.cli.interrupt`).
 """
@@ -28,17 +30,18 @@ import warnings
 from typing import List, Optional
 
 from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, weights
+from waldo_jax.cli.conventions import Parser
 from waldo_jax.errors import WaldoError, check_seed
+from waldo_jax.version import package_version
 
 __all__ = ["main", "build_parser", "check_jax_platforms"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser of the `waldo` command."""
-    parser = argparse.ArgumentParser(
-        prog="waldo",
-        description="Explore NeRF scene spaces in JAX (Finding Waldo, MMSys'24).",
-    )
+    parser = Parser(prog="waldo", description="Explore NeRF scene spaces in JAX (Finding Waldo, MMSys'24).")
+    parser.add_argument("--version", action="version", version=f"waldo {package_version()}",
+                        help="print the version (waldo X.Y.Z) and exit")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
     for command in (scene, train, explore, path, score, weights, demo, render):
@@ -63,11 +66,11 @@ def main(argv: Optional[List[str]] = None) -> int:
 def _run(argv: Optional[List[str]]) -> int:
     """Parses `argv` and runs its command; errors at the edges become one line and status 1."""
     parser = build_parser()
-    args = parser.parse_args(argv)
     show = warnings.showwarning
     # Warnings are one line each, like errors: "waldo: warning: ..." (not Python's file:line form).
     warnings.showwarning = lambda message, *rest, **kw: print(f"waldo: warning: {message}", file=sys.stderr)
     try:
+        args = parser.parse_args(argv)  # bad arguments: `UsageError`, one line like any bad input
         if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
             check_seed(args.seed, "--seed", getattr(args, "seeds", 1) or 1)
         check_jax_platforms()

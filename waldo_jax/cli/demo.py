@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from waldo_jax.cli.conventions import add_quiet
 from waldo_jax.pipeline.demo import run_demo
 
 __all__ = ["add_command", "cmd_demo"]
@@ -17,11 +18,11 @@ def add_command(subparsers) -> None:
                     "EGPS at the low budget with the waldo_found criterion (Waldo whole, then as large as possible; several "
                     "seeds each), and write report.md with CVIR/mCVIR per method, Waldo's visible share and the "
                     "NeRF's PSNR at the best views, contact sheets and pose clouds into a new folder.")
-    demo.add_argument("--out", default=None, help="output folder (default runs/demo-<timestamp>; never overwritten)")
+    demo.add_argument("--out", default=None, help="output folder (default: runs/demo-<timestamp>; never overwritten)")
     demo.add_argument("--quick", action="store_true", help="smaller settings (under 2 minutes on 2 CPU cores)")
     demo.add_argument("--seed", type=int, default=None,
-                      help="room seed and first search seed (default 1: the first room where Waldo can be seen whole)")
-    demo.add_argument("--quiet", action="store_true", help="no progress output")
+                      help="room seed and first search seed (default: 1, the first room where Waldo can be seen whole)")
+    add_quiet(demo)
     demo.set_defaults(handler=cmd_demo)
 
 

@@ -18,6 +18,7 @@ import time
 from typing import Optional
 
 from waldo_jax import io
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
@@ -39,37 +40,37 @@ def add_command(subparsers) -> None:
                    help="splat scenes: a transforms.json-like file of training poses (default: the model's "
                         "cameras.json, else a ring of 24 views around the splats)")
     add_criterion_arguments(p, default="waldo_oracle")
-    p.add_argument("--method", default="egps", help=f"one of {method_names()} (default egps)")
-    p.add_argument("--budget", default="low", help="low (250-300 images in total) or high (900-1000); default low")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--method", default="egps", help=f"one of {method_names()}")
+    p.add_argument("--budget", default="low", choices=tuple(BUDGETS),
+                   help="low (250-300 images in total) or high (900-1000)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds (seed, seed+1, ...) in one vmapped call")
     p.add_argument("--resolution", type=int, default=None,
                    help="longer image side of the renders (default: procedural 64, runs: the training size)")
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
-    p.add_argument("--epochs", type=int, default=5, help="epochs (default 5, as the paper)")
+    p.add_argument("--epochs", type=int, default=5, help="epochs (default: 5, as the paper)")
     p.add_argument("--children-per-epoch", type=int, default=None,
                    help="poses per epoch (default: derived from the budget and the number of training views)")
-    p.add_argument("--top-k", type=int, default=10, help="views returned (default 10)")
-    p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired (default 5)")
-    p.add_argument("--pibs-fallback", default="none", help="PIBS once its pairs run out: none or grs (default none)")
-    p.add_argument("--initial", default="images",
-                   help="score the initial population on the real training 'images' (default, as the paper) "
+    p.add_argument("--top-k", type=int, default=10, help="views returned")
+    p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired")
+    p.add_argument("--pibs-fallback", default="none", choices=("none", "grs"), help="PIBS once its pairs run out")
+    p.add_argument("--initial", default="images", choices=INITIAL_MODES,
+                   help="score the initial population on the real training 'images' (as the paper) "
                         "or on 'renders' at the training poses")
     p.add_argument("--views", type=int, default=None,
-                   help="procedural only: number of training views (default 24, at most 1000)")
+                   help="procedural only: number of training views, at most 1000 (default: 24)")
     defaults = RefineConfig()
     p.add_argument("--refine-poses", type=int, default=defaults.poses,
-                   help=f"+refine: best poses refined in the last epoch (default {defaults.poses})")
+                   help="+refine: best poses refined in the last epoch")
     p.add_argument("--refine-steps", type=int, default=defaults.steps,
-                   help=f"+refine: gradient evaluations per refined pose (default {defaults.steps})")
+                   help="+refine: gradient evaluations per refined pose")
     p.add_argument("--refine-step-size", type=float, default=defaults.step_size,
-                   help=f"+refine: largest step per coordinate, as a fraction of the scene extent "
-                        f"(default {defaults.step_size})")
+                   help="+refine: largest step per coordinate, as a fraction of the scene extent")
     p.add_argument("--gradient-cost", type=int, default=None,
                    help="+refine: renders one gradient evaluation counts as in the budget, >= 2 (default: "
                         "measured, 2 for a pose oracle, 12 through a render; README 'Which method when')")
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
-    p.add_argument("--quiet", action="store_true", help="no per-epoch progress lines")
+    add_quiet(p, "per-epoch progress lines nor progress bars")
     p.set_defaults(handler=cmd_explore)
 
 
@@ -119,7 +120,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     if method.differentiable and criterion is not None:
         criterion.smooth()  # a criterion gradient steps cannot follow, refused before the source loads too
-    source = load_source(args.source, args.resolution, args.views, args.cameras)
+    with Progress(args.quiet) as progress:  # on a terminal's stderr; the epochs print their own lines
+        progress.phase(f"loading {args.source}")
+        source = load_source(args.source, args.resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
     if method.differentiable:
@@ -137,7 +140,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
                       setup_seconds=setup)
     out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
-    results = write_outputs(run, out)
+    with Progress(args.quiet) as progress:
+        progress.phase("rendering the top views and writing the results")
+        results = write_outputs(run, out)
     best = results["topk"][0]["score"] if results["topk"] else None
 
     def percent(value, spread=None):  # None where no score was usable (every view failed a guard, or NaN)

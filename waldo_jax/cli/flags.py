@@ -22,7 +22,7 @@ def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[s
     """`--criterion`, `--guard`, `--weights` and `--target` on `parser`."""
     names = ", ".join(sorted(CRITERIA))
     parser.add_argument("--criterion", required=default is None, default=default,
-                        help=f"one of {names}, or weighted:NAME=W,NAME=W" + (f" (default {default})" if default else ""))
+                        help=f"one of {names}, or weighted:NAME=W,NAME=W")
     parser.add_argument("--guard", action="append", default=[], metavar="NAME:THRESHOLD",
                         help="a view failing this criterion's threshold gets the worst score, e.g. opacity:0.9 "
                              "(repeatable)")

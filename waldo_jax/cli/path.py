@@ -19,6 +19,7 @@ from pathlib import Path
 from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
@@ -45,44 +46,44 @@ def add_command(subparsers) -> None:
                    help="splat scenes: a transforms.json-like file of training poses (default: the model's "
                         "cameras.json, else a ring of 24 views around the splats)")
     add_criterion_arguments(p, default="waldo_oracle")
-    p.add_argument("--method", default="egps", help="egps (default) or evosax:NAME (e.g. evosax:CMA_ES)")
-    p.add_argument("--keyframes", type=int, default=4, help="keyframes K of the path (default 4)")
-    p.add_argument("--frames", type=int, default=24, help="frames F of the path (default 24)")
-    p.add_argument("--budget", default="low",
-                   help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']} (default low)")
-    p.add_argument("--epochs", type=int, default=5, help="epochs (default 5)")
-    p.add_argument("--initial-paths", type=int, default=16, help="starting paths (default 16)")
+    p.add_argument("--method", default="egps", help="egps or evosax:NAME (e.g. evosax:CMA_ES)")
+    p.add_argument("--keyframes", type=int, default=4, help="keyframes K of the path")
+    p.add_argument("--frames", type=int, default=24, help="frames F of the path")
+    p.add_argument("--budget", default="low", choices=tuple(PATH_BUDGETS),
+                   help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']}")
+    p.add_argument("--epochs", type=int, default=5, help="epochs")
+    p.add_argument("--initial-paths", type=int, default=16, help="starting paths")
     p.add_argument("--paths-per-epoch", type=int, default=None,
                    help="paths per epoch (default: derived from the budget, the frames and the starting paths)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds in one vmapped call (files show the first)")
     p.add_argument("--from-explore", default=None, metavar="DIR",
                    help="build the starting paths from the top poses of a `waldo explore` --out folder "
                         "(default: from the training views)")
-    p.add_argument("--aggregate", default="mean", help="a path's score from its frames: mean (default) or softmin")
+    p.add_argument("--aggregate", default="mean", choices=AGGREGATES, help="a path's score from its frames")
     p.add_argument("--temperature", type=float, default=0.05,
-                   help="softmin temperature in score units (default 0.05, for scores in [0, 1])")
-    p.add_argument("--max-speed", type=float, default=0.05,
-                   help="largest camera move per frame, in scene extents (default 0.05)")
-    p.add_argument("--max-turn", type=float, default=5.0, help="largest rotation per frame in degrees (default 5)")
+                   help="softmin temperature in score units (default: 0.05, for scores in [0, 1])")
+    p.add_argument("--max-speed", type=float, default=0.05, help="largest camera move per frame, in scene extents")
+    p.add_argument("--max-turn", type=float, default=5.0, help="largest rotation per frame in degrees")
     p.add_argument("--min-opacity", type=float, default=0.0,
-                   help="smallest mean opacity of a frame, 0 to 1 (default 0: off; a pose criterion renders "
+                   help="smallest mean opacity of a frame, 0 to 1 (default: 0, off; a pose criterion renders "
                         "nothing during the search, so the limit is checked only on rendering criteria)")
     p.add_argument("--min-travel", type=float, default=0.0,
-                   help="shortest camera travel over the whole path, in scene extents (default 0: off; e.g. 0.5 "
+                   help="shortest camera travel over the whole path, in scene extents (default: 0, off; e.g. 0.5 "
                         "for a move, since a path that stays at the best view scores best)")
     p.add_argument("--resolution", type=int, default=None,
                    help="longer image side of the search's renders (default: procedural 64, runs: training size)")
     p.add_argument("--video-resolution", type=int, default=None,
                    help="longer image side of the video frames (default: --resolution)")
-    p.add_argument("--fps", type=float, default=12.0, help="frames per second of the video and the exports (default 12)")
-    p.add_argument("--initial", default="images",
-                   help="score the training-view anchors on the real 'images' (default) or on 'renders'")
-    p.add_argument("--views", type=int, default=None, help="procedural only: number of training views (default 24)")
+    p.add_argument("--fps", type=float, default=12.0, help="frames per second of the video and the exports")
+    p.add_argument("--initial", default="images", choices=INITIAL_MODES,
+                   help="score the training-view anchors on the real 'images' or on 'renders'")
+    p.add_argument("--views", type=int, default=None, help="procedural only: number of training views (default: 24)")
     p.add_argument("--nerfstudio-transforms", default=None, metavar="FILE",
                    help="a nerfstudio model's dataparser_transforms.json: write camera_path.json in its world")
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    add_quiet(p)
     p.set_defaults(handler=cmd_path)
 
 
@@ -142,17 +143,22 @@ def cmd_path(args: argparse.Namespace) -> int:
     io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
-    source = load_source(args.source, args.resolution, args.views, args.cameras)
-    check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
-    video = source if args.video_resolution is None else load_source(args.source, args.video_resolution, args.views, args.cameras)
-    if criterion is None:  # a poses criterion: the room's oracles need the source
-        criterion = criterion_from_args(args, room=source.room, source=source.spec)
-    limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
-    run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, anchor_c2w=anchor_c2w,
-                   anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
-                   initial=args.initial, video_source=video, setup_seconds=time.perf_counter() - start)
-    out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
-    results = write_path_outputs(run, out, fps=args.fps, dataparser=dataparser)
+    with Progress(args.quiet) as progress:  # phases on a terminal's stderr: loading, compiling, searching...
+        progress.phase(f"loading {args.source}")
+        source = load_source(args.source, args.resolution, args.views, args.cameras)
+        check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
+        video = source if args.video_resolution is None else load_source(args.source, args.video_resolution,
+                                                                         args.views, args.cameras)
+        if criterion is None:  # a poses criterion: the room's oracles need the source
+            criterion = criterion_from_args(args, room=source.room, source=source.spec)
+        limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
+        run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, anchor_c2w=anchor_c2w,
+                       anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
+                       initial=args.initial, video_source=video, setup_seconds=time.perf_counter() - start,
+                       on_phase=progress.phase)
+        progress.phase("writing the exports, the video and the plots")
+        out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
+        results = write_path_outputs(run, out, fps=args.fps, dataparser=dataparser)
     found, straight, training = results["found"], results["references"]["straight"], results["references"]["training"]
     kept = "keeps every limit" if found["kept_limits"] else "NO path kept the limits (relax --max-speed, --max-turn, --min-travel or --min-opacity)"
     print(f"{config.method.upper()} path on {source.name} with {criterion.name}: {config.keyframes} keyframes, "

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.trained import render_trained
@@ -57,13 +57,15 @@ def add_command(subparsers) -> None:
                         help="a transforms.json-like file or a camera path of `waldo path`; RUN_DIR also takes "
                              "'train' for its training poses")
     render.add_argument("--resolution", type=int, default=None,
-                        help="procedural: image side (default 128); RUN_DIR: longer side (default: camera's)")
-    render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default 0)")
+                        help="procedural: image side; RUN_DIR: longer side (default: procedural 128, RUN_DIR the "
+                             "camera's)")
+    render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default: 0)")
     render.add_argument("--views", type=int, default=None,
-                        help="procedural only: number of training views (default 24, at most 1000)")
+                        help="procedural only: number of training views, at most 1000 (default: 24)")
     render.add_argument("--samples", type=int, default=None,
-                        help="procedural only: samples per ray (default 128, at most 1024)")
+                        help="procedural only: samples per ray, at most 1024 (default: 128)")
     render.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    add_quiet(render)
     render.set_defaults(handler=cmd_render)
 
 
@@ -81,16 +83,20 @@ def cmd_render(args: argparse.Namespace) -> int:
     return _render_run(args)
 
 
-def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names) -> None:
+def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names,
+                  progress: Progress) -> None:
     """Renders `c2w` in groups of one size (the last padded by repeating a pose: one compiled program,
     memory bounded by RENDER_GROUP_PIXELS however many poses) and writes out/names[i]."""
     group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
+    progress.phase("rendering (the first group compiles)", total=len(c2w), unit="view")
     for first in range(0, len(c2w), group):
         part = c2w[first:first + group]
         padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
         images = np.asarray(jax.device_get(render_group(padded)))[:len(part)]
         for name, image in zip(names[first:first + group], images):
             io.save_png(out / name, image)
+        progress.advance(len(part))
+    progress.close()
 
 
 def _render_splats(args: argparse.Namespace) -> int:
@@ -119,9 +125,12 @@ def _render_splats(args: argparse.Namespace) -> int:
     config = dataclasses.replace(source.splat_config, max_pairs=calibrate_max_pairs(
         source.splats, c2w, intrinsics, source.splat_config, margin=1.0))
     render = splat_renderer(source.splats, intrinsics, config)
-    print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
+    progress = Progress(args.quiet)
+    progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
     start = time.perf_counter()
-    _write_groups(lambda poses: render(jnp.asarray(poses)), np.asarray(c2w, np.float32), intrinsics, out, names)
+    with progress:
+        _write_groups(lambda poses: render(jnp.asarray(poses)), np.asarray(c2w, np.float32), intrinsics, out, names,
+                      progress)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()
@@ -145,8 +154,10 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     out = io.prepare_output_dir(args.out, force=args.force)
     start = time.perf_counter()
     try:
-        scene, room = room_scene(seed, num_views=args.views, resolution=args.resolution,
-                                 num_samples=args.samples, camera_config=RoomCameraConfig())
+        with Progress(args.quiet) as progress:
+            progress.phase(f"rendering {args.views} views (compiling first)")
+            scene, room = room_scene(seed, num_views=args.views, resolution=args.resolution,
+                                     num_samples=args.samples, camera_config=RoomCameraConfig())
     except ValueError as e:
         raise WaldoError(str(e)) from None
     seconds = time.perf_counter() - start
@@ -205,13 +216,9 @@ def _render_procedural_poses(args: argparse.Namespace, seed: int) -> int:
     room = make_room(seed)
     config = room_render_config(room, num_samples=samples)
     start = time.perf_counter()
-    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
-    for first in range(0, len(c2w), group):
-        part = c2w[first:first + group]
-        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
-        images = np.asarray(render_views(room_field, room, jnp.asarray(padded), intrinsics, config).rgb)[:len(part)]
-        for name, image in zip(names[first:first + group], images):
-            io.save_png(out / name, image)
+    with Progress(args.quiet) as progress:
+        _write_groups(lambda poses: render_views(room_field, room, jnp.asarray(poses), intrinsics, config).rgb,
+                      np.asarray(c2w, np.float32), intrinsics, out, names, progress)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()
@@ -248,11 +255,13 @@ def _render_run(args: argparse.Namespace) -> int:
     stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
 
     background = scene.background if scene.background is not None else np.zeros(3, np.float32)
-    print(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...", file=sys.stderr)
+    progress = Progress(args.quiet)
+    progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
     start = time.perf_counter()
-    _write_groups(lambda poses: render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, poses,
-                                               intrinsics, scene.near, scene.far, background, aabb=scene.aabb).rgb,
-                  c2w, intrinsics, out, names)
+    with progress:
+        _write_groups(lambda poses: render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, poses,
+                                                   intrinsics, scene.near, scene.far, background, aabb=scene.aabb).rgb,
+                      c2w, intrinsics, out, names, progress)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()

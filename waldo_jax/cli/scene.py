@@ -7,7 +7,9 @@ import json
 import sys
 import warnings
 
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.scenes import load_scene
+from waldo_jax.scenes.common import SPLITS
 
 __all__ = ["add_command", "cmd_scene_info"]
 
@@ -21,14 +23,17 @@ def add_command(subparsers) -> None:
     info.add_argument("path", help="scene folder or its transforms.json / poses_bounds.npy")
     info.add_argument("--json", action="store_true", help="print exactly one JSON object")
     info.add_argument("--downscale", type=float, default=None, help="load images downscaled by this factor")
-    info.add_argument("--split", default=None, help="train, val, test or all (default: the dataset's training set)")
+    info.add_argument("--split", default=None, choices=SPLITS,
+                      help="which images (default: the dataset's training set)")
+    add_quiet(info, "progress (the loading phase's bar)")
     info.set_defaults(handler=cmd_scene_info)
 
 
 def cmd_scene_info(args: argparse.Namespace) -> int:
     """`waldo scene info`: prints the summary (with --json, exactly one JSON object)."""
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, Progress(args.quiet) as progress:
         warnings.simplefilter("always")
+        progress.phase(f"loading {args.path}")
         scene = load_scene(args.path, downscale=args.downscale, split=args.split)
     for w in caught:  # warnings (e.g. skipped frames) go to stderr, never into the JSON
         print(f"waldo: warning: {w.message}", file=sys.stderr)

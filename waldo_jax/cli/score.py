@@ -20,6 +20,7 @@ import numpy as np
 
 from pathlib import Path
 
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError
 from waldo_jax.io import read_image
@@ -37,10 +38,11 @@ def add_command(subparsers) -> None:
     p.add_argument("--source", default=None, metavar="SOURCE",
                    help="score renders of SOURCE (procedural[:SEED], a RUN_DIR, a splat scene) instead of files")
     p.add_argument("--poses", default="train", metavar="FILE|train",
-                   help="with --source: a transforms.json-like poses file, or 'train' (default) for its training poses")
+                   help="with --source: a transforms.json-like poses file, or 'train' for its training poses")
     p.add_argument("--resolution", type=int, default=None, help="with --source: longer side of the renders")
     add_criterion_arguments(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    add_quiet(p)
     p.set_defaults(handler=cmd_score)
 
 
@@ -59,9 +61,13 @@ def cmd_score(args: argparse.Namespace) -> int:
     by_shape: dict = {}
     for i, image in enumerate(images):
         by_shape.setdefault(image.shape, []).append(i)
-    for shape, indices in by_shape.items():  # one batched call per image size
-        batch = np.stack([images[i] for i in indices])
-        scores[indices] = np.asarray(score(batch), np.float64)
+    with Progress(args.quiet) as progress:
+        progress.phase(f"scoring with {criterion.name} (compiling once per image size)", total=len(images),
+                       unit="image")
+        for shape, indices in by_shape.items():  # one batched call per image size
+            batch = np.stack([images[i] for i in indices])
+            scores[indices] = np.asarray(score(batch), np.float64)
+            progress.advance(len(indices))
     return _print(args, criterion, scores, args.images)
 
 
@@ -85,7 +91,10 @@ def _score_source(args: argparse.Namespace) -> int:
     if args.poses != "train" and not Path(args.poses).exists():
         raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
     criterion = criterion_before_source(args)
-    source = load_source(args.source, args.resolution)
+    progress = Progress(args.quiet)
+    with progress:
+        progress.phase(f"loading {args.source}")
+        source = load_source(args.source, args.resolution)
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
     if args.poses == "train":
@@ -98,5 +107,7 @@ def _score_source(args: argparse.Namespace) -> int:
                              f"{source.intrinsics.width}x{source.intrinsics.height} (--resolution {side}): "
                              "pass the --resolution of the file's longer side")
         labels = [f or f"pose {i}" for i, f in enumerate(files)]
-    scores = np.asarray(jax.jit(lambda c: score_function(source, criterion)(c))(np.asarray(c2w, np.float32)))
+    with progress:
+        progress.phase(f"rendering and scoring {len(c2w)} views (compiling first)")
+        scores = np.asarray(jax.jit(lambda c: score_function(source, criterion)(c))(np.asarray(c2w, np.float32)))
     return _print(args, criterion, scores, labels)

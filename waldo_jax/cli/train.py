@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import argparse
 
+from waldo_jax.cli.conventions import add_quiet
 from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
-from waldo_jax.nerf.runs import train_scene_run
+from waldo_jax.nerf.config import PRESETS
+from waldo_jax.nerf.runs import SAMPLER_CHOICES, train_scene_run
 
 MODELS = ("nerf", "splat")
 
@@ -31,22 +33,21 @@ def add_command(subparsers) -> None:
                     "on its test split (Blender: transforms_test.json; other formats: every 8th image).")
     p.add_argument("scene_path", metavar="SCENE_PATH", help="scene folder or scene file")
     p.add_argument("--model", default="nerf", choices=MODELS,
-                   help="nerf (Instant-NGP, the default) or splat (3D Gaussian splats, the reference 3DGS layout)")
+                   help="nerf (Instant-NGP) or splat (3D Gaussian splats, the reference 3DGS layout)")
     p.add_argument("--capacity", type=int, default=None,
-                   help="splat: the most splats the fit may hold (default 32768)")
+                   help="splat: the most splats the fit may hold (default: 32768)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory to write")
     p.add_argument("--steps", type=int, default=None,
                    help="training steps (default: the preset's; splat: 3000)")
     p.add_argument("--downscale", type=float, default=None, help="load images downscaled K times")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--preset", default="fast", help="fast or quality (default fast)")
-    p.add_argument("--sampler", default="auto",
-                   help="auto (= occupancy, the default), dense or occupancy")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--preset", default="fast", choices=PRESETS, help="training settings")
+    p.add_argument("--sampler", default="auto", choices=SAMPLER_CHOICES, help="auto (= occupancy), dense or occupancy")
     p.add_argument("--render-step-scale", type=float, default=None, metavar="X",
                    help="march renders X times coarser than training (default: measured after training on the "
                         "held-out views, the largest of 2, 3, 4 within 0.05 dB of X = 1)")
     p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p, "progress bar")
     p.set_defaults(handler=cmd_train)
 
 

@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 import waldo_jax.criteria  # noqa: F401  (registers the converters)
+from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError
 from waldo_jax.weights import CONVERTERS, convert_all, load_model
 
@@ -30,6 +31,7 @@ def add_command(subparsers) -> None:
     c.add_argument("dst", metavar="DST", help="output folder")
     c.add_argument("--model", action="append", default=None, help="convert only this model (repeatable)")
     c.add_argument("--force", action="store_true", help="replace existing converted files")
+    add_quiet(c, "line per model")
     c.set_defaults(handler=cmd_weights_convert)
 
 
@@ -43,13 +45,18 @@ def cmd_weights_convert(args: argparse.Namespace) -> int:
             if existing.exists():
                 raise WaldoError(f"{existing} exists; pass --force to replace it")
     start = time.perf_counter()
-    written = convert_all(args.src, dst, models)
+    progress = Progress(args.quiet)
+    with progress:
+        progress.phase(f"converting {args.src}")
+        written = convert_all(args.src, dst, models)
     for model, path in written.items():
         t0 = time.perf_counter()
         tree, _ = load_model(model, dst)
         seconds = time.perf_counter() - t0
         count = sum(int(np.size(leaf)) for leaf in _leaves(tree))
-        print(f"{model:8s} {count:9d} values -> {path} ({path.stat().st_size / 1e6:.2f} MB, loads in {seconds:.3f} s)")
+        if not args.quiet:
+            print(f"{model:8s} {count:9d} values -> {path} ({path.stat().st_size / 1e6:.2f} MB, loads in "
+                  f"{seconds:.3f} s)")
     print(f"converted {len(written)} model(s) in {time.perf_counter() - start:.1f} s")
     return 0
 

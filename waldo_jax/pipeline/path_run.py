@@ -19,7 +19,7 @@ import textwrap
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -156,7 +156,7 @@ def _training_trajectory(train_c2w: np.ndarray, frames: int) -> np.ndarray:
 def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: PathLimits, seed: int = 0,
              seeds: int = 1, anchor_c2w: Optional[np.ndarray] = None, anchors: str = "training views",
              initial: str = "images", video_source: Optional[Source] = None,
-             setup_seconds: float = 0.0) -> PathRun:
+             setup_seconds: float = 0.0, on_phase: Optional[Callable[[str], None]] = None) -> PathRun:
     """Runs the path search (`seeds` seeds in one vmapped call) and renders the first seed's best path.
 
     Args:
@@ -166,7 +166,9 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
       anchor_c2w: the anchor poses [A, 4, 4] (default: the training views, scored as `initial` says).
       anchors: what the anchors are, in words (results.json).
       video_source: the source rendering the video frames (another resolution); default `source`.
+      on_phase: called with the name of each phase as it starts (a progress display); changes nothing.
     """
+    phase = on_phase or (lambda name: None)
     start = time.perf_counter()
     config = dataclasses.replace(config, direction=criterion.direction).resolve()
     if seeds < 1:
@@ -180,12 +182,15 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
         config = dataclasses.replace(config, paths_per_call=min(fits // seeds,
                                                                 max(config.paths_per_epoch, config.initial_paths)))
     frame_fn = frame_function(source, criterion)
+    phase("scoring the anchors")
     if anchor_c2w is None:
         anchor_c2w = source.train_c2w
         anchor_scores, used = initial_scores(source, criterion, initial)
         anchors = f"training views (scored on {used})"
     else:
         anchor_scores = np.asarray(_evaluate_jit(frame_fn, jnp.asarray(anchor_c2w))[0], np.float32)
+    plural = lambda n, word: f"{n} {word}" + ("s" if n != 1 else "")  # noqa: E731
+    phase(f"compiling and searching ({plural(config.epochs, 'epoch')}, {plural(seeds, 'seed')})")
     try:
         if seeds == 1:
             results = [jax.device_get(search_path(jax.random.key(seed), frame_fn, anchor_c2w, anchor_scores,
@@ -197,6 +202,7 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     except ValueError as e:
         raise WaldoError(str(e)) from None
     searched = time.perf_counter()
+    phase("scoring the paths found and the reference paths")
     found = [evaluate_path(frame_fn, np.asarray(r.best_c2w), limits, config) for r in results]
     order = np.argsort(-np.where(np.isfinite(anchor_scores), (1 if config.direction == "max" else -1) * anchor_scores,
                                  -np.inf), kind="stable")
@@ -207,6 +213,7 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     references = {"straight": {**evaluate_path(frame_fn, straight, limits, config), "c2w": straight},
                   "training": {**evaluate_path(frame_fn, trajectory, limits, config), "c2w": trajectory}}
     video = video_source or source
+    phase(f"rendering the {config.frames} video frames")
     best = np.asarray(results[0].best_c2w)
     pixels = video.intrinsics.width * video.intrinsics.height
     rgba = _render_frames(video.render_rgba or video.render, best, pixels)

@@ -14,6 +14,8 @@ from waldo_jax.render.marched import render_marched_sharded as render_marched_sh
 from waldo_jax.render.marching import MarchConfig as MarchConfig
 from waldo_jax.render.occupancy import OccupancyConfig as OccupancyConfig
 from waldo_jax.render.occupancy import OccupancyGrid as OccupancyGrid
+from waldo_jax.render.sharding import gather_to_hosts as gather_to_hosts
+from waldo_jax.render.sharding import global_pose_mesh as global_pose_mesh
 from waldo_jax.render.sharding import pose_mesh as pose_mesh
 from waldo_jax.render.sharding import render_views_sharded as render_views_sharded
 from waldo_jax.render.sharding import shard_over_poses as shard_over_poses
@@ -39,6 +41,8 @@ __all__ = [
     "RenderConfig",
     "composite",
     "default_ray_chunk",
+    "gather_to_hosts",
+    "global_pose_mesh",
     "pose_mesh",
     "ray_aabb_interval",
     "render_marched",

@@ -4,6 +4,11 @@ A renderer in this convention is `render_fn(replicated, (c2w_local, per_pose_loc
 (params, grid, intrinsics, configs) is copied to every device, the poses and any per-pose arrays are
 split along a one-axis mesh named "poses". Every renderer of `waldo_jax.render` computes each ray
 independently of the others of its call, so the sharded images equal the single-device ones.
+
+Several hosts (processes): every process calls `jax.distributed.initialize(...)` before JAX starts a
+backend, then runs the same code with `global_pose_mesh()`; the result is a global `jax.Array` of which
+each process holds its devices' poses, and `gather_to_hosts` gives every process the whole of it
+(tests/test_multiprocess.py: two CPU processes, gloo collectives).
 """
 
 from __future__ import annotations
@@ -19,13 +24,45 @@ from jax.sharding import Mesh, PartitionSpec
 from waldo_jax.render.volume import RenderConfig, pose_keys, render_population
 from waldo_jax.types import Array, Field, Intrinsics, PRNGKey, RenderOutput
 
-__all__ = ["pose_mesh", "render_views_sharded", "shard_over_poses"]
+__all__ = ["pose_mesh", "global_pose_mesh", "gather_to_hosts", "render_views_sharded", "shard_over_poses"]
 
 
 def pose_mesh(devices=None) -> Mesh:
     """A one-axis mesh named "poses" over `devices` (default: all local devices)."""
     devices = jax.local_devices() if devices is None else devices
     return Mesh(np.asarray(devices), ("poses",))
+
+
+def global_pose_mesh() -> Mesh:
+    """`pose_mesh` over the devices of every process (`jax.devices()`), in process order.
+
+    Call `jax.distributed.initialize(...)` first on every process; in a single process this is
+    `pose_mesh(jax.devices())`.
+    """
+    return pose_mesh(jax.devices())
+
+
+def gather_to_hosts(tree):
+    """The whole of each array of `tree` as a NumPy array, on every process.
+
+    A global `jax.Array` sharded over several processes (the output of a renderer on
+    `global_pose_mesh()`) is all-gathered across processes (`multihost_utils.process_allgather`;
+    every process must call this, like any collective); any other array is copied to the host.
+
+    Args:
+      tree: pytree of arrays (e.g. a `RenderOutput`).
+
+    Returns:
+      The same pytree of `np.ndarray`s holding the global values, e.g. rgb [P, H, W, 3] of all poses.
+    """
+    from jax.experimental import multihost_utils
+
+    def whole(a):
+        if isinstance(a, jax.Array) and not a.is_fully_addressable:
+            return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+        return np.asarray(jax.device_get(a))
+
+    return jax.tree.map(whole, tree)
 
 
 def _pad_poses(a: Array, pad: int) -> Array:
@@ -53,9 +90,9 @@ def shard_over_poses(render_fn: Callable, replicated, c2w: Array, mesh: Optional
     of the last pose, split, and the padding is cropped from the result. `render_fn` must be the
     same function object across calls to reuse the compilation.
 
-    Multi-host: call `jax.distributed.initialize()` on every host first and pass a mesh over
-    `jax.devices()` (all hosts' devices); every host then calls this function with the same
-    arguments (SPMD), and the returned arrays are global `jax.Array`s sharded over the hosts.
+    Multi-host: call `jax.distributed.initialize()` on every host first and pass `global_pose_mesh()`
+    (all hosts' devices); every host then calls this function with the same arguments (SPMD), and the
+    returned arrays are global `jax.Array`s sharded over the hosts (`gather_to_hosts` gathers them).
 
     Args:
       render_fn: the renderer (static).
