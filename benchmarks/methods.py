@@ -50,7 +50,7 @@ from gradient_cost import measure  # noqa: E402
 from waldo_jax.criteria import CriterionContext, build_criterion  # noqa: E402
 from waldo_jax.pipeline import load_source, run_explore  # noqa: E402
 from waldo_jax.procedural import FOUND_VISIBILITY, waldo_visibility_batch  # noqa: E402
-from waldo_jax.search import ExploreConfig, RefineConfig  # noqa: E402
+from waldo_jax.search import ExploreConfig, RefineConfig, get_method  # noqa: E402
 
 METHODS = ("grs", "pibs", "egps", "egps+refine", "evosax:CMA_ES", "evosax:SNES")
 SCENES = {"room": ("procedural:{room_seed}", None), "fox": (None, "saliency")}
@@ -74,7 +74,8 @@ def summary(values, resamples: int) -> dict:
 
 
 def run_cell(source, criterion, method: str, budget: str, refine: RefineConfig, args) -> dict:
-    config = ExploreConfig(method=method, budget=budget, epochs=5, top_k=10, refine=refine)
+    options = {"refine": refine} if "refine" in get_method(method).options else {}
+    config = ExploreConfig(method=method, budget=budget, epochs=5, top_k=10, options=options)
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial)
     cvir = [float(r.cvir) if np.isfinite(r.cvir) else None for r in run.results]
     mcvir = [float(r.mcvir) if np.isfinite(r.mcvir) else None for r in run.results]

@@ -6,7 +6,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from waldo_jax.cli import main
+from waldo_jax.cli import build_parser, main
+from waldo_jax.cli.explore import explore_config_from_args
 from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion, make_criterion
 from waldo_jax.io import read_image
 from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, DemoSettings, run_demo
@@ -107,12 +108,26 @@ def test_image_criterion_renders_and_scores(tmp_path):
     assert explore(out, "--method", "pibs", "--criterion", "colorfulness") == 0
     r = json.loads((out / "results.json").read_text())
     assert r["initial_scores"] == "images" and r["direction"] == "max"
+    assert r["pibs"] == {"top_c": 5, "fallback": "none"}  # the defaults of PIBS's own options
     source = procedural_source(1, resolution=16, views=8)
     crit = make_criterion("colorfulness")
     np.testing.assert_allclose(r["scores_train"], np.asarray(crit.score_images(source.train_images)), rtol=1e-5)
     # The saved top view, scored again from its PNG (8-bit), gives the reported score.
     png = iio.imread(out / r["topk"][0]["image"]).astype(np.float32) / 255.0
     assert float(crit.score_images(png[None])[0]) == pytest.approx(r["topk"][0]["score"], rel=0.02)
+
+
+def test_method_flags_become_the_options_of_the_method_that_has_them():
+    def config(*flags):
+        return explore_config_from_args(build_parser().parse_args(["explore", "procedural:1", "--out", "x", *flags]))
+
+    assert config("--method", "grs", "--top-c", "3", "--pibs-fallback", "grs").options == ()
+    assert config("--method", "pibs", "--top-c", "3", "--pibs-fallback", "grs").method_options == {
+        "top_c": 3, "fallback": "grs"}
+    refined = config("--method", "pibs+refine", "--top-c", "3", "--refine-steps", "2").method_options
+    assert set(refined) == {"top_c", "fallback", "refine"} and refined["top_c"] == 3 and refined["refine"].steps == 2
+    assert set(config("--method", "egps+refine", "--top-c", "3").method_options) == {"refine"}
+    assert config("--method", "evosax:SNES", "--refine-steps", "2").options == ()
 
 
 def test_refine_and_evosax_methods_from_the_cli(tmp_path, capsys):

@@ -35,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 from test_search_explore import CONFIG, INITIAL, assert_same, toy_score  # noqa: E402
 
 REFINE = RefineConfig(poses=2, steps=3, step_size=0.05, gradient_cost=2)
-REFINE_CONFIG = dataclasses.replace(CONFIG, refine=REFINE)
+REFINE_CONFIG = dataclasses.replace(CONFIG, options={"refine": REFINE})
 
 
 def _population():
@@ -53,13 +53,14 @@ def _c2w(poses):
 @pytest.mark.parametrize("method", ["egps+refine", "grs+refine", "evosax:CMA_ES", "evosax:SimpleGA"])
 def test_new_methods_scan_equals_loop_and_rerun_is_bit_identical(method):
     objective = toy_score if method.endswith("+refine") else None
+    config = REFINE_CONFIG if method.endswith("+refine") else CONFIG  # refine is the +refine methods' option
     key = jax.random.key(7)
-    scanned = explore(key, toy_score, INITIAL, method, REFINE_CONFIG, objective_fn=objective)
-    again = explore(key, toy_score, INITIAL, method, REFINE_CONFIG, objective_fn=objective)
-    looped = explore_loop(key, toy_score, INITIAL, method, REFINE_CONFIG, objective_fn=objective)
+    scanned = explore(key, toy_score, INITIAL, method, config, objective_fn=objective)
+    again = explore(key, toy_score, INITIAL, method, config, objective_fn=objective)
+    looped = explore_loop(key, toy_score, INITIAL, method, config, objective_fn=objective)
     assert_same(scanned, again)
     assert_same(scanned, looped, atol=1e-5)
-    other = explore(jax.random.key(8), toy_score, INITIAL, method, REFINE_CONFIG, objective_fn=objective)
+    other = explore(jax.random.key(8), toy_score, INITIAL, method, config, objective_fn=objective)
     assert not np.array_equal(np.asarray(other.population.origin), np.asarray(scanned.population.origin))
     assert float(scanned.cvir) > 0.0
 
@@ -108,7 +109,8 @@ def test_refine_budget_is_paid_with_children():
     n_train = 24
     for budget, (low, high) in (("low", (250, 300)), ("high", (900, 1000))):
         plain = ExploreConfig(method="egps", budget=budget).cost(n_train)
-        refined_config = ExploreConfig(method="egps+refine", budget=budget, refine=RefineConfig(gradient_cost=12))
+        refined_config = ExploreConfig(method="egps+refine", budget=budget,
+                                       options={"refine": RefineConfig(gradient_cost=12)})
         refined = refined_config.cost(n_train)
         assert low <= refined["renders"] <= plain["renders"] <= high
         assert plain["renders"] - refined["renders"] < 5  # at most epochs - 1 renders apart
@@ -116,7 +118,8 @@ def test_refine_budget_is_paid_with_children():
                                       + refined["gradient_evaluations"] * refined["renders_per_gradient_evaluation"])
         assert refined["gradient_evaluations"] == 4 * 4 and plain["gradient_evaluations"] == 0
     with pytest.raises(ValueError, match="refinement costs"):
-        ExploreConfig(method="egps+refine", refine=RefineConfig(poses=20, steps=10, gradient_cost=12)).resolve(24)
+        ExploreConfig(method="egps+refine",
+                      options={"refine": RefineConfig(poses=20, steps=10, gradient_cost=12)}).resolve(24)
 
 
 def test_refine_epoch_writes_refined_children_of_the_best_poses():

@@ -14,7 +14,10 @@ import pytest
 
 # Importing waldo_jax first sets the XLA flag it needs before JAX starts its CPU backend.
 from waldo_jax.cameras import look_at
-from waldo_jax.search import METHODS, ExploreConfig, Initial, explore, explore_loop, explore_seeds
+from waldo_jax.errors import ConfigError, WaldoError
+from waldo_jax.search import METHODS, ExploreConfig, Initial, RefineConfig, explore, explore_loop, explore_seeds
+from waldo_jax.search import get_method, pibs
+from waldo_jax.search.method import ChildrenConfig
 
 import jax  # noqa: E402  (after waldo_jax, see above)
 import jax.numpy as jnp  # noqa: E402
@@ -170,14 +173,49 @@ def test_partial_score_fn_takes_traced_arrays_without_retracing():
 
 
 def test_progress_lines(capsys):
-    config = ExploreConfig(epochs=2, children_per_epoch=3, top_k=3, top_n=2, progress=True)
-    explore(jax.random.key(0), toy_score, INITIAL, "grs", config)
-    jax.effects_barrier()
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[explore grs]")]
-    assert len(lines) == 2 and lines[0].startswith("[explore grs] epoch 1/2: best ")
-    explore(jax.random.key(0), toy_score, INITIAL, "grs", CONFIG)  # off by default
+    config = ExploreConfig(epochs=2, children_per_epoch=3, top_k=3, top_n=2)
+    results = {}
+    for run in (explore, explore_loop):
+        results[run] = run(jax.random.key(0), toy_score, INITIAL, "grs", config, progress=True)
+        jax.effects_barrier()
+        lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[explore grs]")]
+        assert len(lines) == 2 and lines[0].startswith("[explore grs] epoch 1/2: best "), run.__name__
+    quiet = explore(jax.random.key(0), toy_score, INITIAL, "grs", config)  # off by default
     jax.effects_barrier()
     assert "[explore" not in capsys.readouterr().out
+    # Printing changes no draw; the callback's metrics can change how XLA fuses the epoch (with the test
+    # suite's fast-compile flags), hence equal up to rounding.
+    assert_same(results[explore], quiet, atol=1e-6)
+
+
+def test_method_options_belong_to_their_method():
+    # A method's config refuses an option it does not have, naming the option and the method.
+    with pytest.raises(ConfigError, match=r"search method 'grs' has no option 'top_c' \(its options: none\)"):
+        ChildrenConfig.create(6, 3, method="grs", top_c=4)
+    with pytest.raises(ConfigError, match=r"'egps' has no option 'fallback'"):
+        METHODS["egps"].make_config(6, 3, fallback="grs")
+    with pytest.raises(ConfigError, match=r"'pibs' has no option 'refine' \(its options: top_c, fallback\)"):
+        METHODS["pibs"].make_config(6, 3, refine=RefineConfig())
+    with pytest.raises(ConfigError, match=r"'pibs\+refine' has no option 'topc' \(its options: top_c, fallback, "
+                                          r"refine\)"):
+        METHODS["pibs+refine"].make_config(6, 3, topc=4)
+    with pytest.raises(ConfigError, match=r"'evosax:SNES' has no option 'top_c'"):
+        get_method("evosax:SNES").make_config(6, 3, top_c=4)
+    with pytest.raises(ConfigError, match=r"'grs' has no option 'top_c'"):  # and so does explore
+        explore(jax.random.key(0), toy_score, INITIAL, "grs", dataclasses.replace(CONFIG, options={"top_c": 4}))
+    assert issubclass(ConfigError, ValueError) and issubclass(ConfigError, WaldoError)
+    # The options a method has reach its config, and its search.
+    assert METHODS["pibs"].make_config(6, 3, top_c=3, fallback="grs") == pibs.Config(6, top_c=3, fallback="grs")
+    refined = METHODS["pibs+refine"].make_config(6, 3, top_c=3, refine=RefineConfig(poses=2))
+    assert refined.base == pibs.Config(6, top_c=3) and refined.refine.poses == 2 and refined.epochs == 3
+    assert METHODS["pibs"].options == ("top_c", "fallback") and METHODS["egps"].options == ()
+    default = explore(jax.random.key(0), toy_score, INITIAL, "pibs", CONFIG)
+    two = explore(jax.random.key(0), toy_score, INITIAL, "pibs", dataclasses.replace(CONFIG, options={"top_c": 2}))
+    assert not np.array_equal(np.asarray(default.population.origin), np.asarray(two.population.origin))
+    # Options are kept hashable and in one order, so equal configs share a compilation.
+    first = ExploreConfig(method="pibs", options={"top_c": 3, "fallback": "grs"})
+    second = ExploreConfig(method="pibs", options={"fallback": "grs", "top_c": 3})
+    assert first == second and hash(first) == hash(second) and first.method_options == {"top_c": 3, "fallback": "grs"}
 
 
 def test_registry_and_input_errors():

@@ -1,6 +1,6 @@
 """GRS, PIBS and EGPS proposals (waldo_jax.search), checked against the paper's Algorithm 1.
 
-Tiny populations (6 to 12 views) on a ring of cameras; every `propose` is jitted once per config.
+Tiny populations (6 to 12 views) on a ring of cameras; every `ask` is jitted once per config.
 Reference values are computed with NumPy (float64) from the population, not by the code under test.
 """
 
@@ -40,10 +40,10 @@ def make_population(scores, capacity):
                  train_c2w=jnp.asarray(c2w))
 
 
-_propose = {
-    "grs": jax.jit(grs.propose, static_argnames=("config",)),
-    "pibs": jax.jit(pibs.propose, static_argnames=("config",)),
-    "egps": jax.jit(egps.propose, static_argnames=("config",)),
+_ask = {
+    "grs": jax.jit(grs.ask, static_argnames=("config",)),
+    "pibs": jax.jit(pibs.ask, static_argnames=("config",)),
+    "egps": jax.jit(egps.ask, static_argnames=("config",)),
 }
 _write = jax.jit(write_children)
 _slerp = jax.jit(jax.vmap(slerp_pose))
@@ -64,7 +64,7 @@ def unit(v):
 
 def test_grs_children_follow_the_training_cameras():
     population = make_population(np.linspace(0.0, 1.0, 8), capacity=8)
-    children, mask, after = _propose["grs"](jax.random.key(0), population, grs.Params(), grs.Config(256), 1)
+    children, mask, after = _ask["grs"](jax.random.key(0), population, grs.Params(), grs.Config(256), 1)
     origin, target, up = np_pose(children)
     train_origin = np.asarray(population.origin, np.float64)
     train_target = np.asarray(population.target)
@@ -116,7 +116,7 @@ def test_pibs_interpolates_unexplored_pairs_and_exhausts_them():
 
     used_pairs, masks, ts = [], [], []
     for epoch in range(1, epochs + 1):
-        children, mask, population = _propose["pibs"](jax.random.key(epoch), population, pibs.Params(),
+        children, mask, population = _ask["pibs"](jax.random.key(epoch), population, pibs.Params(),
                                                       PIBS_CONFIG, epoch)
         mask = np.asarray(mask)
         masks.append(mask)
@@ -155,7 +155,7 @@ def test_pibs_skips_failed_scores_and_masks_spare_slots():
     # 3 finite views: 3 pairs for 4 slots, step round(4 / 3) = 1: 3 children and 1 masked slot.
     scores = np.array([0.4, np.nan, 0.1, np.nan, 0.2, np.nan], np.float32)
     population = make_population(scores, PIBS_CAPACITY)
-    _, mask, after = _propose["pibs"](jax.random.key(0), population, pibs.Params(), PIBS_CONFIG, 1)
+    _, mask, after = _ask["pibs"](jax.random.key(0), population, pibs.Params(), PIBS_CONFIG, 1)
     assert np.asarray(mask).tolist() == [True, True, True, False]
     explored = np.asarray(after.explored)
     assert not explored[[1, 3, 5]].any() and not explored[:, [1, 3, 5]].any()
@@ -165,7 +165,7 @@ def test_pibs_skips_failed_scores_and_masks_spare_slots():
 def test_pibs_more_pairs_than_slots_marks_only_used_pairs():
     # 6 pairs for 2 slots: round(2 / 6) = 0 is raised to 1; the 4 pairs not used stay unexplored.
     population = make_population(np.array([0.1, 0.9, 0.5, 0.7, 0.3, 0.8], np.float32), PIBS_CAPACITY)
-    _, mask, after = _propose["pibs"](jax.random.key(0), population, pibs.Params(), pibs.Config(2, top_c=4), 1)
+    _, mask, after = _ask["pibs"](jax.random.key(0), population, pibs.Params(), pibs.Config(2, top_c=4), 1)
     assert np.asarray(mask).all()
     explored = np.asarray(after.explored)
     assert explored.sum() == 2 * 2 and explored[1, 5] and explored[1, 3]
@@ -174,10 +174,10 @@ def test_pibs_more_pairs_than_slots_marks_only_used_pairs():
 def test_pibs_grs_fallback_fills_exhausted_slots():
     population = make_population(np.array([0.1, 0.9, 0.5, 0.7, 0.3, 0.8], np.float32), PIBS_CAPACITY)
     population = population.replace(explored=jnp.ones((PIBS_CAPACITY, PIBS_CAPACITY), bool))
-    _, mask, _ = _propose["pibs"](jax.random.key(3), population, pibs.Params(), PIBS_CONFIG, 1)
+    _, mask, _ = _ask["pibs"](jax.random.key(3), population, pibs.Params(), PIBS_CONFIG, 1)
     assert not np.asarray(mask).any()
     config = pibs.Config(4, top_c=4, fallback="grs")
-    children, mask, _ = _propose["pibs"](jax.random.key(3), population, pibs.Params(), config, 1)
+    children, mask, _ = _ask["pibs"](jax.random.key(3), population, pibs.Params(), config, 1)
     assert np.asarray(mask).all()
     # The fallback children are GRS poses: training look-at points and the mean training up.
     train_target = np.asarray(population.target)[:6]
@@ -198,7 +198,7 @@ NAN = np.nan
 def egps_children(scores, params=None, seed=0):
     population = make_population(np.asarray(scores, np.float32), 8)
     params = egps.Params() if params is None else params
-    children, mask, _ = _propose["egps"](jax.random.key(seed), population, params, EGPS_CONFIG, 1)
+    children, mask, _ = _ask["egps"](jax.random.key(seed), population, params, EGPS_CONFIG, 1)
     return population, children, np.asarray(mask)
 
 
@@ -286,7 +286,7 @@ def test_egps_params_are_vmappable():
     population = make_population(np.array([0.2, 0.9, 0.1, 0.7, NAN, NAN, NAN, NAN], np.float32), 8)
     params = egps.Params(nabla_scale=jnp.asarray([0.0, 0.5]), rank_bias=jnp.asarray([1.0, 1.0]),
                          mutation_probs=jnp.asarray([[0.05, 0.9, 0.05], [0.5, 0.0, 0.5]]))
-    sweep = jax.jit(jax.vmap(egps.propose, in_axes=(None, None, 0, None, None)), static_argnames=("config",))
+    sweep = jax.jit(jax.vmap(egps.ask, in_axes=(None, None, 0, None, None)), static_argnames=("config",))
     children, _, _ = sweep(jax.random.key(0), population, params, egps.Config(500), 1)
     pop_o = np.asarray(population.origin, np.float64)
     low, high = np.minimum(pop_o[1], pop_o[3]), np.maximum(pop_o[1], pop_o[3])

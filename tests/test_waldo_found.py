@@ -175,7 +175,7 @@ def test_egps_finds_waldo_whole_with_waldo_found():
     best = {}
     for name in ("waldo_found", "waldo_oracle"):
         criterion = make_criterion(name, CriterionContext(room=source.room))
-        run = run_explore(source, criterion, ExploreConfig(method="egps", budget="low", progress=False), seeds=4)
+        run = run_explore(source, criterion, ExploreConfig(method="egps", budget="low"), seeds=4)
         c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
         best[name] = np.asarray(waldo_visibility_batch(source.room, c2w, source.intrinsics))
     assert np.all(best["waldo_found"] >= FOUND_VISIBILITY), best

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "NumberError", "MAX_SEED", "MAX_INT32",
+__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "NumberError", "ConfigError", "MAX_SEED", "MAX_INT32",
            "check_seed", "MIN_RESOLUTION", "MAX_RESOLUTION", "check_resolution", "check_input_file", "check_float32",
            "check_int"]
 
@@ -53,6 +53,11 @@ class SceneFormatError(WaldoError):
 
 class DataNotFoundError(WaldoError, FileNotFoundError):
     """A data or weights file the project expects is missing."""
+
+
+class ConfigError(WaldoError, ValueError):
+    """A setting that does not exist where it was given (e.g. an option a search method does not have):
+    the message names it and where it was given."""
 
 
 class NumberError(WaldoError, ValueError):

@@ -13,7 +13,6 @@ SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from typing import Optional
 
@@ -78,7 +77,7 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     """An `ExploreConfig` from parsed arguments; bad values raise `WaldoError` naming the flag."""
     method = args.method if method is None else method
     try:
-        get_method(method)
+        search_method = get_method(method)
     except ValueError:
         raise WaldoError(f"unknown --method {method!r}: expected one of {method_names()}") from None
     if args.budget not in BUDGETS:
@@ -101,10 +100,13 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
                             ("step_size", "--refine-step-size"), ("gradient_cost", "--gradient-cost")):
             message = message.replace(f"RefineConfig.{field}", flag)
         raise WaldoError(message) from None
+    # The method's own options from the flags it has (--top-c and --pibs-fallback are PIBS's, the
+    # --refine-* flags the +refine methods'); the others' flags keep their defaults unused.
+    flags = {"top_c": args.top_c, "fallback": args.pibs_fallback, "refine": refine}
+    options = {name: value for name, value in flags.items() if name in search_method.options}
     try:
         return ExploreConfig(method=method, epochs=args.epochs, children_per_epoch=args.children_per_epoch,
-                             budget=args.budget, top_k=args.top_k, top_c=args.top_c, pibs_fallback=args.pibs_fallback,
-                             progress=not args.quiet, refine=refine)
+                             budget=args.budget, top_k=args.top_k, options=options)
     except ValueError as e:
         raise WaldoError(str(e)) from None
 
@@ -127,18 +129,16 @@ def cmd_explore(args: argparse.Namespace) -> int:
         criterion = criterion_from_args(args, room=source.room, source=source.spec)
     if method.differentiable:
         criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
-        config = dataclasses.replace(config, refine=refine_for_source(config.refine, source, criterion,
-                                                                       args.gradient_cost is None))
+        config = config.with_options(refine=refine_for_source(config.refine_config(), source, criterion,
+                                                              args.gradient_cost is None))
     try:
-        children = config.resolve(source.n_train).children_per_epoch
-        method.make_config(children, refine=config.refine, epochs=config.epochs, top_c=config.top_c,
-                           pibs_fallback=config.pibs_fallback)
+        config.resolve(source.n_train).method_config(method)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
     # run_explore checks the batched epoch fits in memory before it scores or renders anything.
     setup = time.perf_counter() - start
     run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
-                      setup_seconds=setup)
+                      setup_seconds=setup, progress=not args.quiet)
     out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
     with Progress(args.quiet) as progress:
         progress.phase("rendering the top views and writing the results")

@@ -226,7 +226,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     runs, methods = {}, {}
     for method in METHOD_ORDER:
         say(f"[demo] {method.upper()}: {settings.seeds} seeds at the low budget ...", flush=True)
-        explore_config = ExploreConfig(method=method, budget="low", progress=False)
+        explore_config = ExploreConfig(method=method, budget="low")
         run = run_explore(source, criterion, explore_config, seed=seed, seeds=settings.seeds)
         (out / method).mkdir()
         results = write_outputs(run, out / method, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")

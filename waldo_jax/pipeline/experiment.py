@@ -200,7 +200,7 @@ class ExploreRun:
 
 
 def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, seed: int = 0, seeds: int = 1,
-                initial: str = "images", setup_seconds: float = 0.0) -> ExploreRun:
+                initial: str = "images", setup_seconds: float = 0.0, progress: bool = False) -> ExploreRun:
     """Runs one search (or `seeds` searches in one vmapped call) and renders the top-k views.
 
     Args:
@@ -212,13 +212,14 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
       seeds: number of seeds.
       initial: "images" or "renders" (see the module docstring).
       setup_seconds: time already spent loading the source (reported under seconds.setup).
+      progress: print one line per epoch (`explore`'s `progress`).
     """
     if seeds < 1:
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     start = time.perf_counter()
     if get_method(config.method).differentiable:  # the source's renderer sets the gradient mode it allows
-        config = dataclasses.replace(config, refine=refine_for_source(config.refine, source, criterion,
-                                                                      default_cost=False))
+        config = config.with_options(refine=refine_for_source(config.refine_config(), source, criterion,
+                                                              default_cost=False))
     config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
     check_epoch_memory(source, config, seeds)
     objective = objective_function(source, criterion) if get_method(config.method).differentiable else None
@@ -227,12 +228,12 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     score_fn = score_function(source, criterion)
     if seeds == 1:
         results = [jax.device_get(explore(jax.random.key(seed), score_fn, start_init, config=config,
-                                          objective_fn=objective))]
+                                          objective_fn=objective, progress=progress))]
         stats = {"cvir_mean": float(results[0].cvir), "cvir_std": 0.0,
                  "mcvir_mean": float(results[0].mcvir), "mcvir_std": 0.0}
     else:
         out = jax.device_get(explore_seeds(seed_keys(seed, seeds), score_fn, start_init, config=config,
-                                           objective_fn=objective))
+                                           objective_fn=objective, progress=progress))
         results = [jax.tree.map(lambda a, i=i: a[i], out.results) for i in range(seeds)]
         stats = {"cvir_mean": float(out.cvir_mean), "cvir_std": float(out.cvir_std),
                  "mcvir_mean": float(out.mcvir_mean), "mcvir_std": float(out.mcvir_std)}

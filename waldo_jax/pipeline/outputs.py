@@ -99,9 +99,11 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
     if source.renderer_report is not None:  # what the renderer dropped over every view the run rendered
         out["renderer"] = source.renderer_report(np.asarray(population.c2w)[np.asarray(population.valid)])
     if config.method.startswith("pibs"):
-        out["pibs"] = {"top_c": config.top_c, "fallback": config.pibs_fallback}
+        method_config = config.method_config()
+        pibs_config = getattr(method_config, "base", method_config)  # a +refine method's config holds PIBS's
+        out["pibs"] = {"top_c": pibs_config.top_c, "fallback": pibs_config.fallback}
     if config.gradient_renders():
-        out["refine"] = dataclasses.asdict(config.refine)
+        out["refine"] = dataclasses.asdict(config.refine_config())
     if len(run.seeds) > 1:
         out["seeds"] = run.seeds
         out["per_seed"] = [{"seed": s, "cvir": _float(r.cvir), "mcvir": _float(r.mcvir),

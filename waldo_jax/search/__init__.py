@@ -3,7 +3,8 @@ paper: gradient refinement (`refine`: `refine`, `refine_poses` and the `+refine`
 strategy (`strategy`: "evosax:NAME").
 
 One module per method (`grs`, `pibs`, `egps`), each with a numeric `Params` pytree, a static `Config`
-and a pure `propose(key, population, params, config, epoch)`; the population buffer in `population`;
+(its own options: `ExploreConfig(options=...)`) and a pure `ask(key, population, params, config, epoch)`
+(evosax's `init` / `ask` / `tell` for a method with a state: `method`); the population buffer in `population`;
 CVIR / mCVIR in `metrics`; the registry of methods by name in `registry` (`get_method`); the compiled exploration loop
 in `explore`.
 

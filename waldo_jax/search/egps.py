@@ -4,7 +4,7 @@ A generational genetic algorithm on poses: every child of an epoch is bred from 
 was at the start of the epoch, by rank-biased selection of two distinct parents from the better half
 (`parent_weights`, `select_parents`), crossover (`crossover`: the normalised mean up; origin and
 look-at point uniform per axis between the parents') and mutation (`mutation_delta`: each component
-moves by -nabla, 0 or +nabla, nabla = `nabla_scale` * (parent1 - parent2)). `propose` draws one
+moves by -nabla, 0 or +nabla, nabla = `nabla_scale` * (parent1 - parent2)). `ask` draws one
 [children_per_epoch, 14] block of uniforms; each operator is a deterministic map of its row.
 
 The operators' probabilities, the choices where the paper is silent (better half, rank bias, parent
@@ -27,7 +27,7 @@ __all__ = [
     "NUM_UNIFORMS",
     "Params",
     "Config",
-    "propose",
+    "ask",
     "parent_weights",
     "select_parents",
     "crossover",
@@ -166,8 +166,8 @@ def _child(u: Array, poses: Pose, fitness: Array, weights: Array, params: Params
     return breed(u[2:], pick(parent1), pick(parent2), params)
 
 
-def propose(key: PRNGKey, population: Population, params: Params, config: Config,
-            epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(key: PRNGKey, population: Population, params: Params, config: Config,
+        epoch: Array) -> Tuple[Pose, Array, Population]:
     """Breeds one epoch of EGPS children.
 
     Args:
@@ -193,4 +193,4 @@ def propose(key: PRNGKey, population: Population, params: Params, config: Config
     return children, jnp.broadcast_to(can_breed, (n,)), population
 
 
-METHOD = SearchMethod(name="egps", params_type=Params, config_type=Config, propose=propose)
+METHOD = SearchMethod(name="egps", params_type=Params, config_type=Config, ask_fn=ask)

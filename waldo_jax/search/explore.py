@@ -1,7 +1,7 @@
 """The exploration loop of "Finding Waldo" (MMSys'24), Algorithm 1, for any search method.
 
 `explore(key, score_fn, Initial(c2w, scores), method, ExploreConfig(...)) -> Result`: from the scored
-training views, every epoch the method proposes `children_per_epoch` poses, `score_fn` scores them
+training views, every epoch the method is asked for `children_per_epoch` poses, `score_fn` scores them
 (c2w [children_per_epoch, 4, 4] -> scores; render + criterion, composed by the caller) and they are
 written into the population; the top-k views come back with CVIR / mCVIR and per-epoch curves. The
 whole search is one `jax.lax.scan` inside one `jax.jit`; `explore_loop` runs the same epochs as a
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Mapping, Optional, Tuple, Union
 
 import flax.struct
 import jax
@@ -117,15 +117,16 @@ class ExploreConfig:
       budget: "low", "high" or a (min, max) total image count; used when children_per_epoch is None.
       top_k: views returned (paper: 10).
       top_n: N of mCVIR and of the mean-top-N curve (paper: 10).
-      top_c: PIBS: how many of the best views are paired.
-      pibs_fallback: PIBS: "none" (mask slots it cannot fill) or "grs" (fill them with GRS poses).
       direction: "max" when higher criterion scores are better, "min" when lower ones are.
       focus_min_fraction: training look-at points lie at least this fraction of the distance to the
         scene focus in front of their camera (`population.training_look_at`).
-      progress: print one line per epoch (through `jax.debug.callback`).
-      refine: `RefineConfig` of the `+refine` methods (ignored by the others). Their gradient steps
-        count as `refine.renders()` renders, which come out of the children: a budget gives them
-        fewer children per epoch, so every method costs the same (`cost`).
+      options: the method's own options, given as a mapping and kept as sorted (name, value) pairs
+        (hashable); they build its config (`method_config`), which refuses an option the method does
+        not have. PIBS: `top_c` (views paired) and `fallback` ("none" masks the slots it cannot fill,
+        "grs" fills them with GRS poses); the `+refine` methods: their base method's and `refine`, a
+        `RefineConfig`, whose gradient steps count as `refine.renders()` renders, which come out of
+        the children: a budget gives them fewer children per epoch, so every method costs the same
+        (`cost`).
     """
 
     method: str = "egps"
@@ -134,12 +135,9 @@ class ExploreConfig:
     budget: Budget = "low"
     top_k: int = 10
     top_n: int = 10
-    top_c: int = 5
-    pibs_fallback: str = "none"
     direction: str = "max"
     focus_min_fraction: float = 0.1
-    progress: bool = False
-    refine: RefineConfig = RefineConfig()
+    options: Union[Mapping[str, Any], Tuple[Tuple[str, Any], ...]] = ()
 
     def __post_init__(self):
         if self.epochs < 1:
@@ -153,6 +151,35 @@ class ExploreConfig:
         if not isinstance(self.budget, str):  # a list would make the config unhashable
             object.__setattr__(self, "budget", tuple(int(b) for b in self.budget))
         _budget_bounds(self.budget)
+        options = dict(self.options)  # a dict would make the config unhashable
+        if not all(isinstance(name, str) for name in options):
+            raise ValueError(f"options must be named by strings, got {sorted(map(repr, options))}")
+        object.__setattr__(self, "options", tuple(sorted(options.items())))
+
+    @property
+    def method_options(self) -> Dict[str, Any]:
+        """The method's options as a dict."""
+        return dict(self.options)
+
+    def with_options(self, **options: Any) -> "ExploreConfig":
+        """This config with the given method options set (the others kept)."""
+        return dataclasses.replace(self, options={**self.method_options, **options})
+
+    def method_config(self, method: Optional[SearchMethod] = None) -> Any:
+        """The method's static config for this (resolved) config: `SearchMethod.make_config` with
+        children_per_epoch, epochs and `options`.
+
+        Args:
+          method: the method (default: `get_method(self.method)`).
+
+        Raises:
+          ConfigError (a ValueError): an option the method does not have (the message names it and the method).
+          ValueError: children_per_epoch is None (call `resolve` first) or an option's value is refused.
+        """
+        if self.children_per_epoch is None:
+            raise ValueError("children_per_epoch is None: resolve the config first (ExploreConfig.resolve)")
+        method = get_method(self.method) if method is None else method
+        return method.make_config(self.children_per_epoch, self.epochs, **self.method_options)
 
     def resolve(self, n_train: int) -> "ExploreConfig":
         """This config with children_per_epoch fixed (from the budget when it is None).
@@ -182,9 +209,13 @@ class ExploreConfig:
         resolved = self.resolve(n_train)
         return int(n_train) + resolved.epochs * resolved.children_per_epoch
 
+    def refine_config(self) -> RefineConfig:
+        """The `+refine` methods' `RefineConfig`: the `refine` option, or the default one."""
+        return self.method_options.get("refine", RefineConfig())
+
     def gradient_renders(self) -> int:
         """Renders the method's gradient steps count as (0 unless it refines; `RefineConfig.renders`)."""
-        return self.refine.renders() if self.method.endswith(REFINE_SUFFIX) else 0
+        return self.refine_config().renders() if self.method.endswith(REFINE_SUFFIX) else 0
 
     def cost(self, n_train: int) -> dict:
         """The run's cost in renders, training views included: what the budget bounds.
@@ -198,7 +229,7 @@ class ExploreConfig:
         resolved = self.resolve(n_train)
         gradients = resolved.gradient_renders()
         children = resolved.epochs * resolved.children_per_epoch
-        per_gradient = resolved.refine.gradient_cost if gradients else 0
+        per_gradient = resolved.refine_config().gradient_cost if gradients else 0
         return {"renders": int(n_train) + children + gradients, "training_views": int(n_train), "children": children,
                 "gradient_evaluations": gradients // per_gradient if gradients else 0,
                 "renders_per_gradient_evaluation": per_gradient}
@@ -302,9 +333,7 @@ def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params, 
         c2w = np.concatenate([c2w, np.broadcast_to(np.array([[[0, 0, 0, 1]]], np.float32), (len(c2w), 1, 4))], 1)
     n_train = c2w.shape[0]
     config = config.resolve(n_train)  # raises when top_k exceeds the capacity
-    method_config = search_method.make_config(config.children_per_epoch, top_c=config.top_c,
-                                              pibs_fallback=config.pibs_fallback, refine=config.refine,
-                                              epochs=config.epochs)
+    method_config = config.method_config(search_method)  # raises for an option the method does not have
     params = search_method.default_params() if params is None else params
     poses = training_poses(c2w, initial.focus, config.focus_min_fraction)
     objective = None if objective_fn is None else _as_partial(objective_fn)
@@ -328,17 +357,18 @@ def _report(method_name: str, epochs: int, top_n: int, runs: int, run, epoch, be
               f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}", flush=True)
 
 
-def _start(key: PRNGKey, population: Population, params, method: SearchMethod, method_config):
+def _init_state(key: PRNGKey, population: Population, params, method: SearchMethod, method_config):
     """The method's state before epoch 1, from key fold_in(key, 0) (epochs use fold_in(key, e), e >= 1)."""
-    return method.start(jax.random.fold_in(key, 0), population, params, method_config)
+    return method.init(jax.random.fold_in(key, 0), population, params, method_config)
 
 
 def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry, epoch: Array, params,
-                method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0, runs: int = 1):
-    """One epoch of Algorithm 1: propose, score, write, tell. epoch is 1-based (int32, may be traced).
+                method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False, run: Array = 0,
+                runs: int = 1):
+    """One epoch of Algorithm 1: ask, score, write, tell. epoch is 1-based (int32, may be traced).
 
-    carry is (population, method state); run / runs only label the progress line (run r of a
-    vmapped batch of `runs` seeds).
+    carry is (population, method state); with `progress` (static) it prints a line, where run / runs
+    label the run (run r of a vmapped batch of `runs` seeds).
     """
     population, state = carry
     n = config.children_per_epoch
@@ -351,8 +381,8 @@ def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry,
     population = write_children(population, children, c2w, scores, mask, epoch, offset)
     if method.stateful:
         fitness = jax.lax.dynamic_slice(population.fitness, (offset,), (n,))  # -inf where masked or failed
-        state = method.told(tell_key, state, fitness, params, method_config)
-    if config.progress:
+        state = method.tell(tell_key, state, fitness, params, method_config)
+    if progress:
         curves = epoch_metrics(population, config.epochs, config.top_n)
         jax.debug.callback(
             lambda *a: _report(method.name, config.epochs, config.top_n, runs, *a),
@@ -377,33 +407,34 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
 
 
 def _search(key: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
-            method: SearchMethod, method_config, config: ExploreConfig, run: Array = 0, runs: int = 1) -> Result:
+            method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False, run: Array = 0,
+            runs: int = 1) -> Result:
     population = _init(poses, c2w, scores, config)
-    carry = (population, _start(key, population, params, method, method_config))
+    carry = (population, _init_state(key, population, params, method, method_config))
 
     def body(carry, epoch):
-        return _epoch_step(key, score_fn, objective, carry, epoch, params, method, method_config, config, run,
-                           runs), None
+        return _epoch_step(key, score_fn, objective, carry, epoch, params, method, method_config, config, progress,
+                           run, runs), None
 
     (population, _), _ = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
     return _finish(population, config)
 
 
 def _search_seeds(keys: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
-                  method: SearchMethod, method_config, config: ExploreConfig) -> SeedsResult:
+                  method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False) -> SeedsResult:
     runs = keys.shape[0]
     results = jax.vmap(lambda key, run: _search(key, score_fn, objective, poses, c2w, scores, params, method,
-                                                method_config, config, run, runs))(
+                                                method_config, config, progress, run, runs))(
         keys, jnp.arange(runs, dtype=jnp.int32))
     return SeedsResult(results=results, cvir_mean=jnp.mean(results.cvir), cvir_std=jnp.std(results.cvir),
                        mcvir_mean=jnp.mean(results.mcvir), mcvir_std=jnp.std(results.mcvir))
 
 
-_STATIC = ("method", "method_config", "config")
+_STATIC = ("method", "method_config", "config", "progress")
 _search_jit = jax.jit(_search, static_argnames=_STATIC)
 _search_seeds_jit = jax.jit(_search_seeds, static_argnames=_STATIC)
 _init_jit = jax.jit(_init, static_argnames=("config",))
-_start_jit = jax.jit(_start, static_argnames=("method", "method_config"))
+_init_state_jit = jax.jit(_init_state, static_argnames=("method", "method_config"))
 _epoch_step_jit = jax.jit(_epoch_step, static_argnames=_STATIC)
 _finish_jit = jax.jit(_finish, static_argnames=("config",))
 
@@ -414,7 +445,7 @@ _finish_jit = jax.jit(_finish, static_argnames=("config",))
 
 def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
             method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-            params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> Result:
+            params=None, objective_fn: Optional[Callable[[Array], Array]] = None, progress: bool = False) -> Result:
     """Runs one search (Algorithm 1) as a single compiled `lax.scan` over epochs.
 
     Args:
@@ -429,6 +460,8 @@ def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
       params: the method's `Params` pytree (default: the paper's values).
       objective_fn: the `+refine` methods' differentiable c2w [P, 4, 4] -> scores [P] (same
         direction as score_fn; e.g. a render composed with `Criterion.smooth()`); unused otherwise.
+      progress: print one line per epoch (through `jax.debug.callback`; a static argument of the jit,
+        outside `config`).
 
     Returns:
       `Result`.
@@ -436,12 +469,13 @@ def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
     search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
         initial, method, config, params, objective_fn)
     return _search_jit(key, _as_partial(score_fn), objective, poses, c2w, scores, params,
-                       method=search_method, method_config=method_config, config=config)
+                       method=search_method, method_config=method_config, config=config, progress=bool(progress))
 
 
 def explore_loop(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
                  method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                 params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> Result:
+                 params=None, objective_fn: Optional[Callable[[Array], Array]] = None,
+                 progress: bool = False) -> Result:
     """`explore` as a Python loop over a jitted per-epoch step (same arguments, same result).
 
     Useful to inspect or checkpoint between epochs, and as the reference the scan is tested against.
@@ -450,21 +484,24 @@ def explore_loop(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Init
         initial, method, config, params, objective_fn)
     score_fn = _as_partial(score_fn)
     population = _init_jit(poses, c2w, scores, config=config)
-    carry = (population, _start_jit(key, population, params, method=search_method, method_config=method_config))
+    carry = (population, _init_state_jit(key, population, params, method=search_method,
+                                         method_config=method_config))
     for epoch in range(1, config.epochs + 1):
         carry = _epoch_step_jit(key, score_fn, objective, carry, jnp.int32(epoch), params,
-                                method=search_method, method_config=method_config, config=config)
+                                method=search_method, method_config=method_config, config=config,
+                                progress=bool(progress))
     return _finish_jit(carry[0], config=config)
 
 
 def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
                   method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                  params=None, objective_fn: Optional[Callable[[Array], Array]] = None) -> SeedsResult:
+                  params=None, objective_fn: Optional[Callable[[Array], Array]] = None,
+                  progress: bool = False) -> SeedsResult:
     """`explore` for a batch of keys [K], vmapped in one compiled call.
 
     Args:
       keys: [K] PRNG keys (e.g. `jax.random.split(jax.random.key(seed), K)`).
-      score_fn, initial, method, config, params, objective_fn: as `explore`; score_fn (and
+      score_fn, initial, method, config, params, objective_fn, progress: as `explore`; score_fn (and
         objective_fn) are vmapped over the seeds, so they must be vmap-able (any jnp function is).
 
     Returns:
@@ -473,4 +510,5 @@ def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: In
     search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
         initial, method, config, params, objective_fn)
     return _search_seeds_jit(keys, _as_partial(score_fn), objective, poses, c2w, scores, params,
-                             method=search_method, method_config=method_config, config=config)
+                             method=search_method, method_config=method_config, config=config,
+                             progress=bool(progress))

@@ -23,7 +23,7 @@ from waldo_jax.search.method import ChildrenConfig, SearchMethod
 from waldo_jax.search.population import Population, draw_index, uniform_rows
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["Params", "Config", "propose", "origin_bounds", "mean_up", "METHOD"]
+__all__ = ["Params", "Config", "ask", "origin_bounds", "mean_up", "METHOD"]
 
 
 @flax.struct.dataclass
@@ -57,8 +57,8 @@ def _sample_one(u: Array, low: Array, high: Array, target_weights: Array, target
     return Pose(origin=origin, target=targets[draw_index(u[3], target_weights)], up=up)
 
 
-def propose(key: PRNGKey, population: Population, params: Params, config: Config,
-            epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(key: PRNGKey, population: Population, params: Params, config: Config,
+        epoch: Array) -> Tuple[Pose, Array, Population]:
     """Draws one epoch of GRS children.
 
     The key is used once, for a [children_per_epoch, 4] block of uniforms (3 for the origin, 1 for
@@ -88,4 +88,4 @@ def propose(key: PRNGKey, population: Population, params: Params, config: Config
     return children, jnp.ones(n, bool), population
 
 
-METHOD = SearchMethod(name="grs", params_type=Params, config_type=Config, propose=propose)
+METHOD = SearchMethod(name="grs", params_type=Params, config_type=Config, ask_fn=ask)

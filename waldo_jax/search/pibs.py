@@ -1,6 +1,6 @@
 """Pose interpolation-based search (PIBS), the second baseline of "Finding Waldo" (MMSys'24), Algorithm 1.
 
-Each epoch `propose` takes the `top_c` best views, lists their pairs not explored yet (better rank
+Each epoch `ask` takes the `top_c` best views, lists their pairs not explored yet (better rank
 first, in rank order; `pair_table`) and gives each pair in turn
 interpolation_step = round(children_per_epoch / number_of_pairs) (at least 1) children, by SLERP
 (`waldo_jax.cameras.slerp_pose`) strictly between the two, until the slots are used up; the pairs
@@ -14,7 +14,7 @@ explored, the fallback, the static `top_c`, up vectors): see docs/design.md, sec
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Tuple
+from typing import Any, Optional, Tuple
 
 import flax.struct
 import jax
@@ -23,11 +23,11 @@ import numpy as np
 
 from waldo_jax.cameras import slerp_pose
 from waldo_jax.search import grs
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import SearchMethod, check_options
 from waldo_jax.search.population import Population, gather_poses
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["FALLBACKS", "Params", "Config", "propose", "pair_table", "METHOD"]
+__all__ = ["FALLBACKS", "Params", "Config", "ask", "pair_table", "METHOD"]
 
 FALLBACKS = ("none", "grs")
 
@@ -59,12 +59,20 @@ class Config:
         if self.fallback not in FALLBACKS:
             raise ValueError(f"fallback must be one of {FALLBACKS}, got {self.fallback!r}")
 
+    # The options `create` accepts besides children_per_epoch and epochs.
+    OPTIONS = ("top_c", "fallback")
+
     @classmethod
-    def create(cls, children_per_epoch: int, top_c: int = 5, pibs_fallback: str = "none",
-               **options: Any) -> "Config":
-        """Config from the shared exploration options; those of other methods are ignored."""
-        del options
-        return cls(children_per_epoch=int(children_per_epoch), top_c=int(top_c), fallback=pibs_fallback)
+    def create(cls, children_per_epoch: int, epochs: Optional[int] = None, method: str = "pibs", top_c: int = 5,
+               fallback: str = "none", **options: Any) -> "Config":
+        """The config for `children_per_epoch` slots (`epochs` unused).
+
+        Raises:
+          ConfigError: an option PIBS does not have (the message names it and `method`).
+        """
+        del epochs
+        check_options(method, options, cls.OPTIONS)
+        return cls(children_per_epoch=int(children_per_epoch), top_c=int(top_c), fallback=fallback)
 
 
 def pair_table(top_c: int) -> Tuple[np.ndarray, np.ndarray]:
@@ -78,8 +86,8 @@ def _interpolate_one(pose_a: Pose, pose_b: Pose, t: Array) -> Pose:
     return slerp_pose(pose_a, pose_b, t)
 
 
-def propose(key: PRNGKey, population: Population, params: Params, config: Config,
-            epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(key: PRNGKey, population: Population, params: Params, config: Config,
+        epoch: Array) -> Tuple[Pose, Array, Population]:
     """Proposes one epoch of PIBS children and marks their pairs as explored.
 
     Args:
@@ -127,7 +135,7 @@ def propose(key: PRNGKey, population: Population, params: Params, config: Config
     children = jax.vmap(_interpolate_one)(pose_a, pose_b, t)
 
     if config.fallback == "grs":
-        filler, _, _ = grs.propose(key, population, grs.Params(), grs.Config(n), epoch)
+        filler, _, _ = grs.ask(key, population, grs.Params(), grs.Config(n), epoch)
         mask_out = jnp.ones(n, bool)
     else:
         del key
@@ -137,4 +145,4 @@ def propose(key: PRNGKey, population: Population, params: Params, config: Config
     return children, mask_out, population.replace(explored=explored)
 
 
-METHOD = SearchMethod(name="pibs", params_type=Params, config_type=Config, propose=propose)
+METHOD = SearchMethod(name="pibs", params_type=Params, config_type=Config, ask_fn=ask)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 import flax.struct
 import jax
@@ -34,8 +34,9 @@ import optax
 import optimistix as optx
 
 from waldo_jax.cameras import pose_to_c2w
+from waldo_jax.errors import ConfigError
 from waldo_jax.search import grs
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import SearchMethod, check_options
 from waldo_jax.search.population import Population, direction_sign, gather_poses, top_k_indices
 from waldo_jax.types import Array, Pose, PRNGKey
 
@@ -363,15 +364,19 @@ def _refined_children(population: Population, children: Pose, mask: Array, objec
 
 
 def refined_method(base: SearchMethod) -> SearchMethod:
-    """`base` + gradient refinement in its last epochs, as a method named "<base>+refine"."""
+    """`base` + gradient refinement in its last epochs, as a method named "<base>+refine".
+
+    Its options are the base method's and `refine` (a `RefineConfig`); it needs the search's `epochs`.
+    """
     if base.differentiable:
         raise ValueError(f"method {base.name!r} already refines")
+    name = base.name + REFINE_SUFFIX
 
     def init(key: PRNGKey, population: Population, params, config: RefinedConfig):
-        return base.start(key, population, params, config.base)
+        return base.init(key, population, params, config.base)
 
-    def propose(key: PRNGKey, population: Population, state, params, config: RefinedConfig, epoch: Array,
-                objective) -> Tuple[Pose, Array, Population, Any]:
+    def ask(key: PRNGKey, population: Population, state, params, config: RefinedConfig, epoch: Array,
+            objective) -> Tuple[Pose, Array, Population, Any]:
         children, mask, population, state = base.ask(key, population, state, params, config.base, epoch, objective)
         refining = epoch > config.epochs - config.refine.epochs
         children, mask = jax.lax.cond(
@@ -380,17 +385,25 @@ def refined_method(base: SearchMethod) -> SearchMethod:
         return children, mask, population, state
 
     def tell(key: PRNGKey, state, fitness: Array, params, config: RefinedConfig):
-        return base.told(key, state, fitness, params, config.base)
+        return base.tell(key, state, fitness, params, config.base)
 
-    def create(children_per_epoch: int, refine: RefineConfig = RefineConfig(), epochs: int = 5, **options):
-        return RefinedConfig(base=base.make_config(children_per_epoch, **options), refine=refine, epochs=int(epochs))
+    options = base.options + ("refine",)
 
-    return SearchMethod(name=base.name + REFINE_SUFFIX, params_type=base.params_type,
-                        config_type=_Factory(create), propose=propose, init=init, tell=tell, differentiable=True)
+    def create(children_per_epoch: int, epochs: Optional[int] = None, method: str = name,
+               refine: RefineConfig = RefineConfig(), **base_options):
+        check_options(method, base_options, options)
+        if epochs is None:
+            raise ConfigError(f"search method {method!r} needs the search's epochs (its last refine.epochs refine)")
+        return RefinedConfig(base=base.config_type.create(children_per_epoch, epochs, method=method, **base_options),
+                             refine=refine, epochs=int(epochs))
+
+    return SearchMethod(name=name, params_type=base.params_type, config_type=_Factory(create, options), ask_fn=ask,
+                        init_fn=init, tell_fn=tell, differentiable=True)
 
 
 @dataclasses.dataclass(frozen=True)
 class _Factory:
-    """A `config_type` whose `create` is a given function (hashable by identity)."""
+    """A `config_type` whose `create` is a given function (hashable by identity) and whose options are `OPTIONS`."""
 
     create: Callable[..., Any]
+    OPTIONS: Tuple[str, ...] = ()

@@ -16,19 +16,20 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Tuple
+from typing import Any, Optional, Tuple
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 
 from waldo_jax.search import grs
-from waldo_jax.search.method import SearchMethod
+from waldo_jax.search.method import SearchMethod, check_options
 from waldo_jax.search.population import Population, top_k_indices
 from waldo_jax.types import Array, Pose, PRNGKey
 
 __all__ = ["PREFIX", "POSE_DIM", "WORST", "Params", "Config", "EvosaxState", "strategy_names", "make_strategy",
-           "is_distribution_based", "strategy_params", "pose_scaling", "to_vector", "to_pose", "evosax_method"]
+           "is_distribution_based", "strategy_params", "pose_scaling", "to_vector", "to_pose", "init", "ask", "tell",
+           "evosax_method"]
 
 PREFIX = "evosax:"
 POSE_DIM = 9
@@ -140,7 +141,8 @@ def pose_scaling(population: Population) -> Tuple[Array, Array]:
     return shift, jnp.maximum(spread, floor)
 
 
-def _init(key: PRNGKey, population: Population, params: Params, config: Config) -> EvosaxState:
+def init(key: PRNGKey, population: Population, params: Params, config: Config) -> EvosaxState:
+    """The strategy's state before epoch 1, started from the training poses (the module docstring)."""
     strategy = make_strategy(config.strategy, config.children_per_epoch)
     shift, scale = pose_scaling(population)
     n = config.children_per_epoch
@@ -157,8 +159,9 @@ def _init(key: PRNGKey, population: Population, params: Params, config: Config) 
     return EvosaxState(strategy=es_state, asked=jnp.zeros((n, POSE_DIM), jnp.float32), shift=shift, scale=scale)
 
 
-def _propose(key: PRNGKey, population: Population, state: EvosaxState, params: Params, config: Config,
-             epoch: Array, objective) -> Tuple[Pose, Array, Population, EvosaxState]:
+def ask(key: PRNGKey, population: Population, state: EvosaxState, params: Params, config: Config,
+        epoch: Array, objective) -> Tuple[Pose, Array, Population, EvosaxState]:
+    """One epoch's children: the strategy's `children_per_epoch` asked vectors as poses (all real)."""
     del epoch, objective
     strategy = make_strategy(config.strategy, config.children_per_epoch)
     asked, es_state = strategy.ask(key, state.strategy, strategy_params(strategy, params))
@@ -168,7 +171,8 @@ def _propose(key: PRNGKey, population: Population, state: EvosaxState, params: P
         strategy=es_state, asked=asked)
 
 
-def _tell(key: PRNGKey, state: EvosaxState, fitness: Array, params: Params, config: Config) -> EvosaxState:
+def tell(key: PRNGKey, state: EvosaxState, fitness: Array, params: Params, config: Config) -> EvosaxState:
+    """The state after the asked vectors' fitness [children_per_epoch] is told back (negated: evosax minimises)."""
     strategy = make_strategy(config.strategy, config.children_per_epoch)
     loss = jnp.where(jnp.isfinite(fitness), -fitness, WORST)
     es_state, _ = strategy.tell(key, state.asked, loss, state.strategy, strategy_params(strategy, params))
@@ -179,8 +183,14 @@ def _tell(key: PRNGKey, state: EvosaxState, fitness: Array, params: Params, conf
 class _ConfigFactory:
     strategy: str
 
-    def create(self, children_per_epoch: int, **options: Any) -> Config:
-        del options
+    # The options `create` accepts besides children_per_epoch and epochs.
+    OPTIONS = ()
+
+    def create(self, children_per_epoch: int, epochs: Optional[int] = None, method: str = "evosax",
+               **options: Any) -> Config:
+        """The config for `children_per_epoch` children (`epochs` unused); `ConfigError` for any option."""
+        del epochs
+        check_options(method, options, self.OPTIONS)
         return Config(strategy=self.strategy, children_per_epoch=int(children_per_epoch))
 
 
@@ -193,5 +203,5 @@ def evosax_method(name: str) -> SearchMethod:
     """
     if name not in strategy_names():
         raise ValueError(f"unknown evosax strategy {name!r}; choose one of {', '.join(strategy_names())}")
-    return SearchMethod(name=PREFIX + name, params_type=Params, config_type=_ConfigFactory(name), propose=_propose,
-                        init=_init, tell=_tell)
+    return SearchMethod(name=PREFIX + name, params_type=Params, config_type=_ConfigFactory(name), ask_fn=ask,
+                        init_fn=init, tell_fn=tell)
