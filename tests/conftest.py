@@ -116,17 +116,25 @@ def trained_lego_fast(tmp_path_factory):
     return folder / "lego.ckpt", json.loads((folder / "summary.json").read_text())
 
 
-# Test files by their time on the 2-core CPU, heaviest first (each over about 25 s there, fixtures
-# included; the rest keep their order after them). pyproject's `--dist loadfile` hands whole files to
-# the pytest-xdist workers, so a file's module fixtures and compiled programs are built once, and
-# `--no-loadscope-reorder` keeps this order (pytest-xdist 3.8 otherwise sorts the files by their
-# number of tests): taking the heavy files first keeps one worker from running a long file alone at
-# the end. test_marched builds the lego_tiny training that test_train then reads.
-HEAVY_FIRST = ("test_device_check.py", "test_splat_cli.py", "test_explore_cli.py", "test_splat_render.py", "test_exports_consumers.py", "test_paper_tables.py", "test_marched.py",
-               "test_search_path.py", "test_criteria_all.py", "test_notebooks.py", "test_finder.py", "test_train.py",
-               "test_bad_input.py", "test_csnet.py", "test_search_beyond.py", "test_sharding.py", "test_xla_guard.py")
+# Test files by their time on the 2-core CPU, heaviest first (each over about 15 s there, fixtures
+# included; the rest keep their order after them). They are the slow tier as a whole (marked `slow`
+# below); in the other files a test that takes seconds carries `@pytest.mark.slow` itself, so that
+# the fast tier, `pytest -n 2 -m "not slow" tests`, stays within 2 minutes on 2 cores. pyproject's
+# `--dist loadfile` hands whole files to the pytest-xdist workers, so a file's module fixtures and
+# compiled programs are built once, and `--no-loadscope-reorder` keeps this order (pytest-xdist 3.8
+# otherwise sorts the files by their number of tests): taking the heavy files first keeps one worker
+# from running a long file alone at the end. test_marched builds the lego_tiny training that
+# test_train then reads.
+HEAVY_FIRST = ("test_device_check.py", "test_splat_cli.py", "test_explore_cli.py", "test_splat_render.py",
+               "test_nerf_reverse.py", "test_interrupt.py", "test_exports_consumers.py", "test_paper_tables.py",
+               "test_marched.py", "test_search_path.py", "test_criteria_all.py", "test_notebooks.py", "test_finder.py",
+               "test_train.py", "test_bad_input.py", "test_cli_conventions.py", "test_csnet.py", "test_search_beyond.py",
+               "test_sharding.py", "test_xla_guard.py", "test_multiprocess.py")
 
 
 def pytest_collection_modifyitems(config, items):
+    for item in items:  # the fast tier, `pytest -m "not slow"`, leaves the heavy files out whole
+        if item.path.name in HEAVY_FIRST:
+            item.add_marker(pytest.mark.slow)
     rank = {name: index for index, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file's own order is kept

@@ -336,6 +336,7 @@ def test_rotation_angle_matches_reference(qa, qb):
 # SLERP
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(qa=quat, qb=quat, oa=vec3, ob=vec3)
 def test_slerp_end_points_are_the_inputs(qa, qb, oa, ob):
@@ -349,6 +350,7 @@ def test_slerp_end_points_are_the_inputs(qa, qb, oa, ob):
 _TS = (0.1, 0.25, 0.5, 0.7, 0.9)
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(qa=quat, a=axis, angle=st.floats(0.05, np.pi - 0.1), oa=vec3, ob=vec3)
 def test_slerp_constant_angular_speed_and_linear_translation(qa, a, angle, oa, ob):
@@ -392,6 +394,7 @@ def test_slerp_shortest_arc_through_half_turn():
     np.testing.assert_allclose(_to_rot(q), _axis_angle([1, 0, 0], 0.2), atol=1e-5)
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(origin=vec3, target=vec3, up=vec3, t=st.floats(0.0, 1.0))
 def test_slerp_pose_with_itself_is_constant(origin, target, up, t):
@@ -551,6 +554,7 @@ def test_centre_ray_is_minus_z_and_image_orientation(q, origin):
     assert np.all(cam[..., 2] < 0.0)  # everything in front (-z)
 
 
+@pytest.mark.slow
 def test_camera_rays_vmap_over_poses_equals_per_camera_calls():
     intrinsics = _CAMERAS["fox"]
     rng = np.random.default_rng(2)

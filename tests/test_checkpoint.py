@@ -91,6 +91,7 @@ def saved(tmp_path):
 # Round trip.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sampler", ["dense", "occupancy"])
 def test_round_trip_is_bit_exact(tmp_path, sampler):
     config = _config(sampler)
@@ -244,6 +245,7 @@ def test_train_rejects_bad_arguments(tmp_path, argv, message):
         args.handler(args)
 
 
+@pytest.mark.slow
 def test_render_writes_pngs_of_train_poses_and_a_poses_file(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()

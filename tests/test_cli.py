@@ -17,12 +17,14 @@ def run_cli(*args):
     return subprocess.run([sys.executable, "-m", "waldo_jax", *args], capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_help_lists_working_commands():
     result = run_cli("--help")
     assert result.returncode == 0
     assert "scene" in result.stdout and "render" in result.stdout
 
 
+@pytest.mark.slow
 def test_bad_path_is_one_line_error_without_traceback(tmp_path):
     result = run_cli("scene", "info", str(tmp_path / "nope"))
     assert result.returncode == 1
@@ -31,6 +33,7 @@ def test_bad_path_is_one_line_error_without_traceback(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.slow
 def test_malformed_scene_is_one_line_error(tmp_path):
     (tmp_path / "transforms.json").write_text("{ not json")
     result = run_cli("scene", "info", str(tmp_path))
@@ -48,6 +51,7 @@ def test_malformed_scene_is_one_line_error(tmp_path):
         ("garden", 185, 512, 512, 0, "nerfstudio"),
     ],
 )
+@pytest.mark.slow
 def test_scene_info_json(capsys, name, count, width, height, skipped, fmt):
     path = require_scene(name)
     args = ["scene", "info", str(path), "--json"]
@@ -73,6 +77,7 @@ def test_parse_procedural():
         parse_procedural("procedural:1", 2)
 
 
+@pytest.mark.slow
 def test_render_procedural_writes_views_sheet_and_refuses_to_overwrite(tmp_path, capsys):
     out = tmp_path / "room"
     args = ["render", "procedural:2", "--views", "3", "--resolution", "16", "--samples", "32", "--out", str(out)]

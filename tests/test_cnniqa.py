@@ -102,6 +102,7 @@ def real_images():
 # The pipeline against the reference port.
 
 
+@pytest.mark.slow
 def test_local_normalisation_and_patch_grid_match_the_reference():
     rng = np.random.default_rng(0)
     patch = rng.random((32, 32))
@@ -121,6 +122,7 @@ def test_local_normalisation_and_patch_grid_match_the_reference():
     assert [cnniqa.patch_grid(s) for s in (20, 32, 33, 64, 65, 96, 256, 257)] == [1, 1, 1, 1, 2, 2, 7, 8]
 
 
+@pytest.mark.slow
 def test_network_matches_numpy_with_converted_random_weights():
     sd = random_state_dict(1)
     variables = jax.tree.map(jnp.asarray, cnniqa.convert_state_dict(sd))
@@ -132,6 +134,7 @@ def test_network_matches_numpy_with_converted_random_weights():
     assert np.max(np.abs(np_forward(swapped, patches.astype(np.float64)) - ours)) > 1e-2
 
 
+@pytest.mark.slow
 def test_full_pipeline_matches_numpy_with_the_real_weights(params, real_images):
     from waldo_jax.weights import read_torch_file, state_dict
 
@@ -191,6 +194,7 @@ def blur(image, sigma):
     return image if sigma == 0 else np.stack([gaussian_filter(image[..., c], sigma) for c in range(3)], -1)
 
 
+@pytest.mark.slow
 def test_scores_worsen_with_blur_and_noise(crit, real_images):
     score = jax.jit(crit.score_images)
     key = jax.random.key(7)
@@ -211,6 +215,7 @@ def test_clean_fox_beats_its_blurred_copies(crit, real_images):
     assert np.argmax(scores) == 0 and np.all(scores[1:] < scores[0] - 5.0), scores
 
 
+@pytest.mark.slow
 def test_jit_compiles_once_per_image_size(crit, params):
     traces = []
 
@@ -230,6 +235,7 @@ def test_jit_compiles_once_per_image_size(crit, params):
     assert len(traces) == 2
 
 
+@pytest.mark.slow
 def test_batches_deterministic_extremes_and_failures(crit, real_images):
     fox = real_images[0][:96, :96]
     rng = np.random.default_rng(3)
@@ -253,6 +259,7 @@ def test_batches_deterministic_extremes_and_failures(crit, real_images):
     assert scores[0] == scores[1] == low and np.all(np.isfinite(scores[2:])) and np.all(scores[2:] > low)
 
 
+@pytest.mark.slow
 def test_small_images_are_resized_up(params):
     rng = np.random.default_rng(4)
     small = rng.random((20, 40, 3)).astype(np.float32)  # 20 px high: resized to 32 x 40, one patch

@@ -175,6 +175,7 @@ def _blob_map(cx, cy, radius=0.15, size=96):
     return ((xs - cx) ** 2 + (ys - cy) ** 2 <= radius**2).astype(np.float32)
 
 
+@pytest.mark.slow
 def test_composition_prefers_power_points_to_corners_and_edges():
     power = float(composition_from_map(_blob_map(1 / 3, 1 / 3)))
     corner = float(composition_from_map(_blob_map(0.15, 0.15)))

@@ -29,6 +29,7 @@ def test_registry_names_and_errors():
         assert spec.direction in ("max", "min") and spec.inputs in ("images", "renders", "poses"), name
 
 
+@pytest.mark.slow
 def test_oracle_criteria_score_poses_like_the_oracle(bare_room):
     oracle = make_criterion("waldo_oracle", CriterionContext(room=bare_room))
     visible = make_criterion("waldo_visible", CriterionContext(room=bare_room))

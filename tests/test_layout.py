@@ -112,6 +112,7 @@ def test_no_import_runs_upward_or_sideways():
     assert not wrong, "\n".join(wrong)
 
 
+@pytest.mark.slow
 def test_no_import_cycle():
     graph = _graph()
     state: Dict[str, int] = {}
@@ -145,6 +146,7 @@ def _users() -> List[Tuple[Path, str, str, int]]:
     return uses
 
 
+@pytest.mark.slow
 def test_no_private_name_crosses_a_module():
     private = [f"{path.relative_to(ROOT)}:{line}: {module}.{name}" for path, module, name, line in _users()
                if name.startswith("_") and not name.startswith("__")]
@@ -172,6 +174,7 @@ def test_no_private_name_crosses_a_module():
     assert not private + attributes, "\n".join(private + attributes)
 
 
+@pytest.mark.slow
 def test_names_used_across_modules_are_documented():
     missing = []
     for path, module, name, line in _users():

@@ -134,6 +134,7 @@ def test_trunc_exp_values_and_finite_gradients():
 # Field
 
 
+@pytest.mark.slow
 def test_params_structure_and_determinism(params):
     assert set(params) == {"hash", "density_mlp", "color_mlp"}
     assert params["hash"].shape == (CONFIG.hashgrid.n_rows, 2)
@@ -168,6 +169,7 @@ def _numpy_field(params, xs, ds):
     return sigma, rgb
 
 
+@pytest.mark.slow
 def test_field_matches_numpy_forward_pass(params):
     # Scale the table up so that the hash features, not only the SH term, drive the outputs.
     params = dict(params, hash=params["hash"] * 2e4)

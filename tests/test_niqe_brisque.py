@@ -176,6 +176,7 @@ def _compare_features(got: np.ndarray, want: np.ndarray, where: str) -> int:
     return flips
 
 
+@pytest.mark.slow
 def test_features_and_scores_match_the_reference(test_set, computed, reference_models):
     names, images = test_set
     flips = fits = 0
@@ -201,6 +202,7 @@ def test_features_and_scores_match_the_reference(test_set, computed, reference_m
     assert np.all(computed["niqe_valid"]), "every patch of these images has structure"
 
 
+@pytest.mark.slow
 def test_brisque_on_an_odd_size_matches_the_reference():
     """cv::resize to (W // 2, H // 2) of an odd size is not a plain factor 2: the general cubic path."""
     image = _synthetic(jax.random.key(3), 75, 101)[0]
@@ -318,6 +320,7 @@ def test_criteria_are_registered_minimising_with_finite_worst(criteria):
         assert criterion.value_range == (0.0, 100.0)
 
 
+@pytest.mark.slow
 def test_criteria_jit_batch_and_failure_scores(criteria):
     fox = _square(require_scene("fox") / "images" / "0001.jpg")
     nan_image = fox.copy()

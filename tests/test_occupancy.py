@@ -210,6 +210,7 @@ def test_cell_points_round_trip():
 # Update
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("aabb_scale", [1, 2])
 def test_cells_inside_dense_balls_are_occupied(aabb_scale):
     """No region of density above the threshold is skipped.
@@ -406,6 +407,7 @@ def dense_render():
     return RENDER_DENSE(ball_field, BALL, origins, directions, RENDER_CONFIG)
 
 
+@pytest.mark.slow
 def test_marching_on_full_grid_matches_dense_sampling():
     grid = occ.init_occupancy(BOX, resolution=G)  # all occupied
     origins, directions = _camera_rays()
@@ -443,6 +445,7 @@ def test_marching_on_updated_grid_is_close_to_dense(sparse_grid, dense_render):
     assert int(evaluations.sum()) * 5 <= origins.shape[0] * RENDER_CONFIG.num_samples
 
 
+@pytest.mark.slow
 def test_early_stop_drops_samples_behind_opaque_surfaces():
     grid = occ.init_occupancy(BOX, resolution=G)
     params = make_balls([[0.0, 0.0, 0.0]], [0.8], [400.0], SMOOTH)
@@ -465,6 +468,7 @@ def _ray_batch():
     return origins, directions, t_enter, t_exit
 
 
+@pytest.mark.slow
 def test_march_samples_are_ordered_occupied_and_masked(sparse_grid):
     origins, directions, t_start, t_end = _ray_batch()
     t, delta, mask = (np.asarray(a) for a in MARCH_RAYS(sparse_grid, origins, directions, t_start, t_end, MARCH, None))
@@ -553,6 +557,7 @@ def test_cone_stepping_grows_steps_with_distance():
 # Compilation
 
 
+@pytest.mark.slow
 def test_update_and_render_compile_once(sparse_grid):
     grid = occ.init_occupancy(BOX, resolution=G)
     config = occ.OccupancyConfig.create(grid)

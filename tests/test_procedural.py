@@ -98,6 +98,7 @@ def test_batch_equals_single(room):
     assert batch.max() > 0.5  # looking straight at Waldo from inside the room often sees him
 
 
+@pytest.mark.slow
 def test_training_cameras_see_waldo_at_most_partly(room):
     config = RoomCameraConfig(max_visibility=0.5)
     c2w = training_cameras(jax.random.key(1), room, 16, INTR, config)
@@ -108,11 +109,13 @@ def test_training_cameras_see_waldo_at_most_partly(room):
     assert np.all((radius >= 2.9 - 1e-5) & (radius <= 3.4 + 1e-5))
 
 
+@pytest.mark.slow
 def test_too_strict_camera_filter_is_a_clear_error(room):
     with pytest.raises(ValueError, match="candidate cameras"):
         training_cameras(jax.random.key(1), room, 8, INTR, RoomCameraConfig(max_visibility=-1.0, oversample=1))
 
 
+@pytest.mark.slow
 def test_field_is_finite_and_bounded(room):
     points = jax.random.uniform(jax.random.key(2), (512, 3), minval=-5.0, maxval=5.0)
     sigma, rgb = jax.jit(jax.vmap(room_field, in_axes=(None, 0, None)))(room, points, jnp.array([0.0, 0.0, -1.0]))
@@ -124,6 +127,7 @@ def test_field_is_finite_and_bounded(room):
     assert float(inside_floor) > 0.99 * DENSITY and float(in_the_air) < 1e-3
 
 
+@pytest.mark.slow
 def test_room_scene_renders_views_where_waldo_shows_red_stripes():
     scene, room = room_scene(seed=0, num_views=4, resolution=24, num_samples=48)
     assert scene.images.shape == (4, 24, 24, 3) and scene.c2w.shape == (4, 4, 4)

@@ -358,6 +358,7 @@ _VIEWS_CONFIG = _config(near=0.5, far=6.0, aabb=BOX, num_samples=8, ray_chunk=4)
 _VIEWS_PARAMS = _ball(1.5, rgb=(0.2, 0.6, 0.4))
 
 
+@pytest.mark.slow
 def test_render_views_equals_loop_over_render_view():
     # 3 poses of 15 pixels, rendered 4 rays at a time: the last chunk is padded.
     num_poses = 3
@@ -376,6 +377,7 @@ def test_render_views_equals_loop_over_render_view():
     np.testing.assert_allclose(out34.rgb, out.rgb, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_render_views_keys_determinism():
     c2w = _poses(3)
     render = lambda key=None: render_views(ball_field, _VIEWS_PARAMS, c2w, INTRINSICS, _VIEWS_CONFIG, key)

@@ -81,6 +81,7 @@ def test_pairs_from_the_command_line_and_train_json(tmp_path):
                                                    render_splats.ScenePair("s2", "x/s2", "x/n2", "sc", None)]
 
 
+@pytest.mark.slow
 def test_scene_poses_and_camera_on_lego_tiny():
     from render_trained import timing_poses
 

@@ -64,6 +64,7 @@ def assert_same(a, b, atol=0.0):
             np.testing.assert_allclose(x, y, atol=atol, rtol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["grs", "pibs", "egps"])
 def test_scan_equals_python_loop(method):
     key = jax.random.key(4)
@@ -128,6 +129,7 @@ def test_min_direction_mirrors_max_direction():
     assert float(minimised.mcvir) == pytest.approx(float(maximised.mcvir))
 
 
+@pytest.mark.slow
 def test_multi_seed_vmap_equals_per_seed_runs():
     keys = jax.random.split(jax.random.key(11), 3)
     batch = explore_seeds(keys, toy_score, INITIAL, "egps", CONFIG)
@@ -159,6 +161,7 @@ def _distance_score(spot, c2w):
 SPOT_TRACES = []
 
 
+@pytest.mark.slow
 def test_partial_score_fn_takes_traced_arrays_without_retracing():
     near = explore(jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT)), INITIAL,
                    "grs", CONFIG)

@@ -107,6 +107,7 @@ def find_pair(population, child_origin, child_target, child_up, candidates):
     return None
 
 
+@pytest.mark.slow
 def test_pibs_interpolates_unexplored_pairs_and_exhausts_them():
     scores = np.array([0.1, 0.9, 0.5, 0.7, 0.3, 0.8], np.float32)
     n, epochs = PIBS_CONFIG.children_per_epoch, 3

@@ -8,6 +8,7 @@ training view for at least 8 of 10 seeds, all seeds in one vmapped call.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 # Importing waldo_jax first sets the XLA flag it needs before JAX starts its CPU backend.
 from waldo_jax.procedural import make_room, training_cameras, waldo_visibility_batch
@@ -22,6 +23,7 @@ def _visibility(room, intrinsics, c2w):
     return waldo_visibility_batch(room, c2w, intrinsics)
 
 
+@pytest.mark.slow
 def test_egps_finds_waldo_better_than_every_training_view():
     room = make_room(0)
     intrinsics = Intrinsics.from_fov(16, 16, np.radians(60.0))
@@ -45,6 +47,7 @@ def test_egps_finds_waldo_better_than_every_training_view():
     assert float(seeds.cvir_mean) > 0.0 and float(seeds.mcvir_mean) > 0.0
 
 
+@pytest.mark.slow
 def test_egps_beats_grs_on_mcvir_at_the_demo_settings():
     """`waldo demo`'s claim, without its NeRF: room 0, its 32 training cameras, waldo_oracle, 8 seeds."""
     from waldo_jax.criteria import CriterionContext, make_criterion

@@ -146,6 +146,7 @@ def test_pose_and_view_criteria_combine_into_a_posed_criterion(bare_room):
     np.testing.assert_allclose(nested.score_posed(rgba, c2w, INTR), [vis[0], 0.0], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_posed_criterion_scores_through_the_pipeline():
     """A search scores a "posed" combination by rendering and passing the poses (`score_function`)."""
     from waldo_jax.pipeline import initial_scores, load_source, score_function
