@@ -39,6 +39,7 @@ from bench_common import emit_with_load, header, refuse_existing_out, wait_for_q
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.nerf import train as training  # noqa: E402
 from waldo_jax.nerf.config import TrainConfig  # noqa: E402
+from waldo_jax.nerf.trained import TrainedField  # noqa: E402
 from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
 from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS, render_psnr  # noqa: E402
 from waldo_jax.pipeline.sources import field_renderer  # noqa: E402
@@ -94,8 +95,7 @@ def measure(name: str, overrides: dict, c2w, truth, best, intrinsics) -> dict:
     t1 = time.perf_counter()
     result = training.train(jax.random.key(DEMO_ROOM_SEED), scene, config, test, progress=False)
     t2 = time.perf_counter()
-    render = field_renderer(result.params, result.occupancy, result.config, intrinsics, scene.near, scene.far,
-                            scene.aabb, scene.background)
+    render = field_renderer(TrainedField.from_result(result, scene), intrinsics)
     psnr = render_psnr(np.asarray(render(jnp.asarray(c2w))), truth)
     return {"name": name, "views": views, "steps": steps, "resolution": resolution, "n_max": int(hashgrid.N_max),
             "steps_per_diagonal": float(config.steps_per_diagonal), "render_step_scale": result.config.render_step_scale,

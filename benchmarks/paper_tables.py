@@ -317,9 +317,11 @@ def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> 
     """`waldo train` on $WALDO_DATA/scenes/<scene> into run_dir (`waldo_jax.nerf.runs.train_scene_run`)."""
     from waldo_jax.nerf.runs import train_scene_run
     from waldo_jax.paths import scene_path
+    from waldo_jax.types import RunOptions
 
-    train_scene_run(str(scene_path(scene)), run_dir, preset=args.preset, steps=args.train_steps, downscale=downscale,
-                    seed=args.seed, render_step_scale=args.render_step_scale, progress=args.progress)
+    train_scene_run(str(scene_path(scene)), run_dir, preset=args.preset, steps=args.train_steps,
+                    render_step_scale=args.render_step_scale,
+                    options=RunOptions(downscale=downscale, seed=args.seed, progress=args.progress))
 
 
 def _train_room(run_dir: Path, args) -> None:

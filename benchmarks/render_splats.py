@@ -496,7 +496,7 @@ def scene_part(pair: ScenePair, args) -> dict:
     """One scene: the fitted splats beside the trained NeRF at the same poses and camera."""
     from waldo_jax.nerf.checkpoint import load_checkpoint
     from waldo_jax.nerf.runs import load_splits
-    from waldo_jax.nerf.trained import evaluate, render_trained
+    from waldo_jax.nerf.trained import TrainedField, evaluate, render_trained
     from waldo_jax.splats.fit import evaluate_splats
     from waldo_jax.splats.io import load_splat_model
 
@@ -518,6 +518,7 @@ def scene_part(pair: ScenePair, args) -> dict:
                              f"{have[0]}x{have[1]}: give the runs' downscale")
     nerf_background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
     splat_background = np.asarray(splat_record.get("background", nerf_background), np.float32)
+    nerf_field = TrainedField.create(params, grid, config, scene.near, scene.far, nerf_background, scene.aabb)
     base = SplatRenderConfig(tile_size=args.tile_size, chunk=args.chunk,
                              background=tuple(float(v) for v in splat_background))
 
@@ -538,8 +539,7 @@ def scene_part(pair: ScenePair, args) -> dict:
         c2w_device = jnp.asarray(c2w)
 
         def nerf():
-            return render_trained(params, grid, config, c2w_device, camera, scene.near, scene.far, nerf_background,
-                                  aabb=scene.aabb).rgb
+            return render_trained(nerf_field, c2w_device, camera).rgb
 
         times = timed_alternately({"splats": lambda: compiled(*call_args).rgb, "nerf": nerf}, args.scene_repeats)
         splat_best, nerf_best = times["splats"][0], times["nerf"][0]

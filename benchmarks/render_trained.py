@@ -52,6 +52,7 @@ from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
 from waldo_jax.nerf.config import TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
 from waldo_jax.nerf.trained import (  # noqa: E402
+    TrainedField,
     calibrate_render_step,
     evaluate,
     render_setup,
@@ -86,7 +87,7 @@ def timing_camera(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics
     return Intrinsics.create(width, height, focal, distortion=np.asarray(intrinsics.distortion))
 
 
-def render_points(config, params, grid, c2w, camera, scene, background, evaluations: np.ndarray):
+def render_points(field: TrainedField, c2w, camera, evaluations: np.ndarray):
     """The points the renderer evaluated, in ray order: each ray's first `evaluations` marched samples.
 
     Returns points [E, 3] and unit directions [E, 3] (host arrays), E = evaluations.sum().
@@ -94,7 +95,7 @@ def render_points(config, params, grid, c2w, camera, scene, background, evaluati
     from waldo_jax.render import marching
     from waldo_jax.render.volume import view_rays
 
-    grid_, render_config, march = render_setup(config, grid, scene.near, scene.far, scene.aabb, background)
+    grid_, render_config, march = render_setup(field)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))[:, :3, :4]
     evaluations = np.asarray(evaluations, np.int64).reshape(-1)
 
@@ -238,19 +239,18 @@ def main(argv=None):
     camera = timing_camera(scene.intrinsics, width, height)
     rays = poses * width * height
 
-    def render(poses_c2w):
-        return render_trained(params, grid, config, poses_c2w, camera, scene.near, scene.far, background,
-                              aabb=scene.aabb, packing=packing).rgb
+    field = TrainedField.create(params, grid, config, scene.near, scene.far, background, scene.aabb)
 
-    counted = jax.device_get(render_trained_counted(params, grid, config, c2w, camera, scene.near, scene.far,
-                                                    background, aabb=scene.aabb, packing=packing))
+    def render(poses_c2w):
+        return render_trained(field, poses_c2w, camera, packing=packing).rgb
+
+    counted = jax.device_get(render_trained_counted(field, c2w, camera, packing=packing))
     evaluations = int(np.asarray(counted.evaluations, np.int64).sum())
     passes = int(np.asarray(counted.passes, np.int64).sum())
     slots = int(np.asarray(counted.slots, np.int64).sum())
-    shape = marched.block_shape(packing, rays, render_setup(config, grid, scene.near, scene.far, scene.aabb,
-                                                             background)[2].max_samples)
+    shape = marched.block_shape(packing, rays, render_setup(field).march.max_samples)
     pass_slots = shape.rows[0] * shape.row_length
-    points, directions = render_points(config, params, grid, c2w, camera, scene, background, counted.evaluations)
+    points, directions = render_points(field, c2w, camera, counted.evaluations)
     field_points = points.shape[0]
     field_fn, field_calls = field_alone(config, params, points, directions, pass_slots, packing)
     del points, directions

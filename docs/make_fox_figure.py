@@ -14,7 +14,7 @@ import numpy as np
 
 from waldo_jax.io import contact_sheet, save_png
 from waldo_jax.nerf.checkpoint import load_checkpoint
-from waldo_jax.nerf.trained import render_trained
+from waldo_jax.nerf.trained import TrainedField, render_trained
 from waldo_jax.paths import scene_path
 from waldo_jax.scenes import load_scene
 
@@ -26,10 +26,7 @@ def main(run_dir: str, test_index: int = 1) -> None:
     fox = scene_path("fox")
     train = load_scene(fox, downscale=8, split="train")
     test = load_scene(fox, downscale=8, split="test")
-    scene = checkpoint.scene
-    background = scene.background if scene.background is not None else np.zeros(3, np.float32)
-    out = render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, test.c2w[test_index:test_index + 1],
-                         test.intrinsics, scene.near, scene.far, background, aabb=scene.aabb)
+    out = render_trained(TrainedField.from_checkpoint(checkpoint), test.c2w[test_index:test_index + 1], test.intrinsics)
     render = np.asarray(jax.device_get(out.rgb))[0]
     mse = float(np.mean((render - test.images[test_index]) ** 2))
     psnr = -10 * np.log10(mse)

@@ -125,6 +125,30 @@ def test_round_trip_is_bit_exact(tmp_path, sampler):
     assert _bytes(ckpt.load_checkpoint(_dir_with(tmp_path, path)).params) == _bytes(params)
 
 
+def test_trained_field_of_a_checkpoint_is_one_pytree_with_its_scene_settings(saved):
+    """`TrainedField.from_checkpoint`: params and occupancy are the leaves, the config is static, and near,
+    far, box and background come from the training scene (black for an opaque one); it renders as the
+    same field built by hand."""
+    import dataclasses
+
+    from waldo_jax.nerf.trained import TrainedField, render_trained
+
+    loaded = ckpt.load_checkpoint(saved)
+    field = TrainedField.from_checkpoint(loaded)
+    assert (float(field.near), float(field.far)) == (2.0, 6.0)
+    np.testing.assert_array_equal(field.aabb, np.asarray(BOX, np.float32))
+    np.testing.assert_array_equal(field.background, np.ones(3, np.float32))
+    leaves, treedef = jax.tree.flatten(field)
+    assert len(leaves) == len(jax.tree.leaves(loaded.params)) + 4  # + near, far, background, aabb (dense: no grid)
+    assert jax.tree.unflatten(treedef, leaves).config == loaded.config
+    opaque = dataclasses.replace(loaded, scene=dataclasses.replace(loaded.scene, background=None))
+    np.testing.assert_array_equal(TrainedField.from_checkpoint(opaque).background, np.zeros(3, np.float32))
+    c2w, intrinsics = loaded.scene.c2w[:1], loaded.scene.intrinsics.scaled(8, 6)
+    by_hand = TrainedField.create(loaded.params, None, loaded.config, 2.0, 6.0, np.ones(3), BOX)
+    np.testing.assert_array_equal(np.asarray(render_trained(field, c2w, intrinsics).rgb),
+                                  np.asarray(render_trained(by_hand, c2w, intrinsics).rgb))
+
+
 def _dir_with(tmp_path, path):
     run = tmp_path / "rundir"
     run.mkdir(exist_ok=True)

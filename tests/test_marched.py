@@ -106,7 +106,8 @@ def reference(field_fn, params, grid, c2w, intrinsics, render_config, march):
 
 
 def render(params, grid, c2w, march=MARCH, packing=None, field_fn=field):
-    views = marched.render_marched(field_fn, params, grid, c2w, INTRINSICS, RENDER_CONFIG, march, packing)
+    setup = marched.MarchSetup(grid, RENDER_CONFIG, march)
+    views = marched.render_marched(field_fn, params, setup, c2w, INTRINSICS, packing)
     flat = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
     return flat, np.asarray(views.evaluations).reshape(-1), np.asarray(views.passes)
 
@@ -212,11 +213,11 @@ def test_passes_are_few_when_the_budget_is_large():
     _, counts = as_numpy(reference(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
     one_size = marched.Packing(rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32,
                                field_chunk=0, pass_levels=1)
-    views = marched.render_marched(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL, one_size)
+    views = marched.render_marched(field, FOG, marched.MarchSetup(grid, RENDER_CONFIG, FULL), c2w, INTRINSICS, one_size)
     slots = 16 * 192  # one block of the 189 rays, rounded up to 192
     assert views.passes.shape == (1,)
     assert int(views.passes[0]) <= math.ceil(counts.sum() / slots) + math.ceil(counts.max() / (8 * 32)) + 2
-    levels = marched.render_marched(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL,
+    levels = marched.render_marched(field, FOG, marched.MarchSetup(grid, RENDER_CONFIG, FULL), c2w, INTRINSICS,
                                     dataclasses.replace(one_size, pass_levels=3))
     np.testing.assert_array_equal(np.asarray(levels.evaluations), np.asarray(views.evaluations))
     assert int(levels.slots[0]) < int(views.slots[0]) and int(levels.slots[0]) < 2 * counts.sum()
@@ -341,17 +342,20 @@ def trained_lego(trained_lego_fast):
 @pytest.mark.parametrize("poses", [1, 2])
 def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses):
     from waldo_jax.nerf.field import make_field
-    from waldo_jax.nerf.trained import render_setup
+    from waldo_jax.nerf.trained import TrainedField, render_setup
 
     scene, result = trained_lego
-    grid, render_config, march = render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
-                                              np.ones(3, np.float32))
+    trained = TrainedField.create(result.params, result.occupancy, result.config, scene.near, scene.far,
+                                  np.ones(3, np.float32), scene.aabb)
+    setup = render_setup(trained)
+    grid, render_config, march = setup
     assert 0.01 < float(jnp.mean(grid.bitfield)) < 0.5  # the trained grid skips empty space
     field_fn = make_field(result.config.field)
     c2w = jnp.asarray(scene.c2w[:poses])
     intrinsics = scene.intrinsics.scaled(20, 20)
     full = march.replace(min_transmittance=jnp.float32(0.0))
-    views = marched.render_marched(field_fn, result.params, grid, c2w, intrinsics, render_config, full, packing)
+    views = marched.render_marched(field_fn, result.params, marched.MarchSetup(grid, render_config, full), c2w,
+                                   intrinsics, packing)
     expected, counts = as_numpy(reference(field_fn, result.params, grid, c2w, intrinsics, render_config, full))
     out = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
     np.testing.assert_allclose(out.rgb, expected.rgb, atol=EXACT)
@@ -359,7 +363,7 @@ def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses)
     np.testing.assert_array_equal(np.asarray(views.evaluations).reshape(-1), counts)
     assert out.acc.max() > 0.99 and counts.max() > 10  # opaque surfaces, long rays
     # With early termination (the renderer's default): within the ignored tail, never more evaluations.
-    views = marched.render_marched(field_fn, result.params, grid, c2w, intrinsics, render_config, march, packing)
+    views = marched.render_marched(field_fn, result.params, setup, c2w, intrinsics, packing)
     out = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
     assert np.abs(out.rgb - expected.rgb).max() <= TAIL
     evaluations = np.asarray(views.evaluations).reshape(-1)
@@ -371,17 +375,17 @@ def test_a_coarser_march_with_the_finest_marchs_sizes_renders_the_same(trained_l
     march (more candidate slots, the extra ones beyond the grid) gives the same image and evaluations,
     so the render-step calibration needs one compiled program for all its scales."""
     from waldo_jax.nerf.field import make_field
-    from waldo_jax.nerf.trained import render_setup
+    from waldo_jax.nerf.trained import TrainedField, render_setup
 
     scene, result = trained_lego
+    trained = TrainedField.create(result.params, result.occupancy, result.config, scene.near, scene.far,
+                                  np.ones(3, np.float32), scene.aabb)
     field_fn = make_field(result.config.field)
     c2w, intrinsics = jnp.asarray(scene.c2w[:1]), scene.intrinsics.scaled(20, 20)
     views = []
     for sizes_of in (None, 1.0):
-        grid, render_config, march = render_setup(result.config, result.occupancy, scene.near, scene.far, scene.aabb,
-                                                  np.ones(3, np.float32), step_scale=3.0, sizes_of=sizes_of)
-        views.append((march.max_steps, marched.render_marched(field_fn, result.params, grid, c2w, intrinsics,
-                                                              render_config, march)))
+        setup = render_setup(trained, step_scale=3.0, sizes_of=sizes_of)
+        views.append((setup.march.max_steps, marched.render_marched(field_fn, result.params, setup, c2w, intrinsics)))
     (steps_own, own), (steps_finest, finest) = views
     assert steps_finest > steps_own  # the finest march has more candidates
     np.testing.assert_array_equal(np.asarray(own.output.rgb), np.asarray(finest.output.rgb))

@@ -49,8 +49,8 @@ def objective(gradient, march=MARCH, packing=PACKINGS[0], params=PARAMS):
 
     def values(offsets):
         poses = Pose(origin=START.origin + offsets[:, :3], target=START.target + offsets[:, 3:], up=START.up)
-        out = marched.render_marched(smooth_field, params, GRID, jax.vmap(pose_to_c2w)(poses), INTRINSICS,
-                                     RENDER_CONFIG, march, packing, gradient=gradient).output
+        out = marched.render_marched(smooth_field, params, marched.MarchSetup(GRID, RENDER_CONFIG, march),
+                                     jax.vmap(pose_to_c2w)(poses), INTRINSICS, packing, gradient=gradient).output
         return (jnp.sum(out.rgb * WEIGHTS, axis=(1, 2, 3)) + 0.3 * jnp.sum(out.acc, axis=(1, 2))
                 + 0.01 * jnp.sum(out.depth, axis=(1, 2)))
 
@@ -106,8 +106,8 @@ def test_reverse_mode_only_and_refused_names():
     with pytest.raises(TypeError, match="custom_vjp"):
         jax.jvp(objective("reverse"), (offsets,), (offsets,))
     with pytest.raises(ValueError, match="gradient must be one of"):
-        marched.render_marched(smooth_field, PARAMS, GRID, jnp.eye(4)[None], INTRINSICS, RENDER_CONFIG, MARCH,
-                               gradient="sideways")
+        marched.render_marched(smooth_field, PARAMS, marched.MarchSetup(GRID, RENDER_CONFIG, MARCH), jnp.eye(4)[None],
+                               INTRINSICS, gradient="sideways")
 
 
 def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
@@ -116,6 +116,7 @@ def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
     from conftest import require_scene
     from waldo_jax.criteria import make_criterion
     from waldo_jax.nerf.checkpoint import load_checkpoint
+    from waldo_jax.nerf.trained import TrainedField
     from waldo_jax.pipeline.sources import field_renderer
     from waldo_jax.scenes import load_scene
     from waldo_jax.search import training_poses
@@ -128,8 +129,9 @@ def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
     offsets = jnp.zeros((3, 6), jnp.float32)
     results = {}
     for mode in ("forward", "reverse"):
-        render = field_renderer(checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, scene.near,
-                                scene.far, scene.aabb, np.zeros(3, np.float32), gradient=mode)
+        field = TrainedField.create(checkpoint.params, checkpoint.occupancy, checkpoint.config, scene.near, scene.far,
+                                    np.zeros(3, np.float32), scene.aabb)
+        render = field_renderer(field, intrinsics, gradient=mode)
         score = jax.tree_util.Partial(lambda r, c: criterion.apply(criterion.params, r(c)), render)
         results[mode] = jax.jit(lambda o, s=score, m=mode: values_and_gradients(s, start, jnp.float32(1.0), o, m))(
             offsets)

@@ -376,7 +376,8 @@ def _camera_rays():
 
 def _render(params, grid, march_config, packing=None):
     """The view of CAMERA through `grid` with the marched renderer: (RenderOutput [256], evaluations [256])."""
-    views = marched.render_marched(ball_field, params, grid, CAMERA[None], VIEW, RENDER_CONFIG, march_config, packing)
+    setup = marched.MarchSetup(grid, RENDER_CONFIG, march_config)
+    views = marched.render_marched(ball_field, params, setup, CAMERA[None], VIEW, packing)
     return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[3:]), views.output), views.evaluations.reshape(-1)
 
 

@@ -53,7 +53,7 @@ TRAINED_SCRIPT = textwrap.dedent(
     from waldo_jax.cameras import look_at
     from waldo_jax.nerf import HashGridConfig, NGPFieldConfig
     from waldo_jax.nerf.config import TrainConfig
-    from waldo_jax.nerf.trained import render_trained, render_trained_counted
+    from waldo_jax.nerf.trained import TrainedField, render_trained, render_trained_counted
     from waldo_jax.nerf.samplers import make_sampler
     from waldo_jax.nerf.step import init_train_state
     from waldo_jax.render import pose_mesh
@@ -73,7 +73,7 @@ TRAINED_SCRIPT = textwrap.dedent(
         state = init_train_state(jax.random.key(1), config)
         # a grid with structure: one density update from the random field (warm-up samples every cell)
         grid = make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, True)
-        args = (state.params, grid, config, c2w, intr, 1.0, 12.0)
+        args = (TrainedField.create(state.params, grid, config, 1.0, 12.0), c2w, intr)
         sharded = render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
         one = render_trained_counted(*args).output  # the single-device renderer
         assert len(sharded.rgb.sharding.device_set) == 4, sampler

@@ -15,7 +15,7 @@ Conventions fixed here and used everywhere:
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 
 import flax.struct
 import jax
@@ -27,7 +27,7 @@ PRNGKey = jax.Array
 # A radiance field for one point: (params, x [3], d [3] unit view direction) -> (sigma [], rgb [3]).
 Field = Callable[..., Tuple[Array, Array]]
 
-__all__ = ["Array", "Field", "Intrinsics", "Pose", "PRNGKey", "RenderOutput", "Scene"]
+__all__ = ["Array", "Field", "Intrinsics", "Pose", "PRNGKey", "RenderOutput", "RunOptions", "Scene"]
 
 
 @flax.struct.dataclass
@@ -265,3 +265,19 @@ class Scene:
             else np.asarray(self.applied_transform, np.float64).round(6).tolist(),
             "metadata": self.metadata,
         }
+
+
+class RunOptions(NamedTuple):
+    """How a run folder is made from a scene on disk (`nerf.runs.train_scene_run`, `splats.runs.fit_scene_run`).
+
+    Attributes:
+      downscale: the scene's image downscale (default: its format's own).
+      seed: the PRNG seed of the training.
+      force: write into a non-empty output folder.
+      progress: show a progress bar.
+    """
+
+    downscale: Optional[float] = None
+    seed: int = 0
+    force: bool = False
+    progress: bool = True

@@ -29,7 +29,7 @@ from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.nerf.checkpoint import load_checkpoint
-from waldo_jax.nerf.trained import render_trained
+from waldo_jax.nerf.trained import TrainedField, render_trained
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
 from waldo_jax.pipeline.splat_sources import calibrate_max_pairs, is_splat_spec, splat_renderer, splat_source
 from waldo_jax.procedural import RoomCameraConfig, make_room, room_field, room_render_config, room_scene, \
@@ -254,14 +254,13 @@ def _render_run(args: argparse.Namespace) -> int:
     names = [f"{i:04d}.png" for i in range(len(c2w))]
     stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
 
-    background = scene.background if scene.background is not None else np.zeros(3, np.float32)
+    field = TrainedField.from_checkpoint(checkpoint)
     progress = Progress(args.quiet)
     progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
     start = time.perf_counter()
     with progress:
-        _write_groups(lambda poses: render_trained(checkpoint.params, checkpoint.occupancy, checkpoint.config, poses,
-                                                   intrinsics, scene.near, scene.far, background, aabb=scene.aabb).rgb,
-                      c2w, intrinsics, out, names, progress)
+        _write_groups(lambda poses: render_trained(field, poses, intrinsics).rgb, c2w, intrinsics, out, names,
+                      progress)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()

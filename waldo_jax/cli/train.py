@@ -19,6 +19,7 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
 from waldo_jax.nerf.config import PRESETS
 from waldo_jax.nerf.runs import SAMPLER_CHOICES, train_scene_run
+from waldo_jax.types import RunOptions
 
 MODELS = ("nerf", "splat")
 
@@ -51,6 +52,10 @@ def add_command(subparsers) -> None:
     p.set_defaults(handler=cmd_train)
 
 
+def _run_options(args: argparse.Namespace) -> RunOptions:
+    return RunOptions(downscale=args.downscale, seed=args.seed, force=args.force, progress=not args.quiet)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     """`waldo train`: trains, writes RUN_DIR/checkpoint.ckpt and RUN_DIR/train.json (or a splat run)."""
     if args.model == "splat":
@@ -58,9 +63,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.capacity is not None:
         raise WaldoError("--capacity is for --model splat")
     result, _, out = train_scene_run(args.scene_path, args.out, preset=args.preset, steps=args.steps,
-                                     downscale=args.downscale, seed=args.seed, sampler=args.sampler,
-                                     render_step_scale=args.render_step_scale, force=args.force,
-                                     progress=not args.quiet)
+                                     sampler=args.sampler, render_step_scale=args.render_step_scale,
+                                     options=_run_options(args))
     psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
     scale = result.config.render_step_scale
     step = "" if scale is None else f" (renders march x{scale:g} the training step)"
@@ -79,8 +83,7 @@ def _fit_splats(args: argparse.Namespace) -> int:
     if nerf_only:
         raise WaldoError(f"{', '.join(nerf_only)}: for NeRF training only, not --model splat")
     result, stats, out = fit_scene_run(args.scene_path, args.out, steps=args.steps, capacity=args.capacity,
-                                       downscale=args.downscale, seed=args.seed, force=args.force,
-                                       progress=not args.quiet)
+                                       options=_run_options(args))
     psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
     print(f"fitted {stats['splats']} splats in {result.steps} steps, {result.seconds:.1f} s ({stats['device']}); "
           f"held-out PSNR {psnr}; wrote {out / stats['point_cloud']}")

@@ -1,9 +1,9 @@
 """Instant-NGP in JAX: hash encoding, the density/colour MLPs, training, checkpoints and run directories.
 
 Modules, bottom to top: `hashgrid`, `field` (the field, re-exported here) -> `config` (TrainConfig,
-presets) -> `samplers` -> `step` (one training step, chunks of steps) -> `trained` (a trained field
-rendered through `waldo_jax.render.marched`: render_trained, evaluate) -> `train` (the loop) ->
-`checkpoint` -> `runs`. Entry points: `train.train` (scenes in memory -> `TrainResult`),
+presets) -> `samplers` -> `step` (one training step, chunks of steps) -> `trained` (a trained field,
+`TrainedField`, rendered through `waldo_jax.render.marched`: render_trained, evaluate) -> `train` (the
+loop) -> `checkpoint` -> `runs`. Entry points: `train.train` (scenes in memory -> `TrainResult`),
 `runs.train_run` (the same, writing a run directory), `runs.train_scene_run` (`waldo train`: a
 scene on disk -> a run directory), `checkpoint.load_checkpoint` (a run back)."""
 

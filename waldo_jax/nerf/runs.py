@@ -20,7 +20,7 @@ from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
 from waldo_jax.nerf.train import TrainResult, train
 from waldo_jax.scenes import load_splits
-from waldo_jax.types import Scene
+from waldo_jax.types import RunOptions, Scene
 
 __all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "load_splits", "train_stats", "train_run", "train_scene_run"]
 
@@ -104,13 +104,13 @@ def _positive(flag: str, value: Optional[float]) -> None:
 
 
 def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", steps: Optional[int] = None,
-                    downscale: Optional[float] = None, seed: int = 0, sampler: str = "auto",
-                    render_step_scale: Optional[float] = None, force: bool = False,
-                    progress: bool = True) -> Tuple[TrainResult, Dict[str, Any], Path]:
+                    sampler: str = "auto", render_step_scale: Optional[float] = None,
+                    options: RunOptions = RunOptions()) -> Tuple[TrainResult, Dict[str, Any], Path]:
     """`waldo train` as a function: the scene on disk -> a run directory `out`.
 
     Every value is checked, and `out` too (empty, writable, a valid name), before the scene is loaded:
-    a training is never lost to a folder it cannot write. `force` writes into a non-empty `out`.
+    a training is never lost to a folder it cannot write. `options`: the scene's downscale, the seed,
+    whether to write into a non-empty `out` (force), progress.
 
     Returns:
       (the `TrainResult`, the train.json contents, the run directory).
@@ -124,16 +124,17 @@ def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", step
         raise WaldoError(f"unknown sampler {sampler!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
     if steps is not None and not 1 <= steps <= MAX_INT32:  # an int32 under jit: 10**12 would wrap
         raise WaldoError(f"--steps must be a positive integer of at most {MAX_INT32}, got {steps}")
-    _positive("--downscale", downscale)
+    _positive("--downscale", options.downscale)
     _positive("--render-step-scale", render_step_scale)
-    out = io.check_output_dir(out, force=force)
-    train_scene, test_scene = load_splits(scene_path, downscale, stacklevel=3)
-    out = io.prepare_output_dir(out, force=force)
+    out = io.check_output_dir(out, force=options.force)
+    train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3)
+    out = io.prepare_output_dir(out, force=options.force)
     overrides: Dict[str, Any] = {"sampler": "occupancy" if sampler == "auto" else sampler}
     if steps is not None:
         overrides["steps"] = steps
     if render_step_scale is not None:
         overrides["render_step_scale"] = render_step_scale
     config = TrainConfig.preset(preset, train_scene, **overrides)
-    result, stats = train_run(seed, train_scene, config, test_scene, out, preset, progress, scene_path)
+    result, stats = train_run(options.seed, train_scene, config, test_scene, out, preset, options.progress,
+                              scene_path)
     return result, stats, out

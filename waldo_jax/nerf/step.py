@@ -11,7 +11,7 @@ See docs/design.md, "Training".
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, NamedTuple, Optional, Tuple
 
 import flax.struct
 import jax
@@ -28,6 +28,7 @@ from waldo_jax.types import Array, Intrinsics, PRNGKey, Scene
 
 __all__ = [
     "TrainData",
+    "TrainInputs",
     "TrainState",
     "chunk_fn",
     "first_rays",
@@ -287,21 +288,38 @@ def chunk_fn(config: TrainConfig, rays_per_batch: int, warmup: bool) -> Callable
     return jax.jit(chunk, donate_argnums=(0,))
 
 
-def run_chunk(state: TrainState, train_key: PRNGKey, data: TrainData, hparams: TrainHParams,
-              render_config: RenderConfig, config: TrainConfig, total_steps: int,
-              rays_per_batch: Optional[int] = None, warmup: bool = False) -> Tuple[TrainState, Dict]:
+class TrainInputs(NamedTuple):
+    """Everything a chunk of training steps runs from (`train.training_inputs` makes the first).
+
+    Attributes:
+      state: the `TrainState`.
+      train_key: the training key stream (step i uses `fold_in(train_key, i)`).
+      data: the training images and cameras on the device.
+      hparams: the numeric hyper-parameters (as float32 arrays: `TrainHParams.as_arrays`).
+      render_config: near, far, box and samples per ray of the training renders.
+    """
+
+    state: TrainState
+    train_key: PRNGKey
+    data: TrainData
+    hparams: TrainHParams
+    render_config: RenderConfig
+
+
+def run_chunk(inputs: TrainInputs, config: TrainConfig, total_steps: int, rays_per_batch: Optional[int] = None,
+              warmup: bool = False) -> Tuple[TrainState, Dict]:
     """Runs one chunk of whole periods (those steps with step >= total_steps are discarded) in one jitted scan.
 
-    The input state must start a period (`state.step` a multiple of `occupancy_update_every`); its
-    buffers are donated: do not use `state` afterwards.
+    The input state (`inputs.state`) must start a period (`state.step` a multiple of
+    `occupancy_update_every`); its buffers are donated: do not use it afterwards.
 
     Returns:
       (state, metrics) with metrics {"loss", "psnr"} float32 [steps] (NaN for discarded steps) and
       {"rays", "samples", "rows"} int32 [steps] (0 for discarded steps).
     """
     rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
-    return chunk_fn(config, rays, bool(warmup))(state, train_key, data, hparams.as_arrays(), render_config,
-                                                 jnp.int32(total_steps))
+    return chunk_fn(config, rays, bool(warmup))(inputs.state, inputs.train_key, inputs.data, inputs.hparams.as_arrays(),
+                                                 inputs.render_config, jnp.int32(total_steps))
 
 
 def rays_ladder(config: TrainConfig) -> Tuple[int, ...]:

@@ -8,6 +8,7 @@ backend. Names: `R` rays per batch, `N` training images. See docs/design.md, "Tr
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any, Callable, Dict, List, NamedTuple, Optional
 
@@ -19,6 +20,7 @@ from waldo_jax.nerf.config import TrainConfig, TrainHParams, check_scene
 from waldo_jax.nerf.trained import calibrate_render_step, eval_background, evaluate
 from waldo_jax.nerf.step import (
     TrainData,
+    TrainInputs,
     TrainState,
     chunk_fn,
     first_rays,
@@ -30,16 +32,6 @@ from waldo_jax.render.volume import RenderConfig
 from waldo_jax.types import PRNGKey, Scene
 
 __all__ = ["TrainInputs", "TrainResult", "train", "training_inputs"]
-
-
-class TrainInputs(NamedTuple):
-    """Everything a training run starts from (see `training_inputs`)."""
-
-    state: TrainState
-    train_key: PRNGKey
-    data: TrainData
-    hparams: TrainHParams
-    render_config: RenderConfig
 
 
 def training_inputs(key: PRNGKey, train_scene: Scene, config: TrainConfig,
@@ -113,6 +105,131 @@ def _device_name() -> str:
     return f"{device.platform}:{kind}" if kind else device.platform
 
 
+@dataclasses.dataclass
+class _Timing:
+    """Wall-clock and rays trained of a run's chunks, those that compiled a program kept apart."""
+
+    train_seconds: float = 0.0
+    compile_seconds: float = 0.0
+    steady_seconds: float = 0.0
+    steady_rays: int = 0
+    all_rays: int = 0
+
+    def add(self, elapsed: float, rays_trained: int, compiled: bool) -> None:
+        self.train_seconds += elapsed
+        self.all_rays += rays_trained
+        if compiled:  # this call compiled: its time is mostly compilation
+            self.compile_seconds += elapsed
+        else:
+            self.steady_seconds += elapsed
+            self.steady_rays += rays_trained
+
+    def rays_per_second(self) -> float:
+        """Chunks that compiled count as compilation (their steps' own time included: an overestimate by
+        at most a chunk per compiled program); the rate is that of the others."""
+        if self.steady_seconds > 0:
+            return self.steady_rays / self.steady_seconds
+        return self.all_rays / max(self.train_seconds, 1e-9)  # every chunk compiled
+
+
+def _timed_chunk(program, inputs: TrainInputs, total, timing: _Timing):
+    """Runs one chunk from `inputs.state` (the host sync of the chunk) and times it: (state, metrics on the host)."""
+    programs = program._cache_size()
+    start = time.perf_counter()
+    state, metrics = program(inputs.state, inputs.train_key, inputs.data, inputs.hparams, inputs.render_config, total)
+    metrics = jax.device_get(metrics)  # the host sync of this chunk
+    elapsed = time.perf_counter() - start
+    timing.add(elapsed, int(np.sum(metrics["rays"])), compiled=program._cache_size() > programs)
+    return state, metrics
+
+
+def _chunk_entry(metrics: Dict[str, Any], done: int, taken: int, rays: int, warmup: bool,
+                 seconds: float) -> Dict[str, Any]:
+    """A chunk's history entry: means over its `taken` steps (see `TrainResult.history`)."""
+    rays_trained = int(np.sum(metrics["rays"]))
+    return {"step": done, "loss": float(np.nanmean(metrics["loss"])), "psnr": float(np.nanmean(metrics["psnr"])),
+            "rays": rays_trained / max(taken, 1), "samples": float(np.sum(metrics["samples"])) / max(taken, 1),
+            "rays_marched": rays, "warmup": warmup, "seconds": seconds}
+
+
+def _evaluates_after(config: TrainConfig, done: int, taken: int) -> bool:
+    """Whether the chunk that took the run from `done - taken` to `done` steps crossed an `eval_every` mark
+    (the last chunk excepted: the run is evaluated at its end anyway)."""
+    return bool(config.eval_every) and done < config.steps and (
+        done // config.eval_every) > ((done - taken) // config.eval_every)
+
+
+class _Chunks(NamedTuple):
+    """What the loop over chunks leaves (`_train_chunks`)."""
+
+    state: TrainState
+    history: List[Dict[str, Any]]
+    timing: _Timing
+    stopped: bool
+
+
+def _train_chunks(inputs: TrainInputs, config: TrainConfig, test_scene: Optional[Scene], progress: bool,
+                  on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]]) -> _Chunks:
+    """The training loop: chunks of steps until `config.steps` (or `on_chunk` stops it), with progress,
+    history and the `eval_every` held-out evaluations."""
+    from tqdm.auto import tqdm
+
+    history: List[Dict[str, Any]] = []
+    timing = _Timing()
+    total = jnp.int32(config.steps)
+    rays = first_rays(config)
+    done, stopped = 0, False
+    bar = tqdm(total=config.steps, disable=not progress, unit="step", dynamic_ncols=True)
+    try:
+        while done < config.steps:
+            warmup = done == 0 and warmup_steps(config) > 0
+            state, metrics = _timed_chunk(chunk_fn(config, rays, warmup), inputs, total, timing)
+            inputs = inputs._replace(state=state)
+            taken = int(np.sum(np.isfinite(metrics["loss"])))
+            done += taken
+            entry = _chunk_entry(metrics, done, taken, rays, warmup, timing.train_seconds)
+            history.append(entry)
+            bar.update(taken)
+            bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", rays=rays)
+            rays = next_rays(config, metrics, rays)
+            if test_scene is not None and _evaluates_after(config, done, taken):
+                psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
+                history.append({"step": done, "seconds": timing.train_seconds, "psnr_test": psnr})
+                bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", test=f"{psnr:.2f}")
+            if on_chunk is not None and on_chunk(state, entry) and done < config.steps:
+                stopped = True
+                break
+    finally:
+        bar.close()
+    return _Chunks(inputs.state, history, timing, stopped)
+
+
+class _HeldOut(NamedTuple):
+    """The end-of-run evaluation (`_held_out`)."""
+
+    config: TrainConfig
+    psnr_test: Optional[float]
+    psnr_training_step: Optional[float]
+    curve: List[Dict[str, Any]]
+    entry: Optional[Dict[str, Any]]
+
+
+def _held_out(state: TrainState, config: TrainConfig, test_scene: Optional[Scene], seconds: float) -> _HeldOut:
+    """The final held-out PSNR, as the run renders: its step calibrated first when `config` has none."""
+    if test_scene is None:
+        return _HeldOut(config, None, None, [], None)
+    scale = config.render_step_scale
+    curve: List[Dict[str, Any]] = []
+    if scale is None:
+        scale, curve = calibrate_render_step(state.params, state.sampler_state, config, test_scene)
+        config = config.replace(render_step_scale=scale)
+    final = evaluate(state.params, state.sampler_state, config, test_scene)
+    psnr_test = final["psnr"]
+    entry = {"step": int(state.step), "seconds": seconds, "psnr_test": psnr_test, "render_step_scale": scale,
+             "evaluations_per_ray": final["evaluations_per_ray"]}
+    return _HeldOut(config, psnr_test, psnr_test if scale == 1.0 else None, curve, entry)
+
+
 def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Optional[Scene] = None,
           progress: bool = True, hparams: Optional[TrainHParams] = None,
           on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None) -> TrainResult:
@@ -138,92 +255,29 @@ def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Opt
     Raises:
       TrainConfigError: a scene is unusable for training.
     """
-    from tqdm.auto import tqdm
-
     if test_scene is not None:
         check_scene(test_scene, "test scene")
     hparams = hparams or TrainHParams.for_config(config)
-    state, key_train, data, _, render_config = training_inputs(key, train_scene, config, hparams)
-
-    history: List[Dict[str, Any]] = []
-    hparams_arrays = hparams.as_arrays()
-    total = jnp.int32(config.steps)
-    rays = first_rays(config)
-    done, compile_seconds, steady_seconds, steady_rays, all_rays = 0, 0.0, 0.0, 0, 0
-    stopped = False
-    train_seconds = 0.0
-    bar = tqdm(total=config.steps, disable=not progress, unit="step", dynamic_ncols=True)
-    try:
-        while done < config.steps:
-            warmup = done == 0 and warmup_steps(config) > 0
-            program = chunk_fn(config, rays, warmup)
-            programs = program._cache_size()
-            start = time.perf_counter()
-            state, metrics = program(state, key_train, data, hparams_arrays, render_config, total)
-            metrics = jax.device_get(metrics)  # the host sync of this chunk
-            elapsed = time.perf_counter() - start
-            train_seconds += elapsed
-            taken = int(np.sum(np.isfinite(metrics["loss"])))
-            done += taken
-            rays_trained = int(np.sum(metrics["rays"]))
-            all_rays += rays_trained
-            if program._cache_size() > programs:  # this call compiled: its time is mostly compilation
-                compile_seconds += elapsed
-            else:
-                steady_seconds += elapsed
-                steady_rays += rays_trained
-            entry = {"step": done, "loss": float(np.nanmean(metrics["loss"])),
-                     "psnr": float(np.nanmean(metrics["psnr"])), "rays": rays_trained / max(taken, 1),
-                     "samples": float(np.sum(metrics["samples"])) / max(taken, 1), "rays_marched": rays,
-                     "warmup": warmup, "seconds": train_seconds}
-            history.append(entry)
-            bar.update(taken)
-            bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", rays=rays)
-            rays = next_rays(config, metrics, rays)
-            if test_scene is not None and config.eval_every and done < config.steps and (
-                    done // config.eval_every) > ((done - taken) // config.eval_every):
-                psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
-                history.append({"step": done, "seconds": train_seconds, "psnr_test": psnr})
-                bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", test=f"{psnr:.2f}")
-            if on_chunk is not None and on_chunk(state, entry) and done < config.steps:
-                stopped = True
-                break
-    finally:
-        bar.close()
-
-    # Chunks that compiled count as compilation (their steps' own time included: an overestimate by
-    # at most a chunk per compiled program); the rate is that of the others.
-    if steady_seconds > 0:
-        rays_per_second = steady_rays / steady_seconds
-    else:  # every chunk compiled
-        rays_per_second = all_rays / max(train_seconds, 1e-9)
-    psnr_test = psnr_training_step = None
-    curve: List[Dict[str, Any]] = []
-    if test_scene is not None:
-        scale = config.render_step_scale
-        if scale is None:
-            scale, curve = calibrate_render_step(state.params, state.sampler_state, config, test_scene)
-            config = config.replace(render_step_scale=scale)
-        final = evaluate(state.params, state.sampler_state, config, test_scene)
-        psnr_test = final["psnr"]
-        psnr_training_step = psnr_test if scale == 1.0 else None
-        history.append({"step": int(state.step), "seconds": train_seconds, "psnr_test": psnr_test,
-                        "render_step_scale": scale, "evaluations_per_ray": final["evaluations_per_ray"]})
+    chunks = _train_chunks(training_inputs(key, train_scene, config, hparams), config, test_scene, progress, on_chunk)
+    state, history, timing = chunks.state, chunks.history, chunks.timing
+    held_out = _held_out(state, config, test_scene, timing.train_seconds)
+    if held_out.entry is not None:
+        history.append(held_out.entry)
     return TrainResult(
         params=state.params,
         occupancy=state.sampler_state,
         history=history,
-        psnr_test=psnr_test,
-        seconds=train_seconds,
-        compile_seconds=compile_seconds,
-        rays_per_second=rays_per_second,
+        psnr_test=held_out.psnr_test,
+        seconds=timing.train_seconds,
+        compile_seconds=timing.compile_seconds,
+        rays_per_second=timing.rays_per_second(),
         steps=int(state.step),
-        config=config,
+        config=held_out.config,
         hparams=hparams,
         device=_device_name(),
         n_train=train_scene.n_images,
         n_test=0 if test_scene is None else test_scene.n_images,
-        psnr_test_training_step=psnr_training_step,
-        render_step_curve=curve,
-        stopped=stopped,
+        psnr_test_training_step=held_out.psnr_training_step,
+        render_step_curve=held_out.curve,
+        stopped=chunks.stopped,
     )

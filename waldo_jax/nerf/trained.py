@@ -1,8 +1,9 @@
 """The one renderer of a trained field, its held-out PSNR and the calibration of its marching step.
 
-A trained run (params, occupancy grid, `TrainConfig`) renders with `waldo_jax.render.marched`:
-`render_setup` turns the run into that renderer's grid, render config and march config (a
-dense-trained field goes through a single, always-occupied cell). `calibrate_render_step` picks the
+A trained run is one pytree, `TrainedField` (params, occupancy grid, `TrainConfig`, and the scene's near,
+far, background and box), and renders with `waldo_jax.render.marched`: `render_setup` turns it into that
+renderer's grid, render config and march config (a dense-trained field goes through a single,
+always-occupied cell). `calibrate_render_step` picks the
 run's marching step from its own quality/speed curve. Names: `P` poses of `H x W` pixels.
 See docs/design.md, "Training".
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 import math
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,13 +21,14 @@ import numpy as np
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError, check_scene
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.samplers import make_sampler
-from waldo_jax.render import marched, marching, occupancy
+from waldo_jax.render import marched
 from waldo_jax.render.volume import RenderConfig
 from waldo_jax.types import Intrinsics, RenderOutput, Scene
 
 __all__ = [
     "RENDER_STEP_CANDIDATES",
     "RENDER_STEP_TOLERANCE_DB",
+    "TrainedField",
     "calibrate_render_step",
     "eval_background",
     "evaluate",
@@ -45,64 +48,102 @@ RENDER_STEP_TOLERANCE_DB = 0.05
 _CALIBRATION_VIEWS = 3
 
 
-def render_setup(config: TrainConfig, sampler_state, near: float, far: float, aabb, background,
-                 step_scale: Optional[float] = None,
-                 sizes_of: Optional[float] = None) -> Tuple[occupancy.OccupancyGrid, RenderConfig, marching.MarchConfig]:
-    """What `render.marched` needs to render a trained field: (grid, render config, march config).
+@flax.struct.dataclass
+class TrainedField:
+    """A trained radiance field and the scene settings it renders with, as one pytree.
+
+    Attributes:
+      params: the field's parameters (leaves).
+      occupancy: the occupancy grid (the sampler's state, leaves), or None (dense sampler).
+      config: the training config (static: field, sampler, eval_samples, render_step_scale).
+      near, far: float32 [] ray bounds (world units).
+      background: float32 [3] colour behind the volume.
+      aabb: float32 [2, 3] box to sample in.
+    """
+
+    params: Any
+    occupancy: Any
+    config: TrainConfig = flax.struct.field(pytree_node=False)
+    near: Any = None
+    far: Any = None
+    background: Any = None
+    aabb: Any = None
+
+    @classmethod
+    def create(cls, params, occupancy, config: TrainConfig, near: float, far: float, background=(1.0, 1.0, 1.0),
+               aabb=None) -> "TrainedField":
+        """A trained field with float32 settings; `aabb=None` samples the field's own box (`config.field.aabb`)."""
+        aabb = config.field.aabb if aabb is None else aabb
+        return cls(params=params, occupancy=occupancy, config=config, near=np.float32(near), far=np.float32(far),
+                   background=np.asarray(background, np.float32), aabb=np.asarray(aabb, np.float32).reshape(2, 3))
+
+    @classmethod
+    def for_scene(cls, params, occupancy, config: TrainConfig, scene) -> "TrainedField":
+        """A trained field rendered with the near, far and box of `scene` (a `Scene` or a checkpoint's
+        `SceneRecord`), on its background (`eval_background`: black for opaque scenes)."""
+        return cls.create(params, occupancy, config, scene.near, scene.far, eval_background(scene), scene.aabb)
+
+    @classmethod
+    def from_result(cls, result, scene) -> "TrainedField":
+        """The field a `train.TrainResult` holds, rendered with the settings of its training `scene`."""
+        return cls.for_scene(result.params, result.occupancy, result.config, scene)
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint) -> "TrainedField":
+        """The field of a loaded `checkpoint.Checkpoint`, rendered with its training scene's settings."""
+        return cls.for_scene(checkpoint.params, checkpoint.occupancy, checkpoint.config, checkpoint.scene)
+
+
+def render_setup(field: TrainedField, step_scale: Optional[float] = None,
+                 sizes_of: Optional[float] = None) -> marched.MarchSetup:
+    """What `render.marched` needs to render a trained field: `MarchSetup(grid, render config, march config)`.
 
     Args:
-      config: the training config (sampler, steps, eval_samples, render_step_scale).
-      sampler_state: the occupancy grid, or None (dense sampler).
-      near, far: ray bounds (world units). aabb: [2, 3] box to sample in. background: colour [3].
+      field: the trained field and its render settings.
       step_scale: the marching step over the training step (default `config.render_step_scale`, or 1).
       sizes_of: a scale <= step_scale whose march's static sizes (candidates K, samples S) to use, so
         several step scales render with one compiled program (`calibrate_render_step`). The image is
         the same: the extra candidates lie beyond the grid's box and are masked. Default: step_scale's.
     """
+    config = field.config
     sampler = make_sampler(config)
     scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
     scale = float(scale)
     if not (math.isfinite(scale) and scale > 0):
         raise TrainConfigError(f"the render step scale must be a positive number, got {step_scale!r}")
-    render_config = RenderConfig.create(near=near, far=far, aabb=np.asarray(aabb, np.float32).reshape(2, 3),
-                                        background=background, ray_chunk=1)
+    render_config = RenderConfig.create(near=field.near, far=field.far,
+                                        aabb=np.asarray(field.aabb, np.float32).reshape(2, 3),
+                                        background=field.background, ray_chunk=1)
     march = sampler.view_march(scale)
     if sizes_of is not None:
         if not 0 < float(sizes_of) <= scale:
             raise TrainConfigError(f"sizes_of must lie in (0, step scale {scale}], got {sizes_of!r}")
         sizes = sampler.view_march(float(sizes_of))
         march = march.replace(max_steps=sizes.max_steps, max_samples=sizes.max_samples)
-    return sampler.view_grid(sampler_state), render_config, march
+    return marched.MarchSetup(sampler.view_grid(field.occupancy), render_config, march)
 
 
-def _render_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float, far: float,
-                    background, aabb, mesh, step_scale: Optional[float], packing: Optional[marched.Packing],
-                    sizes_of: Optional[float] = None):
+def _render_counted(field: TrainedField, c2w, intrinsics: Intrinsics, mesh, step_scale: Optional[float],
+                    packing: Optional[marched.Packing], sizes_of: Optional[float] = None):
     """(RenderOutput [P, H, W], evaluations int32 [P, H, W]) on one device, or sharded over several."""
-    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
-    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale,
-                                              sizes_of)
-    field = make_field(config.field)
+    setup = render_setup(field, step_scale, sizes_of)
+    field_fn = make_field(field.config.field)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))
     if mesh is None and jax.local_device_count() == 1:
-        views = marched.render_marched(field, params, grid, c2w, intrinsics, render_config, march, packing)
+        views = marched.render_marched(field_fn, field.params, setup, c2w, intrinsics, packing)
         return views.output, views.evaluations
-    return marched.render_marched_sharded(field, params, grid, c2w, intrinsics, render_config, march, packing, mesh)
+    return marched.render_marched_sharded(field_fn, field.params, setup, c2w, intrinsics, packing, mesh)
 
 
-def render_trained_counted(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
-                           far: float, background=(1.0, 1.0, 1.0), aabb=None, step_scale: Optional[float] = None,
+def render_trained_counted(field: TrainedField, c2w, intrinsics: Intrinsics, *, step_scale: Optional[float] = None,
                            packing: Optional[marched.Packing] = None) -> marched.MarchedViews:
     """`render_trained` on one device, with what it cost (`render.marched.MarchedViews`: evaluations per
     pixel, passes per block)."""
-    aabb = np.asarray(config.field.aabb if aabb is None else aabb, np.float32).reshape(2, 3)
-    grid, render_config, march = render_setup(config, sampler_state, near, far, aabb, background, step_scale)
-    return marched.render_marched(make_field(config.field), params, grid, jnp.asarray(np.asarray(c2w, np.float32)),
-                                  intrinsics, render_config, march, packing)
+    return marched.render_marched(make_field(field.config.field), field.params, render_setup(field, step_scale),
+                                  jnp.asarray(np.asarray(c2w, np.float32)), intrinsics, packing)
 
 
-def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: Intrinsics, near: float,
-                   far: float, background=(1.0, 1.0, 1.0), aabb=None, mesh=None, step_scale: Optional[float] = None,
+def render_trained(field: TrainedField, c2w, intrinsics: Intrinsics, *, mesh=None, step_scale: Optional[float] = None,
                    packing: Optional[marched.Packing] = None) -> RenderOutput:
     """Renders P views of a trained field in one call with the marched renderer (`render.marched`).
 
@@ -110,14 +151,10 @@ def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: 
     (`render.marched.render_marched_sharded`).
 
     Args:
-      params: the field's parameters.
-      sampler_state: the occupancy grid, or None (dense sampler).
-      config: the training config (field, sampler, eval_samples, render_step_scale).
+      field: the trained field (params, occupancy grid, config) and its near, far, background and box
+        (`TrainedField.create`, `.from_result`, `.from_checkpoint`).
       c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
       intrinsics: shared intrinsics (their width and height set the image size).
-      near, far: ray bounds (world units).
-      background: colour [3] behind the volume.
-      aabb: [2, 3] sampling box (default: the field's box).
       mesh: a one-axis mesh named "poses" to shard over (default: all local devices if more than one).
       step_scale: the marching step over the training step (default `config.render_step_scale`).
       packing: the renderer's static sizes (default `render.marched.Packing.for_backend()`).
@@ -125,8 +162,7 @@ def render_trained(params, sampler_state, config: TrainConfig, c2w, intrinsics: 
     Returns:
       RenderOutput with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W] (device arrays).
     """
-    return _render_counted(params, sampler_state, config, c2w, intrinsics, near, far, background, aabb, mesh,
-                           step_scale, packing)[0]
+    return _render_counted(field, c2w, intrinsics, mesh, step_scale, packing)[0]
 
 
 def eval_background(scene: Scene) -> np.ndarray:
@@ -149,8 +185,8 @@ def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scal
     check_scene(scene, "test scene")
     index = np.arange(scene.n_images) if views is None else np.asarray(views, np.int64)
     c2w = np.asarray(scene.c2w, np.float32)[index]
-    out, evaluations = _render_counted(params, sampler_state, config, c2w, scene.intrinsics, scene.near, scene.far,
-                                       eval_background(scene), scene.aabb, None, step_scale, None, sizes_of)
+    field = TrainedField.for_scene(params, sampler_state, config, scene)
+    out, evaluations = _render_counted(field, c2w, scene.intrinsics, None, step_scale, None, sizes_of)
     rendered = np.asarray(jax.device_get(out.rgb), np.float32)
     images = np.asarray(scene.images, np.float64)[index]
     mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))

@@ -32,6 +32,7 @@ from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.config import TrainConfig
 from waldo_jax.nerf.runs import train_run
+from waldo_jax.nerf.trained import TrainedField
 from waldo_jax.pipeline.experiment import run_explore
 from waldo_jax.pipeline.figures import criterion_caption, methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
@@ -181,6 +182,68 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
     ])
 
 
+def _room_scenes(seed: int, settings: DemoSettings):
+    """The room of `seed`, its training scene and its held-out views: (scene, room, test_scene)."""
+    try:
+        scene, room = room_scene(seed, num_views=settings.views, resolution=settings.resolution,
+                                 camera_config=settings.camera)
+        test_scene = held_out_scene(room, seed, settings.test_views, scene, settings.camera)
+    except ValueError as e:
+        raise WaldoError(str(e)) from None
+    return scene, room, test_scene
+
+
+def _nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedField, psnr_test) -> Source:
+    """The trained NeRF of the room as the searches' source, with the analytic room as its truth."""
+    render = field_renderer(field, scene.intrinsics, gradient=NERF_GRADIENT)
+    render_rgba = field_renderer(field, scene.intrinsics, rgba=True, gradient=NERF_GRADIENT)
+    truth = room_renderer(room, scene.intrinsics)
+    return Source(spec=str(run_dir), kind="run", name=f"NeRF of procedural:{seed}",
+                  train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, render_rgba=render_rgba,
+                  train_images=scene.images, train_names=scene.file_names, room=room, truth_render=truth,
+                  info={"procedural_seed": seed, "run_dir": str(run_dir), "psnr_test": psnr_test},
+                  gradient=NERF_GRADIENT)
+
+
+def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any]:
+    """One method's line of the report: CVIR / mCVIR over seeds, Waldo's visible share at each seed's best
+    view, and the NeRF render's PSNR against the truth there and over the first seed's top-k."""
+    best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
+    visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
+    views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
+    best_psnr = render_psnr(_render_in(source.render, best_c2w, views),
+                            _render_in(source.truth_render, best_c2w, views))
+    top_psnr = render_psnr(run.top_images, run.top_truth)
+    return {
+        "cvir_mean": results.get("cvir_mean", results["cvir"]), "cvir_std": results.get("cvir_std", 0.0),
+        "mcvir_mean": results.get("mcvir_mean", results["mcvir"]), "mcvir_std": results.get("mcvir_std", 0.0),
+        "best_mean": float(np.mean([float(r.metrics.best[-1]) for r in run.results])),
+        "best_visible_mean": float(np.mean(visible)), "best_visible_per_seed": visible.tolist(),
+        "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)),
+        "best_psnr_mean": float(np.mean(best_psnr)), "best_psnr_per_seed": best_psnr.tolist(),
+        "top_psnr_mean": float(np.mean(top_psnr)), "top_psnr": top_psnr.tolist(),
+        "seconds": run.seconds["search"], "per_seed": results.get("per_seed"),
+    }
+
+
+def _run_methods(out: Path, source: Source, criterion, settings: DemoSettings, seed: int, say):
+    """GRS, PIBS and EGPS at the low budget, `settings.seeds` seeds each, written to out/<method>/:
+    (runs, stats) by method."""
+    runs, methods = {}, {}
+    for method in METHOD_ORDER:
+        say(f"[demo] {method.upper()}: {settings.seeds} seeds at the low budget ...", flush=True)
+        explore_config = ExploreConfig(method=method, budget="low")
+        run = run_explore(source, criterion, explore_config, seed=seed, seeds=settings.seeds)
+        (out / method).mkdir()
+        results = write_outputs(run, out / method, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")
+        methods[method] = m = _method_stats(run, results, source)
+        runs[method] = run
+        say(f"[demo] {method.upper()}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, mCVIR {m['mcvir_mean']:.0f} "
+            f"± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible in the best views "
+            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there", flush=True)
+    return runs, methods
+
+
 def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Optional[int] = None,
              progress: bool = True, settings: Optional[DemoSettings] = None) -> Path:
     """Runs the demo and returns its output directory (see the module docstring).
@@ -198,12 +261,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     t0 = time.perf_counter()
     say = print if progress else (lambda *a, **k: None)
     say(f"[demo] rendering {settings.views} training views of procedural:{seed} ...", flush=True)
-    try:
-        scene, room = room_scene(seed, num_views=settings.views, resolution=settings.resolution,
-                                 camera_config=settings.camera)
-        test_scene = held_out_scene(room, seed, settings.test_views, scene, settings.camera)
-    except ValueError as e:
-        raise WaldoError(str(e)) from None
+    scene, room, test_scene = _room_scenes(seed, settings)
     t_scene = time.perf_counter()
     say(f"[demo] training the hash-grid NeRF ({settings.train_steps} steps) ...", flush=True)
     (out / "nerf").mkdir()
@@ -211,45 +269,10 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
     t_train = time.perf_counter()
 
-    renderer_args = (trained.params, trained.occupancy, trained.config, scene.intrinsics, scene.near,
-                     scene.far, scene.aabb, scene.background)
-    render = field_renderer(*renderer_args, gradient=NERF_GRADIENT)
-    render_rgba = field_renderer(*renderer_args, rgba=True, gradient=NERF_GRADIENT)
-    truth = room_renderer(room, scene.intrinsics)
-    source = Source(spec=str(out / "nerf"), kind="run", name=f"NeRF of procedural:{seed}",
-                    train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, render_rgba=render_rgba,
-                    train_images=scene.images, train_names=scene.file_names, room=room, truth_render=truth,
-                    info={"procedural_seed": seed, "run_dir": str(out / "nerf"), "psnr_test": stats["psnr_test"]},
-                    gradient=NERF_GRADIENT)
+    source = _nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene),
+                          stats["psnr_test"])
     criterion = make_criterion(settings.criterion, CriterionContext(room=room, source=source.spec))
-
-    runs, methods = {}, {}
-    for method in METHOD_ORDER:
-        say(f"[demo] {method.upper()}: {settings.seeds} seeds at the low budget ...", flush=True)
-        explore_config = ExploreConfig(method=method, budget="low")
-        run = run_explore(source, criterion, explore_config, seed=seed, seeds=settings.seeds)
-        (out / method).mkdir()
-        results = write_outputs(run, out / method, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")
-        best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
-        visible = np.asarray(waldo_visibility_batch(room, best_c2w, scene.intrinsics))
-        views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
-        best_psnr = render_psnr(_render_in(render, best_c2w, views), _render_in(truth, best_c2w, views))
-        top_psnr = render_psnr(run.top_images, run.top_truth)
-        methods[method] = {
-            "cvir_mean": results.get("cvir_mean", results["cvir"]), "cvir_std": results.get("cvir_std", 0.0),
-            "mcvir_mean": results.get("mcvir_mean", results["mcvir"]), "mcvir_std": results.get("mcvir_std", 0.0),
-            "best_mean": float(np.mean([float(r.metrics.best[-1]) for r in run.results])),
-            "best_visible_mean": float(np.mean(visible)), "best_visible_per_seed": visible.tolist(),
-            "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)),
-            "best_psnr_mean": float(np.mean(best_psnr)), "best_psnr_per_seed": best_psnr.tolist(),
-            "top_psnr_mean": float(np.mean(top_psnr)), "top_psnr": top_psnr.tolist(),
-            "seconds": run.seconds["search"], "per_seed": results.get("per_seed"),
-        }
-        runs[method] = run
-        m = methods[method]
-        say(f"[demo] {method.upper()}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, mCVIR {m['mcvir_mean']:.0f} "
-            f"± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible in the best views "
-            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there", flush=True)
+    runs, methods = _run_methods(out, source, criterion, settings, seed, say)
 
     # One sheet like the paper's qualitative figures: training views, then each method's best views.
     first = runs["egps"]

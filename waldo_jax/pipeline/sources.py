@@ -29,7 +29,7 @@ import numpy as np
 from waldo_jax.errors import WaldoError, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
-from waldo_jax.nerf.trained import render_setup
+from waldo_jax.nerf.trained import TrainedField, render_setup
 from waldo_jax.procedural import make_room, room_field, room_render_config, room_scene
 from waldo_jax.render import render_views
 from waldo_jax.render.marched import render_marched
@@ -133,10 +133,9 @@ def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgb
 _render_room_rgba = functools.partial(_render_room, rgba=True)
 
 
-def _render_field(params, grid, intrinsics: Intrinsics, render_config, march, c2w: Array, *, field,
-                  rgba: bool = False, gradient: str = "forward") -> Array:
-    return _output(render_marched(field, params, grid, c2w, intrinsics, render_config, march,
-                                  gradient=gradient).output, rgba)
+def _render_field(params, setup, intrinsics: Intrinsics, c2w: Array, *, field, rgba: bool = False,
+                  gradient: str = "forward") -> Array:
+    return _output(render_marched(field, params, setup, c2w, intrinsics, gradient=gradient).output, rgba)
 
 
 def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
@@ -163,19 +162,19 @@ NERF_GRADIENT = "reverse"
 NERF_GRADIENT_COST = 4
 
 
-def field_renderer(params, occupancy, config, intrinsics: Intrinsics, near: float, far: float, aabb,
-                   background, rgba: bool = False, gradient: str = "forward") -> jax.tree_util.Partial:
+def field_renderer(field: TrainedField, intrinsics: Intrinsics, rgba: bool = False,
+                   gradient: str = "forward") -> jax.tree_util.Partial:
     """The renderer of a trained field (`waldo_jax.render.marched`, as `waldo render`) as a Partial c2w -> rgb.
 
+    `field`: the trained field and its near, far, background and box (`nerf.trained.TrainedField`).
     With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity. `gradient`:
     how its images differentiate with respect to c2w, "forward" (`jax.jvp`) or "reverse" (`jax.vjp`)
     (`render.marched.render_marched`); the images are the same.
     """
-    params = jax.tree.map(jnp.asarray, params)
-    occupancy = None if occupancy is None else jax.tree.map(jnp.asarray, occupancy)
-    grid, render_config, march = render_setup(config, occupancy, near, far, np.asarray(aabb, np.float32), background)
-    return jax.tree_util.Partial(_field_fn(config.field, rgba, gradient), params, grid, intrinsics, render_config,
-                                 march)
+    params = jax.tree.map(jnp.asarray, field.params)
+    occupancy = None if field.occupancy is None else jax.tree.map(jnp.asarray, field.occupancy)
+    setup = render_setup(field.replace(params=params, occupancy=occupancy))
+    return jax.tree_util.Partial(_field_fn(field.config.field, rgba, gradient), params, setup, intrinsics)
 
 
 def with_gradient(source: "Source", gradient: str) -> "Source":
@@ -328,11 +327,9 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     if resolution is not None:
         check_resolution(resolution)
         intrinsics = intrinsics.with_max_side(int(resolution))
-    background = record.background if record.background is not None else np.zeros(3, np.float32)
-    renderer_args = (checkpoint.params, checkpoint.occupancy, checkpoint.config, intrinsics, record.near, record.far,
-                     record.aabb, background)
-    render = field_renderer(*renderer_args, gradient=NERF_GRADIENT)
-    render_rgba = field_renderer(*renderer_args, rgba=True, gradient=NERF_GRADIENT)
+    field = TrainedField.from_checkpoint(checkpoint)
+    render = field_renderer(field, intrinsics, gradient=NERF_GRADIENT)
+    render_rgba = field_renderer(field, intrinsics, rgba=True, gradient=NERF_GRADIENT)
     info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
             "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
     info.update(export_info(record.format, record.metadata, record.aabb, record.path))

@@ -270,22 +270,8 @@ def _surface_samples(kind: int, center, size, density: float = 900.0):
     raise ValueError(f"no surface sampler for primitive kind {kind}")
 
 
-def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> WaldoRoom:
-    """Builds the seeded room.
-
-    Args:
-      seed: the seed; the same seed always gives the same room.
-      num_clutter: coloured primitives scattered over the room (the primitive count, and so the
-        array shapes, depend only on this and `num_crates`).
-      num_crates: crates in the pen around Waldo.
-
-    Returns:
-      A `WaldoRoom`.
-    """
-    key = jax.random.key(seed)
-    k_waldo, k_crates, k_clutter = jax.random.split(key, 3)
-    b = _Builder()
-    # Floor slab and walls.
+def _add_floor_and_walls(b: _Builder) -> None:
+    """The floor slab (checkered) and the four walls."""
     b.add(KIND_BOX, (0.0, -0.15, 0.0), (ROOM_HALF + 0.3, 0.15, ROOM_HALF + 0.3), (0.82, 0.76, 0.66), PATTERN_CHECKER)
     wall = (0.90, 0.88, 0.84)
     for axis, sign in ((0, 1), (0, -1), (2, 1), (2, -1)):
@@ -295,15 +281,17 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         half[axis] = 0.15
         b.add(KIND_BOX, centre, half, wall)
 
-    # Waldo stands off-centre, in a pen of crates with gaps between them.
-    u = np.asarray(jax.random.uniform(k_waldo, (2,)), np.float64)
-    radius, angle = 0.4 + 0.8 * u[0], 2 * np.pi * u[1]
-    base = np.array([radius * np.cos(angle), 0.0, radius * np.sin(angle)])
-    waldo_parts = _waldo_parts(base)
-    for kind, centre, size, colour, pattern in waldo_parts:
-        b.add(kind, centre, size, colour, pattern, waldo=True)
 
-    uc = np.asarray(jax.random.uniform(k_crates, (max(num_crates, 1), 4)), np.float64)
+def _waldo_base(key) -> np.ndarray:
+    """Where Waldo stands: off-centre, 0.4 to 1.2 m from the middle of the floor. float64 [3]."""
+    u = np.asarray(jax.random.uniform(key, (2,)), np.float64)
+    radius, angle = 0.4 + 0.8 * u[0], 2 * np.pi * u[1]
+    return np.array([radius * np.cos(angle), 0.0, radius * np.sin(angle)])
+
+
+def _add_crates(b: _Builder, key, base: np.ndarray, num_crates: int) -> None:
+    """A pen of `num_crates` crates around `base`, with gaps between them."""
+    uc = np.asarray(jax.random.uniform(key, (max(num_crates, 1), 4)), np.float64)
     start = 2 * np.pi * uc[0, 0]
     for i in range(num_crates):
         a = start + 2 * np.pi * (i + 0.2 * (uc[i, 1] - 0.5)) / num_crates
@@ -313,8 +301,10 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         centre = base + np.array([dist * np.cos(a), height / 2, dist * np.sin(a)])
         b.add(KIND_BOX, centre, (half_w, height / 2, half_w), _PALETTE[(i * 3) % len(_PALETTE)] * 0.8 + 0.1)
 
-    # Clutter: placed on a ring of the room away from Waldo's pen and the camera band.
-    uk = np.asarray(jax.random.uniform(k_clutter, (num_clutter, 6)), np.float64)
+
+def _add_clutter(b: _Builder, key, base: np.ndarray, num_clutter: int) -> None:
+    """`num_clutter` boxes, spheres (on posts) and cylinders on a ring away from Waldo's pen and the camera band."""
+    uk = np.asarray(jax.random.uniform(key, (num_clutter, 6)), np.float64)
     for i in range(num_clutter):
         kind = (KIND_BOX, KIND_SPHERE, KIND_CYLINDER)[i % 3]
         for attempt in range(8):  # deterministic re-draw from the same row when too close to Waldo
@@ -337,7 +327,11 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
             h = 0.4 + 1.4 * v[4]
             b.add(kind, (xz[0], h / 2, xz[1]), (0.6 * s, h / 2), colour)
 
-    order = np.argsort(np.asarray(b.kind), kind="stable")  # boxes, spheres, cylinders
+
+def _primitive_arrays(b: _Builder) -> dict:
+    """The builder's rows as NumPy arrays {kind, center, size, color, pattern, is_waldo}, sorted by kind
+    (boxes, spheres, cylinders; stable)."""
+    order = np.argsort(np.asarray(b.kind), kind="stable")
     arrays = dict(
         kind=np.asarray(b.kind, np.int32),
         center=np.asarray(b.center, np.float32),
@@ -346,9 +340,12 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         pattern=np.asarray(b.pattern, np.int32),
         is_waldo=np.asarray(b.is_waldo, bool),
     )
-    arrays = {k: v[order] for k, v in arrays.items()}
+    return {k: v[order] for k, v in arrays.items()}
 
-    # Oracle samples: Waldo's surface, minus the parts buried inside his other parts.
+
+def _waldo_surface(waldo_parts, arrays: dict):
+    """The oracle's samples of Waldo's surface, minus the parts buried inside his other parts or on the
+    floor: points [M, 3], normals [M, 3], areas [M] (NumPy)."""
     points, normals, areas = [], [], []
     for kind, centre, size, _, _ in waldo_parts:
         p, n, a = _surface_samples(kind, centre, size)
@@ -360,10 +357,39 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
     sdf_to_parts = np.asarray(_sdf_to_primitives(jnp.asarray(points, jnp.float32), arrays["kind"][waldo_rows],
                                                  arrays["center"][waldo_rows], arrays["size"][waldo_rows]))
     on_surface = np.all(sdf_to_parts > -1e-4, axis=1) & (points[:, 1] > 1e-3)  # not buried, not on the floor
+    return points[on_surface], normals[on_surface], areas[on_surface]
+
+
+def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> WaldoRoom:
+    """Builds the seeded room.
+
+    Args:
+      seed: the seed; the same seed always gives the same room.
+      num_clutter: coloured primitives scattered over the room (the primitive count, and so the
+        array shapes, depend only on this and `num_crates`).
+      num_crates: crates in the pen around Waldo.
+
+    Returns:
+      A `WaldoRoom`.
+    """
+    key = jax.random.key(seed)
+    k_waldo, k_crates, k_clutter = jax.random.split(key, 3)
+    b = _Builder()
+    _add_floor_and_walls(b)
+    # Waldo stands off-centre, in a pen of crates with gaps between them.
+    base = _waldo_base(k_waldo)
+    waldo_parts = _waldo_parts(base)
+    for kind, centre, size, colour, pattern in waldo_parts:
+        b.add(kind, centre, size, colour, pattern, waldo=True)
+    _add_crates(b, k_crates, base, num_crates)
+    _add_clutter(b, k_clutter, base, num_clutter)
+
+    arrays = _primitive_arrays(b)
+    points, normals, areas = _waldo_surface(waldo_parts, arrays)
     return WaldoRoom(
-        waldo_points=jnp.asarray(points[on_surface], jnp.float32),
-        waldo_normals=jnp.asarray(normals[on_surface], jnp.float32),
-        waldo_areas=jnp.asarray(areas[on_surface], jnp.float32),
+        waldo_points=jnp.asarray(points, jnp.float32),
+        waldo_normals=jnp.asarray(normals, jnp.float32),
+        waldo_areas=jnp.asarray(areas, jnp.float32),
         waldo_base=jnp.asarray(base, jnp.float32),
         num_boxes=int(np.sum(arrays["kind"] == KIND_BOX)),
         num_spheres=int(np.sum(arrays["kind"] == KIND_SPHERE)),

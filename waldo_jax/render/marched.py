@@ -1,13 +1,14 @@
 """The renderer of trained fields: occupancy-grid marching (Instant-NGP) with packed samples, compaction
 of live rays between passes and early ray termination, for whole populations of poses in one call.
 
-`render_marched(field, params, grid, c2w [P, 4, 4], intrinsics, ...)`: the P * H * W rays form one
-flat list cut into blocks of N rays; a block marches each ray through the grid
-(`marching.march_ray`), then runs passes in which the live rays' next samples are packed into M rows
-of s slots (`packed.layout_rows`), the field runs once and the rows are composited
-(`packed.composite_rows`), until every ray is done or opaque. `render_marched_sharded` splits the
-poses over devices; `Packing` holds the per-backend sizes. The images differentiate with respect to
-the poses in forward mode, or with `gradient="reverse"` in reverse mode (`render.marched_vjp`).
+`render_marched(field, params, setup, c2w [P, 4, 4], intrinsics, ...)` (`setup`: the occupancy grid,
+render and march configs, `MarchSetup`): the P * H * W rays form one flat list cut into blocks of N
+rays; a block marches each ray through the grid (`marching.march_ray`), then runs passes in which the
+live rays' next samples are packed into M rows of s slots (`packed.layout_rows`), the field runs once
+and the rows are composited (`packed.composite_rows`), until every ray is done or opaque.
+`render_marched_sharded` splits the poses over devices; `Packing` holds the per-backend sizes. The images
+differentiate with respect to the poses in forward mode, or with `gradient="reverse"` in reverse mode
+(`render.marched_vjp`).
 
 Design and measurements: docs/rendering.md; the steps in `Packing`'s terms, early termination's
 error bound and the names: docs/design.md, section "Rendering > The marched renderer".
@@ -27,8 +28,8 @@ from waldo_jax.render.sharding import shard_over_poses
 from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
 from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
 
-__all__ = ["BlockShape", "GRADIENTS", "MarchedViews", "Packing", "block_shape", "field_slots", "render_marched",
-           "render_marched_sharded"]
+__all__ = ["BlockShape", "GRADIENTS", "MarchSetup", "MarchedViews", "Packing", "block_shape", "field_slots",
+           "render_marched", "render_marched_sharded"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,6 +150,21 @@ class _Rays(NamedTuple):
     evaluations: Array  # int32 [N], field evaluations spent on each ray
     passes: Array  # int32 []
     slots: Array  # int32 [], slots the passes evaluated (padding included)
+
+
+class MarchSetup(NamedTuple):
+    """Where `render_marched` puts the samples of a field's rays (a pytree; `nerf.trained.render_setup` makes it).
+
+    Attributes:
+      grid: the occupancy grid (empty cells are never sampled).
+      render_config: near, far, the box (when `use_aabb`) and the background; its `num_samples` and
+        `ray_chunk` are not used.
+      march: the marching step, cone angle, K candidates and S samples per ray, `min_transmittance`.
+    """
+
+    grid: occupancy.OccupancyGrid
+    render_config: RenderConfig
+    march: marching.MarchConfig
 
 
 class MarchedViews(NamedTuple):
@@ -317,9 +333,9 @@ def _composite_reverse_bwd(field, shape, residuals, cotangents):
         return state._replace(alive=state.next_sample < used)
 
     # The samples each ray composited (`used`) are known: no ray needs to hold back in its first pass.
-    d_origins, d_directions = marched_vjp.composite_vjp(
-        pass_rows, advance, functools.partial(_run_passes, shape, used), _start(used), origins, directions,
-        (rgb, depth, acc), (g_rgb, g_depth, g_acc), background, shape.max_rows_per_ray)
+    passes = marched_vjp.Passes(pass_rows, advance, functools.partial(_run_passes, shape, used))
+    d_origins, d_directions = marched_vjp.composite_vjp(passes, _start(used), origins, directions, (rgb, depth, acc),
+                                                        (g_rgb, g_depth, g_acc), background, shape.max_rows_per_ray)
     return None, d_origins, d_directions, None, None, None, None, None
 
 
@@ -364,8 +380,7 @@ GRADIENTS = ("forward", "reverse")
 
 
 @functools.partial(jax.jit, static_argnames=("field", "packing", "gradient"))
-def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
-                   render_config: RenderConfig, march: marching.MarchConfig,
+def render_marched(field: Field, params, setup: MarchSetup, c2w: Array, intrinsics: Intrinsics,
                    packing: Optional[Packing] = None, gradient: str = "forward") -> MarchedViews:
     """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
@@ -374,12 +389,10 @@ def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Arr
     Args:
       field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])` (static).
       params: its parameters.
-      grid: the occupancy grid (empty cells are never sampled).
+      setup: the occupancy grid, the render config (near, far, box, background) and the march config
+        (step, cone angle, K candidates and S samples per ray, `min_transmittance`): `MarchSetup`.
       c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
       intrinsics: shared intrinsics (their width and height set the image size).
-      render_config: near, far, the box (when `use_aabb`) and the background; its `num_samples` and
-        `ray_chunk` are not used.
-      march: the marching step, cone angle, K candidates and S samples per ray, `min_transmittance`.
       packing: static sizes (default `Packing.for_backend()`).
       gradient: how the images may be differentiated with respect to c2w (static; the image is the same):
         "forward" (`jax.jvp` through the passes' `while_loop`s; no reverse mode) or "reverse" (`jax.vjp`,
@@ -392,8 +405,8 @@ def render_marched(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Arr
     """
     if gradient not in GRADIENTS:
         raise ValueError(f"render_marched: gradient must be one of {GRADIENTS}, got {gradient!r}")
-    return _render(field, params, grid, c2w, intrinsics, render_config, march, packing or Packing.for_backend(),
-                   gradient)
+    return _render(field, params, setup.grid, c2w, intrinsics, setup.render_config, setup.march,
+                   packing or Packing.for_backend(), gradient)
 
 
 @functools.lru_cache(maxsize=None)
@@ -408,8 +421,7 @@ def _marched_local(field: Field, packing: Packing) -> Callable:
     return local
 
 
-def render_marched_sharded(field: Field, params, grid: occupancy.OccupancyGrid, c2w: Array, intrinsics: Intrinsics,
-                           render_config: RenderConfig, march: marching.MarchConfig,
+def render_marched_sharded(field: Field, params, setup: MarchSetup, c2w: Array, intrinsics: Intrinsics,
                            packing: Optional[Packing] = None, mesh=None):
     """`render_marched` with the poses split over the devices of `mesh` (`sharding.shard_over_poses`).
 
@@ -419,4 +431,4 @@ def render_marched_sharded(field: Field, params, grid: occupancy.OccupancyGrid, 
       images agree with `render_marched`'s to float32 rounding of the per-pass sums.
     """
     local = _marched_local(field, packing or Packing.for_backend())
-    return shard_over_poses(local, (params, grid, intrinsics, render_config, march), c2w, mesh)
+    return shard_over_poses(local, (params, setup.grid, intrinsics, setup.render_config, setup.march), c2w, mesh)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from waldo_jax.render import packed
 from waldo_jax.types import Array
 
-__all__ = ["composite_vjp"]
+__all__ = ["Passes", "composite_vjp"]
 
 
 class _Backward(NamedTuple):
@@ -42,15 +42,26 @@ class _Backward(NamedTuple):
     d_directions: Array  # float32 [N, 3]
 
 
-def composite_vjp(pass_rows: Callable, advance: Callable, run: Callable, start, origins: Array, directions: Array,
-                  sums: Tuple[Array, Array, Array], cotangents: Tuple[Array, Array, Array], background: Array,
-                  first_rows: int) -> Tuple[Array, Array]:
-    """The gradient of a marched composite with respect to its rays' origins and directions.
+class Passes(NamedTuple):
+    """How the forward composite ran its passes, in the caller's terms (`composite_vjp` runs them again).
 
-    Args:
+    Attributes:
       pass_rows: (rows, layout, rays, o, d) -> `packed.RowSums` of one pass, differentiable in o and d.
       advance: (rays, layout, sums) -> rays after the pass (a ray is live while it has samples left).
       run: (one_pass, state, rays_of, first_rows) -> state: the passes (`marched._run_passes`).
+    """
+
+    pass_rows: Callable
+    advance: Callable
+    run: Callable
+
+
+def composite_vjp(passes: Passes, start, origins: Array, directions: Array, sums: Tuple[Array, Array, Array],
+                  cotangents: Tuple[Array, Array, Array], background: Array, first_rows: int) -> Tuple[Array, Array]:
+    """The gradient of a marched composite with respect to its rays' origins and directions.
+
+    Args:
+      passes: the forward's passes (one pass's row sums, the rays' advance, the loop over passes).
       start: the rays' state before the first pass.
       origins, directions: float32 [N, 3].
       sums: the forward's (rgb [N, 3] without the background, depth [N], acc [N]).
@@ -68,11 +79,12 @@ def composite_vjp(pass_rows: Callable, advance: Callable, run: Callable, start, 
     total = jnp.sum(g_rgb * rgb, axis=-1) + g_depth * depth + g_acc * acc  # [N], L up to a constant
 
     def one_pass(rows: int, layout: packed.RowLayout, state: _Backward) -> _Backward:
-        part, pullback = jax.vjp(lambda o, d: pass_rows(rows, layout, state.rays, o, d), origins, directions)
+        part, pullback = jax.vjp(lambda o, d: passes.pass_rows(rows, layout, state.rays, o, d), origins, directions)
         done = state.done + jnp.sum(g_rgb * part.rgb, axis=-1) + g_depth * part.depth + g_acc * part.acc  # [N]
         d_o, d_d = pullback(packed.RowSums(rgb=g_rgb, depth=g_depth, acc=g_acc, optical_depth=done - total))
-        return _Backward(advance(state.rays, layout, part), done, state.d_origins + d_o, state.d_directions + d_d)
+        return _Backward(passes.advance(state.rays, layout, part), done, state.d_origins + d_o,
+                         state.d_directions + d_d)
 
     init = _Backward(start, jnp.zeros_like(depth), jnp.zeros_like(origins), jnp.zeros_like(directions))
-    final = run(one_pass, init, lambda state: state.rays, first_rows)
+    final = passes.run(one_pass, init, lambda state: state.rays, first_rows)
     return final.d_origins, final.d_directions

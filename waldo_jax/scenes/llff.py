@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -47,13 +47,8 @@ def _llff_folders(folder: Path) -> Dict[int, Path]:
     return found
 
 
-def load_llff(
-    folder: Path, path: Path, split: Optional[str], factor: Optional[float],
-    background: np.ndarray, max_images: Optional[int],
-) -> Dict[str, Any]:
-    """LLFF poses_bounds.npy with images/ or images_K/ folders."""
-    check_split(split, SPLITS)
-    split = split or "all"
+def _read_poses_bounds(path: Path) -> np.ndarray:
+    """poses_bounds.npy as float64 [N, 17] (a 3x5 pose, near, far per row), checked finite and non-empty."""
     try:
         table = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises ValueError/OSError/EOFError... for bad files.
@@ -64,9 +59,11 @@ def load_llff(
         )
     if not np.issubdtype(table.dtype, np.floating) or not np.all(np.isfinite(table)):
         raise SceneFormatError(path, "poses_bounds must be finite floating-point numbers")
-    table = table.astype(np.float64)
-    poses = table[:, :15].reshape(-1, 3, 5)
-    bounds = table[:, 15:17]  # [N, 2] per-camera near, far.
+    return table.astype(np.float64)
+
+
+def _shared_hwf(path: Path, poses: np.ndarray) -> Tuple[float, float, float]:
+    """The one camera's (full height, full width, focal) from the poses' [h, w, f] column [N, 3, 5]."""
     hwf = poses[:, :, 4]
     if np.any(np.abs(hwf - hwf[0]) > 1e-6 * np.abs(hwf[0])):
         raise SceneFormatError(path, "the [h, w, f] column differs between poses: several cameras are not supported")
@@ -78,9 +75,11 @@ def load_llff(
         raise SceneFormatError(path, str(e)) from None
     if min(full_h, full_w) < 1:
         raise SceneFormatError(path, f"[h, w, f] = {hwf[0].tolist()}: image sides must be at least 1 pixel")
-    if np.any(bounds[:, 0] <= 0) or np.any(bounds[:, 1] <= bounds[:, 0]):
-        raise SceneFormatError(path, "near/far bounds must satisfy 0 < near < far for every pose")
-    # LLFF columns are [down, right, backward]; OpenGL wants [right, up, backward].
+    return full_h, full_w, focal
+
+
+def _llff_c2w(path: Path, poses: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world float64 [N, 4, 4] from LLFF's [down, right, backward] poses [N, 3, 5]."""
     llff_rot = poses[:, :, :3]
     rotation = np.stack([llff_rot[:, :, 1], -llff_rot[:, :, 0], llff_rot[:, :, 2]], -1)
     c2w_all = np.zeros((len(poses), 4, 4))
@@ -89,7 +88,11 @@ def load_llff(
     c2w_all[:, 3, 3] = 1.0
     for i, m in enumerate(c2w_all):
         check_rigid(m, path, f"pose {i}")
+    return c2w_all
 
+
+def _image_folder(folder: Path, factor: Optional[float]) -> Tuple[Path, float]:
+    """(the images/ or images_K/ folder to read, the downscale wanted of the full-size images)."""
     folders = _llff_folders(folder)
     if not folders:
         raise SceneFormatError(folder, "LLFF scene has no images/ or images_K/ folder")
@@ -107,15 +110,51 @@ def load_llff(
                 f"available: {', '.join(folders[k].name for k in sorted(folders))}",
             )
         source_k = exact[0] if exact else max(below)
-    image_dir = folders[source_k]
+    return folders[source_k], wanted
+
+
+def _image_paths(image_dir: Path, path: Path, count: int) -> List[Path]:
+    """The folder's images in natural order, one per pose (`count`)."""
     image_paths = sorted(
         (p for p in image_dir.iterdir() if p.suffix in IMAGE_EXTENSIONS and p.is_file()),
         key=lambda p: natural_key(p.name),
     )
-    if len(image_paths) != len(poses):
+    if len(image_paths) != count:
         raise SceneFormatError(
-            image_dir, f"holds {len(image_paths)} images but {path.name} has {len(poses)} poses"
+            image_dir, f"holds {len(image_paths)} images but {path.name} has {count} poses"
         )
+    return image_paths
+
+
+def _frustums_aabb(c2w_all: np.ndarray, bounds: np.ndarray, full_w: float, full_h: float,
+                   focal: float) -> np.ndarray:
+    """Scene box float32 [2, 3]: all camera frustums between each camera's own near and far bound."""
+    half_w, half_h = 0.5 * full_w / focal, 0.5 * full_h / focal
+    corners_cam = np.array([[sx * half_w, sy * half_h, -1.0] for sx in (-1, 1) for sy in (-1, 1)])  # [4, 3]
+    depths = bounds[:, :, None, None] * corners_cam[None, None]  # [N, 2, 4, 3]
+    world = np.einsum("nij,nkcj->nkci", c2w_all[:, :3, :3], depths) + c2w_all[:, None, None, :3, 3]
+    world = world.reshape(-1, 3)
+    return np.stack([world.min(0), world.max(0)]).astype(np.float32)
+
+
+def load_llff(
+    folder: Path, path: Path, split: Optional[str], factor: Optional[float],
+    background: np.ndarray, max_images: Optional[int],
+) -> Dict[str, Any]:
+    """LLFF poses_bounds.npy with images/ or images_K/ folders."""
+    check_split(split, SPLITS)
+    split = split or "all"
+    table = _read_poses_bounds(path)
+    poses = table[:, :15].reshape(-1, 3, 5)
+    bounds = table[:, 15:17]  # [N, 2] per-camera near, far.
+    full_h, full_w, focal = _shared_hwf(path, poses)
+    if np.any(bounds[:, 0] <= 0) or np.any(bounds[:, 1] <= bounds[:, 0]):
+        raise SceneFormatError(path, "near/far bounds must satisfy 0 < near < far for every pose")
+    # LLFF columns are [down, right, backward]; OpenGL wants [right, up, backward].
+    c2w_all = _llff_c2w(path, poses)
+
+    image_dir, wanted = _image_folder(folder, factor)
+    image_paths = _image_paths(image_dir, path, len(poses))
     index = subsample(holdout(len(poses), split), max_images)
     chosen = [image_paths[i] for i in index]
     if not chosen:
@@ -129,14 +168,7 @@ def load_llff(
     images, alphas, full = load_images(chosen, max(1.0, residual), background)
     height, width = images.shape[1:3]
     intrinsics = Intrinsics.create(int(round(full_w)), int(round(full_h)), focal).scaled(width, height)
-
-    # Scene box: all camera frustums between each camera's own near and far bound.
-    half_w, half_h = 0.5 * full_w / focal, 0.5 * full_h / focal
-    corners_cam = np.array([[sx * half_w, sy * half_h, -1.0] for sx in (-1, 1) for sy in (-1, 1)])  # [4, 3]
-    depths = bounds[:, :, None, None] * corners_cam[None, None]  # [N, 2, 4, 3]
-    world = np.einsum("nij,nkcj->nkci", c2w_all[:, :3, :3], depths) + c2w_all[:, None, None, :3, 3]
-    world = world.reshape(-1, 3)
-    aabb = np.stack([world.min(0), world.max(0)]).astype(np.float32)
+    aabb = _frustums_aabb(c2w_all, bounds, full_w, full_h, focal)
     return dict(
         images=images, alphas=alphas, original_size=(int(round(full_w)), int(round(full_h))),
         intrinsics=intrinsics, c2w=c2w_all[index], aabb=aabb, near=float(LLFF_NEAR_MARGIN * bounds[:, 0].min()),

@@ -24,13 +24,14 @@ in the reference. A pose gradient costs about 3 renders, against 5 when JAX diff
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from waldo_jax.types import Array
 
-__all__ = ["alphas", "segmented", "composite_chunks"]
+__all__ = ["ChunkSplats", "alphas", "segmented", "composite_chunks"]
 
 
 def alphas(pixels: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array, alpha_min: float,
@@ -156,16 +157,31 @@ def _composite_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangent
 _composite_vjp.defvjp(_composite_fwd, _composite_bwd)
 
 
-def composite_chunks(pixels: Array, first: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array,
-                     sample: Array, alpha_min: float, alpha_max: float, min_transmittance: float,
-                     custom_gradient: bool = True):
+class ChunkSplats(NamedTuple):
+    """Each chunk's projected splats, nearest first, slot by slot (B slots of K chunks).
+
+    Attributes:
+      mean2d: [B, K, 2] projected means (px).
+      conic: [B, K, 3] inverse 2D covariances (a, b, c).
+      opacity: [B, K].
+      filled: bool [B, K], the slots that hold a splat.
+    """
+
+    mean2d: Array
+    conic: Array
+    opacity: Array
+    filled: Array
+
+
+def composite_chunks(pixels: Array, first: Array, splats: ChunkSplats, sample: Array, alpha_min: float,
+                     alpha_max: float, min_transmittance: float, custom_gradient: bool = True):
     """The chunks' composited values and the transmittance leaving each (see the module docstring).
 
     Args:
       pixels: [K, S, 2] pixel centres of each chunk's tile.
       first: bool [K] the first chunk of its tile (unused chunks count as first).
-      mean2d [B, K, 2], conic [B, K, 3], opacity [B, K], filled bool [B, K]: each chunk's splats, nearest
-        first, slot by slot.
+      splats: each chunk's splats, nearest first, slot by slot (mean2d [B, K, 2], conic [B, K, 3],
+        opacity [B, K], filled bool [B, K]).
       sample: [B, K, C] the values each splat adds, weighted (e.g. r, g, b, 1, depth).
       alpha_min, alpha_max, min_transmittance: the reference's 1/255, 0.99 and 1e-4.
       custom_gradient: the hand-written reverse-mode gradient (no forward mode), or JAX's own
@@ -174,6 +190,7 @@ def composite_chunks(pixels: Array, first: Array, mean2d: Array, conic: Array, o
     Returns:
       (values [K, S, C], transmittance leaving each chunk without the stop [K, S]).
     """
+    mean2d, conic, opacity, filled = splats
     if custom_gradient:
         return _composite_vjp(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max,
                               min_transmittance)

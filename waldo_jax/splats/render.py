@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.render.sharding import shard_over_poses
-from waldo_jax.splats.composite import composite_chunks
+from waldo_jax.splats.composite import ChunkSplats, composite_chunks
 from waldo_jax.splats.model import Splats
 from waldo_jax.splats.sh import sh_to_rgb
 from waldo_jax.types import Array, Intrinsics
@@ -413,9 +413,9 @@ def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: Spla
     pixels = corners[:, None, :] + _pixel_offsets(ts)[None]  # [K, S, 2]
     rgb, depth = projected.rgb[ids.T], projected.depth[ids.T]  # [B, K, 3], [B, K]
     sample = jnp.concatenate([rgb, jnp.ones_like(depth)[..., None], depth[..., None]], axis=-1)  # [B, K, 5]
-    values, leaving = composite_chunks(
-        pixels, first, projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T, sample,
-        config.alpha_min, config.alpha_max, config.min_transmittance, config.custom_gradient)  # [K, S, 5], [K, S]
+    chunk_splats = ChunkSplats(projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T)
+    values, leaving = composite_chunks(pixels, first, chunk_splats, sample, config.alpha_min, config.alpha_max,
+                                       config.min_transmittance, config.custom_gradient)  # [K, S, 5], [K, S]
     leaving = jax.lax.stop_gradient(leaving)
     # Summed per tile (chunks are in tile order; integer-free sums over a sorted segment, in a fixed order).
     per_tile = jax.ops.segment_sum(values, tile, num_segments=tiles_x * tiles_y + 1,

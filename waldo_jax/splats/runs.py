@@ -27,7 +27,7 @@ from waldo_jax.scenes import load_splits
 from waldo_jax.scenes.ply import read_ply_points
 from waldo_jax.splats.fit import FitConfig, FitResult, fit_splats
 from waldo_jax.splats.io import SplatCameras, write_splat_model
-from waldo_jax.types import Scene
+from waldo_jax.types import RunOptions, Scene
 
 __all__ = ["TRAIN_JSON", "SPARSE_POINTS", "fit_scene_run", "sparse_points"]
 
@@ -45,12 +45,13 @@ def sparse_points(scene: Scene) -> Tuple[Optional[np.ndarray], Optional[np.ndarr
 
 
 def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None, capacity: Optional[int] = None,
-                  downscale: Optional[float] = None, seed: int = 0, force: bool = False,
-                  progress: bool = True, config: Optional[FitConfig] = None) -> Tuple[FitResult, Dict[str, Any], Path]:
+                  config: Optional[FitConfig] = None,
+                  options: RunOptions = RunOptions()) -> Tuple[FitResult, Dict[str, Any], Path]:
     """Fits splats to a scene on disk and writes a splat run folder `out`.
 
     Every value and `out` are checked before the scene is loaded (a fit is never lost to a folder it
-    cannot write).
+    cannot write). `options`: the scene's downscale, the seed, whether to write into a non-empty `out`
+    (force), progress.
 
     Returns:
       (the `FitResult`, the train.json contents, the run folder).
@@ -70,15 +71,15 @@ def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None,
         overrides["capacity"] = capacity
         overrides["init_count"] = min(config.init_count, capacity // 2)
     config = dataclasses.replace(config, **overrides)
-    out = io.check_output_dir(out, force=force)
-    train_scene, test_scene = load_splits(scene_path, downscale, stacklevel=3, model="a splat fit")
+    out = io.check_output_dir(out, force=options.force)
+    train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3, model="a splat fit")
     points, colors, points_from = sparse_points(train_scene)
-    out = io.prepare_output_dir(out, force=force)
+    out = io.prepare_output_dir(out, force=options.force)
     if not os.access(out, os.W_OK):
         raise WaldoError(f"{out}: not a writable folder to save the run in")
     log = lambda message: print(message, flush=True)  # noqa: E731
-    result = fit_splats(jax.random.key(seed), train_scene, config, test_scene, points, colors, progress=progress,
-                        log=log)
+    result = fit_splats(jax.random.key(options.seed), train_scene, config, test_scene, points, colors,
+                        progress=options.progress, log=log)
     cameras = SplatCameras(c2w=np.asarray(train_scene.c2w, np.float32),
                            intrinsics=(train_scene.intrinsics,) * train_scene.n_images,
                            names=tuple(train_scene.file_names))
@@ -100,7 +101,7 @@ def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None,
         "device": jax.devices()[0].platform,
         "n_train": train_scene.n_images,
         "n_test": None if test_scene is None else test_scene.n_images,
-        "seed": seed,
+        "seed": options.seed,
         "scene_path": str(Path(scene_path).resolve()),
         "scene_format": train_scene.format,
         "split": train_scene.split,
