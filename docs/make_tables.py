@@ -124,6 +124,23 @@ def methods_table() -> str:
         "`methods_fox_high_rest_cpu_loaded.json` (fox high: the others).")
 
 
+def waldo_found_table() -> str:
+    """Waldo found: per room and method, the seeds whose best view shows him >= 90 % visible."""
+    data = _json("methods_room_found_cpu_loaded.json")
+    seeds = data["settings"]["seeds"]
+    lines = ["| room | method | Waldo found (seeds) | Waldo visible in the best view (mean) | mCVIR % (95 % CI) |",
+             "|---|---|---:|---:|---:|"]
+    for cell in data["cells"]:
+        visible = sum(cell["best_visible"]) / len(cell["best_visible"])
+        low, high = cell["mcvir"]["ci95"]
+        lines.append(f"| {cell['source']} | {cell['method'].upper()} | {cell['found_seeds']} / {seeds} | "
+                     f"{visible:.0%} | {cell['mcvir']['mean']:.0f} [{low:.0f}, {high:.0f}] |")
+    budget = data["settings"]["budgets"]
+    return "\n".join(lines) + (
+        f"\n\nCriterion `{data['settings']['room_criterion']}`, budget {budget}, {seeds} seeds per cell, exact "
+        f"(the room's oracle scores the poses; no NeRF). From `benchmarks/results/methods_room_found_cpu_loaded.json`.")
+
+
 def paths_table() -> str:
     """Camera paths on the room: found paths against the straight path and the training trajectory."""
     data = _json("paths_room_cpu_loaded.json")
@@ -333,6 +350,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
                                   "paper_tables_room_seed0_paper_budget_cpu.json"),
     "methods": methods_table,
     "paths": paths_table,
+    "waldo-found": waldo_found_table,
     "perf-collected": perf_table,
     "packed": packed_table,
     "training": training_table,
