@@ -73,7 +73,7 @@ def explore_cells(source, criterion, budgets, methods, args, children: Dict[str,
 def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str, Any], args, budget: str) -> List[str]:
     """The views sheet and the pose clouds (threshold: the best training score) of one scene and criterion."""
     from waldo_jax import io
-    from waldo_jax.pipeline import criterion_label, methods_sheet, pose_cloud
+    from waldo_jax.pipeline import PoseCloudStyle, criterion_label, methods_sheet, pose_cloud
 
     written = []
     path = folder / f"{scene}_{criterion_name}_views.png"
@@ -87,12 +87,12 @@ def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str,
         threshold = float(run.result.metrics.best[0])  # the best training score
         marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
         path = folder / f"{scene}_{criterion_name}_{method}_cloud.png"
+        style = PoseCloudStyle(title=(f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed "
+                                      f"{run.seeds[0]}: green = better than the best training view ({threshold:.3g})"),
+                               threshold=threshold, marker=marker, marker_label="Waldo (the target)",
+                               score_label=criterion_label(run.criterion))
         pose_cloud(path, np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
-                   np.asarray(population.epoch)[filled], run.criterion.direction,
-                   title=(f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed {run.seeds[0]}: "
-                          f"green = better than the best training view ({threshold:.3g})"),
-                   threshold=threshold, marker=marker, score_label=criterion_label(run.criterion),
-                   marker_label="Waldo (the target)")
+                   np.asarray(population.epoch)[filled], run.criterion.direction, style=style)
         written.append(str(path))
     return written
 

@@ -32,7 +32,7 @@ from bench_common import emit_with_load, header, refuse_existing_out, wait_for_q
 from methods import summary  # noqa: E402
 from waldo_jax.criteria import CriterionContext, build_criterion  # noqa: E402
 from waldo_jax.pipeline import load_source, run_explore  # noqa: E402
-from waldo_jax.pipeline.path_run import run_path  # noqa: E402
+from waldo_jax.pipeline.path_run import PathRunOptions, run_path  # noqa: E402
 from waldo_jax.search import ExploreConfig  # noqa: E402
 from waldo_jax.search.path_search import PathConfig, path_limits  # noqa: E402
 
@@ -78,8 +78,8 @@ def main(argv=None) -> None:
         rows, seconds = [], []
         for seed in range(args.seeds):
             begin = time.perf_counter()
-            path = run_path(source, criterion, config, limits, seed=seed, anchor_c2w=anchors[seed],
-                            anchors=f"explore egps seed {seed}")
+            path = run_path(source, criterion, config, limits, seed=seed,
+                            options=PathRunOptions(anchor_c2w=anchors[seed], anchors=f"explore egps seed {seed}"))
             jax.block_until_ready(path.results[0].best_c2w)
             seconds.append(path.seconds["search"])
             rows.append({"seed": seed, "found": {k: path.found[0][k] for k in FIGURES},

@@ -197,3 +197,42 @@ def test_the_public_api_keeps_its_names(name):
     assert callable(search.explore) and "egps" in search.METHODS
     assert "saliency" in criteria.CRITERIA and callable(criteria.make_criterion)
     assert callable(render.render_views) and callable(render.render_marched)
+
+
+MAX_PARAMETERS = 8  # of a public function or method: positional and keyword-only, not self / cls, *args, **kwargs
+MAX_LINES = 80  # of any function, from its `def` to its last line (decorators excluded)
+
+
+def _oversized(source: str, where: str) -> List[str]:
+    """'where:line: ...' of each public function in `source` over MAX_PARAMETERS parameters, and of each
+    function (public or private, nested ones and methods too) over MAX_LINES lines."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        args = node.args
+        count = sum(a.arg not in ("self", "cls") for a in args.posonlyargs + args.args + args.kwonlyargs)
+        if not node.name.startswith("_") and count > MAX_PARAMETERS:
+            found.append(f"{where}:{node.lineno}: {node.name} takes {count} parameters (at most {MAX_PARAMETERS})")
+        lines = node.end_lineno - node.lineno + 1
+        if lines > MAX_LINES:
+            found.append(f"{where}:{node.lineno}: {node.name} is {lines} lines long (at most {MAX_LINES})")
+    return found
+
+
+def test_oversized_counts_parameters_and_lines_as_documented():
+    eight = "self, a, /, b, c, *args, d, e, f, g, h{}, **kwargs"  # self, *args and **kwargs not counted
+    assert _oversized(f"class A:\n    def m({eight.format('')}):\n        pass\n", "x") == []
+    nine = eight.format(", i")
+    assert _oversized(f"class A:\n    def m({nine}):\n        pass\n", "x") == ["x:2: m takes 9 parameters (at most 8)"]
+    assert _oversized(f"def _f({nine}):\n    pass\n", "x") == []  # private: any number
+    body = "".join(f"    x = {i}\n" for i in range(MAX_LINES - 1))
+    assert _oversized(f"@decorator\ndef _f():\n{body}", "x") == []
+    assert _oversized(f"def _f():\n{body}    x = 0\n", "x") == ["x:1: _f is 81 lines long (at most 80)"]
+
+
+def test_no_public_function_over_8_parameters_and_no_function_over_80_lines():
+    found = []
+    for path in MODULES.values():
+        found += _oversized(path.read_text(), str(path.relative_to(ROOT)))
+    assert not found, "\n".join(found)

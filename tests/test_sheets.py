@@ -153,8 +153,9 @@ def _cloud(c2w, marker=None, threshold=None):
     poses = np.concatenate([c2w, c2w[:2]])
     poses[len(c2w):, :3, 3] += 0.3
     scores = np.array([0.1 * i for i in range(len(c2w))] + [0.9, np.nan])
-    return figures.pose_cloud(None, poses, scores, epoch, "max", threshold=threshold, marker=marker,
-                              score_label="saliency (higher is better, in [0, 1])", marker_label="Waldo")
+    style = figures.PoseCloudStyle(threshold=threshold, marker=marker, marker_label="Waldo",
+                                   score_label="saliency (higher is better, in [0, 1])")
+    return figures.pose_cloud(None, poses, scores, epoch, "max", style=style)
 
 
 @pytest.mark.parametrize("axis", [2, 1])

@@ -23,7 +23,8 @@ from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
-from waldo_jax.pipeline.path_run import check_nerfstudio_export, read_explore_anchors, run_path, write_path_outputs
+from waldo_jax.pipeline.path_run import (PathRunOptions, check_nerfstudio_export, read_explore_anchors, run_path,
+                                         write_path_outputs)
 
 __all__ = ["add_command", "cmd_path", "MAX_FRAMES", "MAX_KEYFRAMES"]
 
@@ -152,10 +153,10 @@ def cmd_path(args: argparse.Namespace) -> int:
         if criterion is None:  # a poses criterion: the room's oracles need the source
             criterion = criterion_from_args(args, room=source.room, source=source.spec)
         limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
-        run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, anchor_c2w=anchor_c2w,
-                       anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
-                       initial=args.initial, video_source=video, setup_seconds=time.perf_counter() - start,
-                       on_phase=progress.phase)
+        options = PathRunOptions(anchor_c2w=anchor_c2w, initial=args.initial, video_source=video,
+                                 anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
+                                 setup_seconds=time.perf_counter() - start, on_phase=progress.phase)
+        run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, options=options)
         progress.phase("writing the exports, the video and the plots")
         out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
         results = write_path_outputs(run, out, fps=args.fps, dataparser=dataparser)

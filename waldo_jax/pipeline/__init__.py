@@ -25,6 +25,7 @@ from waldo_jax.pipeline.experiment import run_explore as run_explore
 from waldo_jax.pipeline.experiment import score_function as score_function
 from waldo_jax.pipeline.experiment import seed_keys as seed_keys
 from waldo_jax.pipeline.figures import PlotFrame as PlotFrame
+from waldo_jax.pipeline.figures import PoseCloudStyle as PoseCloudStyle
 from waldo_jax.pipeline.figures import contact_sheet as contact_sheet
 from waldo_jax.pipeline.figures import criterion_caption as criterion_caption
 from waldo_jax.pipeline.figures import criterion_label as criterion_label
@@ -43,7 +44,8 @@ from waldo_jax.pipeline.sources import run_source as run_source
 from waldo_jax.pipeline.sources import with_gradient as with_gradient
 
 __all__ = [
-    "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "PlotFrame", "Source", "SourceError",
+    "GRADIENT_COSTS", "INITIAL_MODES", "RESULTS_JSON", "ExploreRun", "PlotFrame", "PoseCloudStyle", "Source",
+    "SourceError",
     "contact_sheet", "criterion_caption", "criterion_label", "generated_slots", "gradient_cost_for",
     "initial_scores", "objective_function", "refine_for_source", "load_source", "methods_sheet", "plot_frame",
     "pose_cloud", "procedural_source", "results_dict", "run_explore", "run_source", "scene_up", "score_function",

@@ -22,8 +22,8 @@ from waldo_jax.io import atomic_file
 from waldo_jax.pipeline.experiment import ExploreRun
 from waldo_jax.pipeline.sources import resize_images
 
-__all__ = ["pose_cloud", "STAGES", "contact_sheet", "methods_sheet", "training_tiles", "criterion_label",
-           "criterion_caption", "scene_up", "plot_frame", "PlotFrame", "UP_SNAP_DEGREES"]
+__all__ = ["pose_cloud", "PoseCloudStyle", "STAGES", "contact_sheet", "methods_sheet", "training_tiles",
+           "criterion_label", "criterion_caption", "scene_up", "plot_frame", "PlotFrame", "UP_SNAP_DEGREES"]
 
 STAGES = ("start", "epoch 1", "final")
 # A mean of a few cameras' up vectors leans a few degrees off the scene's up (lego_tiny's: 5.6 degrees
@@ -177,18 +177,123 @@ def _legend_handles(epoch: np.ndarray, threshold: Optional[float], direction: st
     return handles
 
 
+@dataclasses.dataclass(frozen=True)
+class PoseCloudStyle:
+    """How `pose_cloud` draws its figure: title, colouring, the marked point, the panels and the frame.
+
+    Attributes:
+      title: figure title ("" for none).
+      threshold: optional score threshold: views better than it are green, the others red (the paper's
+        colouring); None: a colour map of the score (brighter = better in the criterion's direction).
+      marker: optional float [3] point to mark (e.g. Waldo's position), drawn as a black star.
+      marker_label: the legend's name of `marker`.
+      stages: epochs to show, one panel each (-1: the final epoch).
+      arrow_length: length of the view-direction lines (default: 4 % of the cloud's extent).
+      score_label: what the scores are, for the colour bar (`criterion_label`; default: the direction).
+      up: float [3] the world direction drawn vertical (default: `scene_up` of the epoch-0 poses).
+    """
+
+    title: str = ""
+    threshold: Optional[float] = None
+    marker: Optional[np.ndarray] = None
+    marker_label: str = "target"
+    stages: Sequence[int] = (0, 1, -1)
+    arrow_length: Optional[float] = None
+    score_label: Optional[str] = None
+    up: Optional[np.ndarray] = None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cloud:
+    """The poses in plot coordinates and their colours: what every panel of `pose_cloud` draws."""
+
+    frame: PlotFrame
+    centres: np.ndarray  # float64 [C, 3] camera centres
+    views: np.ndarray  # float64 [C, 3] viewing directions
+    colours: np.ndarray  # float64 [C, 4] RGBA
+    epoch: np.ndarray  # int [C] epoch of birth
+    star: Optional[np.ndarray]  # float64 [3] the marker, or None
+    bounds: Tuple[np.ndarray, np.ndarray]  # the axes' limits: lowest and highest corner [3] of poses and marker
+    arrow: float  # length of the view-direction lines
+
+
+def _score_colours(scores: np.ndarray, direction: str, threshold: Optional[float], cmap, lo: float,
+                   hi: float) -> np.ndarray:
+    """RGBA [C, 4] of each score: green / red about `threshold`, else `cmap` over [lo, hi]; failed ones grey."""
+    if threshold is not None:
+        good = (scores > threshold) if direction == "max" else (scores < threshold)
+        colours = np.where(good[:, None], np.array([_GOOD]), np.array([_BAD]))
+    else:
+        colours = cmap((scores - lo) / max(hi - lo, 1e-12))
+    colours[~np.isfinite(scores)] = _FAILED
+    return colours
+
+
+def _plot_cloud(c2w: np.ndarray, epoch: np.ndarray, colours: np.ndarray, style: PoseCloudStyle) -> _Cloud:
+    """The poses in the frame that stands the scene's up vertical, with the marker, the limits and the arrow."""
+    training = c2w[epoch == 0] if np.any(epoch == 0) else c2w
+    frame = plot_frame(scene_up(training) if style.up is None else style.up)
+    centres, views = (frame(a) for a in _camera_axes(c2w))  # plot coordinates: the scene's up is the third
+    extent = float(np.max(np.ptp(centres, axis=0))) if len(centres) > 1 else 1.0
+    arrow = style.arrow_length if style.arrow_length is not None else 0.04 * max(extent, 1e-6)
+    star = None if style.marker is None else frame(np.asarray(style.marker, np.float64).reshape(3))
+    points = centres if star is None else np.concatenate([centres, star[None]])
+    bounds = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.ones(3))
+    return _Cloud(frame=frame, centres=centres, views=views, colours=colours, epoch=epoch, star=star,
+                  bounds=bounds, arrow=arrow)
+
+
+def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
+    """One 3D panel: the poses that exist at `stage` (-1: the final epoch `last`), the marker, axes and title."""
+    upto = last if stage < 0 else min(stage, last)
+    shown = cloud.epoch <= upto
+    for is_train, mark, size in ((True, "^", 34), (False, "o", 12)):
+        sel = shown & ((cloud.epoch == 0) == is_train)
+        if not sel.any():
+            continue
+        centres, colours = cloud.centres[sel], cloud.colours[sel]
+        ax.scatter(centres[:, 0], centres[:, 1], centres[:, 2], c=colours, marker=mark, s=size,
+                   depthshade=False, edgecolors="k" if is_train else "none", linewidths=0.4)
+        tips = centres + cloud.arrow * cloud.views[sel]
+        for a, b, col in zip(centres, tips, colours):
+            ax.plot([a[0], b[0]], [a[1], b[1]], [a[2], b[2]], color=col, linewidth=0.6)
+    if cloud.star is not None:
+        star = cloud.star
+        ax.scatter([star[0]], [star[1]], [star[2]], c="k", marker="*", s=120, depthshade=False)
+    name = "start (training views)" if upto == 0 else (f"epoch {upto}" if stage >= 0 else f"final (epoch {upto})")
+    ax.set_title(f"{name}: {int(shown.sum())} views", fontsize=9)
+    low, high = cloud.bounds
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.set_zlim(low[2], high[2])
+    ax.set_xlabel(cloud.frame.labels[0], fontsize=8)
+    ax.set_ylabel(cloud.frame.labels[1], fontsize=8)
+    ax.set_zlabel(cloud.frame.labels[2], fontsize=8)
+    ax.tick_params(labelsize=6)
+    ax.view_init(elev=28, azim=-60)
+
+
+def _legend_and_caption(fig, cloud: _Cloud, direction: str, failed: bool, score_label: str,
+                        style: PoseCloudStyle) -> None:
+    """The legend naming every mark below the panels, and the caption: the vertical and what the colours are."""
+    handles = _legend_handles(cloud.epoch, style.threshold, direction, failed,
+                              None if cloud.star is None else style.marker_label)
+    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.45, 0.06), ncol=len(handles), fontsize=8,
+               frameon=False)
+    colour = f"Colour: {score_label}." if style.threshold is None else f"Scores: {score_label}."
+    fig.text(0.45, -0.02, f"Vertical: the scene's up, {cloud.frame.up_text} (the mean of the training cameras' up "
+             f"vectors). {colour}", ha="center", va="top", fontsize=8)
+
+
 def pose_cloud(path: Optional[str | os.PathLike], c2w: np.ndarray, scores: np.ndarray, epoch: np.ndarray,
-               direction: str, title: str = "", threshold: Optional[float] = None,
-               marker: Optional[np.ndarray] = None, stages: Sequence[int] = (0, 1, -1),
-               arrow_length: Optional[float] = None, score_label: Optional[str] = None,
-               marker_label: str = "target", up: Optional[np.ndarray] = None):
+               direction: str, style: PoseCloudStyle = PoseCloudStyle()):
     """Writes a figure with one 3D panel per stage: the poses that exist at that stage, coloured by score.
 
     Stage e shows the training views (epoch 0) and every child born in epochs 1..e (-1: all epochs).
     Training views are drawn as triangles, children as dots; a short line shows each view direction.
-    With `threshold`, views better than it are green and the others red (the paper's colouring);
+    With `style.threshold`, views better than it are green and the others red (the paper's colouring);
     otherwise a colour map of the score (brighter = better in the criterion's direction). The scene's
-    up (`up`, default `scene_up` of the training views) is vertical (`plot_frame`); a legend names
+    up (`style.up`, default `scene_up` of the training views) is vertical (`plot_frame`); a legend names
     every mark, and a caption the up direction.
 
     Args:
@@ -197,14 +302,8 @@ def pose_cloud(path: Optional[str | os.PathLike], c2w: np.ndarray, scores: np.nd
       scores: float [C] their raw scores (NaN: failed, drawn grey).
       epoch: int [C] epoch of birth (0: training view).
       direction: "max" or "min".
-      title: figure title.
-      threshold: optional score threshold for green/red colouring.
-      marker: optional [3] point to mark (e.g. Waldo's position), drawn as a black star.
-      stages: epochs to show, one panel each (-1: the final epoch).
-      arrow_length: length of the view-direction lines (default: 4 % of the cloud's extent).
-      score_label: what the scores are, for the colour bar (`criterion_label`; default: the direction).
-      marker_label: the legend's name of `marker`.
-      up: float [3] the world direction drawn vertical (default: `scene_up` of the epoch-0 poses).
+      style: a `PoseCloudStyle`: title, threshold, marker and its label, stages, arrow length, score
+        label and up direction.
 
     Returns:
       The Matplotlib `Figure`.
@@ -216,64 +315,22 @@ def pose_cloud(path: Optional[str | os.PathLike], c2w: np.ndarray, scores: np.nd
     c2w = np.asarray(c2w, np.float64)
     scores = np.asarray(scores, np.float64)
     epoch = np.asarray(epoch)
-    training = c2w[epoch == 0] if np.any(epoch == 0) else c2w
-    frame = plot_frame(scene_up(training) if up is None else up)
-    centres, views = (frame(a) for a in _camera_axes(c2w))  # plot coordinates: the scene's up is the third
     last = int(epoch.max()) if epoch.size else 0
     finite = np.isfinite(scores)
     lo, hi = (np.min(scores[finite]), np.max(scores[finite])) if finite.any() else (0.0, 1.0)
-    extent = float(np.max(np.ptp(centres, axis=0))) if len(centres) > 1 else 1.0
-    arrow = arrow_length if arrow_length is not None else 0.04 * max(extent, 1e-6)
     cmap = matplotlib.colormaps["viridis" if direction == "max" else "viridis_r"]
-    score_label = score_label or f"score ({'higher' if direction == 'max' else 'lower'} is better)"
+    score_label = style.score_label or f"score ({'higher' if direction == 'max' else 'lower'} is better)"
+    cloud = _plot_cloud(c2w, epoch, _score_colours(scores, direction, style.threshold, cmap, lo, hi), style)
 
-    fig = Figure(figsize=(4.2 * len(stages), 4.4))
-    star = None if marker is None else frame(np.asarray(marker, np.float64).reshape(3))
-    points = centres if star is None else np.concatenate([centres, star[None]])
-    bounds = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.ones(3))
-    if threshold is not None:
-        good = (scores > threshold) if direction == "max" else (scores < threshold)
-        colours = np.where(good[:, None], np.array([_GOOD]), np.array([_BAD]))
-    else:
-        colours = cmap((scores - lo) / max(hi - lo, 1e-12))
-    colours[~finite] = _FAILED
-    for panel, stage in enumerate(stages):
-        upto = last if stage < 0 else min(stage, last)
-        ax = fig.add_subplot(1, len(stages), panel + 1, projection="3d")
-        shown = epoch <= upto
-        for is_train, mark, size in ((True, "^", 34), (False, "o", 12)):
-            sel = shown & ((epoch == 0) == is_train)
-            if not sel.any():
-                continue
-            ax.scatter(centres[sel, 0], centres[sel, 1], centres[sel, 2], c=colours[sel], marker=mark, s=size,
-                       depthshade=False, edgecolors="k" if is_train else "none", linewidths=0.4)
-            tips = centres[sel] + arrow * views[sel]
-            for a, b, col in zip(centres[sel], tips, colours[sel]):
-                ax.plot([a[0], b[0]], [a[1], b[1]], [a[2], b[2]], color=col, linewidth=0.6)
-        if star is not None:
-            ax.scatter([star[0]], [star[1]], [star[2]], c="k", marker="*", s=120, depthshade=False)
-        name = "start (training views)" if upto == 0 else (f"epoch {upto}" if stage >= 0 else f"final (epoch {upto})")
-        ax.set_title(f"{name}: {int(shown.sum())} views", fontsize=9)
-        ax.set_xlim(bounds[0][0], bounds[1][0])
-        ax.set_ylim(bounds[0][1], bounds[1][1])
-        ax.set_zlim(bounds[0][2], bounds[1][2])
-        ax.set_xlabel(frame.labels[0], fontsize=8)
-        ax.set_ylabel(frame.labels[1], fontsize=8)
-        ax.set_zlabel(frame.labels[2], fontsize=8)
-        ax.tick_params(labelsize=6)
-        ax.view_init(elev=28, azim=-60)
-    if threshold is None and finite.any():
+    fig = Figure(figsize=(4.2 * len(style.stages), 4.4))
+    for panel, stage in enumerate(style.stages):
+        _draw_stage(fig.add_subplot(1, len(style.stages), panel + 1, projection="3d"), cloud, stage, last)
+    if style.threshold is None and finite.any():
         mappable = matplotlib.cm.ScalarMappable(cmap=cmap, norm=matplotlib.colors.Normalize(lo, hi))
         fig.colorbar(mappable, ax=fig.axes, shrink=0.6, label=score_label)
-    handles = _legend_handles(epoch, threshold, direction, bool((~finite).any()),
-                              None if star is None else marker_label)
-    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.45, 0.06), ncol=len(handles), fontsize=8,
-               frameon=False)
-    colour = f"Colour: {score_label}." if threshold is None else f"Scores: {score_label}."
-    fig.text(0.45, -0.02, f"Vertical: the scene's up, {frame.up_text} (the mean of the training cameras' up "
-             f"vectors). {colour}", ha="center", va="top", fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=10)
+    _legend_and_caption(fig, cloud, direction, bool((~finite).any()), score_label, style)
+    if style.title:
+        fig.suptitle(style.title, fontsize=10)
     if path is not None:
         with atomic_file(path) as f:
             fig.savefig(f, format="png", dpi=90, bbox_inches="tight")

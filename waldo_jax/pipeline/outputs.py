@@ -25,7 +25,7 @@ import numpy as np
 
 from waldo_jax import io
 from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
-from waldo_jax.pipeline.figures import contact_sheet, criterion_caption, criterion_label, pose_cloud
+from waldo_jax.pipeline.figures import PoseCloudStyle, contact_sheet, criterion_caption, criterion_label, pose_cloud
 from waldo_jax.search import Result
 
 __all__ = ["RESULTS_JSON", "results_dict", "write_outputs"]
@@ -142,10 +142,10 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     population = result.population
     filled = np.asarray(population.valid)
     marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
+    style = PoseCloudStyle(title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
+                           marker=marker, marker_label="Waldo (the target)", score_label=criterion_label(run.criterion))
     pose_cloud(out / "pose_cloud.png", np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
-               np.asarray(population.epoch)[filled], run.criterion.direction,
-               title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
-               marker=marker, score_label=criterion_label(run.criterion), marker_label="Waldo (the target)")
+               np.asarray(population.epoch)[filled], run.criterion.direction, style=style)
     results = results_dict(run, names)
     io.write_json(out / RESULTS_JSON, results)
     return results

@@ -37,7 +37,7 @@ from waldo_jax.pipeline.sources import Source
 from waldo_jax.search.population import training_poses
 from waldo_jax.cameras import camera_focus
 
-__all__ = ["PathRun", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
+__all__ = ["PathRun", "PathRunOptions", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
            "paths_per_call", "evaluate_path", "check_nerfstudio_export", "gif_frame_ms"]
 
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
@@ -153,22 +153,42 @@ def _training_trajectory(train_c2w: np.ndarray, frames: int) -> np.ndarray:
     return np.asarray(path_c2w(poses, frames))
 
 
+@dataclasses.dataclass(frozen=True)
+class PathRunOptions:
+    """What `run_path` starts from besides the search itself: its anchors, the video's source and the progress.
+
+    Attributes:
+      anchor_c2w: float [A, 4, 4] the anchor poses, scored by the criterion (None: the training views,
+        scored as `initial` says).
+      anchors: what the anchors are, in words (results.json); the training views as anchors are named
+        "training views (scored on ...)" whatever this says.
+      initial: what scores the training views as anchors, "images" or "renders" (`initial_scores`).
+      video_source: the source rendering the video frames (another resolution); None: the searched source.
+      setup_seconds: seconds spent before the call (loading the source), counted in `PathRun.seconds`.
+      on_phase: called with the name of each phase as it starts (a progress display); changes nothing.
+    """
+
+    anchor_c2w: Optional[np.ndarray] = None
+    anchors: str = "training views"
+    initial: str = "images"
+    video_source: Optional[Source] = None
+    setup_seconds: float = 0.0
+    on_phase: Optional[Callable[[str], None]] = None
+
+
 def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: PathLimits, seed: int = 0,
-             seeds: int = 1, anchor_c2w: Optional[np.ndarray] = None, anchors: str = "training views",
-             initial: str = "images", video_source: Optional[Source] = None,
-             setup_seconds: float = 0.0, on_phase: Optional[Callable[[str], None]] = None) -> PathRun:
+             seeds: int = 1, options: PathRunOptions = PathRunOptions()) -> PathRun:
     """Runs the path search (`seeds` seeds in one vmapped call) and renders the first seed's best path.
 
     Args:
       source, criterion: what renders and scores; the criterion's direction overrides config's.
       config, limits: `PathConfig` and `PathLimits`.
       seed, seeds: seeds seed, seed + 1, ... (`seed_keys`).
-      anchor_c2w: the anchor poses [A, 4, 4] (default: the training views, scored as `initial` says).
-      anchors: what the anchors are, in words (results.json).
-      video_source: the source rendering the video frames (another resolution); default `source`.
-      on_phase: called with the name of each phase as it starts (a progress display); changes nothing.
+      options: a `PathRunOptions`: the anchors (default: the training views), the video's source,
+        the setup time and a progress callback.
     """
-    phase = on_phase or (lambda name: None)
+    phase = options.on_phase or (lambda name: None)
+    anchor_c2w, anchors = options.anchor_c2w, options.anchors
     start = time.perf_counter()
     config = dataclasses.replace(config, direction=criterion.direction).resolve()
     if seeds < 1:
@@ -185,7 +205,7 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     phase("scoring the anchors")
     if anchor_c2w is None:
         anchor_c2w = source.train_c2w
-        anchor_scores, used = initial_scores(source, criterion, initial)
+        anchor_scores, used = initial_scores(source, criterion, options.initial)
         anchors = f"training views (scored on {used})"
     else:
         anchor_scores = np.asarray(_evaluate_jit(frame_fn, jnp.asarray(anchor_c2w))[0], np.float32)
@@ -212,7 +232,7 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     trajectory = _training_trajectory(source.train_c2w, config.frames)
     references = {"straight": {**evaluate_path(frame_fn, straight, limits, config), "c2w": straight},
                   "training": {**evaluate_path(frame_fn, trajectory, limits, config), "c2w": trajectory}}
-    video = video_source or source
+    video = options.video_source or source
     phase(f"rendering the {config.frames} video frames")
     best = np.asarray(results[0].best_c2w)
     pixels = video.intrinsics.width * video.intrinsics.height
@@ -220,8 +240,8 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     frames = rgba[..., :3]
     truth = None if video.truth_render is None else _render_frames(video.truth_render, best, pixels)
     done = time.perf_counter()
-    seconds = {"setup": round(setup_seconds, 3), "search": round(searched - start, 3),
-               "render": round(done - searched, 3), "total": round(setup_seconds + done - start, 3)}
+    seconds = {"setup": round(options.setup_seconds, 3), "search": round(searched - start, 3),
+               "render": round(done - searched, 3), "total": round(options.setup_seconds + done - start, 3)}
     found[0]["video_opacity"] = rgba[..., 3].mean(axis=(1, 2)) if rgba.shape[-1] == 4 else None
     return PathRun(source=source, criterion=criterion, config=config, limits=limits,
                    seeds=list(range(seed, seed + seeds)), results=results, anchors=anchors, anchor_c2w=anchor_c2w,
