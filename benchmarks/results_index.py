@@ -155,6 +155,10 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     if bench == "explore_room":
         return (f"whole `waldo explore {data.get('source')}` command at {data.get('resolution')} px, "
                 f"{data.get('budget')} budget, criteria {_join(data.get('runs', {}))}")
+    if bench == "trust_guard":
+        methods = sorted({row.get("method") for row in data.get("guard", [])})
+        return (f"the trust guard on the demo's NeRF (procedural:{data.get('room_seed')}): waldo_found guarded by "
+                f"trust at thresholds, {_join(methods)}, {s.get('seeds')} seeds; trust vs render PSNR")
     if bench == "perf":
         return f"the collected performance report: {data.get('mode')}"
     if bench == "before_packed_renderer":

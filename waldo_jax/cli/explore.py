@@ -126,7 +126,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
         progress.phase(f"loading {args.source}")
         source = load_source(args.source, args.resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
-        criterion = criterion_from_args(args, room=source.room, source=source.spec)
+        criterion = criterion_from_args(args, room=source.room, source=source.spec,
+                                        train_c2w=source.train_c2w)
     if method.differentiable:
         criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
         config = config.with_options(refine=refine_for_source(config.refine_config(), source, criterion,

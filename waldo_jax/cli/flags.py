@@ -33,12 +33,13 @@ def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[s
                         help="reference image of the object to find (criterion waldo)")
 
 
-def criterion_from_args(args: argparse.Namespace, room=None, source: str = "") -> Criterion:
-    """The criterion the flags name (built with the room, weights folder and target they give)."""
+def criterion_from_args(args: argparse.Namespace, room=None, source: str = "", train_c2w=None) -> Criterion:
+    """The criterion the flags name (built with the room, training poses, weights folder and target they give)."""
     target = None
     if getattr(args, "target", None):
         target = read_image(args.target, what="--target image", min_side=2)
-    context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source)
+    context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source,
+                               train_c2w=train_c2w)
     return build_criterion(args.criterion, context, getattr(args, "guard", []) or [])
 
 

@@ -151,7 +151,8 @@ def cmd_path(args: argparse.Namespace) -> int:
         video = source if args.video_resolution is None else load_source(args.source, args.video_resolution,
                                                                          args.views, args.cameras)
         if criterion is None:  # a poses criterion: the room's oracles need the source
-            criterion = criterion_from_args(args, room=source.room, source=source.spec)
+            criterion = criterion_from_args(args, room=source.room, source=source.spec,
+                                            train_c2w=source.train_c2w)
         limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
         options = PathRunOptions(anchor_c2w=anchor_c2w, initial=args.initial, video_source=video,
                                  anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",

@@ -96,7 +96,8 @@ def _score_source(args: argparse.Namespace) -> int:
         progress.phase(f"loading {args.source}")
         source = load_source(args.source, args.resolution)
     if criterion is None:  # a poses criterion: the room's oracles need the source
-        criterion = criterion_from_args(args, room=source.room, source=source.spec)
+        criterion = criterion_from_args(args, room=source.room, source=source.spec,
+                                        train_c2w=source.train_c2w)
     if args.poses == "train":
         c2w, labels = source.train_c2w, list(source.train_names)
     else:

@@ -2,10 +2,10 @@
 
 A `Criterion` scores a batch of views inside the search's jit; `make_criterion(name, context)`
 builds one from the registry `CRITERIA` (the names `--criterion` accepts): the procedural room's
-oracles `waldo_oracle` and `waldo_visible` on poses; `colorfulness`, `saliency` (CSNet), `iqa_cnn`
-(CNNIQA), `niqe`, `brisque`, `composition` and `waldo` (the finder, with `--target`) on images;
-`opacity` on renders. `build_criterion(spec, context, guards)` (in `combine`) adds
-`weighted:NAME=W,...` and `--guard` (`constrained`) on top of the registry.
+oracles `waldo_oracle` and `waldo_visible`, and `trust` (the training cameras' coverage), on poses;
+`colorfulness`, `saliency` (CSNet), `iqa_cnn` (CNNIQA), `niqe`, `brisque`, `composition` and `waldo`
+(the finder, with `--target`) on images; `opacity` on renders. `build_criterion(spec, context, guards)`
+(in `combine`) adds `weighted:NAME=W,...` and `--guard` (`constrained`) on top of the registry.
 
 What each criterion scores, with its input, direction and range: see docs/design.md, section
 "Criteria > The registry".
@@ -20,6 +20,7 @@ from waldo_jax.criteria import csnet as csnet
 from waldo_jax.criteria import finder as finder
 from waldo_jax.criteria import niqe as niqe
 from waldo_jax.criteria import oracle as oracle
+from waldo_jax.criteria import trust as trust
 from waldo_jax.criteria.base import CRITERIA as CRITERIA
 from waldo_jax.criteria.base import Criterion as Criterion
 from waldo_jax.criteria.base import CriterionContext as CriterionContext

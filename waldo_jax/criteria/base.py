@@ -7,7 +7,7 @@ float32 [P] (NaN marks a failure, never selected), from one of four `inputs`: "i
 opacity), "poses" (c2w float32 [P, 4, 4] and intrinsics, for oracles that need no render) or
 "posed" (renders and their poses: a combination of pose and view criteria, `criteria.combine`).
 `make_criterion(name, context)` builds one from the registry; `CriterionContext` carries what some
-criteria need (the procedural room, a weights folder, a target image).
+criteria need (the procedural room, a weights folder, a target image, the training cameras).
 
 The inputs in detail: see docs/design.md, section "Criteria > The interface".
 """
@@ -181,12 +181,14 @@ class CriterionContext:
       weights_dir: folder in the `../shared/weights` layout (default: `WALDO_WEIGHTS`).
       target: reference image float32 [h, w, 3] of the object to find.
       source: the SOURCE the search runs on, in words (for error messages).
+      train_c2w: float32 [N, 4, 4] the source's training camera poses, for `trust`.
     """
 
     room: Any = None
     weights_dir: Optional[str] = None
     target: Optional[np.ndarray] = None
     source: str = ""
+    train_c2w: Optional[np.ndarray] = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,7 +43,7 @@ from waldo_jax.search import ExploreConfig
 from waldo_jax.types import Scene
 
 __all__ = ["DEMO_ROOM_SEED", "DemoSettings", "SETTINGS", "run_demo", "default_demo_dir", "render_psnr",
-           "train_room_nerf"]
+           "render_in", "room_scenes", "nerf_source", "train_room_nerf"]
 
 METHOD_ORDER = ("grs", "pibs", "egps")
 # The demo's room: the first seed whose search space holds views of Waldo whole (room 0's does not).
@@ -100,7 +100,7 @@ def render_psnr(rendered: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return -10.0 * np.log10(np.maximum(mse, 1e-12))
 
 
-def _render_in(render, c2w, count: int) -> np.ndarray:
+def render_in(render, c2w, count: int) -> np.ndarray:
     """`render(c2w)` [P, H, W, 3] in calls of `count` poses (the last padded by repeating a pose)."""
     c2w = np.asarray(c2w, np.float32)
     total = c2w.shape[0]
@@ -182,7 +182,7 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
     ])
 
 
-def _room_scenes(seed: int, settings: DemoSettings):
+def room_scenes(seed: int, settings: DemoSettings):
     """The room of `seed`, its training scene and its held-out views: (scene, room, test_scene)."""
     try:
         scene, room = room_scene(seed, num_views=settings.views, resolution=settings.resolution,
@@ -193,7 +193,7 @@ def _room_scenes(seed: int, settings: DemoSettings):
     return scene, room, test_scene
 
 
-def _nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedField, psnr_test) -> Source:
+def nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedField, psnr_test) -> Source:
     """The trained NeRF of the room as the searches' source, with the analytic room as its truth."""
     render = field_renderer(field, scene.intrinsics, gradient=NERF_GRADIENT)
     render_rgba = field_renderer(field, scene.intrinsics, rgba=True, gradient=NERF_GRADIENT)
@@ -211,8 +211,8 @@ def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any
     best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
-    best_psnr = render_psnr(_render_in(source.render, best_c2w, views),
-                            _render_in(source.truth_render, best_c2w, views))
+    best_psnr = render_psnr(render_in(source.render, best_c2w, views),
+                            render_in(source.truth_render, best_c2w, views))
     top_psnr = render_psnr(run.top_images, run.top_truth)
     return {
         "cvir_mean": results.get("cvir_mean", results["cvir"]), "cvir_std": results.get("cvir_std", 0.0),
@@ -261,7 +261,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     t0 = time.perf_counter()
     say = print if progress else (lambda *a, **k: None)
     say(f"[demo] rendering {settings.views} training views of procedural:{seed} ...", flush=True)
-    scene, room, test_scene = _room_scenes(seed, settings)
+    scene, room, test_scene = room_scenes(seed, settings)
     t_scene = time.perf_counter()
     say(f"[demo] training the hash-grid NeRF ({settings.train_steps} steps) ...", flush=True)
     (out / "nerf").mkdir()
@@ -269,9 +269,10 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
     t_train = time.perf_counter()
 
-    source = _nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene),
+    source = nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene),
                           stats["psnr_test"])
-    criterion = make_criterion(settings.criterion, CriterionContext(room=room, source=source.spec))
+    context = CriterionContext(room=room, source=source.spec, train_c2w=source.train_c2w)
+    criterion = make_criterion(settings.criterion, context)
     runs, methods = _run_methods(out, source, criterion, settings, seed, say)
 
     # One sheet like the paper's qualitative figures: training views, then each method's best views.
