@@ -63,6 +63,8 @@ class DemoSettings:
       render_step_scale: the NeRF's marching step over its training step; None calibrates it after
         training (`waldo_jax.nerf.train`), a number fixes it (quick: x3, the usual choice, saving
         the calibration's renders and compiles).
+      finest_resolution_scale: the hash grid's finest resolution (N_max) over the fast preset's: 0.5
+        fits the room's 64 px views better in the same steps (`benchmarks/demo_training.py`).
       criterion: what the searches maximise (a pose criterion of the room).
       camera: where the training (and held-out) cameras go.
     """
@@ -73,12 +75,13 @@ class DemoSettings:
     seeds: int
     test_views: int = 8
     render_step_scale: Optional[float] = None
+    finest_resolution_scale: float = 1.0
     criterion: str = "waldo_found"
     camera: RoomCameraConfig = RoomCameraConfig()
 
 
 SETTINGS = {
-    "full": DemoSettings(views=32, resolution=64, train_steps=400, seeds=8),
+    "full": DemoSettings(views=48, resolution=64, train_steps=560, seeds=8, finest_resolution_scale=0.5),
     "quick": DemoSettings(views=20, resolution=48, train_steps=120, seeds=4, test_views=4, render_step_scale=3.0),
 }
 
@@ -118,6 +121,10 @@ def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, see
     """
     overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
     config = TrainConfig.preset("fast", scene, steps=settings.train_steps, **overrides)
+    if settings.finest_resolution_scale != 1.0:
+        hashgrid = config.field.hashgrid
+        n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))
+        config = config.replace(field=dataclasses.replace(config.field, hashgrid=dataclasses.replace(hashgrid, N_max=n_max)))
     return train_run(seed, scene, config, test_scene, run_dir, "fast", progress)
 
 
