@@ -20,9 +20,12 @@ REPO = Path(__file__).resolve().parent.parent
 def git_commit() -> str:
     """HEAD's hash, with '+dirty' when the working tree has uncommitted changes to tracked files."""
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True
+        ).stdout.strip()
         return head + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
@@ -109,8 +112,11 @@ def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 3
         print(f"load average {load[0]:.2f} > {threshold}: waiting {poll_s:.0f} s", file=sys.stderr, flush=True)
         time.sleep(poll_s)
         load = os.getloadavg()
-    return {"loadavg_start": list(load), "waited_s": round(time.perf_counter() - start, 1),
-            "loaded": load[0] > threshold}
+    return {
+        "loadavg_start": list(load),
+        "waited_s": round(time.perf_counter() - start, 1),
+        "loaded": load[0] > threshold,
+    }
 
 
 def loaded_name(out: str) -> str:
@@ -122,13 +128,15 @@ def loaded_name(out: str) -> str:
 def emit_with_load(result: dict, out: str | None, quiet: dict, load_threshold: float) -> None:
     """Adds the load record of `wait_for_quiet` (start, end, verdict) to `result` and emits it,
     under `loaded_name(out)` when the machine was shared."""
-    result.update({
-        "loadavg_start": quiet["loadavg_start"],
-        "loadavg_end": list(os.getloadavg()),
-        "waited_for_load_s": quiet["waited_s"],
-        "loaded": quiet["loaded"],
-        "loaded_rule": f"loaded = 1-min load average still > {load_threshold} after waiting up to 5 min",
-    })
+    result.update(
+        {
+            "loadavg_start": quiet["loadavg_start"],
+            "loadavg_end": list(os.getloadavg()),
+            "waited_for_load_s": quiet["waited_s"],
+            "loaded": quiet["loaded"],
+            "loaded_rule": f"loaded = 1-min load average still > {load_threshold} after waiting up to 5 min",
+        }
+    )
     if out and quiet["loaded"]:
         out = loaded_name(out)
         print(f"the machine was shared during this run: writing {out}", file=sys.stderr)

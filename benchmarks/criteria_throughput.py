@@ -49,7 +49,7 @@ def natural_images(count: int, size: int) -> tuple[np.ndarray, str]:
             h, w = image.shape[:2]
             side = min(h, w)
             top = (h - side) // 2
-            images.append(resize_images(image[None, top:top + side, :side], size, size)[0])
+            images.append(resize_images(image[None, top : top + side, :side], size, size)[0])
         return np.stack(images), "fox training views, centre square crops"
     key = jax.random.key(0)
     ys, xs = np.mgrid[0:size, 0:size] / size
@@ -68,12 +68,18 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="JSON file (never overwritten; '_loaded' added if loaded)")
     args = parser.parse_args(argv)
 
-    names = args.criteria.split(",") if args.criteria else sorted(
-        n for n, spec in CRITERIA.items() if spec.inputs != "poses")
-    load = wait_for_quiet(args.quiet_load) if os.getloadavg()[0] > args.quiet_load else {
-        "loadavg_start": list(os.getloadavg()), "waited_s": 0.0, "loaded": False}
+    names = (
+        args.criteria.split(",")
+        if args.criteria
+        else sorted(n for n, spec in CRITERIA.items() if spec.inputs != "poses")
+    )
+    load = (
+        wait_for_quiet(args.quiet_load)
+        if os.getloadavg()[0] > args.quiet_load
+        else {"loadavg_start": list(os.getloadavg()), "waited_s": 0.0, "loaded": False}
+    )
     images, what = natural_images(args.batch, args.size)
-    target = images[0, 100:140, 100:140] if args.size >= 140 else images[0, :args.size // 4, :args.size // 4]
+    target = images[0, 100:140, 100:140] if args.size >= 140 else images[0, : args.size // 4, : args.size // 4]
     batch = jnp.asarray(images)
     results = {}
     for name in names:
@@ -83,15 +89,26 @@ def main(argv=None) -> int:
         jax.block_until_ready(score(batch))
         compile_s = time.perf_counter() - start
         best, median, _ = timed(lambda: score(batch), args.repeats)
-        results[name] = {"direction": criterion.direction, "images_per_s": args.batch / best,
-                         "images_per_s_median": args.batch / median, "seconds_best": best,
-                         "first_call_s": compile_s,
-                         "mean_score": float(np.mean(np.asarray(score(batch))))}
+        results[name] = {
+            "direction": criterion.direction,
+            "images_per_s": args.batch / best,
+            "images_per_s_median": args.batch / median,
+            "seconds_best": best,
+            "first_call_s": compile_s,
+            "mean_score": float(np.mean(np.asarray(score(batch)))),
+        }
         print(f"{name:13s} {args.batch / best:9.1f} images/s  (first call {compile_s:.1f} s)", file=sys.stderr)
     load_end = list(os.getloadavg())
     loaded = load["loaded"] or load_end[0] > args.quiet_load
-    result = dict(header("criteria_throughput"), batch=args.batch, size=args.size, images=what,
-                  repeats=args.repeats, load=dict(load, loadavg_end=load_end, loaded=loaded), criteria=results)
+    result = dict(
+        header("criteria_throughput"),
+        batch=args.batch,
+        size=args.size,
+        images=what,
+        repeats=args.repeats,
+        load=dict(load, loadavg_end=load_end, loaded=loaded),
+        criteria=results,
+    )
     emit(result, loaded_name(args.out) if args.out and loaded else args.out)
     return 0
 

@@ -64,8 +64,9 @@ def evaluation_views(seeds: int, resolution: int):
     criterion = make_criterion("waldo_found", CriterionContext(room=source.room))
     views, best = [], []
     for method in ("grs", "pibs", "egps"):
-        run = run_explore(source, criterion, ExploreConfig(method=method, budget="low"),
-                          seed=DEMO_ROOM_SEED, seeds=seeds)
+        run = run_explore(
+            source, criterion, ExploreConfig(method=method, budget="low"), seed=DEMO_ROOM_SEED, seeds=seeds
+        )
         tops = np.stack([np.asarray(r.top_c2w[0]) for r in run.results])
         views.append(tops)
         best += [True] * len(tops)
@@ -97,11 +98,20 @@ def measure(name: str, overrides: dict, c2w, truth, best, intrinsics) -> dict:
     t2 = time.perf_counter()
     render = field_renderer(TrainedField.from_result(result, scene), intrinsics)
     psnr = render_psnr(np.asarray(render(jnp.asarray(c2w))), truth)
-    return {"name": name, "views": views, "steps": steps, "resolution": resolution, "n_max": int(hashgrid.N_max),
-            "steps_per_diagonal": float(config.steps_per_diagonal), "render_step_scale": result.config.render_step_scale,
-            "seconds": {"scene": round(t1 - t0, 1), "train": round(t2 - t1, 1)},
-            "psnr_test": round(float(result.psnr_test), 2), "psnr_found": round(float(np.mean(psnr)), 2),
-            "psnr_best": round(float(np.mean(psnr[best])), 2), "psnr_per_view": np.round(psnr, 2).tolist()}
+    return {
+        "name": name,
+        "views": views,
+        "steps": steps,
+        "resolution": resolution,
+        "n_max": int(hashgrid.N_max),
+        "steps_per_diagonal": float(config.steps_per_diagonal),
+        "render_step_scale": result.config.render_step_scale,
+        "seconds": {"scene": round(t1 - t0, 1), "train": round(t2 - t1, 1)},
+        "psnr_test": round(float(result.psnr_test), 2),
+        "psnr_found": round(float(np.mean(psnr)), 2),
+        "psnr_best": round(float(np.mean(psnr[best])), 2),
+        "psnr_per_view": np.round(psnr, 2).tolist(),
+    }
 
 
 def main() -> None:
@@ -119,13 +129,22 @@ def main() -> None:
     quiet = wait_for_quiet(args.load_threshold)
     result = header("demo_training")
     c2w, truth, best, intrinsics = evaluation_views(args.seeds, DEMO_SETTINGS["full"].resolution)
-    result["evaluation_views"] = {"count": int(len(c2w)), "best_views": int(best.sum()), "seeds": args.seeds,
-                                  "criterion": "waldo_found", "room_seed": DEMO_ROOM_SEED}
+    result["evaluation_views"] = {
+        "count": int(len(c2w)),
+        "best_views": int(best.sum()),
+        "seeds": args.seeds,
+        "criterion": "waldo_found",
+        "room_seed": DEMO_ROOM_SEED,
+    }
     result["settings"] = []
     for name in names:
         row = measure(name, SETTINGS[name], c2w, truth, best, intrinsics)
-        print(f"{name}: held-out {row['psnr_test']:.2f} dB, found views {row['psnr_found']:.2f} dB, "
-              f"train {row['seconds']['train']:.0f} s", file=sys.stderr, flush=True)
+        print(
+            f"{name}: held-out {row['psnr_test']:.2f} dB, found views {row['psnr_found']:.2f} dB, "
+            f"train {row['seconds']['train']:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         result["settings"].append(row)
     emit_with_load(result, args.out, quiet, args.load_threshold)
 

@@ -67,8 +67,17 @@ DEFAULT_LIMIT_MIB = 64.0  # what the device machine carries: the working tree an
 OUT_FILES = ("device_check.json", "device_check.log", "pytest_reports.jsonl")
 
 # The test files that failed on a GPU before (one H100, before the packed renderer): run first.
-FAILED_BEFORE = ("test_csnet.py", "test_cnniqa.py", "test_nerf_field.py", "test_cameras.py", "test_sharding.py",
-                 "test_train.py", "test_occupancy.py", "test_scenes.py", "test_explore_cli.py")
+FAILED_BEFORE = (
+    "test_csnet.py",
+    "test_cnniqa.py",
+    "test_nerf_field.py",
+    "test_cameras.py",
+    "test_sharding.py",
+    "test_train.py",
+    "test_occupancy.py",
+    "test_scenes.py",
+    "test_explore_cli.py",
+)
 # Never in the correctness step: this check's own test (it runs the check itself, on the CPU).
 NOT_IN_SUITE = ("test_device_check.py",)
 # Test files that cannot even be collected without these packages (none of them is on the device machine).
@@ -100,10 +109,10 @@ class Settings:
     """Every size the steps use (plain Python: static, shape-setting)."""
 
     fox: str = "scenes/fox"
-    fox_downscale: float = 4.0          # 270x480 training images: the GPU's; the CPU runs used 8
+    fox_downscale: float = 4.0  # 270x480 training images: the GPU's; the CPU runs used 8
     train_preset: str = "quality"
     train_steps: int = 1000
-    train_overrides: tuple = ()         # (name, value) pairs given to TrainConfig.preset
+    train_overrides: tuple = ()  # (name, value) pairs given to TrainConfig.preset
     pytest_first: tuple = tuple(f"tests/{name}" for name in FAILED_BEFORE)
     pytest_rest: Optional[tuple] = None  # None: every other test file
     pytest_workers: int = 8
@@ -122,31 +131,91 @@ class Settings:
     gradient_poses: int = 4
     gradient_repeats: int = 5
     # The splat renderer (issue [2/5]): the GPU targets' cells, then the donut explored.
-    splats_args: tuple = ("--counts", "100000,1000000", "--sizes", "128,256", "--populations", "256",
-                          "--repeats", "3", "--max-seconds-per-cell", "60")
-    splats_explore_args: tuple = ("--resolution", "128", "--criterion", "saliency", "--method", "egps+refine",
-                                  "--budget", "low")
+    splats_args: tuple = (
+        "--counts",
+        "100000,1000000",
+        "--sizes",
+        "128,256",
+        "--populations",
+        "256",
+        "--repeats",
+        "3",
+        "--max-seconds-per-cell",
+        "60",
+    )
+    splats_explore_args: tuple = (
+        "--resolution",
+        "128",
+        "--criterion",
+        "saliency",
+        "--method",
+        "egps+refine",
+        "--budget",
+        "low",
+    )
 
 
 FULL = Settings()
 SMOKE = Settings(
-    fox_downscale=16.0, train_steps=48,
-    train_overrides=(("samples_per_batch", 2**12), ("rays_per_batch", 2**10), ("chunk", 16),
-                     ("occupancy_resolution", 32), ("occupancy_warmup", 16), ("eval_samples", 128),
-                     ("render_step_scale", 1.0), ("hashgrid", {"L": 8, "T": 2**14})),
+    fox_downscale=16.0,
+    train_steps=48,
+    train_overrides=(
+        ("samples_per_batch", 2**12),
+        ("rays_per_batch", 2**10),
+        ("chunk", 16),
+        ("occupancy_resolution", 32),
+        ("occupancy_warmup", 16),
+        ("eval_samples", 128),
+        ("render_step_scale", 1.0),
+        ("hashgrid", {"L": 8, "T": 2**14}),
+    ),
     pytest_first=("tests/test_cameras.py::test_look_at_identity_frame",),
-    pytest_rest=("tests/test_device_check.py::test_time_left_by_a_step_goes_to_the_later_ones",), pytest_workers=0,
-    determinism_args=("procedural:0", "--resolution", "16", "--views", "8", "--epochs", "2",
-                      "--children-per-epoch", "6", "--criterion", "colorfulness"),
-    render_poses=2, render_size="24x32", render_repeats=1,
-    population_poses=2, population_resolutions=(16,), population_samples=16, population_repeats=1,
+    pytest_rest=("tests/test_device_check.py::test_time_left_by_a_step_goes_to_the_later_ones",),
+    pytest_workers=0,
+    determinism_args=(
+        "procedural:0",
+        "--resolution",
+        "16",
+        "--views",
+        "8",
+        "--epochs",
+        "2",
+        "--children-per-epoch",
+        "6",
+        "--criterion",
+        "colorfulness",
+    ),
+    render_poses=2,
+    render_size="24x32",
+    render_repeats=1,
+    population_poses=2,
+    population_resolutions=(16,),
+    population_samples=16,
+    population_repeats=1,
     explore_resolutions=(32,),
     explore_args=("--criterion", "colorfulness", "--method", "egps", "--epochs", "2", "--children-per-epoch", "4"),
-    gradient_cases=("RUN:colorfulness",), gradient_resolution=16, gradient_poses=2,
+    gradient_cases=("RUN:colorfulness",),
+    gradient_resolution=16,
+    gradient_poses=2,
     gradient_repeats=1,
     splats_args=("--quick", "--populations", "2"),
-    splats_explore_args=("--resolution", "16", "--criterion", "colorfulness", "--method", "egps+refine",
-                         "--epochs", "2", "--children-per-epoch", "6", "--refine-poses", "2", "--refine-steps", "1"))
+    splats_explore_args=(
+        "--resolution",
+        "16",
+        "--criterion",
+        "colorfulness",
+        "--method",
+        "egps+refine",
+        "--epochs",
+        "2",
+        "--children-per-epoch",
+        "6",
+        "--refine-poses",
+        "2",
+        "--refine-steps",
+        "1",
+    ),
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -174,10 +243,16 @@ def version(dist: str) -> Optional[str]:
 def git_commit() -> Optional[str]:
     """HEAD with '+dirty' (as bench_common.git_commit), or None without git or a .git (the device machine)."""
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              check=True, timeout=20).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True, timeout=20).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True, timeout=20
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=20,
+        ).stdout.strip()
         return head + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return None
@@ -208,8 +283,13 @@ def mib(n: float) -> float:
 def working_tree_bytes() -> int:
     """Bytes of what travels as the working tree: tracked files and untracked files git does not ignore."""
     try:
-        listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
-                                capture_output=True, check=True, timeout=60).stdout
+        listed = subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=REPO,
+            capture_output=True,
+            check=True,
+            timeout=60,
+        ).stdout
     except (OSError, subprocess.SubprocessError):
         raise SystemExit("device_check: --pack needs git to size the working tree that travels with the data")
     total = 0
@@ -259,9 +339,27 @@ def download_wheels(dest: Path) -> list:
         if have is None:
             raise SystemExit(f"device_check: {dist} is not installed here, so its version for the device is unknown")
         wanted.append(f"{dist}=={have}")
-    command = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--python-version", "3.12",
-               "--implementation", "cp", "--platform", "manylinux_2_28_x86_64", "--platform", "manylinux_2_17_x86_64",
-               "--platform", "manylinux2014_x86_64", "-d", str(dest), *wanted]
+    command = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--no-deps",
+        "--only-binary=:all:",
+        "--python-version",
+        "3.12",
+        "--implementation",
+        "cp",
+        "--platform",
+        "manylinux_2_28_x86_64",
+        "--platform",
+        "manylinux_2_17_x86_64",
+        "--platform",
+        "manylinux2014_x86_64",
+        "-d",
+        str(dest),
+        *wanted,
+    ]
     print("[pack] " + shlex.join(command), flush=True)
     proc = subprocess.run(command, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -275,8 +373,9 @@ def download_wheels(dest: Path) -> list:
     return wanted
 
 
-def pack(dest: Path, data: Path, wheels: Optional[Path], limit_mib: float, reserve_mib: float, force: bool,
-         smoke: bool) -> dict:
+def pack(
+    dest: Path, data: Path, wheels: Optional[Path], limit_mib: float, reserve_mib: float, force: bool, smoke: bool
+) -> dict:
     """Copies what the steps read from `data` into `dest` (and the wheels into `wheels`), after checking it
     fits in `limit_mib` with the working tree. Returns the manifest (also written as dest/MANIFEST)."""
     if not (data / "scenes").is_dir():
@@ -284,14 +383,17 @@ def pack(dest: Path, data: Path, wheels: Optional[Path], limit_mib: float, reser
     dest = dest.absolute()
     if dest.exists() and any(dest.iterdir()):
         if not force:
-            raise SystemExit(f"device_check: {dest} is not empty: refusing to overwrite (pass --force to replace "
-                             "an earlier pack)")
+            raise SystemExit(
+                f"device_check: {dest} is not empty: refusing to overwrite (pass --force to replace an earlier pack)"
+            )
         if not (dest / MANIFEST).is_file():
             raise SystemExit(f"device_check: {dest} is not an earlier pack (no {MANIFEST}): refusing to replace it")
     for folder in (dest, None if wheels is None else wheels.absolute()):
         if folder is not None and (folder == REPO or REPO in folder.parents) and not is_ignored(folder):
-            raise SystemExit(f"device_check: {folder} is inside the repository but not ignored by git: use an "
-                             "ignored folder (.device/data, .whl) so that it is never committed")
+            raise SystemExit(
+                f"device_check: {folder} is inside the repository but not ignored by git: use an "
+                "ignored folder (.device/data, .whl) so that it is never committed"
+            )
     for name in PACK_REQUIRED:
         if not pack_sources(data, name):
             raise SystemExit(f"device_check: {data / name} is missing: the steps need it")
@@ -309,7 +411,8 @@ def pack(dest: Path, data: Path, wheels: Optional[Path], limit_mib: float, reser
         raise SystemExit(
             f"device_check: too big for the device machine: the working tree ({mib(tree)} MiB), the wheels "
             f"({mib(wheel_bytes)} MiB) and the required data ({mib(required)} MiB) make "
-            f"{mib(tree + wheel_bytes + required)} MiB > {limit_mib:g} MiB")
+            f"{mib(tree + wheel_bytes + required)} MiB > {limit_mib:g} MiB"
+        )
     room = limit - reserve_mib * 2**20 - tree - wheel_bytes - required
     left_out = {}
     for name in () if smoke else PACK_OPTIONAL:
@@ -335,15 +438,27 @@ def pack(dest: Path, data: Path, wheels: Optional[Path], limit_mib: float, reser
             shutil.copy2(src, target)
     packed = folder_bytes(dest)
     manifest = {
-        "packed": now_iso(), "from": str(data.resolve()), "commit_at_pack": git_commit(),
+        "packed": now_iso(),
+        "from": str(data.resolve()),
+        "commit_at_pack": git_commit(),
         "code_digest_at_pack": code_digest(),
-        "items": {name: {"files": len(files), "mib": mib(sum(s.stat().st_size for s, _ in files))}
-                  for name, files in items.items()},
-        "left_out": left_out, "only": {k: list(v) for k, v in PACK_ONLY.items()},
+        "items": {
+            name: {"files": len(files), "mib": mib(sum(s.stat().st_size for s, _ in files))}
+            for name, files in items.items()
+        },
+        "left_out": left_out,
+        "only": {k: list(v) for k, v in PACK_ONLY.items()},
         "fox": "whole (1080x1920 JPEGs): loads exactly as from $WALDO_DATA; the steps downscale it at load time",
-        "wheels": wheel_names, "wheels_dir": None if wheels is None else str(wheels),
-        "sizes_mib": {"working_tree": mib(tree), "wheels": mib(wheel_bytes), "data": mib(packed),
-                      "total": mib(tree + wheel_bytes + packed), "limit": limit_mib, "reserve": reserve_mib},
+        "wheels": wheel_names,
+        "wheels_dir": None if wheels is None else str(wheels),
+        "sizes_mib": {
+            "working_tree": mib(tree),
+            "wheels": mib(wheel_bytes),
+            "data": mib(packed),
+            "total": mib(tree + wheel_bytes + packed),
+            "limit": limit_mib,
+            "reserve": reserve_mib,
+        },
         "smoke": smoke,
     }
     write_json(dest / MANIFEST, manifest)
@@ -396,8 +511,14 @@ class Context:
         offset = self.log.tell()
         print(f"[device_check] {label}: {shlex.join(argv[1:])} (time box {seconds:.0f} s)", flush=True)
         start = time.monotonic()
-        proc = subprocess.Popen(argv, cwd=REPO, stdout=self.log, stderr=subprocess.STDOUT,
-                                env={**self.env, **(env or {})}, start_new_session=True)
+        proc = subprocess.Popen(
+            argv,
+            cwd=REPO,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            env={**self.env, **(env or {})},
+            start_new_session=True,
+        )
         timed_out = interrupted = False
         try:
             proc.wait(timeout=seconds)
@@ -414,8 +535,15 @@ class Context:
             printed = f.read().decode(errors="replace")
         if timed_out:
             self.log.write(f"\n===== {label}: killed after its time box of {seconds:.0f} s\n".encode())
-        entry = {"label": label, "command": shlex.join(argv), "returncode": proc.returncode, "timed_out": timed_out,
-                 "time_box_s": round(seconds, 1), "seconds": round(took, 1), "output_tail": printed[-3000:]}
+        entry = {
+            "label": label,
+            "command": shlex.join(argv),
+            "returncode": proc.returncode,
+            "timed_out": timed_out,
+            "time_box_s": round(seconds, 1),
+            "seconds": round(took, 1),
+            "output_tail": printed[-3000:],
+        }
         if interrupted:
             entry["interrupted"] = True
             self.results.setdefault("_interrupted_commands", []).append(entry)
@@ -452,9 +580,11 @@ def kill_group(proc: subprocess.Popen) -> None:
 
 def split_box(deadline: float, weights: list) -> Callable[[int], float]:
     """The time box of sub-command i of a step: its share of the time left among those still to run."""
+
     def box(i: int) -> float:
         left = deadline - time.monotonic()
         return max(1.0, left * weights[i] / sum(weights[i:]))
+
     return box
 
 
@@ -477,8 +607,11 @@ def step_environment(ctx: Context, deadline: float) -> dict:
         ctx.header["device"] = result.get("device")
         ctx.results["environment"] = result
     status = command_status([command])
-    return {"status": "failed" if status == "done" and result is None else status, "commands": [command],
-            "result": result}
+    return {
+        "status": "failed" if status == "done" and result is None else status,
+        "commands": [command],
+        "result": result,
+    }
 
 
 def step_correctness(ctx: Context, deadline: float) -> dict:
@@ -492,8 +625,11 @@ def step_correctness(ctx: Context, deadline: float) -> dict:
     first = [t for t in settings.pytest_first if t.split("::")[0] not in not_run_files]
     if settings.pytest_rest is None:
         taken = {Path(t.split("::")[0]).name for t in settings.pytest_first} | set(NOT_IN_SUITE)
-        rest = [f"tests/{p.name}" for p in sorted((REPO / "tests").glob("test_*.py"))
-                if p.name not in taken and f"tests/{p.name}" not in not_run_files]
+        rest = [
+            f"tests/{p.name}"
+            for p in sorted((REPO / "tests").glob("test_*.py"))
+            if p.name not in taken and f"tests/{p.name}" not in not_run_files
+        ]
     else:
         rest = list(settings.pytest_rest)
     env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}  # several pytest workers share one GPU
@@ -508,27 +644,59 @@ def step_correctness(ctx: Context, deadline: float) -> dict:
             runs.append({"files": label, "not_run": f"no time left in the step ({left:.0f} s)", "paths": files})
             continue
         marker = len(report.read_text().splitlines()) if report.exists() else 0
-        command = ctx.run(f"correctness: {label}", ctx.self_child("_pytest", report, "--", *common, *files), left,
-                          env=env)
+        command = ctx.run(
+            f"correctness: {label}", ctx.self_child("_pytest", report, "--", *common, *files), left, env=env
+        )
         commands.append(command)
-        runs.append({"files": label, "paths": files, **summarise_reports(report, marker),
-                     "timed_out": command["timed_out"], "exitstatus": command["returncode"]})
-    totals = {k: sum(r.get(k, 0) for r in runs if isinstance(r.get(k, 0), int))
-              for k in ("collected", "passed", "failed", "errors", "skipped", "xfailed", "xpassed", "not_run",
-                        "collection_errors")}
+        runs.append(
+            {
+                "files": label,
+                "paths": files,
+                **summarise_reports(report, marker),
+                "timed_out": command["timed_out"],
+                "exitstatus": command["returncode"],
+            }
+        )
+    totals = {
+        k: sum(r.get(k, 0) for r in runs if isinstance(r.get(k, 0), int))
+        for k in (
+            "collected",
+            "passed",
+            "failed",
+            "errors",
+            "skipped",
+            "xfailed",
+            "xpassed",
+            "not_run",
+            "collection_errors",
+        )
+    }
     failures = [f for r in runs for f in r.get("failures", [])]
     # Complete: every selected file ran to its end (no time box hit, nothing left unrun).
     complete = all(isinstance(r.get("not_run"), int) and r["not_run"] == 0 and not r.get("timed_out") for r in runs)
     if not commands:
-        return {"status": "skipped", "reason": "no time left in the step to start pytest", "commands": [],
-                "result": {"runs": runs, "totals": None, "not_run_files": not_run_files}}
+        return {
+            "status": "skipped",
+            "reason": "no time left in the step to start pytest",
+            "commands": [],
+            "result": {"runs": runs, "totals": None, "not_run_files": not_run_files},
+        }
     status = "timed_out" if any(c["timed_out"] for c in commands) else "done"
-    return {"status": status, "commands": commands,
-            "result": {"totals": totals, "runs": runs, "failures": failures,
-                       "failed_names": [f["nodeid"] for f in failures],
-                       "suite_complete": complete and settings.pytest_rest is None, "not_run_files": not_run_files,
-                       "packages_missing": (ctx.results.get("environment") or {}).get("packages_missing"),
-                       "workers": settings.pytest_workers, "env": env}}
+    return {
+        "status": status,
+        "commands": commands,
+        "result": {
+            "totals": totals,
+            "runs": runs,
+            "failures": failures,
+            "failed_names": [f["nodeid"] for f in failures],
+            "suite_complete": complete and settings.pytest_rest is None,
+            "not_run_files": not_run_files,
+            "packages_missing": (ctx.results.get("environment") or {}).get("packages_missing"),
+            "workers": settings.pytest_workers,
+            "env": env,
+        },
+    }
 
 
 def module_available(name: str) -> bool:
@@ -565,22 +733,34 @@ def summarise_reports(report: Path, skip_lines: int) -> dict:
                     skips[reason] = skips.get(reason, 0) + 1
                 elif outcome == "passed" and when == "call" and previous is None:
                     outcomes[node] = "xpassed" if event.get("xfail") else "passed"
-    counts = {k: sum(1 for v in outcomes.values() if v == k) for k in ("passed", "failed", "errors", "skipped",
-                                                                          "xfailed", "xpassed")}
-    return {"collected": collected, **counts, "not_run": max(0, collected - len(outcomes)),
-            "collection_errors": len(collection_errors), "collection_error_list": collection_errors,
-            "failures": failures[:200], "skip_reasons": dict(sorted(skips.items(), key=lambda kv: -kv[1])[:20])}
+    counts = {
+        k: sum(1 for v in outcomes.values() if v == k)
+        for k in ("passed", "failed", "errors", "skipped", "xfailed", "xpassed")
+    }
+    return {
+        "collected": collected,
+        **counts,
+        "not_run": max(0, collected - len(outcomes)),
+        "collection_errors": len(collection_errors),
+        "collection_error_list": collection_errors,
+        "failures": failures[:200],
+        "skip_reasons": dict(sorted(skips.items(), key=lambda kv: -kv[1])[:20]),
+    }
 
 
 def step_determinism(ctx: Context, deadline: float) -> dict:
-    runs = (("default, first", {}), ("default, second", {}),
-            ("WALDO_DETERMINISTIC=0", {"WALDO_DETERMINISTIC": "0", "XLA_FLAGS": strip_determinism(ctx.env)}))
+    runs = (
+        ("default, first", {}),
+        ("default, second", {}),
+        ("WALDO_DETERMINISTIC=0", {"WALDO_DETERMINISTIC": "0", "XLA_FLAGS": strip_determinism(ctx.env)}),
+    )
     box = split_box(deadline, [1, 1, 1])
     commands, results = [], []
     for i, (label, env) in enumerate(runs):
         out = ctx.work / f"determinism_{i}"
-        argv = ctx.waldo("explore", *ctx.settings.determinism_args, "--method", "egps", "--seed", "0", "--quiet",
-                         "--out", out)
+        argv = ctx.waldo(
+            "explore", *ctx.settings.determinism_args, "--method", "egps", "--seed", "0", "--quiet", "--out", out
+        )
         commands.append(ctx.run(f"determinism: {label}", argv, box(i), env=env))
         results.append(read_json(out / "results.json"))
         if results[-1] is None and i < 2:
@@ -588,10 +768,16 @@ def step_determinism(ctx: Context, deadline: float) -> dict:
     texts = [None if r is None else scores_text(r) for r in results]
     result = {"source_args": list(ctx.settings.determinism_args), "method": "egps", "seed": 0, "runs": []}
     for (label, env), command, r, text in zip(runs, commands, results, texts):
-        result["runs"].append({"label": label, "env": env, "wall_s": command["seconds"],
-                               "seconds": None if r is None else r.get("seconds"),
-                               "scores_sha256": None if text is None else hashlib.sha256(text.encode()).hexdigest(),
-                               "n_generated": None if r is None else r.get("n_generated")})
+        result["runs"].append(
+            {
+                "label": label,
+                "env": env,
+                "wall_s": command["seconds"],
+                "seconds": None if r is None else r.get("seconds"),
+                "scores_sha256": None if text is None else hashlib.sha256(text.encode()).hexdigest(),
+                "n_generated": None if r is None else r.get("n_generated"),
+            }
+        )
     if len(texts) >= 2 and texts[0] is not None and texts[1] is not None:
         result["identical"] = texts[0] == texts[1]
         result["compared"] = "scores_train, scores_generated and the top-k c2w of results.json, as JSON text"
@@ -609,13 +795,15 @@ def step_determinism(ctx: Context, deadline: float) -> dict:
 
 def strip_determinism(env: dict) -> str:
     flags = env.get("XLA_FLAGS", "").split()
-    return " ".join(f for f in flags if not f.startswith(("--xla_gpu_deterministic_ops",
-                                                             "--xla_gpu_exclude_nondeterministic_ops")))
+    return " ".join(
+        f for f in flags if not f.startswith(("--xla_gpu_deterministic_ops", "--xla_gpu_exclude_nondeterministic_ops"))
+    )
 
 
 def scores_text(results: dict) -> str:
-    return json.dumps([results.get("scores_train"), results.get("scores_generated"),
-                       [t.get("c2w") for t in results.get("topk", [])]])
+    return json.dumps(
+        [results.get("scores_train"), results.get("scores_generated"), [t.get("c2w") for t in results.get("topk", [])]]
+    )
 
 
 def step_training(ctx: Context, deadline: float) -> dict:
@@ -625,10 +813,24 @@ def step_training(ctx: Context, deadline: float) -> dict:
     left = deadline - time.monotonic()
     # Stop training in time for the held-out PSNR, the render-step calibration, the field timing and the save.
     train_seconds = max(5.0, 0.6 * left) if not ctx.smoke else left
-    argv = ctx.self_child("_train", ctx.data / settings.fox, "--downscale", settings.fox_downscale,
-                          "--preset", settings.train_preset, "--steps", settings.train_steps,
-                          "--overrides", json.dumps(dict(settings.train_overrides)),
-                          "--train-seconds", round(train_seconds, 1), "--run", run, "--json", path)
+    argv = ctx.self_child(
+        "_train",
+        ctx.data / settings.fox,
+        "--downscale",
+        settings.fox_downscale,
+        "--preset",
+        settings.train_preset,
+        "--steps",
+        settings.train_steps,
+        "--overrides",
+        json.dumps(dict(settings.train_overrides)),
+        "--train-seconds",
+        round(train_seconds, 1),
+        "--run",
+        run,
+        "--json",
+        path,
+    )
     command = ctx.run("training", argv, left)
     result = read_json(path)  # written once training ends, then again complete
     if result is not None and (run / "checkpoint.ckpt").is_file():
@@ -656,10 +858,25 @@ def step_rendering(ctx: Context, deadline: float) -> dict:
     i = 0
     if ctx.fox_run is not None:
         path = ctx.work / "render_trained.json"
-        argv = ctx.python(HERE / "render_trained.py", ctx.fox_run, ctx.data / settings.fox, "--downscale",
-                          settings.fox_downscale, "--poses", settings.render_poses, "--size", settings.render_size,
-                          "--repeats", settings.render_repeats, "--skip", "curve", "--load-threshold", "1000",
-                          "--out", path)
+        argv = ctx.python(
+            HERE / "render_trained.py",
+            ctx.fox_run,
+            ctx.data / settings.fox,
+            "--downscale",
+            settings.fox_downscale,
+            "--poses",
+            settings.render_poses,
+            "--size",
+            settings.render_size,
+            "--repeats",
+            settings.render_repeats,
+            "--skip",
+            "curve",
+            "--load-threshold",
+            "1000",
+            "--out",
+            path,
+        )
         commands.append(ctx.run("rendering: render_trained", argv, box(i)))
         result["render_trained"] = read_json(path)
         i += 1
@@ -669,15 +886,29 @@ def step_rendering(ctx: Context, deadline: float) -> dict:
     population = []
     for size in sizes:
         path = ctx.work / f"render_population_{size}.json"
-        argv = ctx.python(HERE / "render_population.py", "--poses", settings.population_poses, "--resolutions", size,
-                          "--samples", settings.population_samples, "--repeats", settings.population_repeats,
-                          "--load-threshold", "1000", "--out", path)
+        argv = ctx.python(
+            HERE / "render_population.py",
+            "--poses",
+            settings.population_poses,
+            "--resolutions",
+            size,
+            "--samples",
+            settings.population_samples,
+            "--repeats",
+            settings.population_repeats,
+            "--load-threshold",
+            "1000",
+            "--out",
+            path,
+        )
         commands.append(ctx.run(f"rendering: render_population {size}^2", argv, box(i)))
         i += 1
         population.append(read_json(path))
     result["render_population"] = population
-    result["batched_over_loop"] = {str(size): (None if p is None else p["speedup_batched_over_loop"][str(size)])
-                                   for size, p in zip(sizes, population)}
+    result["batched_over_loop"] = {
+        str(size): (None if p is None else p["speedup_batched_over_loop"][str(size)])
+        for size, p in zip(sizes, population)
+    }
     return {"status": command_status(commands), "commands": commands, "result": result}
 
 
@@ -691,15 +922,39 @@ def step_search(ctx: Context, deadline: float) -> dict:
     commands, runs = [], []
     for i, resolution in enumerate(resolutions):
         out = ctx.work / f"explore_{resolution}"
-        argv = ctx.waldo("explore", ctx.fox_run, *settings.explore_args, "--resolution", resolution, "--seed", "0",
-                         "--quiet", "--out", out)
+        argv = ctx.waldo(
+            "explore",
+            ctx.fox_run,
+            *settings.explore_args,
+            "--resolution",
+            resolution,
+            "--seed",
+            "0",
+            "--quiet",
+            "--out",
+            out,
+        )
         commands.append(ctx.run(f"search: explore at {resolution}", argv, box(i)))
         r = read_json(out / "results.json")
-        runs.append({"resolution_arg": resolution, "wall_s": commands[-1]["seconds"],
-                     **({} if r is None else {k: r.get(k) for k in ("resolution", "seconds", "n_train", "n_generated",
-                                                                       "cost", "cvir", "mcvir", "device")})})
-    return {"status": command_status(commands), "commands": commands,
-            "result": {"args": list(settings.explore_args), "runs": runs}}
+        runs.append(
+            {
+                "resolution_arg": resolution,
+                "wall_s": commands[-1]["seconds"],
+                **(
+                    {}
+                    if r is None
+                    else {
+                        k: r.get(k)
+                        for k in ("resolution", "seconds", "n_train", "n_generated", "cost", "cvir", "mcvir", "device")
+                    }
+                ),
+            }
+        )
+    return {
+        "status": command_status(commands),
+        "commands": commands,
+        "result": {"args": list(settings.explore_args), "runs": runs},
+    }
 
 
 def step_gradient(ctx: Context, deadline: float) -> dict:
@@ -715,12 +970,28 @@ def step_gradient(ctx: Context, deadline: float) -> dict:
     if not cases:
         return {"status": "skipped", "reason": note, "commands": [], "result": None}
     path = ctx.work / "gradient_cost.json"
-    argv = ctx.python(HERE / "gradient_cost.py", "--cases", ",".join(cases), "--resolution",
-                      settings.gradient_resolution, "--poses", settings.gradient_poses, "--repeats",
-                      settings.gradient_repeats, "--load-threshold", "1000", "--out", path)
+    argv = ctx.python(
+        HERE / "gradient_cost.py",
+        "--cases",
+        ",".join(cases),
+        "--resolution",
+        settings.gradient_resolution,
+        "--poses",
+        settings.gradient_poses,
+        "--repeats",
+        settings.gradient_repeats,
+        "--load-threshold",
+        "1000",
+        "--out",
+        path,
+    )
     command = ctx.run("gradient cost", argv, deadline - time.monotonic())
-    return {"status": command_status([command]), "commands": [command], "result": read_json(path),
-            **({"note": note} if note else {})}
+    return {
+        "status": command_status([command]),
+        "commands": [command],
+        "result": read_json(path),
+        **({"note": note} if note else {}),
+    }
 
 
 def step_splats(ctx: Context, deadline: float) -> dict:
@@ -733,14 +1004,30 @@ def step_splats(ctx: Context, deadline: float) -> dict:
     explore = None
     if donut.is_file():
         out = ctx.work / "explore_donut"
-        commands.append(ctx.run("explore donut", ctx.waldo("explore", donut, *settings.splats_explore_args,
-                                                           "--quiet", "--out", out), deadline - time.monotonic()))
+        commands.append(
+            ctx.run(
+                "explore donut",
+                ctx.waldo("explore", donut, *settings.splats_explore_args, "--quiet", "--out", out),
+                deadline - time.monotonic(),
+            )
+        )
         r = read_json(out / "results.json")
-        explore = None if r is None else {k: r.get(k) for k in ("resolution", "seconds", "cost", "cvir", "mcvir",
-                                                                "renderer", "refine", "device")}
-    return {"status": command_status(commands), "commands": commands,
-            "result": {"render_splats": read_json(path), "explore_donut": explore,
-                       **({} if donut.is_file() else {"note": f"{donut} not packed: the donut explore left out"})}}
+        explore = (
+            None
+            if r is None
+            else {
+                k: r.get(k) for k in ("resolution", "seconds", "cost", "cvir", "mcvir", "renderer", "refine", "device")
+            }
+        )
+    return {
+        "status": command_status(commands),
+        "commands": commands,
+        "result": {
+            "render_splats": read_json(path),
+            "explore_donut": explore,
+            **({} if donut.is_file() else {"note": f"{donut} not packed: the donut explore left out"}),
+        },
+    }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -762,7 +1049,12 @@ STEPS = (
     Step("rendering", 100, step_rendering, "render_trained.py on the fox run; render_population.py per size"),
     Step("search", 85, step_search, "waldo explore on the fox run (EGPS, saliency, low budget) per resolution"),
     Step("gradient", 40, step_gradient, "gradient_cost.py, the fox run's case included"),
-    Step("splats", 60, step_splats, "render_splats.py: 100k and 1M splats at 128^2 / 256^2, 256 poses; the donut explored"),
+    Step(
+        "splats",
+        60,
+        step_splats,
+        "render_splats.py: 100k and 1M splats at 128^2 / 256^2, 256 poses; the donut explored",
+    ),
 )
 STEP_NAMES = tuple(step.name for step in STEPS)
 
@@ -783,8 +1075,11 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
 
     trained = result("rendering").get("render_trained") or {}
     rays = trained.get("rays_per_s")
-    setting = (f"{trained.get('timing_poses')} poses at {'x'.join(map(str, trained.get('timing_size') or []))}"
-               if trained else "not measured")
+    setting = (
+        f"{trained.get('timing_poses')} poses at {'x'.join(map(str, trained.get('timing_size') or []))}"
+        if trained
+        else "not measured"
+    )
     add("trained fox >= 5 M rays/s", rays, None if rays is None else rays >= 5e6, "rays/s", setting)
     efficiency = trained.get("render_efficiency")
     add("render efficiency >= 0.3", efficiency, None if efficiency is None else efficiency >= 0.3, "x")
@@ -792,15 +1087,25 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
         add("fox explore (EGPS, saliency, low budget) <= 10 s of search", None, None, "s", "not measured")
     for run in result("search").get("runs", []):
         search = (run.get("seconds") or {}).get("search")
-        size = ("x".join(map(str, run["resolution"])) if run.get("resolution")
-                else f"--resolution {run['resolution_arg']}")
-        add(f"fox explore ({' '.join(result('search').get('args', []))}) at {size} <= 10 s of search", search,
-            None if search is None else search <= 10.0, "s")
+        size = (
+            "x".join(map(str, run["resolution"])) if run.get("resolution") else f"--resolution {run['resolution_arg']}"
+        )
+        add(
+            f"fox explore ({' '.join(result('search').get('args', []))}) at {size} <= 10 s of search",
+            search,
+            None if search is None else search <= 10.0,
+            "s",
+        )
     ms = result("training").get("ms_per_step")
     add("quality training <= 10 ms per step", ms, None if ms is None else ms <= 10.0, "ms")
     ratios = result("rendering").get("batched_over_loop") or {"every size": None}
     for size, ratio in ratios.items():
-        add(f"batched >= loop at {size}" + ("^2" if size.isdigit() else ""), ratio, None if ratio is None else ratio >= 1.0, "x")
+        add(
+            f"batched >= loop at {size}" + ("^2" if size.isdigit() else ""),
+            ratio,
+            None if ratio is None else ratio >= 1.0,
+            "x",
+        )
     correctness = result("correctness")
     totals = correctness.get("totals")
     if totals:
@@ -808,8 +1113,13 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
         measured = {k: totals[k] for k in ("passed", "failed", "errors", "skipped", "not_run", "collection_errors")}
         complete = correctness.get("suite_complete")
         met = False if bad else (True if complete else None)
-        add("every test passes", measured, met, "tests",
-            "" if complete else "the suite did not run to its end within the step's time (met: null)")
+        add(
+            "every test passes",
+            measured,
+            met,
+            "tests",
+            "" if complete else "the suite did not run to its end within the step's time (met: null)",
+        )
     else:
         add("every test passes", None, None, "tests", "not measured")
     identical = result("determinism").get("identical")
@@ -821,7 +1131,8 @@ def targets(steps: dict, platform_name: Optional[str]) -> list:
         if row["measured"] is None:
             row["note"] = row["note"] or "not measured"
         if platform_name != "gpu":
-            where = f"{'measured' if row['measured'] is not None else 'run'} on {platform_name or 'an unknown device'}, not a GPU"
+            done = "measured" if row["measured"] is not None else "run"
+            where = f"{done} on {platform_name or 'an unknown device'}, not a GPU"
             row["note"] = (row["note"] + "; " if row["note"] else "") + where
     return rows
 
@@ -856,9 +1167,16 @@ def child_environment(argv: list) -> int:
     nvidia = None
     if shutil.which("nvidia-smi"):
         try:
-            nvidia = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total,memory.used,driver_version,"
-                                     "clocks.max.sm,power.limit", "--format=csv"], capture_output=True, text=True,
-                                    timeout=20).stdout.strip()
+            nvidia = subprocess.run(
+                [
+                    "nvidia-smi",
+                    "--query-gpu=name,memory.total,memory.used,driver_version,clocks.max.sm,power.limit",
+                    "--format=csv",
+                ],
+                capture_output=True,
+                text=True,
+                timeout=20,
+            ).stdout.strip()
         except (OSError, subprocess.SubprocessError) as error:
             nvidia = f"failed: {error}"
     import tomllib
@@ -868,37 +1186,64 @@ def child_environment(argv: list) -> int:
     packages = {}
     for spec in wanted:
         dist = spec.split(">")[0].split("=")[0].split("<")[0].split("[")[0].strip()
-        packages[dist] = version(dist) or (None if not module_available(IMPORT_NAMES.get(dist, dist.replace("-", "_")))
-                                           else "importable, version unknown")
-    info.update({
-        "devices": devices,
-        "xla_flags_in_force": os.environ.get("XLA_FLAGS", ""),
-        "jax_default_matmul_precision": jax.config.jax_default_matmul_precision,
-        "jaxlib": version("jaxlib"),
-        "jax_plugins": {d: version(d) for d in ("jax-cuda12-plugin", "jax-cuda13-plugin", "jax-cuda12-pjrt",
-                                                "jax-cuda13-pjrt") if version(d)},
-        "python": sys.version,
-        "import_to_devices_s": round(backend_seconds, 2),
-        "host_memory": host_memory(),
-        "probe_sum": probe,
-        "nvidia_smi": nvidia,
-        "packages": packages,
-        "packages_missing": sorted(d for d, v in packages.items() if v is None),
-        "env": {k: v for k, v in sorted(os.environ.items())
-                if k.startswith(("WALDO_", "XLA_", "JAX_", "CUDA_", "TF_CPP")) or k in ("PYTHONPATH",)},
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-    })
+        packages[dist] = version(dist) or (
+            None
+            if not module_available(IMPORT_NAMES.get(dist, dist.replace("-", "_")))
+            else "importable, version unknown"
+        )
+    info.update(
+        {
+            "devices": devices,
+            "xla_flags_in_force": os.environ.get("XLA_FLAGS", ""),
+            "jax_default_matmul_precision": jax.config.jax_default_matmul_precision,
+            "jaxlib": version("jaxlib"),
+            "jax_plugins": {
+                d: version(d)
+                for d in ("jax-cuda12-plugin", "jax-cuda13-plugin", "jax-cuda12-pjrt", "jax-cuda13-pjrt")
+                if version(d)
+            },
+            "python": sys.version,
+            "import_to_devices_s": round(backend_seconds, 2),
+            "host_memory": host_memory(),
+            "probe_sum": probe,
+            "nvidia_smi": nvidia,
+            "packages": packages,
+            "packages_missing": sorted(d for d, v in packages.items() if v is None),
+            "env": {
+                k: v
+                for k, v in sorted(os.environ.items())
+                if k.startswith(("WALDO_", "XLA_", "JAX_", "CUDA_", "TF_CPP")) or k in ("PYTHONPATH",)
+            },
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+        }
+    )
     write_json(path, info)
-    print(json.dumps({k: info[k] for k in ("device", "jax", "jaxlib", "jax_default_matmul_precision",
-                                           "xla_flags_in_force", "packages_missing")}))
+    print(
+        json.dumps(
+            {
+                k: info[k]
+                for k in (
+                    "device",
+                    "jax",
+                    "jaxlib",
+                    "jax_default_matmul_precision",
+                    "xla_flags_in_force",
+                    "packages_missing",
+                )
+            }
+        )
+    )
     return 0
 
 
 def host_memory() -> Optional[str]:
     try:
-        return next(line.split(":", 1)[1].strip() for line in Path("/proc/meminfo").read_text().splitlines()
-                    if line.startswith("MemTotal"))
+        return next(
+            line.split(":", 1)[1].strip()
+            for line in Path("/proc/meminfo").read_text().splitlines()
+            if line.startswith("MemTotal")
+        )
     except (OSError, StopIteration):
         return None
 
@@ -920,8 +1265,14 @@ def child_pytest(argv: list) -> int:
         def pytest_runtest_logreport(self, report):
             if report.when != "call" and report.outcome == "passed":
                 return
-            event = {"event": "report", "nodeid": report.nodeid, "when": report.when, "outcome": report.outcome,
-                     "duration": round(report.duration, 3), "xfail": bool(getattr(report, "wasxfail", ""))}
+            event = {
+                "event": "report",
+                "nodeid": report.nodeid,
+                "when": report.when,
+                "outcome": report.outcome,
+                "duration": round(report.duration, 3),
+                "xfail": bool(getattr(report, "wasxfail", "")),
+            }
             if report.outcome == "failed":
                 event["message"] = str(report.longreprtext)[-2500:]
             elif report.outcome == "skipped":
@@ -931,8 +1282,9 @@ def child_pytest(argv: list) -> int:
 
         def pytest_collectreport(self, report):
             if report.failed:
-                self._write({"event": "collect_error", "nodeid": report.nodeid,
-                             "message": str(report.longreprtext)[-2500:]})
+                self._write(
+                    {"event": "collect_error", "nodeid": report.nodeid, "message": str(report.longreprtext)[-2500:]}
+                )
 
         def pytest_collection_finish(self, session):
             self._write({"event": "collected", "count": len(session.items)})
@@ -944,7 +1296,7 @@ def child_pytest(argv: list) -> int:
         def pytest_sessionfinish(self, session, exitstatus):
             self._write({"event": "finish", "exitstatus": int(exitstatus)})
 
-    path, args = argv[0], argv[argv.index("--") + 1:]
+    path, args = argv[0], argv[argv.index("--") + 1 :]
     return int(pytest.main(args, plugins=[ReportLog(path)]))
 
 
@@ -964,10 +1316,13 @@ def steady_timing(chunks: list) -> dict:
         return {"ms_per_step": None, "note": "no chunk ran without compiling"}
     seconds = sum(c["chunk_seconds"] for c in main_phase)
     steps = sum(c["chunk_steps"] for c in main_phase)
-    return {"ms_per_step": 1e3 * seconds / steps, "steady_steps_timed": steps,
-            "timed_phase": "after the occupancy warm-up" if any(not c["warmup"] for c in steady) else "warm-up",
-            "rays_per_step": sum(c["rays"] * c["chunk_steps"] for c in main_phase) / steps,
-            "samples_per_step": sum(c["samples"] * c["chunk_steps"] for c in main_phase) / steps}
+    return {
+        "ms_per_step": 1e3 * seconds / steps,
+        "steady_steps_timed": steps,
+        "timed_phase": "after the occupancy warm-up" if any(not c["warmup"] for c in steady) else "warm-up",
+        "rays_per_step": sum(c["rays"] * c["chunk_steps"] for c in main_phase) / steps,
+        "samples_per_step": sum(c["samples"] * c["chunk_steps"] for c in main_phase) / steps,
+    }
 
 
 def child_train(argv: list) -> int:
@@ -1020,33 +1375,56 @@ def child_train(argv: list) -> int:
 
     def save(result):
         stats = train_stats(result, train_scene, args.preset, 0, args.scene_path)
-        save_checkpoint(args.run / CHECKPOINT_NAME, result.params, result.config, train_scene, result.occupancy,
-                        info={k: v for k, v in stats.items() if k != "history"})
+        save_checkpoint(
+            args.run / CHECKPOINT_NAME,
+            result.params,
+            result.config,
+            train_scene,
+            result.occupancy,
+            info={k: v for k, v in stats.items() if k != "history"},
+        )
         io.write_json(args.run / TRAIN_JSON, stats)
 
     result = train(jax.random.key(0), train_scene, config, None, progress=False, on_chunk=on_chunk)
     args.run.mkdir(parents=True)
     save(result)
     out = header("device_check/training")
-    out.update({
-        "complete": False, "scene_path": str(Path(args.scene_path).resolve()),
-        "downscale": train_scene.metadata.get("downscale"), "image_size": [train_scene.width, train_scene.height],
-        "n_train": train_scene.n_images, "n_test": None if test_scene is None else test_scene.n_images,
-        "preset": args.preset, "steps_planned": config.steps, "steps": result.steps, "stopped_by": stopped_by[0],
-        "train_seconds": result.seconds, "compile_seconds": result.compile_seconds,
-        "rays_per_second": result.rays_per_second, "samples_per_batch": config.samples_per_batch,
-        **steady_timing(chunks), "run": str(args.run), "overrides": json.loads(args.overrides),
-        "definitions": {"ms_per_step": "wall-clock per step over the chunks that did not compile, after the "
-                                       "occupancy warm-up (as benchmarks/train_step.py)",
-                        "field_fwd_bwd_ms": "train_step.time_field: value_and_grad of the field alone over "
-                                            "samples_per_batch points in the trained occupied cells",
-                        "step_over_field": "ms_per_step / field_fwd_bwd_ms",
-                        "psnr_test": "held-out PSNR at the run's render step (calibrated as `waldo train` "
-                                     "calibrates it), after `steps` steps"},
-    })
+    out.update(
+        {
+            "complete": False,
+            "scene_path": str(Path(args.scene_path).resolve()),
+            "downscale": train_scene.metadata.get("downscale"),
+            "image_size": [train_scene.width, train_scene.height],
+            "n_train": train_scene.n_images,
+            "n_test": None if test_scene is None else test_scene.n_images,
+            "preset": args.preset,
+            "steps_planned": config.steps,
+            "steps": result.steps,
+            "stopped_by": stopped_by[0],
+            "train_seconds": result.seconds,
+            "compile_seconds": result.compile_seconds,
+            "rays_per_second": result.rays_per_second,
+            "samples_per_batch": config.samples_per_batch,
+            **steady_timing(chunks),
+            "run": str(args.run),
+            "overrides": json.loads(args.overrides),
+            "definitions": {
+                "ms_per_step": "wall-clock per step over the chunks that did not compile, after the "
+                "occupancy warm-up (as benchmarks/train_step.py)",
+                "field_fwd_bwd_ms": "train_step.time_field: value_and_grad of the field alone over "
+                "samples_per_batch points in the trained occupied cells",
+                "step_over_field": "ms_per_step / field_fwd_bwd_ms",
+                "psnr_test": "held-out PSNR at the run's render step (calibrated as `waldo train` "
+                "calibrates it), after `steps` steps",
+            },
+        }
+    )
     write_json(args.json, out)
-    print(f"[training] {result.steps} steps ({stopped_by[0]}) in {result.seconds:.1f} s, "
-          f"{out['ms_per_step']} ms/step; saved {args.run}", flush=True)
+    print(
+        f"[training] {result.steps} steps ({stopped_by[0]}) in {result.seconds:.1f} s, "
+        f"{out['ms_per_step']} ms/step; saved {args.run}",
+        flush=True,
+    )
 
     # What `train` does after training when given the held-out views: calibrate the render step, measure.
     if test_scene is not None:
@@ -1056,25 +1434,50 @@ def child_train(argv: list) -> int:
             scale, curve = calibrate_render_step(result.params, result.occupancy, result.config, test_scene)
         calibrated = result.config.replace(render_step_scale=scale)
         final = evaluate(result.params, result.occupancy, calibrated, test_scene)
-        history = result.history + [{"step": result.steps, "seconds": result.seconds, "psnr_test": final["psnr"],
-                                     "render_step_scale": scale, "evaluations_per_ray": final["evaluations_per_ray"]}]
-        result = result._replace(config=calibrated, psnr_test=final["psnr"], render_step_curve=curve,
-                                 psnr_test_training_step=final["psnr"] if scale == 1.0 else None,
-                                 n_test=test_scene.n_images, history=history)
+        history = result.history + [
+            {
+                "step": result.steps,
+                "seconds": result.seconds,
+                "psnr_test": final["psnr"],
+                "render_step_scale": scale,
+                "evaluations_per_ray": final["evaluations_per_ray"],
+            }
+        ]
+        result = result._replace(
+            config=calibrated,
+            psnr_test=final["psnr"],
+            render_step_curve=curve,
+            psnr_test_training_step=final["psnr"] if scale == 1.0 else None,
+            n_test=test_scene.n_images,
+            history=history,
+        )
         save(result)
-        out.update({"psnr_test": result.psnr_test, "psnr_test_training_step": result.psnr_test_training_step,
-                    "render_step_scale": scale, "render_step_curve": curve,
-                    "evaluations_per_ray_psnr_views": final["evaluations_per_ray"],
-                    "psnr_seconds": round(time.perf_counter() - start, 2)})
+        out.update(
+            {
+                "psnr_test": result.psnr_test,
+                "psnr_test_training_step": result.psnr_test_training_step,
+                "render_step_scale": scale,
+                "render_step_curve": curve,
+                "evaluations_per_ray_psnr_views": final["evaluations_per_ray"],
+                "psnr_seconds": round(time.perf_counter() - start, 2),
+            }
+        )
         write_json(args.json, out)
     points = occupied_points(jax.random.key(0), result.occupancy, config.samples_per_batch)
     field = time_field(config, result.params, points, 5)
-    out.update({**field, "complete": True,
-                "step_over_field": (None if out["ms_per_step"] is None
-                                    else out["ms_per_step"] / field["field_fwd_bwd_ms"])})
+    out.update(
+        {
+            **field,
+            "complete": True,
+            "step_over_field": (None if out["ms_per_step"] is None else out["ms_per_step"] / field["field_fwd_bwd_ms"]),
+        }
+    )
     write_json(args.json, out)
-    print(f"[training] field forward+backward {field['field_fwd_bwd_ms']:.2f} ms; held-out PSNR "
-          f"{out.get('psnr_test')} dB at step x{out.get('render_step_scale')}", flush=True)
+    print(
+        f"[training] field forward+backward {field['field_fwd_bwd_ms']:.2f} ms; held-out PSNR "
+        f"{out.get('psnr_test')} dB at step x{out.get('render_step_scale')}",
+        flush=True,
+    )
     return 0
 
 
@@ -1086,31 +1489,58 @@ CHILDREN = {"_environment": child_environment, "_pytest": child_pytest, "_train"
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     epilog="Steps: " + ", ".join(f"{s.name} ({s.what})" for s in STEPS))
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], epilog="Steps: " + ", ".join(f"{s.name} ({s.what})" for s in STEPS)
+    )
     parser.add_argument("--out", type=Path, help="output folder (empty or new; the device machine: $OUT)")
     parser.add_argument("--data", type=Path, help="data folder made by --pack (default: $WALDO_DATA or ../shared)")
     parser.add_argument("--work", type=Path, help="run folders and per-step JSONs (default: a new temporary folder)")
-    parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET_S, help="wall-clock seconds for all steps "
-                        f"(default {DEFAULT_BUDGET_S:g})")
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=DEFAULT_BUDGET_S,
+        help=f"wall-clock seconds for all steps (default {DEFAULT_BUDGET_S:g})",
+    )
     parser.add_argument("--steps", default=",".join(STEP_NAMES), help=f"comma list of {', '.join(STEP_NAMES)}")
-    parser.add_argument("--fox-run", type=Path, help="an earlier fox run for rendering/search/gradient "
-                        "(default: the training step's)")
+    parser.add_argument(
+        "--fox-run", type=Path, help="an earlier fox run for rendering/search/gradient (default: the training step's)"
+    )
     parser.add_argument("--smoke", action="store_true", help="every step at tiny sizes on the CPU")
-    parser.add_argument("--pytest-workers", type=int, default=None, help="pytest-xdist workers of the correctness "
-                        f"step (default {FULL.pytest_workers}; --smoke 0)")
+    parser.add_argument(
+        "--pytest-workers",
+        type=int,
+        default=None,
+        help=f"pytest-xdist workers of the correctness step (default {FULL.pytest_workers}; --smoke 0)",
+    )
     parser.add_argument("--force", action="store_true", help="write into a non-empty --out / replace a --pack DIR")
-    parser.add_argument("--pack", type=Path, metavar="DIR", help="copy what the steps need from $WALDO_DATA (or "
-                        "--data-from) into DIR (an ignored folder, e.g. .device/data) and the wheels into --wheels, "
-                        "check the size, and exit")
+    parser.add_argument(
+        "--pack",
+        type=Path,
+        metavar="DIR",
+        help="copy what the steps need from $WALDO_DATA (or "
+        "--data-from) into DIR (an ignored folder, e.g. .device/data) and the wheels into --wheels, "
+        "check the size, and exit",
+    )
     parser.add_argument("--data-from", type=Path, help="--pack: the data folder to copy from (default $WALDO_DATA)")
-    parser.add_argument("--wheels", type=Path, default=REPO / ".whl", help="--pack: folder for the wheels the "
-                        "device machine lacks (default .whl)")
+    parser.add_argument(
+        "--wheels",
+        type=Path,
+        default=REPO / ".whl",
+        help="--pack: folder for the wheels the device machine lacks (default .whl)",
+    )
     parser.add_argument("--no-wheels", action="store_true", help="--pack: download no wheels")
-    parser.add_argument("--limit-mib", type=float, default=DEFAULT_LIMIT_MIB, help="--pack: what may travel, code "
-                        f"included (default {DEFAULT_LIMIT_MIB:g})")
-    parser.add_argument("--reserve-mib", type=float, default=PACK_RESERVE_MIB, help="--pack: room kept free under "
-                        f"the limit before optional data is added (default {PACK_RESERVE_MIB:g})")
+    parser.add_argument(
+        "--limit-mib",
+        type=float,
+        default=DEFAULT_LIMIT_MIB,
+        help=f"--pack: what may travel, code included (default {DEFAULT_LIMIT_MIB:g})",
+    )
+    parser.add_argument(
+        "--reserve-mib",
+        type=float,
+        default=PACK_RESERVE_MIB,
+        help=f"--pack: room kept free under the limit before optional data is added (default {PACK_RESERVE_MIB:g})",
+    )
     args = parser.parse_args(argv)
     names = [s.strip() for s in args.steps.split(",") if s.strip()]
     unknown = [n for n in names if n not in STEP_NAMES]
@@ -1149,12 +1579,22 @@ def main(argv=None) -> int:
         source = args.data_from or default_data()
         if source is None:
             raise SystemExit("device_check: --pack needs the data: set WALDO_DATA or pass --data-from DIR")
-        manifest = pack(args.pack, source, None if args.no_wheels else args.wheels, args.limit_mib, args.reserve_mib,
-                        args.force, args.smoke)
+        manifest = pack(
+            args.pack,
+            source,
+            None if args.no_wheels else args.wheels,
+            args.limit_mib,
+            args.reserve_mib,
+            args.force,
+            args.smoke,
+        )
         sizes = manifest["sizes_mib"]
-        print(f"[pack] {args.pack}: {sizes['data']} MiB of data, {sizes['wheels']} MiB of wheels, working tree "
-              f"{sizes['working_tree']} MiB: {sizes['total']} MiB of {sizes['limit']:g} MiB"
-              + (f"; left out: {', '.join(manifest['left_out'])}" if manifest["left_out"] else ""), flush=True)
+        print(
+            f"[pack] {args.pack}: {sizes['data']} MiB of data, {sizes['wheels']} MiB of wheels, working tree "
+            f"{sizes['working_tree']} MiB: {sizes['total']} MiB of {sizes['limit']:g} MiB"
+            + (f"; left out: {', '.join(manifest['left_out'])}" if manifest["left_out"] else ""),
+            flush=True,
+        )
         return 0
 
     data = args.data or default_data()
@@ -1169,8 +1609,10 @@ def main(argv=None) -> int:
         args.work = args.work.resolve()
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         if not out.is_dir() or not args.force:
-            raise SystemExit(f"device_check: --out {out} exists and is not empty: refusing to overwrite an earlier "
-                             "run (choose another --out or pass --force)")
+            raise SystemExit(
+                f"device_check: --out {out} exists and is not empty: refusing to overwrite an earlier "
+                "run (choose another --out or pass --force)"
+            )
     if args.work is not None and args.work.exists() and (not args.work.is_dir() or any(args.work.iterdir())):
         raise SystemExit(f"device_check: --work {args.work} is not an empty folder (choose a new one)")
     if out.exists():
@@ -1182,30 +1624,64 @@ def main(argv=None) -> int:
     (work / "steps").mkdir()
 
     env = dict(os.environ)
-    env.update({"WALDO_DATA": str(data.resolve()), "WALDO_WEIGHTS": str((data / "weights").resolve()),
-                "PYTHONUNBUFFERED": "1",
-                "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])})
+    env.update(
+        {
+            "WALDO_DATA": str(data.resolve()),
+            "WALDO_WEIGHTS": str((data / "weights").resolve()),
+            "PYTHONUNBUFFERED": "1",
+            "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])]),
+        }
+    )
     if args.smoke:
         env.update({"JAX_PLATFORMS": "cpu"})
         env.setdefault("WALDO_FAST_COMPILE", "1")
 
     commit = git_commit()
     digest = code_digest()
-    header = {"benchmark": "device_check", "date": now_iso(),
-              "commit": commit or (f"{manifest['commit_at_pack']} (at --pack; no git here)"
-                                   if manifest.get("commit_at_pack") else "unknown"),
-              "code_digest": digest, "code_matches_pack": (digest == manifest["code_digest_at_pack"]
-                                                            if manifest.get("code_digest_at_pack") else None),
-              "device": None, "jax": version("jax"), "jaxlib": version("jaxlib"), "python": platform.python_version(),
-              "host_cpu_count": os.cpu_count()}
+    header = {
+        "benchmark": "device_check",
+        "date": now_iso(),
+        "commit": commit
+        or (f"{manifest['commit_at_pack']} (at --pack; no git here)" if manifest.get("commit_at_pack") else "unknown"),
+        "code_digest": digest,
+        "code_matches_pack": (
+            digest == manifest["code_digest_at_pack"] if manifest.get("code_digest_at_pack") else None
+        ),
+        "device": None,
+        "jax": version("jax"),
+        "jaxlib": version("jaxlib"),
+        "python": platform.python_version(),
+        "host_cpu_count": os.cpu_count(),
+    }
     log = open(out / "device_check.log", "ab", buffering=0)
-    ctx = Context(settings=settings, smoke=args.smoke, data=data, work=work, out=out, log=log, env=env,
-                  header=header, fox_run=args.fox_run)
+    ctx = Context(
+        settings=settings,
+        smoke=args.smoke,
+        data=data,
+        work=work,
+        out=out,
+        log=log,
+        env=env,
+        header=header,
+        fox_run=args.fox_run,
+    )
     selected = [s for s in STEPS if s.name in args.step_names]
     scale = args.budget / DEFAULT_BUDGET_S
-    report = {**header, "settings": {"budget_s": args.budget, "smoke": args.smoke, "steps": args.step_names,
-                                     **dataclasses.asdict(settings), "data": str(data), "work": str(work)},
-              "pack": manifest, "outputs": list(OUT_FILES), "steps": {}, "finished": False}
+    report = {
+        **header,
+        "settings": {
+            "budget_s": args.budget,
+            "smoke": args.smoke,
+            "steps": args.step_names,
+            **dataclasses.asdict(settings),
+            "data": str(data),
+            "work": str(work),
+        },
+        "pack": manifest,
+        "outputs": list(OUT_FILES),
+        "steps": {},
+        "finished": False,
+    }
     combined = out / "device_check.json"
     write_json(combined, report)
 
@@ -1227,26 +1703,47 @@ def main(argv=None) -> int:
                     entry = step.run(ctx, began + box)
                 except (KeyboardInterrupt, Interrupted) as error:
                     interrupted = str(error) or "Ctrl-C"
-                    entry = {"status": "interrupted", "reason": interrupted,
-                             "commands": ctx.results.get("_interrupted_commands", [])}
-            entry = {**ctx.header, "date": now_iso(), "benchmark": f"device_check/{step.name}", "step": step.name,
-                     "what": step.what, "settings": report["settings"], "time_box_s": round(box, 1),
-                     "seconds": round(time.monotonic() - began, 1), "result": None, **entry}
+                    entry = {
+                        "status": "interrupted",
+                        "reason": interrupted,
+                        "commands": ctx.results.get("_interrupted_commands", []),
+                    }
+            entry = {
+                **ctx.header,
+                "date": now_iso(),
+                "benchmark": f"device_check/{step.name}",
+                "step": step.name,
+                "what": step.what,
+                "settings": report["settings"],
+                "time_box_s": round(box, 1),
+                "seconds": round(time.monotonic() - began, 1),
+                "result": None,
+                **entry,
+            }
             write_json(work / "steps" / f"{index + 1:02d}_{step.name}.json", entry)
             report["steps"][step.name] = entry
             report["device"] = ctx.header["device"]
             report["summary"] = summary(report)
             write_json(combined, report)
-            print(f"[device_check] step {step.name}: {entry['status']} in {entry['seconds']:.0f} s"
-                  + (f" ({entry['reason']})" if entry.get("reason") else ""), flush=True)
+            print(
+                f"[device_check] step {step.name}: {entry['status']} in {entry['seconds']:.0f} s"
+                + (f" ({entry['reason']})" if entry.get("reason") else ""),
+                flush=True,
+            )
             if interrupted:
                 break
     except (KeyboardInterrupt, Interrupted) as error:  # between steps
         interrupted = str(error) or "Ctrl-C"
     finally:
         signal.signal(signal.SIGTERM, previous)
-    report.update({"finished": interrupted is None, "interrupted": interrupted,
-                   "seconds": round(time.monotonic() - start, 1), "summary": summary(report)})
+    report.update(
+        {
+            "finished": interrupted is None,
+            "interrupted": interrupted,
+            "seconds": round(time.monotonic() - start, 1),
+            "summary": summary(report),
+        }
+    )
     write_json(combined, report)
     log.close()
     print_summary(report)
@@ -1258,21 +1755,29 @@ def main(argv=None) -> int:
 
 def summary(report: dict) -> dict:
     device = report.get("device") or {}
-    return {"steps": {name: entry["status"] for name, entry in report["steps"].items()},
-            "targets": targets(report["steps"], device.get("platform"))}
+    return {
+        "steps": {name: entry["status"] for name, entry in report["steps"].items()},
+        "targets": targets(report["steps"], device.get("platform")),
+    }
 
 
 def print_summary(report: dict) -> None:
     device = report.get("device") or {}
-    print(f"[device_check] {device.get('platform', '?')}:{device.get('device_kind', '?')}, commit "
-          f"{report['commit']}, {report.get('seconds', 0):.0f} s; steps: "
-          + ", ".join(f"{k} {v}" for k, v in report["summary"]["steps"].items()), flush=True)
+    print(
+        f"[device_check] {device.get('platform', '?')}:{device.get('device_kind', '?')}, commit "
+        f"{report['commit']}, {report.get('seconds', 0):.0f} s; steps: "
+        + ", ".join(f"{k} {v}" for k, v in report["summary"]["steps"].items()),
+        flush=True,
+    )
     for row in report["summary"]["targets"]:
         measured = row["measured"]
         if isinstance(measured, float):
             measured = f"{measured:,.4g}"
-        print(f"  {'met' if row['met'] else 'NOT met' if row['met'] is False else 'unknown':8} {row['target']}: "
-              f"{measured} {row['unit']}".rstrip(), flush=True)
+        print(
+            f"  {'met' if row['met'] else 'NOT met' if row['met'] is False else 'unknown':8} {row['target']}: "
+            f"{measured} {row['unit']}".rstrip(),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -47,10 +47,6 @@ SOURCE = "procedural"
 TARGET_S = 30.0
 
 
-
-
-
-
 def waldo_command() -> list:
     found = shutil.which("waldo")
     return [found] if found else [sys.executable, "-m", "waldo_jax"]
@@ -59,18 +55,39 @@ def waldo_command() -> list:
 def run_cli(criterion: str, method: str, resolution: int, seed: int, scratch: Path) -> dict:
     """Wall clock of one `waldo explore` subprocess and the seconds split it records."""
     out = scratch / f"cli_{criterion}_{method}"
-    command = waldo_command() + ["explore", SOURCE, "--criterion", criterion, "--method", method, "--budget", "low",
-                                 "--seed", str(seed), "--resolution", str(resolution), "--out", str(out), "--quiet"]
+    command = waldo_command() + [
+        "explore",
+        SOURCE,
+        "--criterion",
+        criterion,
+        "--method",
+        method,
+        "--budget",
+        "low",
+        "--seed",
+        str(seed),
+        "--resolution",
+        str(resolution),
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     start = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True)
     wall = time.perf_counter() - start
     if done.returncode != 0:
         return {"command": " ".join(command[1:]), "error": done.stderr.strip()[-2000:], "wall_s": round(wall, 3)}
     results = json.loads((out / "results.json").read_text())
-    return {"command": "waldo " + " ".join(command[-15:]), "wall_s": round(wall, 3),
-            "recorded_seconds": results["seconds"], "n_train": results["n_train"],
-            "n_generated": results["n_generated"], "cvir": results["cvir"], "mcvir": results["mcvir"],
-            "stdout": done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""}
+    return {
+        "command": "waldo " + " ".join(command[-15:]),
+        "wall_s": round(wall, 3),
+        "recorded_seconds": results["seconds"],
+        "n_train": results["n_train"],
+        "n_generated": results["n_generated"],
+        "cvir": results["cvir"],
+        "mcvir": results["mcvir"],
+        "stdout": done.stdout.strip().splitlines()[-1] if done.stdout.strip() else "",
+    }
 
 
 def run_in_process(criterion_name: str, method: str, resolution: int, seed: int, out: Path) -> dict:
@@ -85,8 +102,13 @@ def run_in_process(criterion_name: str, method: str, resolution: int, seed: int,
     results = write_outputs(run, out)
     write = time.perf_counter() - written
     seconds = dict(run.seconds, write_outputs=round(write, 3), total=round(run.seconds["total"] + write, 3))
-    return {"seconds": seconds, "n_train": results["n_train"], "n_generated": results["n_generated"],
-            "cvir": results["cvir"], "mcvir": results["mcvir"]}
+    return {
+        "seconds": seconds,
+        "n_train": results["n_train"],
+        "n_generated": results["n_generated"],
+        "cvir": results["cvir"],
+        "mcvir": results["mcvir"],
+    }
 
 
 def main(argv=None):
@@ -108,30 +130,39 @@ def main(argv=None):
             for method in args.methods.split(","):
                 entry = {"cli": run_cli(criterion, method, args.resolution, args.seed, scratch)}
                 for phase in ("cold", "warm"):
-                    entry[f"in_process_{phase}"] = run_in_process(criterion, method, args.resolution, args.seed,
-                                                                   scratch / f"{phase}_{criterion}_{method}")
+                    entry[f"in_process_{phase}"] = run_in_process(
+                        criterion, method, args.resolution, args.seed, scratch / f"{phase}_{criterion}_{method}"
+                    )
                 entry["load_1min_after"] = os.getloadavg()[0]
                 runs[criterion][method] = entry
-                print(f"{criterion} {method}: cli {entry['cli']['wall_s']:.1f} s, in-process cold "
-                      f"{entry['in_process_cold']['seconds']['total']:.1f} s, warm "
-                      f"{entry['in_process_warm']['seconds']['total']:.1f} s", file=sys.stderr, flush=True)
+                print(
+                    f"{criterion} {method}: cli {entry['cli']['wall_s']:.1f} s, in-process cold "
+                    f"{entry['in_process_cold']['seconds']['total']:.1f} s, warm "
+                    f"{entry['in_process_warm']['seconds']['total']:.1f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
 
     cli_walls = [e["cli"]["wall_s"] for c in runs.values() for e in c.values()]
     result = header("explore_room")
-    result.update({
-        "source": SOURCE,
-        "resolution": args.resolution,
-        "budget": "low",
-        "seed": args.seed,
-        "target_s": TARGET_S,
-        "runs": runs,
-        "cli_wall_s_max": {c: max(e["cli"]["wall_s"] for e in m.values()) for c, m in runs.items()},
-        "all_cli_under_target": all(w < TARGET_S for w in cli_walls),
-        "notes": ("cli: subprocess wall clock incl. Python start-up, imports, compile and file writing; "
-                  "in_process seconds: setup = load_source (room + training renders), search = initial scores + "
-                  "compiled search, render_topk = top-k renders, write_outputs = PNGs, pose cloud, JSON; "
-                  "cold = first call in this process (compiles), warm = repeated call"),
-    })
+    result.update(
+        {
+            "source": SOURCE,
+            "resolution": args.resolution,
+            "budget": "low",
+            "seed": args.seed,
+            "target_s": TARGET_S,
+            "runs": runs,
+            "cli_wall_s_max": {c: max(e["cli"]["wall_s"] for e in m.values()) for c, m in runs.items()},
+            "all_cli_under_target": all(w < TARGET_S for w in cli_walls),
+            "notes": (
+                "cli: subprocess wall clock incl. Python start-up, imports, compile and file writing; "
+                "in_process seconds: setup = load_source (room + training renders), search = initial scores + "
+                "compiled search, render_topk = top-k renders, write_outputs = PNGs, pose cloud, JSON; "
+                "cold = first call in this process (compiles), warm = repeated call"
+            ),
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
 
 

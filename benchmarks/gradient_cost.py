@@ -55,8 +55,9 @@ def measure(spec: str, resolution: int, poses: int, repeats: int, gradient: str 
     c2w = jnp.asarray(source.train_c2w[:poses])
     start = training_poses(source.train_c2w)
     start = jax.tree.map(lambda a: a[:poses], start)
-    population: Population = init_population(training_poses(source.train_c2w), jnp.zeros(source.n_train),
-                                             source.n_train)
+    population: Population = init_population(
+        training_poses(source.train_c2w), jnp.zeros(source.n_train), source.n_train
+    )
     extent = scene_box(population).extent
     offsets = jnp.zeros((poses, 6), jnp.float32)
 
@@ -64,42 +65,61 @@ def measure(spec: str, resolution: int, poses: int, repeats: int, gradient: str 
     smooth = jax.jit(lambda c: objective(c))
     mode = source.gradient if criterion.inputs != "poses" else "forward"  # as `pipeline.refine_for_source`
     gradient_fn = jax.jit(lambda o: values_and_gradients(objective, start, extent, o, mode))
-    times = timed_alternately({"score": lambda: score(c2w), "smooth": lambda: smooth(c2w),
-                               "gradient": lambda: gradient_fn(offsets)}, repeats)
+    times = timed_alternately(
+        {"score": lambda: score(c2w), "smooth": lambda: smooth(c2w), "gradient": lambda: gradient_fn(offsets)}, repeats
+    )
     values, grads = gradient_fn(offsets)
     return {
-        "case": spec, "source": source.spec, "criterion": criterion.name, "poses": poses, "gradient_mode": mode,
+        "case": spec,
+        "source": source.spec,
+        "criterion": criterion.name,
+        "poses": poses,
+        "gradient_mode": mode,
         "gradients": [[float(g) for g in row] for row in grads],
         "resolution": [source.intrinsics.width, source.intrinsics.height],
         "seconds_best": {k: round(v[0], 5) for k, v in times.items()},
         "seconds_median": {k: round(v[1], 5) for k, v in times.items()},
         "ratio": round(times["gradient"][0] / times["score"][0], 3),
         "ratio_median": round(times["gradient"][1] / times["score"][1], 3),
-        "gradient_finite": bool(jnp.all(jnp.isfinite(grads))), "gradient_nonzero": bool(jnp.any(grads != 0)),
+        "gradient_finite": bool(jnp.all(jnp.isfinite(grads))),
+        "gradient_nonzero": bool(jnp.any(grads != 0)),
         "values": [float(v) for v in values],
     }
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", default="procedural:waldo_oracle,procedural:saliency",
-                        help="comma-separated SOURCE:CRITERION cases")
+    parser.add_argument(
+        "--cases", default="procedural:waldo_oracle,procedural:saliency", help="comma-separated SOURCE:CRITERION cases"
+    )
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--poses", type=int, default=4, help="poses per call (RefineConfig.poses)")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--gradient", default="source",
-                        help="comma-separated modes to measure each case in: source (its own), forward, reverse")
+    parser.add_argument(
+        "--gradient",
+        default="source",
+        help="comma-separated modes to measure each case in: source (its own), forward, reverse",
+    )
     parser.add_argument("--load-threshold", type=float, default=1.0)
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     refuse_existing_out(args.out)
     quiet = wait_for_quiet(args.load_threshold)
-    cases = [measure(spec, args.resolution, args.poses, args.repeats, mode) for spec in args.cases.split(",")
-             for mode in args.gradient.split(",")]
+    cases = [
+        measure(spec, args.resolution, args.poses, args.repeats, mode)
+        for spec in args.cases.split(",")
+        for mode in args.gradient.split(",")
+    ]
     largest = max(case["ratio"] for case in cases)
     result = header("gradient_cost")
-    result.update({"cases": cases, "largest_ratio": largest,
-                   "gradient_cost_rule": max(2, math.ceil(largest)), "gradient_cost_in_code": GRADIENT_COST})
+    result.update(
+        {
+            "cases": cases,
+            "largest_ratio": largest,
+            "gradient_cost_rule": max(2, math.ceil(largest)),
+            "gradient_cost_in_code": GRADIENT_COST,
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
 
 

@@ -69,8 +69,13 @@ def bootstrap_interval(values, resamples: int, seed: int = 0):
 def summary(values, resamples: int) -> dict:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     low, high = bootstrap_interval(finite, resamples)
-    return {"mean": float(np.mean(finite)) if finite else None, "std": float(np.std(finite)) if finite else None,
-            "ci95": [low, high], "values": values, "finite": len(finite)}
+    return {
+        "mean": float(np.mean(finite)) if finite else None,
+        "std": float(np.std(finite)) if finite else None,
+        "ci95": [low, high],
+        "values": values,
+        "finite": len(finite),
+    }
 
 
 def run_cell(source, criterion, method: str, budget: str, refine: RefineConfig, args) -> dict:
@@ -80,10 +85,17 @@ def run_cell(source, criterion, method: str, budget: str, refine: RefineConfig, 
     cvir = [float(r.cvir) if np.isfinite(r.cvir) else None for r in run.results]
     mcvir = [float(r.mcvir) if np.isfinite(r.mcvir) else None for r in run.results]
     resolved = run.config
-    cell = {"method": method, "budget": budget, "cost": resolved.cost(source.n_train),
-            "children_per_epoch": resolved.children_per_epoch, "initial_scores": run.initial,
-            "cvir": summary(cvir, args.bootstrap), "mcvir": summary(mcvir, args.bootstrap),
-            "best": [float(r.metrics.best[-1]) for r in run.results], "seconds": run.seconds}
+    cell = {
+        "method": method,
+        "budget": budget,
+        "cost": resolved.cost(source.n_train),
+        "children_per_epoch": resolved.children_per_epoch,
+        "initial_scores": run.initial,
+        "cvir": summary(cvir, args.bootstrap),
+        "mcvir": summary(mcvir, args.bootstrap),
+        "best": [float(r.metrics.best[-1]) for r in run.results],
+        "seconds": run.seconds,
+    }
     if source.room is not None:  # the known answer: how much of Waldo each seed's best view shows
         best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
         visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics), np.float64)
@@ -102,26 +114,35 @@ def compare(cells: list) -> None:
             continue
         low = cell["mcvir"]["ci95"][0]
         high = reference["mcvir"]["ci95"][1] if reference else None
-        cell["beats_egps"] = bool(reference is not None and low is not None and high is not None and low > high
-                                  and cell["method"] != "egps")
+        cell["beats_egps"] = bool(
+            reference is not None and low is not None and high is not None and low > high and cell["method"] != "egps"
+        )
 
 
 def table(cells: list) -> str:
     """A Markdown table: one row per scene, budget and method."""
+
     def fmt(s):
         if s["mean"] is None:
             return "n/a"
         return f"{s['mean']:.1f} ± {s['std']:.1f} [{s['ci95'][0]:.1f}, {s['ci95'][1]:.1f}]"
 
-    lines = ["| scene | budget | method | cost (renders) | CVIR % mean ± std [95 % CI] | mCVIR % mean ± std [95 % CI] "
-             "| Waldo found (seeds >= 90 % visible) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| scene | budget | method | cost (renders) | CVIR % mean ± std [95 % CI] | mCVIR % mean ± std [95 % CI] "
+        "| Waldo found (seeds >= 90 % visible) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for c in cells:
         mark = " **(> EGPS)**" if c.get("beats_egps") else ""
-        found = (f"{c['found_seeds']}/{len(c['best_visible'])} ({np.mean(c['best_visible']):.0%} visible)"
-                 if "best_visible" in c else "")
-        lines.append(f"| {c['scene']} | {c['budget']} | {c['method']}{mark} | {c['cost']['renders']} | "
-                     f"{fmt(c['cvir'])} | {fmt(c['mcvir'])} | {found} |")
+        found = (
+            f"{c['found_seeds']}/{len(c['best_visible'])} ({np.mean(c['best_visible']):.0%} visible)"
+            if "best_visible" in c
+            else ""
+        )
+        lines.append(
+            f"| {c['scene']} | {c['budget']} | {c['method']}{mark} | {c['cost']['renders']} | "
+            f"{fmt(c['cvir'])} | {fmt(c['mcvir'])} | {found} |"
+        )
     return "\n".join(lines)
 
 
@@ -153,8 +174,11 @@ def main(argv=None) -> None:
     result["settings"] = {k: v for k, v in vars(args).items()}
     cells, costs = [], {}
     start = time.perf_counter()
-    scenes = [(scene, room_seed) for scene in args.scenes.split(",")
-              for room_seed in ([int(k) for k in args.room_seeds.split(",")] if scene == "room" else [None])]
+    scenes = [
+        (scene, room_seed)
+        for scene in args.scenes.split(",")
+        for room_seed in ([int(k) for k in args.room_seeds.split(",")] if scene == "room" else [None])
+    ]
     for scene_kind, room_seed in scenes:
         spec, criterion_name = SCENES[scene_kind]
         resolution = args.room_resolution if scene_kind == "room" else args.resolution
@@ -169,29 +193,48 @@ def main(argv=None) -> None:
         source = load_source(spec, resolution)
         criterion = build_criterion(criterion_name, CriterionContext(room=source.room, source=source.spec))
         if args.gradient_cost is None:
-            measured = measure(f"{spec}:{criterion_name}", resolution, 4 if scene_kind == "room" else 2,
-                               1 if args.quick else 3)
+            measured = measure(
+                f"{spec}:{criterion_name}", resolution, 4 if scene_kind == "room" else 2, 1 if args.quick else 3
+            )
             costs[scene] = measured
             gradient_cost = max(2, math.ceil(measured["ratio"]))
         else:
             gradient_cost = args.gradient_cost
-        refine = RefineConfig(poses=args.refine_poses or (4 if scene_kind == "room" else 2),
-                              steps=args.refine_steps or (4 if scene_kind == "room" else 3), step_size=args.step_size,
-                              gradient_cost=gradient_cost)
+        refine = RefineConfig(
+            poses=args.refine_poses or (4 if scene_kind == "room" else 2),
+            steps=args.refine_steps or (4 if scene_kind == "room" else 3),
+            step_size=args.step_size,
+            gradient_cost=gradient_cost,
+        )
         for budget in args.budgets.split(","):
             for method in args.methods.split(","):
                 cell = run_cell(source, criterion, method, budget, refine, args)
-                cell.update({"scene": scene, "source": source.spec, "criterion": criterion.name,
-                             "refine": dataclasses.asdict(refine) if "+refine" in method else None})
+                cell.update(
+                    {
+                        "scene": scene,
+                        "source": source.spec,
+                        "criterion": criterion.name,
+                        "refine": dataclasses.asdict(refine) if "+refine" in method else None,
+                    }
+                )
                 cells.append(cell)
-                print(f"[methods] {scene} {budget} {method}: mCVIR {cell['mcvir']['mean']}, "
-                      f"CVIR {cell['cvir']['mean']}, cost {cell['cost']['renders']}, {cell['seconds']['total']:.0f} s",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"[methods] {scene} {budget} {method}: mCVIR {cell['mcvir']['mean']}, "
+                    f"CVIR {cell['cvir']['mean']}, cost {cell['cost']['renders']}, {cell['seconds']['total']:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 if args.out:
                     Path(args.out + ".partial").write_text(json.dumps({"cells": cells, "gradient_cost": costs}))
     compare(cells)
-    result.update({"cells": cells, "gradient_cost": costs, "table": table(cells),
-                   "seconds": round(time.perf_counter() - start, 1)})
+    result.update(
+        {
+            "cells": cells,
+            "gradient_cost": costs,
+            "table": table(cells),
+            "seconds": round(time.perf_counter() - start, 1),
+        }
+    )
     print(result["table"], file=sys.stderr)
     emit_with_load(result, args.out, quiet, args.load_threshold)
     if args.out:

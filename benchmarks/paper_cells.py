@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+
 def _float(value) -> Optional[float]:
     value = float(value)
     return value if math.isfinite(value) else None
@@ -27,20 +28,37 @@ def summarise(run) -> Dict[str, Any]:
     for seed, result in zip(run.seeds, run.results):
         m = result.metrics
         _, _, slots = generated_slots(result, n_train)
-        per_seed.append({
-            "seed": seed, "cvir": _float(result.cvir), "mcvir": _float(result.mcvir),
-            "best": _float(m.best[-1]), "mean_top_n": _float(m.mean_top_n[-1]),
-            "best_train": _float(m.best[0]), "mean_top_n_train": _float(m.mean_top_n[0]),
-            "best_per_epoch": [_float(v) for v in m.best], "mean_top_n_per_epoch": [_float(v) for v in m.mean_top_n],
-            "n_generated": int(len(slots)), "n_failed": int(np.sum(np.asarray(m.num_failed)[1:])),
-        })
+        per_seed.append(
+            {
+                "seed": seed,
+                "cvir": _float(result.cvir),
+                "mcvir": _float(result.mcvir),
+                "best": _float(m.best[-1]),
+                "mean_top_n": _float(m.mean_top_n[-1]),
+                "best_train": _float(m.best[0]),
+                "mean_top_n_train": _float(m.mean_top_n[0]),
+                "best_per_epoch": [_float(v) for v in m.best],
+                "mean_top_n_per_epoch": [_float(v) for v in m.mean_top_n],
+                "n_generated": int(len(slots)),
+                "n_failed": int(np.sum(np.asarray(m.num_failed)[1:])),
+            }
+        )
     config = run.config
     return {
-        "cvir_mean": _float(run.stats["cvir_mean"]), "cvir_std": _float(run.stats["cvir_std"]),
-        "mcvir_mean": _float(run.stats["mcvir_mean"]), "mcvir_std": _float(run.stats["mcvir_std"]),
-        "n_train": n_train, "children_per_epoch": config.children_per_epoch, "epochs": config.epochs,
-        "top_k": config.top_k, "top_n": config.top_n, "n_total": n_train + config.epochs * config.children_per_epoch,
-        "initial_scores": run.initial, "seeds": run.seeds, "seconds": run.seconds, "per_seed": per_seed,
+        "cvir_mean": _float(run.stats["cvir_mean"]),
+        "cvir_std": _float(run.stats["cvir_std"]),
+        "mcvir_mean": _float(run.stats["mcvir_mean"]),
+        "mcvir_std": _float(run.stats["mcvir_std"]),
+        "n_train": n_train,
+        "children_per_epoch": config.children_per_epoch,
+        "epochs": config.epochs,
+        "top_k": config.top_k,
+        "top_n": config.top_n,
+        "n_total": n_train + config.epochs * config.children_per_epoch,
+        "initial_scores": run.initial,
+        "seeds": run.seeds,
+        "seconds": run.seconds,
+        "per_seed": per_seed,
     }
 
 
@@ -48,8 +66,13 @@ def explore_cell(source, criterion, method: str, budget: str, args, children: Di
     from waldo_jax.pipeline import run_explore
     from waldo_jax.search import ExploreConfig
 
-    config = ExploreConfig(method=method, budget=budget, epochs=args.epochs, top_k=args.top_k,
-                           children_per_epoch=int(children[budget]) if budget in children else None)
+    config = ExploreConfig(
+        method=method,
+        budget=budget,
+        epochs=args.epochs,
+        top_k=args.top_k,
+        children_per_epoch=int(children[budget]) if budget in children else None,
+    )
     return run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial)
 
 
@@ -87,12 +110,24 @@ def write_figures(folder: Path, scene: str, criterion_name: str, runs: Dict[str,
         threshold = float(run.result.metrics.best[0])  # the best training score
         marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
         path = folder / f"{scene}_{criterion_name}_{method}_cloud.png"
-        style = PoseCloudStyle(title=(f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed "
-                                      f"{run.seeds[0]}: green = better than the best training view ({threshold:.3g})"),
-                               threshold=threshold, marker=marker, marker_label="Waldo (the target)",
-                               score_label=criterion_label(run.criterion))
-        pose_cloud(path, np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
-                   np.asarray(population.epoch)[filled], run.criterion.direction, style=style)
+        style = PoseCloudStyle(
+            title=(
+                f"{method.upper()} on {scene}, {criterion_name}, {budget} budget, seed "
+                f"{run.seeds[0]}: green = better than the best training view ({threshold:.3g})"
+            ),
+            threshold=threshold,
+            marker=marker,
+            marker_label="Waldo (the target)",
+            score_label=criterion_label(run.criterion),
+        )
+        pose_cloud(
+            path,
+            np.asarray(population.c2w)[filled],
+            np.asarray(population.score)[filled],
+            np.asarray(population.epoch)[filled],
+            run.criterion.direction,
+            style=style,
+        )
         written.append(str(path))
     return written
 
@@ -116,25 +151,38 @@ def waldo_row(run, goal: float) -> Dict[str, Any]:
         visibility = np.asarray(visibility, np.float64)
         reached = np.flatnonzero(visibility >= goal)
         top = np.asarray(result.top_c2w)[np.asarray(result.top_valid)][:1]
-        top_visibility = (float(np.asarray(waldo_visibility_batch(room, jnp.asarray(top), intrinsics))[0])
-                          if len(top) else None)
-        per_seed.append({"seed": seed, "best_visibility": float(visibility.max()) if len(visibility) else None,
-                         "best_scored_visibility": top_visibility,
-                         "renders_to_goal": int(reached[0]) + 1 if len(reached) else None,
-                         "n_generated": int(len(slots)), "cvir": _float(result.cvir), "mcvir": _float(result.mcvir)})
+        top_visibility = (
+            float(np.asarray(waldo_visibility_batch(room, jnp.asarray(top), intrinsics))[0]) if len(top) else None
+        )
+        per_seed.append(
+            {
+                "seed": seed,
+                "best_visibility": float(visibility.max()) if len(visibility) else None,
+                "best_scored_visibility": top_visibility,
+                "renders_to_goal": int(reached[0]) + 1 if len(reached) else None,
+                "n_generated": int(len(slots)),
+                "cvir": _float(result.cvir),
+                "mcvir": _float(result.mcvir),
+            }
+        )
     found = [s for s in per_seed if s["renders_to_goal"] is not None]
     best = [s["best_visibility"] for s in per_seed if s["best_visibility"] is not None]
     scored = [s["best_scored_visibility"] for s in per_seed if s["best_scored_visibility"] is not None]
     return {
-        "goal": goal, "seeds": len(per_seed), "found_share": len(found) / len(per_seed),
+        "goal": goal,
+        "seeds": len(per_seed),
+        "found_share": len(found) / len(per_seed),
         "best_visibility_mean": float(np.mean(best)) if best else None,
         "best_visibility_max": float(np.max(best)) if best else None,
         "best_scored_visibility_mean": float(np.mean(scored)) if scored else None,
         "renders_to_goal_mean": float(np.mean([s["renders_to_goal"] for s in found])) if found else None,
         "best_training_visibility": float(train_visibility.max()),
-        "children_per_epoch": run.config.children_per_epoch, "n_train": run.source.n_train,
-        "cvir_mean": _float(run.stats["cvir_mean"]), "mcvir_mean": _float(run.stats["mcvir_mean"]),
-        "seconds": run.seconds, "per_seed": per_seed,
+        "children_per_epoch": run.config.children_per_epoch,
+        "n_train": run.source.n_train,
+        "cvir_mean": _float(run.stats["cvir_mean"]),
+        "mcvir_mean": _float(run.stats["mcvir_mean"]),
+        "seconds": run.seconds,
+        "per_seed": per_seed,
     }
 
 
@@ -165,13 +213,21 @@ def reachable_visibility(source, samples: int, goal: float, seed: int = 0) -> Di
     origins = jax.random.uniform(jax.random.key(seed), (samples, 3), minval=low, maxval=high)
     aim = jax.jit(jax.vmap(lambda o: look_at(o, room.waldo_center, up)))
     chunk = 4096
-    visibility = np.concatenate([np.asarray(waldo_visibility_batch(room, aim(origins[i:i + chunk]), source.intrinsics))
-                                 for i in range(0, samples, chunk)]).astype(np.float64)
+    visibility = np.concatenate(
+        [
+            np.asarray(waldo_visibility_batch(room, aim(origins[i : i + chunk]), source.intrinsics))
+            for i in range(0, samples, chunk)
+        ]
+    ).astype(np.float64)
     best = int(np.argmax(visibility))
-    return {"best": float(visibility[best]), "goal": goal, "goal_share": float(np.mean(visibility >= goal)),
-            "samples": samples, "seed": seed, "best_origin": np.asarray(origins[best], np.float64).round(4).tolist(),
-            "origin_low": np.asarray(low, np.float64).round(4).tolist(),
-            "origin_high": np.asarray(high, np.float64).round(4).tolist(),
-            "aim": "Waldo's centre, GRS's mean up vector"}
-
-
+    return {
+        "best": float(visibility[best]),
+        "goal": goal,
+        "goal_share": float(np.mean(visibility >= goal)),
+        "samples": samples,
+        "seed": seed,
+        "best_origin": np.asarray(origins[best], np.float64).round(4).tolist(),
+        "origin_low": np.asarray(low, np.float64).round(4).tolist(),
+        "origin_high": np.asarray(high, np.float64).round(4).tolist(),
+        "aim": "Waldo's centre, GRS's mean up vector",
+    }

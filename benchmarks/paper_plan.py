@@ -47,19 +47,34 @@ def _cells(scene: str, n_train: int, criteria, methods, budgets, args, children)
     for criterion in criteria:
         for budget in budgets:
             for method in methods:
-                config = ExploreConfig(method=method, budget=budget, epochs=args.epochs, top_k=args.top_k,
-                                       children_per_epoch=int(children[budget]) if budget in children else None)
+                config = ExploreConfig(
+                    method=method,
+                    budget=budget,
+                    epochs=args.epochs,
+                    top_k=args.top_k,
+                    children_per_epoch=int(children[budget]) if budget in children else None,
+                )
                 cost = config.cost(n_train)
                 renders = (cost["renders"] - cost["training_views"]) * args.seeds
                 if args.initial == "renders":
                     renders += n_train
-                out.append({"scene": scene, "criterion": criterion, "budget": budget, "method": method,
-                            "renders": int(renders)})
+                out.append(
+                    {
+                        "scene": scene,
+                        "criterion": criterion,
+                        "budget": budget,
+                        "method": method,
+                        "renders": int(renders),
+                    }
+                )
     return out
 
 
-_COMPILE_EVENTS = ("/jax/core/compile/backend_compile_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                   "/jax/core/compile/jaxpr_trace_duration")
+_COMPILE_EVENTS = (
+    "/jax/core/compile/backend_compile_duration",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "/jax/core/compile/jaxpr_trace_duration",
+)
 
 
 def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dict[str, float]]:
@@ -83,8 +98,13 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
     context = CriterionContext(room=source.room, weights_dir=args.weights, source=source.spec)
     # The budget's children per epoch (the batch each epoch renders), but one epoch: the scan compiles
     # its body once whatever the epochs, and a render costs the same in any epoch.
-    config = ExploreConfig(method="egps", budget=budget, epochs=args.epochs, top_k=args.top_k,
-                           children_per_epoch=int(children[budget]) if budget in children else None)
+    config = ExploreConfig(
+        method="egps",
+        budget=budget,
+        epochs=args.epochs,
+        top_k=args.top_k,
+        children_per_epoch=int(children[budget]) if budget in children else None,
+    )
     probe_args = copy.copy(args)
     probe_args.epochs = 1
     probe_children = dict(children, **{budget: config.resolve(source.n_train).children_per_epoch})
@@ -101,8 +121,12 @@ def _probe_cells(source, criteria, budget: str, args, children) -> Dict[str, Dic
             renders = run.config.epochs * run.config.children_per_epoch * len(run.seeds)
             if args.initial == "renders":
                 renders += source.n_train  # the training poses were rendered too
-            rates[name] = {"compile_s": compile_s, "seconds_per_render": (total - compile_s) / max(renders, 1),
-                           "probe_renders": renders, "probe_seconds": round(total, 3)}
+            rates[name] = {
+                "compile_s": compile_s,
+                "seconds_per_render": (total - compile_s) / max(renders, 1),
+                "probe_renders": renders,
+                "probe_seconds": round(total, 3),
+            }
     finally:
         monitoring.unregister_event_duration_listener(listen)
     return rates
@@ -123,8 +147,14 @@ def _train_probe(kind: str, train: Callable[[Path], Dict[str, Any]], scratch: Li
         done, elapsed = entry["step"], entry["seconds"]
     per_step = min((t / n for n, t in chunks if n > 0), default=float("nan"))
     compile_s = sum(max(t - n * per_step, 0.0) for n, t in chunks)
-    return {"run_dir": folder / "run", "seconds_per_step": per_step, "compile_s": compile_s,
-            "steps": stats.get("steps"), "seconds": stats.get("seconds"), "chunks": len(chunks)}
+    return {
+        "run_dir": folder / "run",
+        "seconds_per_step": per_step,
+        "compile_s": compile_s,
+        "steps": stats.get("steps"),
+        "seconds": stats.get("seconds"),
+        "chunks": len(chunks),
+    }
 
 
 def _parts(cells: Sequence[Dict[str, Any]], limit_s: float) -> List[Dict[str, Any]]:
@@ -140,14 +170,33 @@ def _parts(cells: Sequence[Dict[str, Any]], limit_s: float) -> List[Dict[str, An
             continue
         for budget in dict.fromkeys(c["budget"] for c in members):
             share = sum(c["seconds"] for c in members if c["budget"] == budget)
-            parts.append({"scene": scene, "criterion": criterion, "budgets": budget, "seconds": share,
-                          "over_limit": share > limit_s})
+            parts.append(
+                {
+                    "scene": scene,
+                    "criterion": criterion,
+                    "budgets": budget,
+                    "seconds": share,
+                    "over_limit": share > limit_s,
+                }
+            )
     return parts
 
 
-def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room: str,
-         run_dir_of: Callable[[str], Path], train_real: Callable, train_room: Callable,
-         say: Callable[[str], None]) -> Dict[str, Any]:
+def plan(
+    args,
+    scenes,
+    criteria,
+    methods,
+    budgets,
+    children,
+    downscale,
+    *,
+    room: str,
+    run_dir_of: Callable[[str], Path],
+    train_real: Callable,
+    train_room: Callable,
+    say: Callable[[str], None],
+) -> Dict[str, Any]:
     """The plan (see the module docstring): printed, and returned as a dict."""
     from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
     from waldo_jax.nerf.config import TrainConfig
@@ -179,8 +228,12 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
                     steps = int(args.train_steps)
                 else:
                     steps = TrainConfig.preset(args.preset, train_split(scene)).steps
-            work[scene] = {"n_train": n_train, "reused": reused, "train_steps": steps,
-                           "cells": _cells(scene, n_train, criteria, methods, budgets, args, children)}
+            work[scene] = {
+                "n_train": n_train,
+                "reused": reused,
+                "train_steps": steps,
+                "cells": _cells(scene, n_train, criteria, methods, budgets, args, children),
+            }
 
         # Probes: one short training per kind of NeRF that is trained; the cells' rates on the first scene.
         probes: Dict[str, Dict[str, Any]] = {}
@@ -196,8 +249,11 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
             if kind == "room":
                 probes[kind] = _train_probe(kind, lambda d: _stats(train_room(d, probe_args), d, TRAIN_JSON), scratch)
             else:
-                probes[kind] = _train_probe(kind, lambda d, s=scene: _stats(
-                    train_real(s, d, probe_args, downscale.get(s)), d, TRAIN_JSON), scratch)
+                probes[kind] = _train_probe(
+                    kind,
+                    lambda d, s=scene: _stats(train_real(s, d, probe_args, downscale.get(s)), d, TRAIN_JSON),
+                    scratch,
+                )
         first_kind = "room" if first == room else "real"
         probe_dir = run_dir_of(first) if work[first]["reused"] else probes[first_kind]["run_dir"]
         source = run_source(str(probe_dir), args.resolution)
@@ -215,7 +271,7 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
             else:
                 other = train_split(scene).intrinsics
             if other is None:
-                pixels[scene] = args.resolution ** 2
+                pixels[scene] = args.resolution**2
             else:
                 w, h = int(other.width), int(other.height)
                 s = args.resolution / max(w, h)
@@ -233,21 +289,38 @@ def plan(args, scenes, criteria, methods, budgets, children, downscale, *, room:
             for cell in entry["cells"]:
                 rate = rates[cell["criterion"]]
                 cell["seconds"] = rate["compile_s"] + rate["seconds_per_render"] * cell["renders"] * (
-                    pixels[scene] / pixels_first)
+                    pixels[scene] / pixels_first
+                )
                 all_cells.append(cell)
             cells_s = sum(c["seconds"] for c in entry["cells"])
-            rows.append({"scene": scene, "n_train": entry["n_train"], "nerf": "reused" if entry["reused"] else
-                         f"train {entry['train_steps']} steps", "train_s": train_s, "cells": len(entry["cells"]),
-                         "renders": sum(c["renders"] for c in entry["cells"]), "compile_s": compiles,
-                         "cells_s": cells_s, "pixels_per_render": pixels[scene]})
+            rows.append(
+                {
+                    "scene": scene,
+                    "n_train": entry["n_train"],
+                    "nerf": "reused" if entry["reused"] else f"train {entry['train_steps']} steps",
+                    "train_s": train_s,
+                    "cells": len(entry["cells"]),
+                    "renders": sum(c["renders"] for c in entry["cells"]),
+                    "compile_s": compiles,
+                    "cells_s": cells_s,
+                    "pixels_per_render": pixels[scene],
+                }
+            )
         total = sum(r["train_s"] + r["cells_s"] for r in rows)
         limit = 60.0 * float(args.plan_part_minutes)
         parts = _parts(all_cells, limit)
         text = _text(rows, rates, probes, parts, total, device, args, limit)
         print(text)
-        return {"device": device, "rows": rows, "rates": rates, "parts": parts, "total_s": total,
-                "probes": {k: {n: v for n, v in p.items() if n != "run_dir"} for k, p in probes.items()},
-                "plan_seconds": time.perf_counter() - t0, "text": text}
+        return {
+            "device": device,
+            "rows": rows,
+            "rates": rates,
+            "parts": parts,
+            "total_s": total,
+            "probes": {k: {n: v for n, v in p.items() if n != "run_dir"} for k, p in probes.items()},
+            "plan_seconds": time.perf_counter() - t0,
+            "text": text,
+        }
     finally:
         for folder in scratch:
             shutil.rmtree(folder, ignore_errors=True)
@@ -264,33 +337,52 @@ def _minutes(seconds: float) -> str:
 
 
 def _text(rows, rates, probes, parts, total, device, args, limit) -> str:
-    lines = [f"Plan on {device} ({jax.default_backend()}): {args.seeds} seeds, {args.resolution} px, "
-             f"preset {args.preset}; probes of {args.plan_steps} training steps.", "",
-             "| scene | training views | NeRF | training | cells | renders | of which compiling | cells time |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        f"Plan on {device} ({jax.default_backend()}): {args.seeds} seeds, {args.resolution} px, "
+        f"preset {args.preset}; probes of {args.plan_steps} training steps.",
+        "",
+        "| scene | training views | NeRF | training | cells | renders | of which compiling | cells time |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['n_train']} | {r['nerf']} | {_minutes(r['train_s'])} | {r['cells']} | "
-                     f"{r['renders']:,} | {_minutes(r['compile_s'])} | {_minutes(r['cells_s'])} |")
-    lines.append(f"\nExpected total on this device: {_minutes(total)} (an upper bound for the renders: the probe "
-                 "NeRF's grid is still nearly full).")
+        lines.append(
+            f"| {r['scene']} | {r['n_train']} | {r['nerf']} | {_minutes(r['train_s'])} | {r['cells']} | "
+            f"{r['renders']:,} | {_minutes(r['compile_s'])} | {_minutes(r['cells_s'])} |"
+        )
+    lines.append(
+        f"\nExpected total on this device: {_minutes(total)} (an upper bound for the renders: the probe "
+        "NeRF's grid is still nearly full)."
+    )
     for kind, p in probes.items():
-        lines.append(f"  {kind} NeRF probe: {p['seconds_per_step'] * 1e3:.1f} ms per steady step, "
-                     f"{p['compile_s']:.1f} s compiling")
+        lines.append(
+            f"  {kind} NeRF probe: {p['seconds_per_step'] * 1e3:.1f} ms per steady step, "
+            f"{p['compile_s']:.1f} s compiling"
+        )
     for name, r in rates.items():
-        lines.append(f"  {name}: {r['compile_s']:.1f} s compiling per cell, {r['seconds_per_render'] * 1e3:.1f} ms "
-                     "per render")
-    lines.append(f"\nParts of at most {limit / 60:.0f} minutes: the NeRFs first (`--criteria none --no-waldo` trains a "
-                 "scene's NeRF into --runs), then one run per part; `--tables-from` joins the JSONs:")
+        lines.append(
+            f"  {name}: {r['compile_s']:.1f} s compiling per cell, {r['seconds_per_render'] * 1e3:.1f} ms per render"
+        )
+    lines.append(
+        f"\nParts of at most {limit / 60:.0f} minutes: the NeRFs first (`--criteria none --no-waldo` trains a "
+        "scene's NeRF into --runs), then one run per part; `--tables-from` joins the JSONs:"
+    )
     for r in rows:
         if r["train_s"] > 0:
-            warn = "  # longer than a part: fewer --train-steps, or a machine with a longer limit" if (
-                r["train_s"] > limit) else ""
-            lines.append(f"  python benchmarks/paper_tables.py --scenes {r['scene']} --criteria none --no-waldo "
-                         f"--out runs/paper_{r['scene']}_nerf.json ...  # {_minutes(r['train_s'])}{warn}")
+            warn = (
+                "  # longer than a part: fewer --train-steps, or a machine with a longer limit"
+                if (r["train_s"] > limit)
+                else ""
+            )
+            lines.append(
+                f"  python benchmarks/paper_tables.py --scenes {r['scene']} --criteria none --no-waldo "
+                f"--out runs/paper_{r['scene']}_nerf.json ...  # {_minutes(r['train_s'])}{warn}"
+            )
     for part in parts:
         budgets = f" --budgets {part['budgets']}" if part["budgets"] else ""
         warn = "  # longer than a part: fewer seeds or a smaller --resolution" if part.get("over_limit") else ""
-        lines.append(f"  python benchmarks/paper_tables.py --scenes {part['scene']} --criteria {part['criterion']}"
-                     f"{budgets} --no-waldo --out runs/paper_{part['scene']}_{part['criterion']}"
-                     f"{'_' + part['budgets'] if part['budgets'] else ''}.json ...  # {_minutes(part['seconds'])}{warn}")
+        lines.append(
+            f"  python benchmarks/paper_tables.py --scenes {part['scene']} --criteria {part['criterion']}"
+            f"{budgets} --no-waldo --out runs/paper_{part['scene']}_{part['criterion']}"
+            f"{'_' + part['budgets'] if part['budgets'] else ''}.json ...  # {_minutes(part['seconds'])}{warn}"
+        )
     return "\n".join(lines)

@@ -11,6 +11,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import paper_values
 
+
 def fmt(value, digits: int = 0) -> str:
     """`value` with `digits` decimals, or n/a for None."""
     return "n/a" if value is None or not math.isfinite(float(value)) else f"{float(value):.{digits}f}"
@@ -34,14 +35,21 @@ def _undefined_notes(cells: Dict[str, Any], scenes, budgets, methods) -> List[st
     """
     notes = []
     for scene in scenes:
-        seeds = [seed for budget in budgets for method in methods
-                 for seed in (cells.get(scene, {}).get(budget, {}).get(method) or {}).get("per_seed", [])]
+        seeds = [
+            seed
+            for budget in budgets
+            for method in methods
+            for seed in (cells.get(scene, {}).get(budget, {}).get(method) or {}).get("per_seed", [])
+        ]
         if not seeds or any(s.get("cvir") is not None for s in seeds):
             continue
         bases = {s.get("best_train") for s in seeds}
         bests = [s["best"] for s in seeds if s.get("best") is not None]
-        reason = (f"the best training score is {fmt(bases.pop(), 3)}, and CVIR is a percentage of it"
-                  if len(bases) == 1 and None not in bases else "no training view has a usable score")
+        reason = (
+            f"the best training score is {fmt(bases.pop(), 3)}, and CVIR is a percentage of it"
+            if len(bases) == 1 and None not in bases
+            else "no training view has a usable score"
+        )
         best = f"; the best generated score is {max(bests):.3f}" if bests else ""
         notes.append(f"{scene}: n/a because {reason}{best}.")
     return notes
@@ -60,25 +68,48 @@ def criterion_table(criterion: str, cells: Dict[str, Any], scenes, budgets, meth
             values = {}
             for scene in scenes:
                 cell = cells.get(scene, {}).get(budget, {}).get(method)
-                values[scene] = ({"cvir": pm(cell["cvir_mean"], cell["cvir_std"]),
-                                  "mcvir": pm(cell["mcvir_mean"], cell["mcvir_std"])} if cell else
-                                 {"cvir": "-", "mcvir": "-"})
+                values[scene] = (
+                    {
+                        "cvir": pm(cell["cvir_mean"], cell["cvir_std"]),
+                        "mcvir": pm(cell["mcvir_mean"], cell["mcvir_std"]),
+                    }
+                    if cell
+                    else {"cvir": "-", "mcvir": "-"}
+                )
             rows.append({"source": "ours", "budget": budget, "method": method, "cells": values})
-            lines.append("| " + " | ".join([_budget_label(budget, children), method.upper()] +
-                                           [values[s][k] for s in scenes for k in ("cvir", "mcvir")]) + " |")
+            lines.append(
+                "| "
+                + " | ".join(
+                    [_budget_label(budget, children), method.upper()]
+                    + [values[s][k] for s in scenes for k in ("cvir", "mcvir")]
+                )
+                + " |"
+            )
             published = {s: paper_values.lookup(criterion, s, budget, method) for s in scenes}
             if any(v is not None for v in published.values()):
-                paper_cells = {s: ({"cvir": fmt(v[0], 1), "mcvir": fmt(v[1], 1)} if v else {"cvir": "", "mcvir": ""})
-                               for s, v in published.items()}
-                paper_rows.append({"source": "paper", "label": label, "budget": budget, "method": method,
-                                   "cells": paper_cells})
-                lines.append("| " + " | ".join([budget, f"{method.upper()} (paper)"] +
-                                               [paper_cells[s][k] for s in scenes for k in ("cvir", "mcvir")]) + " |")
+                paper_cells = {
+                    s: ({"cvir": fmt(v[0], 1), "mcvir": fmt(v[1], 1)} if v else {"cvir": "", "mcvir": ""})
+                    for s, v in published.items()
+                }
+                paper_rows.append(
+                    {"source": "paper", "label": label, "budget": budget, "method": method, "cells": paper_cells}
+                )
+                lines.append(
+                    "| "
+                    + " | ".join(
+                        [budget, f"{method.upper()} (paper)"]
+                        + [paper_cells[s][k] for s in scenes for k in ("cvir", "mcvir")]
+                    )
+                    + " |"
+                )
     notes = [f"CVIR % | mCVIR %, mean ± std over {seeds} seeds (ours)."]
     notes += _undefined_notes(cells, scenes, budgets, methods)
     if children:
-        notes.append("* children per epoch overridden (" + ", ".join(f"{b}: {int(c)}" for b, c in children.items()) +
-                     "): not the paper's budget.")
+        notes.append(
+            "* children per epoch overridden ("
+            + ", ".join(f"{b}: {int(c)}" for b, c in children.items())
+            + "): not the paper's budget."
+        )
     notes += paper_values.stand_in_notes(scenes)
     table = paper_values.table_for(criterion)
     if paper_rows:
@@ -87,59 +118,97 @@ def criterion_table(criterion: str, cells: Dict[str, Any], scenes, budgets, meth
         notes.append(f"The paper has no table for {criterion}.")
     else:
         network = paper_values.TABLES[table]["paper_network"]
-        notes.append(f"Paper values ({network} on {paper_values.NERF}, {paper_values.SOURCE_URL}): "
-                     f"{paper_values.TABLES[table]['note'] or 'none for these scenes'}.")
+        notes.append(
+            f"Paper values ({network} on {paper_values.NERF}, {paper_values.SOURCE_URL}): "
+            f"{paper_values.TABLES[table]['note'] or 'none for these scenes'}."
+        )
     text = "\n".join([f"### {criterion}", ""] + lines + [""] + notes)
-    return {"columns": list(scenes), "rows": rows, "paper_rows": paper_rows, "paper_label": label,
-            "notes": notes, "text": text}
+    return {
+        "columns": list(scenes),
+        "rows": rows,
+        "paper_rows": paper_rows,
+        "paper_label": label,
+        "notes": notes,
+        "text": text,
+    }
 
 
 def _reachable_note(reference: Optional[Dict[str, Any]]) -> str:
     """The footer sentence on the reachable best (empty for a JSON written before it was measured)."""
     if not reference:
         return ""
-    note = (f" The best reachable: {reference['best']:.0%}, the best of {reference['samples']:,} poses with origins "
-            f"uniform within the training cameras' bounds (the searches' origin region), aimed at Waldo; "
-            f"{reference['goal_share']:.2%} of them reach {reference['goal']:.0%}.")
+    note = (
+        f" The best reachable: {reference['best']:.0%}, the best of {reference['samples']:,} poses with origins "
+        f"uniform within the training cameras' bounds (the searches' origin region), aimed at Waldo; "
+        f"{reference['goal_share']:.2%} of them reach {reference['goal']:.0%}."
+    )
     if reference["best"] < reference["goal"]:
         note += " The goal is out of reach in this room: no method can find it."
     return note
 
 
-def waldo_table(waldo: Dict[str, Any], budgets, methods, children,
-                reference: Optional[Dict[str, Any]] = None, room_seed: Optional[int] = None) -> Dict[str, Any]:
+def waldo_table(
+    waldo: Dict[str, Any],
+    budgets,
+    methods,
+    children,
+    reference: Optional[Dict[str, Any]] = None,
+    room_seed: Optional[int] = None,
+) -> Dict[str, Any]:
     """The Waldo-room table per search criterion; `reference`: `reachable_visibility` (the known answer)."""
     lines, rows = [], []
     room = "Waldo room" if room_seed is None else f"Waldo room procedural:{room_seed}"
     for criterion, by_budget in waldo.items():
         goal = next(iter(next(iter(by_budget.values())).values()))["goal"]
-        lines += [f"### {room}, search criterion {criterion} (visibility from the exact oracle)", "",
-                  f"| poses | method | seeds finding >= {goal:.0%} visible | best visibility (mean / max) | "
-                  "visibility of the best-scored view (mean) | renders to first reach it (mean) | CVIR % |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"### {room}, search criterion {criterion} (visibility from the exact oracle)",
+            "",
+            f"| poses | method | seeds finding >= {goal:.0%} visible | best visibility (mean / max) | "
+            "visibility of the best-scored view (mean) | renders to first reach it (mean) | CVIR % |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for budget in budgets:
             for method in methods:
                 r = by_budget[budget][method]
-                rows.append({"criterion": criterion, "budget": budget, "method": method,
-                             "found_share": r["found_share"],
-                             "best_visibility_mean": r["best_visibility_mean"],
-                             "renders_to_goal_mean": r["renders_to_goal_mean"]})
-                lines.append(f"| {_budget_label(budget, children)} | {method.upper()} | "
-                             f"{r['found_share']:.0%} ({round(r['found_share'] * r['seeds'])}/{r['seeds']}) | "
-                             f"{fmt(r['best_visibility_mean'], 3)} / {fmt(r['best_visibility_max'], 3)} | "
-                             f"{fmt(r['best_scored_visibility_mean'], 3)} | {fmt(r['renders_to_goal_mean'], 0)} | "
-                             f"{fmt(r['cvir_mean'])} |")
+                rows.append(
+                    {
+                        "criterion": criterion,
+                        "budget": budget,
+                        "method": method,
+                        "found_share": r["found_share"],
+                        "best_visibility_mean": r["best_visibility_mean"],
+                        "renders_to_goal_mean": r["renders_to_goal_mean"],
+                    }
+                )
+                lines.append(
+                    f"| {_budget_label(budget, children)} | {method.upper()} | "
+                    f"{r['found_share']:.0%} ({round(r['found_share'] * r['seeds'])}/{r['seeds']}) | "
+                    f"{fmt(r['best_visibility_mean'], 3)} / {fmt(r['best_visibility_max'], 3)} | "
+                    f"{fmt(r['best_scored_visibility_mean'], 3)} | {fmt(r['renders_to_goal_mean'], 0)} | "
+                    f"{fmt(r['cvir_mean'])} |"
+                )
         first = next(iter(next(iter(by_budget.values())).values()))
-        lines += ["", f"Best training view: {first['best_training_visibility']:.0%} of Waldo visible "
-                      f"({first['n_train']} training views).{_reachable_note(reference)}", ""]
+        lines += [
+            "",
+            f"Best training view: {first['best_training_visibility']:.0%} of Waldo visible "
+            f"({first['n_train']} training views).{_reachable_note(reference)}",
+            "",
+        ]
     return {"rows": rows, "text": "\n".join(lines), "reference": reference}
 
 
-
-
 # Settings that must agree for runs to share a table (the scenes may differ: one run per scene).
-MERGE_SETTINGS = ("budgets", "methods", "seeds", "first_seed", "resolution", "epochs", "top_k",
-                  "children_override", "initial_scores")
+MERGE_SETTINGS = (
+    "budgets",
+    "methods",
+    "seeds",
+    "first_seed",
+    "resolution",
+    "epochs",
+    "top_k",
+    "children_override",
+    "initial_scores",
+)
 
 
 def _load_run(path: Path) -> Dict[str, Any]:
@@ -162,8 +231,10 @@ def _merge_runs(paths: Sequence[Path]) -> Dict[str, Any]:
     for path, run in zip(paths[1:], runs[1:]):
         for key in MERGE_SETTINGS:
             if run["settings"].get(key) != first.get(key):
-                raise SystemExit(f"{path}: {key} = {run['settings'].get(key)!r} differs from {paths[0]} "
-                                 f"({first.get(key)!r}); runs with other settings do not share a table")
+                raise SystemExit(
+                    f"{path}: {key} = {run['settings'].get(key)!r} differs from {paths[0]} "
+                    f"({first.get(key)!r}); runs with other settings do not share a table"
+                )
     results: Dict[str, Any] = {}
     for path, run in zip(paths, runs):
         for criterion, record in run["results"].items():
@@ -174,9 +245,14 @@ def _merge_runs(paths: Sequence[Path]) -> Dict[str, Any]:
                 merged["scenes"][scene] = cells
     scenes = list(dict.fromkeys(s for run in runs for s in run["settings"]["scenes"]))  # in the files' order
     incomplete = [f"{path}: {run['incomplete']}" for path, run in zip(paths, runs) if run.get("incomplete")]
-    return {"settings": dict(first, scenes=scenes), "results": results, "incomplete": "; ".join(incomplete),
-            "waldo": [(run.get("waldo") or {}, run.get("waldo_reference"), run["settings"].get("room_seed"))
-                      for run in runs]}
+    return {
+        "settings": dict(first, scenes=scenes),
+        "results": results,
+        "incomplete": "; ".join(incomplete),
+        "waldo": [
+            (run.get("waldo") or {}, run.get("waldo_reference"), run["settings"].get("room_seed")) for run in runs
+        ],
+    }
 
 
 def tables_from(paths) -> str:
@@ -198,8 +274,9 @@ def tables_from(paths) -> str:
         cells = record["scenes"]
         scenes = [s for s in settings["scenes"] if s in cells]
         if scenes:
-            texts.append(criterion_table(criterion, cells, scenes, budgets, methods, children,
-                                         settings["seeds"])["text"] + "\n")
+            texts.append(
+                criterion_table(criterion, cells, scenes, budgets, methods, children, settings["seeds"])["text"] + "\n"
+            )
     for waldo, reference, room_seed in data["waldo"]:
         complete = all(all(m in by_budget.get(b, {}) for b in budgets for m in methods) for by_budget in waldo.values())
         if waldo and complete:

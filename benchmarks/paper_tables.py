@@ -147,15 +147,36 @@ ROOM = "room"
 DEFAULT_DOWNSCALE = {"fox": 8.0, "face": 4.0, "garden": 4.0, "fern": 8.0}
 
 DEFAULTS = {
-    "scenes": "fox,face,fern,garden,room", "criteria": "saliency,iqa_cnn,composition",
-    "methods": ",".join(METHODS), "budgets": ",".join(BUDGETS), "seeds": 5, "resolution": 64,
-    "children": "", "runs": "runs/paper_nerfs", "train_steps": None, "room_steps": 400, "room_views": 32,
-    "room_resolution": 64, "downscale": "", "cloud_methods": ",".join(METHODS), "reachable_samples": 50000,
+    "scenes": "fox,face,fern,garden,room",
+    "criteria": "saliency,iqa_cnn,composition",
+    "methods": ",".join(METHODS),
+    "budgets": ",".join(BUDGETS),
+    "seeds": 5,
+    "resolution": 64,
+    "children": "",
+    "runs": "runs/paper_nerfs",
+    "train_steps": None,
+    "room_steps": 400,
+    "room_views": 32,
+    "room_resolution": 64,
+    "downscale": "",
+    "cloud_methods": ",".join(METHODS),
+    "reachable_samples": 50000,
 }
 QUICK = {
-    "scenes": "room,fox", "seeds": 2, "resolution": 32, "budgets": "low", "children": "low=8",
-    "runs": "runs/paper_nerfs_quick", "train_steps": 60, "room_steps": 80, "room_views": 16,
-    "room_resolution": 32, "downscale": "fox=16", "cloud_methods": "egps", "reachable_samples": 4096,
+    "scenes": "room,fox",
+    "seeds": 2,
+    "resolution": 32,
+    "budgets": "low",
+    "children": "low=8",
+    "runs": "runs/paper_nerfs_quick",
+    "train_steps": 60,
+    "room_steps": 80,
+    "room_views": 16,
+    "room_resolution": 32,
+    "downscale": "fox=16",
+    "cloud_methods": "egps",
+    "reachable_samples": 4096,
 }
 
 
@@ -171,19 +192,30 @@ def _parse_args(argv) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny settings (room + fox, see the docstring)")
     parser.add_argument("--scenes", default=None, help=f"comma list (default {DEFAULTS['scenes']})")
-    parser.add_argument("--criteria", default=None,
-                        help=f"comma list (default {DEFAULTS['criteria']}); 'none' for the Waldo-room table only")
-    parser.add_argument("--methods", default=None,
-                        help="comma list of grs, pibs, egps (default), or any `waldo explore --method` "
-                             "(egps+refine, evosax:CMA_ES, ...)")
+    parser.add_argument(
+        "--criteria",
+        default=None,
+        help=f"comma list (default {DEFAULTS['criteria']}); 'none' for the Waldo-room table only",
+    )
+    parser.add_argument(
+        "--methods",
+        default=None,
+        help="comma list of grs, pibs, egps (default), or any `waldo explore --method` "
+        "(egps+refine, evosax:CMA_ES, ...)",
+    )
     parser.add_argument("--budgets", default=None, help="comma list of low, high (default both)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per cell, one vmapped call (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--resolution", type=int, default=None, help="longer side of every render (default 64)")
-    parser.add_argument("--children", default=None,
-                        help="override children per epoch, e.g. low=8,high=30 (default: from the budgets)")
-    parser.add_argument("--initial", default="images", choices=("images", "renders"),
-                        help="score the real training images (the paper) or renders at the training poses")
+    parser.add_argument(
+        "--children", default=None, help="override children per epoch, e.g. low=8,high=30 (default: from the budgets)"
+    )
+    parser.add_argument(
+        "--initial",
+        default="images",
+        choices=("images", "renders"),
+        help="score the real training images (the paper) or renders at the training poses",
+    )
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--top-k", type=int, default=10)
     parser.add_argument("--runs", default=None, help="NeRF run folders DIR/<scene> (reused or trained)")
@@ -193,33 +225,57 @@ def _parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--room-views", type=int, default=None, help="training views of the room (default 32)")
     parser.add_argument("--room-resolution", type=int, default=None, help="room training image side (default 64)")
     parser.add_argument("--room-seed", type=int, default=0)
-    parser.add_argument("--render-step-scale", type=float, default=None,
-                        help="NeRFs trained here march X times their training step (default: calibrated per run)")
-    parser.add_argument("--downscale", default=None, help="K for all real scenes, or scene=K,... (default fox=8, "
-                        "face=4, garden=4, fern=8)")
+    parser.add_argument(
+        "--render-step-scale",
+        type=float,
+        default=None,
+        help="NeRFs trained here march X times their training step (default: calibrated per run)",
+    )
+    parser.add_argument(
+        "--downscale",
+        default=None,
+        help="K for all real scenes, or scene=K,... (default fox=8, face=4, garden=4, fern=8)",
+    )
     parser.add_argument("--weights", default=None, help="weights folder (default WALDO_WEIGHTS)")
     parser.add_argument("--waldo-criteria", default="waldo_oracle", help="criteria of the Waldo-room table")
     parser.add_argument("--visibility-goal", type=float, default=0.9)
-    parser.add_argument("--reachable-samples", type=int, default=None,
-                        help="poses of the reference search for the best reachable visibility (default 50000; 0: skip)")
+    parser.add_argument(
+        "--reachable-samples",
+        type=int,
+        default=None,
+        help="poses of the reference search for the best reachable visibility (default 50000; 0: skip)",
+    )
     parser.add_argument("--no-waldo", action="store_true", help="skip the Waldo-room table")
     parser.add_argument("--figures", default=None, help="figure folder (default: beside --out, <out>_figures)")
     parser.add_argument("--figure-columns", type=int, default=6)
     parser.add_argument("--cloud-methods", default=None, help="methods with a pose-cloud figure (default all)")
-    parser.add_argument("--load-threshold", type=float, default=None,
-                        help="wait (up to 5 min) until the 1-min load average is below this; mark _loaded above")
-    parser.add_argument("--out", default=None,
-                        help="JSON path (default benchmarks/results/paper_tables_<platform>.json; quick: runs/)")
+    parser.add_argument(
+        "--load-threshold",
+        type=float,
+        default=None,
+        help="wait (up to 5 min) until the 1-min load average is below this; mark _loaded above",
+    )
+    parser.add_argument(
+        "--out", default=None, help="JSON path (default benchmarks/results/paper_tables_<platform>.json; quick: runs/)"
+    )
     parser.add_argument("--progress", action="store_true", help="training progress bars")
-    parser.add_argument("--plan", action="store_true",
-                        help="print the work these settings ask for and its expected time on this device, from a "
-                             "quick timing (probe NeRFs, one cell per criterion), with parts of at most "
-                             "--plan-part-minutes; nothing is written (benchmarks/paper_plan.py)")
+    parser.add_argument(
+        "--plan",
+        action="store_true",
+        help="print the work these settings ask for and its expected time on this device, from a "
+        "quick timing (probe NeRFs, one cell per criterion), with parts of at most "
+        "--plan-part-minutes; nothing is written (benchmarks/paper_plan.py)",
+    )
     parser.add_argument("--plan-steps", type=int, default=300, help="training steps of the plan's probe NeRFs")
     parser.add_argument("--plan-part-minutes", type=float, default=10.0, help="the plan's longest part")
-    parser.add_argument("--tables-from", default=None, nargs="+", metavar="JSON",
-                        help="only print the tables of earlier runs' JSONs (also incomplete ones; several runs of "
-                             "the same settings, e.g. one per scene, make one table) and exit")
+    parser.add_argument(
+        "--tables-from",
+        default=None,
+        nargs="+",
+        metavar="JSON",
+        help="only print the tables of earlier runs' JSONs (also incomplete ones; several runs of "
+        "the same settings, e.g. one per scene, make one table) and exit",
+    )
     args = parser.parse_args(argv)
     mode = dict(DEFAULTS, **QUICK) if args.quick else DEFAULTS
     for name, value in mode.items():
@@ -264,8 +320,10 @@ def _check_refinable(methods: Sequence[str], criteria: Sequence[str]) -> None:
     for name in criteria:
         spec = CRITERIA.get(name)
         if spec is not None and not spec.smooth:  # weighted:... is refused when its cell builds it
-            raise SystemExit(f"--methods {refining[0]} cannot refine on criterion {name!r} (no smooth stand-in); "
-                             f"criteria it can refine on: {usable}")
+            raise SystemExit(
+                f"--methods {refining[0]} cannot refine on criterion {name!r} (no smooth stand-in); "
+                f"criteria it can refine on: {usable}"
+            )
 
 
 def _pairs(text: str, what: str) -> Dict[str, float]:
@@ -319,9 +377,14 @@ def _train_real(scene: str, run_dir: Path, args, downscale: Optional[float]) -> 
     from waldo_jax.paths import scene_path
     from waldo_jax.types import RunOptions
 
-    train_scene_run(str(scene_path(scene)), run_dir, preset=args.preset, steps=args.train_steps,
-                    render_step_scale=args.render_step_scale,
-                    options=RunOptions(downscale=downscale, seed=args.seed, progress=args.progress))
+    train_scene_run(
+        str(scene_path(scene)),
+        run_dir,
+        preset=args.preset,
+        steps=args.train_steps,
+        render_step_scale=args.render_step_scale,
+        options=RunOptions(downscale=downscale, seed=args.seed, progress=args.progress),
+    )
 
 
 def _train_room(run_dir: Path, args) -> None:
@@ -329,8 +392,14 @@ def _train_room(run_dir: Path, args) -> None:
     from waldo_jax.pipeline.demo import DemoSettings, train_room_nerf
     from waldo_jax.procedural import held_out_scene, room_scene
 
-    settings = DemoSettings(views=args.room_views, resolution=args.room_resolution, train_steps=args.room_steps,
-                            seeds=args.seeds, test_views=8, render_step_scale=args.render_step_scale)
+    settings = DemoSettings(
+        views=args.room_views,
+        resolution=args.room_resolution,
+        train_steps=args.room_steps,
+        seeds=args.seeds,
+        test_views=8,
+        render_step_scale=args.render_step_scale,
+    )
     scene, room = room_scene(args.room_seed, num_views=settings.views, resolution=settings.resolution)
     test_scene = held_out_scene(room, args.room_seed, settings.test_views, scene)
     # Train in a scratch folder beside run_dir, then move it into place: never a half-written run.
@@ -350,7 +419,8 @@ def room_folder(room_seed: int) -> str:
 
 
 def ensure_nerf(scene: str, args, downscale: Optional[float]) -> Dict[str, Any]:
-    """The NeRF of `scene` in args.runs/<scene> (the room: `room_folder`): reused when its checkpoint exists, else trained."""
+    """The NeRF of `scene` in args.runs/<scene> (the room: `room_folder`): reused when its checkpoint exists, else
+    trained."""
     from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
     from waldo_jax.nerf.runs import TRAIN_JSON
 
@@ -367,12 +437,29 @@ def ensure_nerf(scene: str, args, downscale: Optional[float]) -> Dict[str, Any]:
             _train_real(scene, run_dir, args, downscale)
     seconds = time.perf_counter() - start
     stats = json.loads((run_dir / TRAIN_JSON).read_text()) if (run_dir / TRAIN_JSON).exists() else {}
-    keep = ("psnr_test", "steps", "seconds", "preset", "downscale", "image_size", "n_train", "n_test",
-            "rays_per_second", "device", "scene_format")
-    say(f"{scene}: NeRF {'reused' if reused else 'trained'} ({stats.get('steps')} steps, held-out PSNR "
-        f"{fmt(stats.get('psnr_test'), 2)} dB)")
-    return {"run_dir": str(run_dir), "reused": reused, "seconds": round(seconds, 2),
-            "train": {k: stats.get(k) for k in keep}}
+    keep = (
+        "psnr_test",
+        "steps",
+        "seconds",
+        "preset",
+        "downscale",
+        "image_size",
+        "n_train",
+        "n_test",
+        "rays_per_second",
+        "device",
+        "scene_format",
+    )
+    say(
+        f"{scene}: NeRF {'reused' if reused else 'trained'} ({stats.get('steps')} steps, held-out PSNR "
+        f"{fmt(stats.get('psnr_test'), 2)} dB)"
+    )
+    return {
+        "run_dir": str(run_dir),
+        "reused": reused,
+        "seconds": round(seconds, 2),
+        "train": {k: stats.get(k) for k in keep},
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -381,16 +468,33 @@ def ensure_nerf(scene: str, args, downscale: Optional[float]) -> Dict[str, Any]:
 
 def _settings(args, scenes, criteria, methods, budgets, children, downscale) -> Dict[str, Any]:
     return {
-        "quick": args.quick, "scenes": scenes, "criteria": criteria, "methods": methods, "budgets": budgets,
-        "seeds": args.seeds, "first_seed": args.seed, "resolution": args.resolution, "epochs": args.epochs,
-        "top_k": args.top_k, "children_override": {k: int(v) for k, v in children.items()},
-        "runs": args.runs, "preset": args.preset, "train_steps": args.train_steps, "room_steps": args.room_steps,
-        "room_views": args.room_views, "room_resolution": args.room_resolution, "room_seed": args.room_seed,
-        "render_step_scale": args.render_step_scale or "calibrated per run", "downscale": downscale, "waldo_criteria": [] if args.no_waldo else _names(args.waldo_criteria),
-        "visibility_goal": args.visibility_goal, "reachable_samples": args.reachable_samples,
+        "quick": args.quick,
+        "scenes": scenes,
+        "criteria": criteria,
+        "methods": methods,
+        "budgets": budgets,
+        "seeds": args.seeds,
+        "first_seed": args.seed,
+        "resolution": args.resolution,
+        "epochs": args.epochs,
+        "top_k": args.top_k,
+        "children_override": {k: int(v) for k, v in children.items()},
+        "runs": args.runs,
+        "preset": args.preset,
+        "train_steps": args.train_steps,
+        "room_steps": args.room_steps,
+        "room_views": args.room_views,
+        "room_resolution": args.room_resolution,
+        "room_seed": args.room_seed,
+        "render_step_scale": args.render_step_scale or "calibrated per run",
+        "downscale": downscale,
+        "waldo_criteria": [] if args.no_waldo else _names(args.waldo_criteria),
+        "visibility_goal": args.visibility_goal,
+        "reachable_samples": args.reachable_samples,
         "cloud_methods": list(args.cloud_methods),
         "cloud_threshold": "the best training score (green: better than every training view)",
-        "std": "population std over seeds (ddof 0)", "initial_scores": args.initial,
+        "std": "population std over seeds (ddof 0)",
+        "initial_scores": args.initial,
         "argv": sys.argv[1:],
     }
 
@@ -402,6 +506,7 @@ def _interrupt_on_signals() -> Dict[int, Any]:
     (Python then installs no KeyboardInterrupt handler), and SIGTERM kills without cleanup; both
     would lose every finished cell of a multi-hour run. Returns the previous handlers.
     """
+
     def stop(signum, frame):
         raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
@@ -448,12 +553,26 @@ def _run(args) -> Dict[str, Any]:
 
         if args.plan_steps < 1 or not args.plan_part_minutes > 0:
             raise SystemExit("--plan-steps must be >= 1 and --plan-part-minutes > 0")
-        return paper_plan.plan(args, scenes, criteria, methods, budgets, children, downscale, room=ROOM,
-                               run_dir_of=lambda s: Path(args.runs) / (room_folder(args.room_seed) if s == ROOM else s),
-                               train_real=_train_real, train_room=_train_room, say=say)
+        return paper_plan.plan(
+            args,
+            scenes,
+            criteria,
+            methods,
+            budgets,
+            children,
+            downscale,
+            room=ROOM,
+            run_dir_of=lambda s: Path(args.runs) / (room_folder(args.room_seed) if s == ROOM else s),
+            train_real=_train_real,
+            train_room=_train_room,
+            say=say,
+        )
 
-    quiet = (wait_for_quiet(args.load_threshold) if args.load_threshold is not None else
-             {"loadavg_start": list(os.getloadavg()), "waited_s": 0.0, "loaded": None})
+    quiet = (
+        wait_for_quiet(args.load_threshold)
+        if args.load_threshold is not None
+        else {"loadavg_start": list(os.getloadavg()), "waited_s": 0.0, "loaded": None}
+    )
     if quiet["loaded"] is None:  # no waiting asked: judge by the load at the start (2 cores: > 1.5 = shared)
         quiet["loaded"] = quiet["loadavg_start"][0] > 1.5
     out = output_path(args, quiet["loaded"])
@@ -462,9 +581,16 @@ def _run(args) -> Dict[str, Any]:
     result = header("paper_tables")
     result["settings"] = _settings(args, scenes, criteria, methods, budgets, children, downscale)
     result["paper"] = paper_values.describe(criteria)
-    result.update({"nerfs": {}, "results": {c: {"scenes": {}} for c in criteria}, "waldo": {}, "figures": [],
-                   "figures_dir": None,
-                   "seconds": {"train": {}, "explore": {}, "figures": {}, "waldo": 0.0}})
+    result.update(
+        {
+            "nerfs": {},
+            "results": {c: {"scenes": {}} for c in criteria},
+            "waldo": {},
+            "figures": [],
+            "figures_dir": None,
+            "seconds": {"train": {}, "explore": {}, "figures": {}, "waldo": 0.0},
+        }
+    )
 
     def figures_for(scene, criterion_name, runs):
         from waldo_jax import io
@@ -472,8 +598,7 @@ def _run(args) -> Dict[str, Any]:
         if result["figures_dir"] is None:
             result["figures_dir"] = str(io.prepare_output_dir(unique_path(figures)))
         start = time.perf_counter()
-        result["figures"] += write_figures(Path(result["figures_dir"]), scene, criterion_name, runs, args,
-                                           budgets[-1])
+        result["figures"] += write_figures(Path(result["figures_dir"]), scene, criterion_name, runs, args, budgets[-1])
         result["seconds"]["figures"][f"{scene}/{criterion_name}"] = round(time.perf_counter() - start, 2)
 
     try:
@@ -483,49 +608,69 @@ def _run(args) -> Dict[str, Any]:
             result["seconds"]["train"][scene] = nerf["seconds"]
             source = run_source(nerf["run_dir"], args.resolution)
             if scene == ROOM and source.info.get("procedural_seed") != args.room_seed:
-                raise SystemExit(f"{nerf['run_dir']} holds a NeRF of room seed {source.info.get('procedural_seed')}, "
-                                 f"not --room-seed {args.room_seed}: remove it or choose another --runs")
+                raise SystemExit(
+                    f"{nerf['run_dir']} holds a NeRF of room seed {source.info.get('procedural_seed')}, "
+                    f"not --room-seed {args.room_seed}: remove it or choose another --runs"
+                )
             result["nerfs"][scene]["render_size"] = [source.intrinsics.width, source.intrinsics.height]
             context = CriterionContext(room=source.room, weights_dir=args.weights, source=source.spec)
             explore_s = 0.0
             for criterion_name in criteria:
                 criterion = build_criterion(criterion_name, context)
                 record = result["results"][criterion_name]
-                record.update({"direction": criterion.direction, "description": criterion.description,
-                               "paper_table": paper_values.table_for(criterion_name)})
+                record.update(
+                    {
+                        "direction": criterion.direction,
+                        "description": criterion.description,
+                        "paper_table": paper_values.table_for(criterion_name),
+                    }
+                )
                 cells = record["scenes"].setdefault(scene, {})
 
                 def record_cell(budget, method, run, cells=cells, criterion_name=criterion_name):
                     nonlocal explore_s
                     c = cells.setdefault(budget, {})[method] = summarise(run)
                     explore_s += run.seconds["total"]
-                    say(f"{scene} {criterion_name} {budget} {method}: CVIR {pm(c['cvir_mean'], c['cvir_std'])} %, "
+                    say(
+                        f"{scene} {criterion_name} {budget} {method}: CVIR {pm(c['cvir_mean'], c['cvir_std'])} %, "
                         f"mCVIR {pm(c['mcvir_mean'], c['mcvir_std'])} % ({run.seconds['total']:.1f} s, "
-                        f"{c['n_train']} + {args.epochs} x {c['children_per_epoch']} images, {args.seeds} seeds)")
+                        f"{c['n_train']} + {args.epochs} x {c['children_per_epoch']} images, {args.seeds} seeds)"
+                    )
 
-                figures_for(scene, criterion_name,
-                            explore_cells(source, criterion, budgets, methods, args, children, record_cell))
+                figures_for(
+                    scene,
+                    criterion_name,
+                    explore_cells(source, criterion, budgets, methods, args, children, record_cell),
+                )
             result["seconds"]["explore"][scene] = round(explore_s, 2)
 
             if scene == ROOM and waldo_criteria:
                 t_waldo = time.perf_counter()
                 if args.reachable_samples > 0:
-                    result["waldo_reference"] = reachable_visibility(source, args.reachable_samples,
-                                                                     args.visibility_goal, args.seed)
-                    say(f"room: the best reachable visibility is {result['waldo_reference']['best']:.3f} "
-                        f"({args.reachable_samples} poses aimed at Waldo)")
+                    result["waldo_reference"] = reachable_visibility(
+                        source, args.reachable_samples, args.visibility_goal, args.seed
+                    )
+                    say(
+                        f"room: the best reachable visibility is {result['waldo_reference']['best']:.3f} "
+                        f"({args.reachable_samples} poses aimed at Waldo)"
+                    )
                 for criterion_name in waldo_criteria:
                     criterion = build_criterion(criterion_name, context)
                     by_budget = result["waldo"].setdefault(criterion_name, {})
 
                     def record_row(budget, method, run, by_budget=by_budget, criterion_name=criterion_name):
                         row = by_budget.setdefault(budget, {})[method] = waldo_row(run, args.visibility_goal)
-                        say(f"room {criterion_name} {budget} {method}: {row['found_share']:.0%} of seeds reach "
+                        say(
+                            f"room {criterion_name} {budget} {method}: {row['found_share']:.0%} of seeds reach "
                             f"{args.visibility_goal:.0%}, best visibility {fmt(row['best_visibility_mean'], 3)}, "
-                            f"renders to goal {fmt(row['renders_to_goal_mean'])} ({run.seconds['total']:.1f} s)")
+                            f"renders to goal {fmt(row['renders_to_goal_mean'])} ({run.seconds['total']:.1f} s)"
+                        )
 
-                    figures_for(scene, criterion_name,
-                                explore_cells(source, criterion, budgets, methods, args, children, record_row))
+                    figures_for(
+                        scene,
+                        criterion_name,
+                        explore_cells(source, criterion, budgets, methods, args, children, record_row),
+                    )
                 result["seconds"]["waldo"] = round(time.perf_counter() - t_waldo, 2)
             del source
             jax.clear_caches()  # the next scene has other shapes: nothing compiled here is reused
@@ -534,11 +679,14 @@ def _run(args) -> Dict[str, Any]:
         _write(result, out, quiet, t0)
         raise
 
-    result["tables"] = {c: criterion_table(c, result["results"][c]["scenes"], scenes, budgets, methods, children,
-                                           args.seeds) for c in criteria}
+    result["tables"] = {
+        c: criterion_table(c, result["results"][c]["scenes"], scenes, budgets, methods, children, args.seeds)
+        for c in criteria
+    }
     if result["waldo"]:
-        result["waldo_table"] = waldo_table(result["waldo"], budgets, methods, children, result.get("waldo_reference"),
-                                            args.room_seed)
+        result["waldo_table"] = waldo_table(
+            result["waldo"], budgets, methods, children, result.get("waldo_reference"), args.room_seed
+        )
     for table in result["tables"].values():
         print(table["text"] + "\n")
     if result["waldo"]:
@@ -564,10 +712,16 @@ def _write(result, out: Path, quiet, t0) -> Dict[str, Any]:
     from waldo_jax import io
 
     result["seconds"]["total"] = round(time.perf_counter() - t0, 2)
-    result.update({"loadavg_start": quiet["loadavg_start"], "loadavg_end": list(os.getloadavg()),
-                   "waited_for_load_s": quiet["waited_s"], "loaded": bool(quiet["loaded"]),
-                   "loaded_rule": "1-min load average at the start > 1.5 (2 cores), or still above --load-threshold "
-                                  "after waiting up to 5 minutes"})
+    result.update(
+        {
+            "loadavg_start": quiet["loadavg_start"],
+            "loadavg_end": list(os.getloadavg()),
+            "waited_for_load_s": quiet["waited_s"],
+            "loaded": bool(quiet["loaded"]),
+            "loaded_rule": "1-min load average at the start > 1.5 (2 cores), or still above --load-threshold "
+            "after waiting up to 5 minutes",
+        }
+    )
     out = unique_path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     io.write_json(out, result)

@@ -31,8 +31,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from waldo_jax.paths import data_dir  # noqa: E402
 
-__all__ = ["SOURCE_URL", "NERF", "TABLES", "CRITERION_TABLE", "SCENES", "STAND_INS", "PAPER_FILE", "table_for",
-           "lookup", "label", "describe", "stand_in_notes", "load_tables"]
+__all__ = [
+    "SOURCE_URL",
+    "NERF",
+    "TABLES",
+    "CRITERION_TABLE",
+    "SCENES",
+    "STAND_INS",
+    "PAPER_FILE",
+    "table_for",
+    "lookup",
+    "label",
+    "describe",
+    "stand_in_notes",
+    "load_tables",
+]
 
 SOURCE_URL = "https://arxiv.org/abs/2403.04508"
 NERF = "Instant-NGP"
@@ -40,9 +53,11 @@ SCENES = ("fox", "face")
 STAND_INS = {"fern": ("trex", "horns"), "garden": ("family",)}
 PAPER_FILE = Path("paper") / "finding_waldo_tables.json"
 
-_NETWORKS = {"saliency": ("BASNet", "saliency maximisation (number of salient pixels, BASNet)"),
-             "composition": ("SAMP-Net", "photo-composition score (SAMP-Net, mean opinion score in [1, 5])"),
-             "iqa": ("CONTRIQUE", "no-reference image quality (CONTRIQUE)")}
+_NETWORKS = {
+    "saliency": ("BASNet", "saliency maximisation (number of salient pixels, BASNet)"),
+    "composition": ("SAMP-Net", "photo-composition score (SAMP-Net, mean opinion score in [1, 5])"),
+    "iqa": ("CONTRIQUE", "no-reference image quality (CONTRIQUE)"),
+}
 
 
 def load_tables(path: Optional[Path] = None) -> Dict[str, Dict[str, Any]]:
@@ -57,19 +72,30 @@ def load_tables(path: Optional[Path] = None) -> Dict[str, Dict[str, Any]]:
         path = None if root is None else root / PAPER_FILE
     meta, note = None, ""
     if path is None or not Path(path).is_file():
-        note = (f"the paper's values are read from $WALDO_DATA/{PAPER_FILE.as_posix()}, not found here "
-                f"({path or 'WALDO_DATA unset'}); no value is typed in")
+        note = (
+            f"the paper's values are read from $WALDO_DATA/{PAPER_FILE.as_posix()}, not found here "
+            f"({path or 'WALDO_DATA unset'}); no value is typed in"
+        )
     else:
         meta = json.loads(Path(path).read_text(encoding="utf-8"))
     tables = {}
     for name, (network, criterion) in _NETWORKS.items():
         entry = (meta or {}).get("tables", {}).get(name, {})
-        values = {scene: {budget: {method: (float(cell["cvir"]), float(cell["mcvir"]))
-                                   for method, cell in methods.items()}
-                          for budget, methods in entry.get("values", {}).get(scene, {}).items()}
-                  for scene in SCENES if scene in entry.get("values", {})}
-        tables[name] = {"paper_network": network, "paper_criterion": criterion, "table": entry.get("table"),
-                        "values": values, "note": note}
+        values = {
+            scene: {
+                budget: {method: (float(cell["cvir"]), float(cell["mcvir"])) for method, cell in methods.items()}
+                for budget, methods in entry.get("values", {}).get(scene, {}).items()
+            }
+            for scene in SCENES
+            if scene in entry.get("values", {})
+        }
+        tables[name] = {
+            "paper_network": network,
+            "paper_criterion": criterion,
+            "table": entry.get("table"),
+            "values": values,
+            "note": note,
+        }
     return tables
 
 
@@ -77,8 +103,13 @@ def load_tables(path: Optional[Path] = None) -> Dict[str, Dict[str, Any]]:
 TABLES: Dict[str, Dict[str, Any]] = load_tables()
 
 # Which paper table each of our criteria stands in for (criteria not listed have none).
-CRITERION_TABLE = {"saliency": "saliency", "composition": "composition", "iqa_cnn": "iqa", "niqe": "iqa",
-                   "brisque": "iqa"}
+CRITERION_TABLE = {
+    "saliency": "saliency",
+    "composition": "composition",
+    "iqa_cnn": "iqa",
+    "niqe": "iqa",
+    "brisque": "iqa",
+}
 
 
 def table_for(criterion: str) -> Optional[str]:
@@ -102,37 +133,57 @@ def label(criterion: str) -> str:
         return f"paper: no table for {criterion}"
     entry = TABLES[table]
     number = f"Table {entry['table']}" if entry["table"] is not None else "table not read"
-    return (f"paper ({entry['paper_network']} on {NERF}, a different network and NeRF from ours; "
-            f"{SOURCE_URL}, {number})")
+    return f"paper ({entry['paper_network']} on {NERF}, a different network and NeRF from ours; {SOURCE_URL}, {number})"
 
 
 def stand_in_notes(scenes) -> list:
     """One line per stand-in scene among `scenes`: which of the paper's scenes it replaces."""
-    return [f"{scene} stands in for the paper's {' and '.join(STAND_INS[scene])} (a different scene: no (paper) row "
-            f"beside it)." for scene in scenes if scene in STAND_INS]
+    return [
+        f"{scene} stands in for the paper's {' and '.join(STAND_INS[scene])} (a different scene: no (paper) row "
+        f"beside it)."
+        for scene in scenes
+        if scene in STAND_INS
+    ]
 
 
 def describe(criteria) -> Dict[str, Any]:
     """The JSON record of the paper values used for `criteria`: label, availability, values, reason."""
-    out: Dict[str, Any] = {"source": SOURCE_URL, "file": f"$WALDO_DATA/{PAPER_FILE.as_posix()}", "nerf": NERF,
-                           "scenes": list(SCENES), "stand_ins": {k: list(v) for k, v in STAND_INS.items()},
-                           "comparable": "in kind only: different criterion networks and NeRF (see paper_values.py)",
-                           "criteria": {}}
+    out: Dict[str, Any] = {
+        "source": SOURCE_URL,
+        "file": f"$WALDO_DATA/{PAPER_FILE.as_posix()}",
+        "nerf": NERF,
+        "scenes": list(SCENES),
+        "stand_ins": {k: list(v) for k, v in STAND_INS.items()},
+        "comparable": "in kind only: different criterion networks and NeRF (see paper_values.py)",
+        "criteria": {},
+    }
     for criterion in criteria:
         table = table_for(criterion)
         if table is None:
-            out["criteria"][criterion] = {"paper_table": None, "available": False, "label": label(criterion),
-                                          "note": "the paper has no table for this criterion"}
+            out["criteria"][criterion] = {
+                "paper_table": None,
+                "available": False,
+                "label": label(criterion),
+                "note": "the paper has no table for this criterion",
+            }
             continue
         entry = TABLES[table]
         available = any(entry["values"].get(scene) for scene in SCENES)
         out["criteria"][criterion] = {
-            "paper_table": table, "paper_network": entry["paper_network"],
-            "paper_criterion": entry["paper_criterion"], "table_number": entry["table"],
-            "label": label(criterion), "available": available,
-            "values": {scene: {budget: {method: list(cell) for method, cell in methods.items()}
-                               for budget, methods in entry["values"].get(scene, {}).items()}
-                       for scene in SCENES if entry["values"].get(scene)},
+            "paper_table": table,
+            "paper_network": entry["paper_network"],
+            "paper_criterion": entry["paper_criterion"],
+            "table_number": entry["table"],
+            "label": label(criterion),
+            "available": available,
+            "values": {
+                scene: {
+                    budget: {method: list(cell) for method, cell in methods.items()}
+                    for budget, methods in entry["values"].get(scene, {}).items()
+                }
+                for scene in SCENES
+                if entry["values"].get(scene)
+            },
             "note": "" if available else entry["note"],
         }
     return out

@@ -2,7 +2,8 @@
 
 Per seed s (K seeds): an EGPS `explore` run on procedural:0 (`waldo_oracle`, low budget, seed s)
 gives the anchor poses (its top 10); the path search (seed s, each of `--methods`) starts from
-them, once per path score (`--aggregates`: the mean over frames, and a soft minimum). The found path is compared with (a) the straight path between the two best anchors and
+them, once per path score (`--aggregates`: the mean over frames, and a soft minimum). The found path is compared with
+(a) the straight path between the two best anchors and
 (b) the training trajectory (the spline through all training cameras in their order), all at the
 same F frames: the mean and the worst per-frame oracle score, with a 95 % bootstrap interval over
 the seeds, the rate of seeds where the found path beats each reference, the paths' smoothness
@@ -43,10 +44,15 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--methods", default="egps,evosax:CMA_ES")
-    parser.add_argument("--aggregates", default="mean,softmin",
-                        help="path scores to run each method with (softmin at --temperature)")
-    parser.add_argument("--temperature", type=float, default=0.005,
-                        help="softmin temperature (default 0.005: the room's oracle scores are ~0.01-0.1)")
+    parser.add_argument(
+        "--aggregates", default="mean,softmin", help="path scores to run each method with (softmin at --temperature)"
+    )
+    parser.add_argument(
+        "--temperature",
+        type=float,
+        default=0.005,
+        help="softmin temperature (default 0.005: the room's oracle scores are ~0.01-0.1)",
+    )
     parser.add_argument("--budget", default="low")
     parser.add_argument("--keyframes", type=int, default=4)
     parser.add_argument("--frames", type=int, default=24)
@@ -73,34 +79,71 @@ def main(argv=None) -> None:
     result["explore_seconds"] = round(time.perf_counter() - start, 1)
     cells = []
     for method, aggregate in [(m, a) for m in args.methods.split(",") for a in args.aggregates.split(",")]:
-        config = PathConfig(keyframes=args.keyframes, frames=args.frames, method=method, budget=args.budget,
-                            aggregate=aggregate, temperature=args.temperature)
+        config = PathConfig(
+            keyframes=args.keyframes,
+            frames=args.frames,
+            method=method,
+            budget=args.budget,
+            aggregate=aggregate,
+            temperature=args.temperature,
+        )
         rows, seconds = [], []
         for seed in range(args.seeds):
             begin = time.perf_counter()
-            path = run_path(source, criterion, config, limits, seed=seed,
-                            options=PathRunOptions(anchor_c2w=anchors[seed], anchors=f"explore egps seed {seed}"))
+            path = run_path(
+                source,
+                criterion,
+                config,
+                limits,
+                seed=seed,
+                options=PathRunOptions(anchor_c2w=anchors[seed], anchors=f"explore egps seed {seed}"),
+            )
             jax.block_until_ready(path.results[0].best_c2w)
             seconds.append(path.seconds["search"])
-            rows.append({"seed": seed, "found": {k: path.found[0][k] for k in FIGURES},
-                         "kept_limits": bool(path.results[0].found),
-                         **{name: {k: ref[k] for k in FIGURES} for name, ref in path.references.items()}})
-            print(f"[paths] {method} {aggregate} seed {seed}: found mean {rows[-1]['found']['mean']:.4g} worst "
-                  f"{rows[-1]['found']['worst']:.4g}; straight {rows[-1]['straight']['mean']:.4g} / "
-                  f"{rows[-1]['straight']['worst']:.4g}; training {rows[-1]['training']['mean']:.4g}; "
-                  f"{time.perf_counter() - begin:.0f} s", file=sys.stderr, flush=True)
-        cell = {"method": method, "aggregate": aggregate, "config": dataclasses.asdict(path.config), "cost": path.config.cost(),
-                "per_seed": rows, "search_seconds": summary(seconds, args.bootstrap)}
+            rows.append(
+                {
+                    "seed": seed,
+                    "found": {k: path.found[0][k] for k in FIGURES},
+                    "kept_limits": bool(path.results[0].found),
+                    **{name: {k: ref[k] for k in FIGURES} for name, ref in path.references.items()},
+                }
+            )
+            print(
+                f"[paths] {method} {aggregate} seed {seed}: found mean {rows[-1]['found']['mean']:.4g} worst "
+                f"{rows[-1]['found']['worst']:.4g}; straight {rows[-1]['straight']['mean']:.4g} / "
+                f"{rows[-1]['straight']['worst']:.4g}; training {rows[-1]['training']['mean']:.4g}; "
+                f"{time.perf_counter() - begin:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+        cell = {
+            "method": method,
+            "aggregate": aggregate,
+            "config": dataclasses.asdict(path.config),
+            "cost": path.config.cost(),
+            "per_seed": rows,
+            "search_seconds": summary(seconds, args.bootstrap),
+        }
         for who in ("found", "straight", "training"):
             cell[who] = {k: summary([r[who][k] for r in rows], args.bootstrap) for k in FIGURES}
         for ref in ("straight", "training"):
-            cell[f"beats_{ref}_rate"] = {k: float(np.mean([r["found"][k] > r[ref][k] for r in rows]))
-                                         for k in ("mean", "worst")}
+            cell[f"beats_{ref}_rate"] = {
+                k: float(np.mean([r["found"][k] > r[ref][k] for r in rows])) for k in ("mean", "worst")
+            }
         cell["kept_limits_rate"] = float(np.mean([r["kept_limits"] for r in rows]))
         cells.append(cell)
-    result.update({"scene": source.spec, "criterion": criterion.name,
-                   "limits": {"max_speed": float(limits.max_speed), "max_turn": float(limits.max_turn),
-                              "extent": float(limits.extent)}, "cells": cells})
+    result.update(
+        {
+            "scene": source.spec,
+            "criterion": criterion.name,
+            "limits": {
+                "max_speed": float(limits.max_speed),
+                "max_turn": float(limits.max_turn),
+                "extent": float(limits.extent),
+            },
+            "cells": cells,
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
 
 

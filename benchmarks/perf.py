@@ -55,9 +55,15 @@ sys.path.insert(0, str(HERE))
 from bench_common import emit, header, loaded_name  # noqa: E402
 
 PARTS = ("render_population", "render_trained", "train", "train_step", "criteria", "search_overhead", "explore")
-BENCHMARK_OF_PART = {"render_population": "render_population", "render_trained": "render_trained",
-                     "train": "train_quality", "train_step": "train_step", "criteria": "criteria_throughput",
-                     "search_overhead": "search_overhead", "explore": "explore_room"}
+BENCHMARK_OF_PART = {
+    "render_population": "render_population",
+    "render_trained": "render_trained",
+    "train": "train_quality",
+    "train_step": "train_step",
+    "criteria": "criteria_throughput",
+    "search_overhead": "search_overhead",
+    "explore": "explore_room",
+}
 PART_OF_BENCHMARK = {v: k for k, v in BENCHMARK_OF_PART.items()}
 PAPER_SEARCH_US_PER_POSE = (700.0, 800.0)
 
@@ -78,7 +84,9 @@ def part_command(part: str, args) -> list[str] | None:
 def _part_command(part: str, args) -> list[str] | None:
     quick = args.quick
     if part == "render_population":
-        extra = ["--poses", "16", "--resolutions", "32,64"] if quick else ["--poses", "256", "--resolutions", "64,128,256"]
+        extra = (
+            ["--poses", "16", "--resolutions", "32,64"] if quick else ["--poses", "256", "--resolutions", "64,128,256"]
+        )
         return ["render_population.py", *extra]
     if part == "render_trained":
         if not (args.run and args.scene):
@@ -94,8 +102,14 @@ def _part_command(part: str, args) -> list[str] | None:
     if part == "train":
         if not args.train_scene:
             return None
-        return ["train_quality.py", args.train_scene, "--seconds", "60" if quick else "300",
-                "--eval-at", "60" if quick else "60,120,300"]
+        return [
+            "train_quality.py",
+            args.train_scene,
+            "--seconds",
+            "60" if quick else "300",
+            "--eval-at",
+            "60" if quick else "60,120,300",
+        ]
     if part == "criteria":
         extra = ["--batch", "8", "--size", "128", "--repeats", "1"] if quick else []
         return ["criteria_throughput.py", *extra]
@@ -154,8 +168,7 @@ def collect(paths: list[str]) -> dict:
         date = str(data.get("date", ""))
         if part not in chosen or date > chosen[part][0]:
             chosen[part] = (date, str(path), data)
-    return {part: {"status": "collected", "file": file, "result": data}
-            for part, (_, file, data) in chosen.items()}
+    return {part: {"status": "collected", "file": file, "result": data} for part, (_, file, data) in chosen.items()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,11 +178,18 @@ def collect(paths: list[str]) -> dict:
 def _row(part, result, figure, value, unit, note=""):
     device = result.get("device", {})
     loaded = result.get("loaded", result.get("load", {}).get("loaded"))
-    return {"part": part, "figure": figure, "value": value, "unit": unit, "note": note,
-            "device": f"{device.get('platform', '?')}:{device.get('device_kind', '?')} x{device.get('device_count', '?')}"
-                      f" ({device.get('host_cpu_count', '?')} host cores)",
-            "commit": str(result.get("commit", "?"))[:10], "date": str(result.get("date", "?"))[:10],
-            "loaded": bool(loaded)}
+    return {
+        "part": part,
+        "figure": figure,
+        "value": value,
+        "unit": unit,
+        "note": note,
+        "device": f"{device.get('platform', '?')}:{device.get('device_kind', '?')} x{device.get('device_count', '?')}"
+        f" ({device.get('host_cpu_count', '?')} host cores)",
+        "commit": str(result.get("commit", "?"))[:10],
+        "date": str(result.get("date", "?"))[:10],
+        "loaded": bool(loaded),
+    }
 
 
 def summarise(part: str, r: dict) -> list[dict]:
@@ -184,24 +204,46 @@ def summarise(part: str, r: dict) -> list[dict]:
         m = r["marched"]
         setting = f"{r['timing_poses']} poses at {'x'.join(str(v) for v in r['timing_resolution'])}"
         rows.append(_row(part, r, "occupancy-grid render (trained)", m["rays_per_s"], "rays/s", setting))
-        rows.append(_row(part, r, "field evaluations per ray, occupancy grid",
-                         m.get("field_evaluations_per_ray_psnr_views", m["field_evaluations_per_ray"]),
-                         "evals/ray", f"held-out PSNR {m['psnr_test']:.2f} dB"))
+        rows.append(
+            _row(
+                part,
+                r,
+                "field evaluations per ray, occupancy grid",
+                m.get("field_evaluations_per_ray_psnr_views", m["field_evaluations_per_ray"]),
+                "evals/ray",
+                f"held-out PSNR {m['psnr_test']:.2f} dB",
+            )
+        )
     elif part == "render_trained":
         setting = f"{r['timing_poses']} poses at {'x'.join(str(v) for v in r['timing_size'])}"
         rows.append(_row(part, r, "marched render (trained)", r["rays_per_s"], "rays/s", setting))
-        rows.append(_row(part, r, "field evaluations per ray", r["evaluations_per_ray"], "evals/ray",
-                         f"step x{r['render_step_scale']:g}, held-out PSNR {r['psnr_test']:.2f} dB "
-                         f"({r['psnr_delta_db']:+.2f} dB)"))
+        rows.append(
+            _row(
+                part,
+                r,
+                "field evaluations per ray",
+                r["evaluations_per_ray"],
+                "evals/ray",
+                f"step x{r['render_step_scale']:g}, held-out PSNR {r['psnr_test']:.2f} dB "
+                f"({r['psnr_delta_db']:+.2f} dB)",
+            )
+        )
         rows.append(_row(part, r, "field passes per view", r["passes_per_view"], "passes", setting))
-        rows.append(_row(part, r, "field alone", r["field_points_per_s"], "points/s", "as many points, one pass a call"))
-        rows.append(_row(part, r, "render efficiency", r["render_efficiency"], "x",
-                         "rays/s x evaluations/ray / field points/s"))
+        rows.append(
+            _row(part, r, "field alone", r["field_points_per_s"], "points/s", "as many points, one pass a call")
+        )
+        rows.append(
+            _row(part, r, "render efficiency", r["render_efficiency"], "x", "rays/s x evaluations/ray / field points/s")
+        )
         if r.get("speedup_batched_over_loop") is not None:
-            rows.append(_row(part, r, "batched / per-pose loop (trained)", r["speedup_batched_over_loop"], "x", setting))
+            rows.append(
+                _row(part, r, "batched / per-pose loop (trained)", r["speedup_batched_over_loop"], "x", setting)
+            )
     elif part == "train_step":
-        setting = f"{r['scene']} {r['image_size'][0]}x{r['image_size'][1]}, {r['preset']} preset, " \
-                  f"{r['samples_per_batch']} samples"
+        setting = (
+            f"{r['scene']} {r['image_size'][0]}x{r['image_size'][1]}, {r['preset']} preset, "
+            f"{r['samples_per_batch']} samples"
+        )
         rows.append(_row(part, r, "training step", r["ms_per_step"], "ms", setting))
         rows.append(_row(part, r, "field forward + backward alone", r["field_fwd_bwd_ms"], "ms", setting))
         rows.append(_row(part, r, "step / field", r["step_over_field"], "x", setting))
@@ -209,39 +251,72 @@ def summarise(part: str, r: dict) -> list[dict]:
     elif part == "train":
         setting = f"{r['scene']} {r['image_size'][0]}x{r['image_size'][1]}, {r['preset']} preset"
         rows.append(_row(part, r, "training", r["rays_per_second"], "rays/s", setting))
-        rows.append(_row(part, r, f"held-out PSNR after {r['seconds']:.0f} s ({r['steps']} steps)", r["psnr_test"],
-                         "dB", setting))
+        rows.append(
+            _row(
+                part, r, f"held-out PSNR after {r['seconds']:.0f} s ({r['steps']} steps)", r["psnr_test"], "dB", setting
+            )
+        )
     elif part == "criteria":
         for name, c in sorted(r["criteria"].items(), key=lambda kv: -kv[1]["images_per_s"]):
-            rows.append(_row(part, r, f"criterion {name}", c["images_per_s"], "images/s",
-                             f"batch {r['batch']} at {r['size']}^2"))
+            rows.append(
+                _row(
+                    part, r, f"criterion {name}", c["images_per_s"], "images/s", f"batch {r['batch']} at {r['size']}^2"
+                )
+            )
     elif part == "search_overhead":
         n = r["generated_poses"]
         for name, m in r["methods"].items():
-            rows.append(_row(part, r, f"search overhead {name.upper()}", m["us_per_pose_best"], "us/pose",
-                             f"{n} poses, compiled; paper {PAPER_SEARCH_US_PER_POSE[0]:.0f}-"
-                             f"{PAPER_SEARCH_US_PER_POSE[1]:.0f} us"))
+            rows.append(
+                _row(
+                    part,
+                    r,
+                    f"search overhead {name.upper()}",
+                    m["us_per_pose_best"],
+                    "us/pose",
+                    f"{n} poses, compiled; paper {PAPER_SEARCH_US_PER_POSE[0]:.0f}-"
+                    f"{PAPER_SEARCH_US_PER_POSE[1]:.0f} us",
+                )
+            )
         ga = r.get("evosax_simple_ga", {})
         if ga.get("available"):
-            rows.append(_row(part, r, "evosax SimpleGA (same run)", ga["us_per_pose_best"], "us/pose",
-                             f"population {ga['population_size']}, {ga['generations']} generations"))
+            rows.append(
+                _row(
+                    part,
+                    r,
+                    "evosax SimpleGA (same run)",
+                    ga["us_per_pose_best"],
+                    "us/pose",
+                    f"population {ga['population_size']}, {ga['generations']} generations",
+                )
+            )
     elif part == "explore":
         for criterion, methods in r["runs"].items():
             for method, run in methods.items():
-                rows.append(_row(part, r, f"waldo explore room, {criterion}, {method.upper()}",
-                                 run["cli"]["wall_s"], "s",
-                                 f"low budget, {r['resolution']}^2, whole command"))
+                rows.append(
+                    _row(
+                        part,
+                        r,
+                        f"waldo explore room, {criterion}, {method.upper()}",
+                        run["cli"]["wall_s"],
+                        "s",
+                        f"low budget, {r['resolution']}^2, whole command",
+                    )
+                )
     return rows
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| part | figure | value | unit | setting | device | commit | date | loaded |",
-             "| --- | --- | ---: | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| part | figure | value | unit | setting | device | commit | date | loaded |",
+        "| --- | --- | ---: | --- | --- | --- | --- | --- | --- |",
+    ]
     for row in rows:
         value = row["value"]
         text = "n/a" if value is None else (f"{value:,.0f}" if abs(value) >= 100 else f"{value:.3g}")
-        lines.append(f"| {row['part']} | {row['figure']} | {text} | {row['unit']} | {row['note']} | "
-                     f"{row['device']} | {row['commit']} | {row['date']} | {'yes' if row['loaded'] else 'no'} |")
+        lines.append(
+            f"| {row['part']} | {row['figure']} | {text} | {row['unit']} | {row['note']} | "
+            f"{row['device']} | {row['commit']} | {row['date']} | {'yes' if row['loaded'] else 'no'} |"
+        )
     return "\n".join(lines)
 
 
@@ -253,11 +328,16 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", default=None, help="that run's scene (held-out images)")
     parser.add_argument("--downscale", default=None, help="the run's --downscale")
     parser.add_argument("--train-scene", default=None, help="scene for the training part (e.g. lego_tiny)")
-    parser.add_argument("--collect", nargs="+", default=None, metavar="FILE",
-                        help="assemble from component JSONs instead of measuring")
-    parser.add_argument("--load-threshold", type=float, default=None,
-                        help="passed to every part: the 1-min load average above which it waits (up to 5 min) "
-                             "and marks its result loaded (default: each part's own)")
+    parser.add_argument(
+        "--collect", nargs="+", default=None, metavar="FILE", help="assemble from component JSONs instead of measuring"
+    )
+    parser.add_argument(
+        "--load-threshold",
+        type=float,
+        default=None,
+        help="passed to every part: the 1-min load average above which it waits (up to 5 min) "
+        "and marks its result loaded (default: each part's own)",
+    )
     parser.add_argument("--out", default=None, help="also write the report here (never overwritten)")
     args = parser.parse_args(argv)
 
@@ -292,9 +372,13 @@ def main(argv=None) -> int:
                 rows += summarise(part, entries[part]["result"])
             except (KeyError, TypeError, ValueError) as error:
                 entries[part]["summary_error"] = f"{type(error).__name__}: {error}"
-    report.update(parts=entries, summary=rows, table_markdown=markdown(rows),
-                  paper_search_us_per_pose=list(PAPER_SEARCH_US_PER_POSE),
-                  loaded=any(row["loaded"] for row in rows))
+    report.update(
+        parts=entries,
+        summary=rows,
+        table_markdown=markdown(rows),
+        paper_search_us_per_pose=list(PAPER_SEARCH_US_PER_POSE),
+        loaded=any(row["loaded"] for row in rows),
+    )
     print(report["table_markdown"], file=sys.stderr)
     out = args.out
     if out and report["loaded"]:

@@ -33,8 +33,12 @@ from waldo_jax.types import Intrinsics  # noqa: E402
 def population(key, room, num_poses):
     """Random cameras inside the room looking at points near its middle."""
     k_o, k_t = jax.random.split(key)
-    origins = jax.random.uniform(k_o, (num_poses, 3), minval=jnp.array([-3.0, 0.8, -3.0]), maxval=jnp.array([3.0, 1.8, 3.0]))
-    targets = jax.random.uniform(k_t, (num_poses, 3), minval=jnp.array([-1.0, 0.2, -1.0]), maxval=jnp.array([1.0, 0.8, 1.0]))
+    origins = jax.random.uniform(
+        k_o, (num_poses, 3), minval=jnp.array([-3.0, 0.8, -3.0]), maxval=jnp.array([3.0, 1.8, 3.0])
+    )
+    targets = jax.random.uniform(
+        k_t, (num_poses, 3), minval=jnp.array([-1.0, 0.2, -1.0]), maxval=jnp.array([1.0, 0.8, 1.0])
+    )
     return jax.vmap(look_at, in_axes=(0, 0, None))(origins, targets, jnp.array([0.0, 1.0, 0.0]))
 
 
@@ -89,20 +93,29 @@ def main(argv=None):
     quiet = wait_for_quiet(args.load_threshold)
     room = make_room(0)
     c2w = population(jax.random.key(0), room, args.poses)
-    sizes = [measure(room, c2w, int(r), args.samples, args.ray_chunk, args.repeats)
-             for r in args.resolutions.split(",") if r.strip()]
+    sizes = [
+        measure(room, c2w, int(r), args.samples, args.ray_chunk, args.repeats)
+        for r in args.resolutions.split(",")
+        if r.strip()
+    ]
     for size in sizes:
-        print(f"{size['resolution']}^2: batched {size['batched_seconds_best']:.2f} s, loop {size['loop_seconds_best']:.2f} s "
-              f"({size['speedup_batched_over_loop']:.3f}x)", file=sys.stderr)
+        print(
+            f"{size['resolution']}^2: batched {size['batched_seconds_best']:.2f} s, loop "
+            f"{size['loop_seconds_best']:.2f} s "
+            f"({size['speedup_batched_over_loop']:.3f}x)",
+            file=sys.stderr,
+        )
     result = header("render_population")
-    result.update({
-        "poses": args.poses,
-        "samples_per_ray": args.samples,
-        "repeats": args.repeats,
-        "sizes": sizes,
-        "speedup_batched_over_loop": {str(s["resolution"]): s["speedup_batched_over_loop"] for s in sizes},
-        "min_speedup_batched_over_loop": min(s["speedup_batched_over_loop"] for s in sizes),
-    })
+    result.update(
+        {
+            "poses": args.poses,
+            "samples_per_ray": args.samples,
+            "repeats": args.repeats,
+            "sizes": sizes,
+            "speedup_batched_over_loop": {str(s["resolution"]): s["speedup_batched_over_loop"] for s in sizes},
+            "min_speedup_batched_over_loop": min(s["speedup_batched_over_loop"] for s in sizes),
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
 
 

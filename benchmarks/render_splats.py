@@ -35,7 +35,8 @@ cell's), so each cell also records its compiled program's own sizes (`memory_ana
 
   python benchmarks/render_splats.py --out benchmarks/results/render_splats_synthetic_cpu.json
   python benchmarks/render_splats.py --parts scenes --pair lego=runs/lego_splat:runs/lego_nerf \\
-      --pair fox=runs/fox_splat:runs/fox_nerf:../shared/scenes/fox:8 --out benchmarks/results/render_splats_scenes_cpu.json
+      --pair fox=runs/fox_splat:runs/fox_nerf:../shared/scenes/fox:8 --out
+      benchmarks/results/render_splats_scenes_cpu.json
   python benchmarks/render_splats.py --quick          # tiny synthetic smoke test (seconds)
 
 The JSON is printed; `--out` writes it (never over an earlier result; a shared machine's result goes
@@ -84,12 +85,27 @@ ISSUE_POPULATIONS = (1, 16, 256)
 # What a run measures by default, per backend (a CPU cannot do the 1M-splat or 256-pose cells in
 # reasonable time; they are recorded as skipped).
 DEFAULTS = {
-    "cpu": {"counts": (10_000, 100_000), "sizes": ISSUE_SIZES, "populations": (1, 16), "max_seconds_per_cell": 120.0,
-            "stages_cell": (100_000, 128, 16)},
-    "accelerator": {"counts": ISSUE_COUNTS, "sizes": ISSUE_SIZES, "populations": ISSUE_POPULATIONS,
-                    "max_seconds_per_cell": 60.0, "stages_cell": (100_000, 128, 256)},
-    "quick": {"counts": (2_000,), "sizes": (32,), "populations": (1, 4), "max_seconds_per_cell": 30.0,
-              "stages_cell": (2_000, 32, 4)},
+    "cpu": {
+        "counts": (10_000, 100_000),
+        "sizes": ISSUE_SIZES,
+        "populations": (1, 16),
+        "max_seconds_per_cell": 120.0,
+        "stages_cell": (100_000, 128, 16),
+    },
+    "accelerator": {
+        "counts": ISSUE_COUNTS,
+        "sizes": ISSUE_SIZES,
+        "populations": ISSUE_POPULATIONS,
+        "max_seconds_per_cell": 60.0,
+        "stages_cell": (100_000, 128, 256),
+    },
+    "quick": {
+        "counts": (2_000,),
+        "sizes": (32,),
+        "populations": (1, 4),
+        "max_seconds_per_cell": 30.0,
+        "stages_cell": (2_000, 32, 4),
+    },
 }
 BOX_HALF = 0.5  # the synthetic splats fill [-BOX_HALF, BOX_HALF]^3
 MAX_ELEVATION_DEG = 60.0
@@ -97,8 +113,10 @@ SCALE_SPREAD = 0.3  # sigma of the log-normal spread of the synthetic scales
 # Splats x poses one calibration call projects at once (count_pairs's pose loop holds [poses, N] arrays).
 CALIBRATION_SPLAT_POSES = 2**22
 SCENE_TARGET = {"size": 128, "population": 256, "ratio": 5.0, "psnr_within_db": 1.0}
-GPU_TARGETS = ({"count": 100_000, "size": 128, "population": 256, "views_per_s": 1000.0},
-               {"count": 1_000_000, "size": 256, "population": None, "views_per_s": 50.0})
+GPU_TARGETS = (
+    {"count": 100_000, "size": 128, "population": 256, "views_per_s": 1000.0},
+    {"count": 1_000_000, "size": 256, "population": None, "views_per_s": 50.0},
+)
 
 
 def log(message: str) -> None:
@@ -141,8 +159,9 @@ def synthetic_poses(count: int, fov_deg: float) -> np.ndarray:
     angle = i * math.pi * (3.0 - math.sqrt(5.0))  # the golden angle
     ring = np.sqrt(1.0 - z * z)
     origins = distance * np.stack([ring * np.cos(angle), ring * np.sin(angle), z], -1)
-    c2w = jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins, jnp.float32), jnp.zeros(3, jnp.float32),
-                                                     jnp.array([0.0, 0.0, 1.0], jnp.float32))
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(
+        jnp.asarray(origins, jnp.float32), jnp.zeros(3, jnp.float32), jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    )
     return np.asarray(c2w, np.float32)
 
 
@@ -156,7 +175,7 @@ def calibrate(splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: S
     group = max(1, min(64, CALIBRATION_SPLAT_POSES // max(splats.count, 1)))
     best = 0
     for first in range(0, len(c2w), group):
-        part = c2w[first:first + group]
+        part = c2w[first : first + group]
         if len(part) < group and len(c2w) > group:  # one compiled shape: pad with the last pose
             part = np.concatenate([part, np.repeat(part[-1:], group - len(part), axis=0)])
         best = max(best, calibrate_max_pairs(splats, part, intrinsics, config, margin=1.0))
@@ -178,11 +197,16 @@ def peak_memory() -> dict:
     except Exception:  # noqa: BLE001 - a backend without memory stats
         stats = None
     if device.platform != "cpu" and stats and "peak_bytes_in_use" in stats:
-        return {"bytes": int(stats["peak_bytes_in_use"]),
-                "what": "device memory_stats()['peak_bytes_in_use']: the process's peak so far, every earlier cell included"}
-    return {"bytes": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024,
-            "what": "getrusage(RUSAGE_SELF).ru_maxrss: the process's peak resident memory so far (host), every "
-                    "earlier cell included"}
+        return {
+            "bytes": int(stats["peak_bytes_in_use"]),
+            "what": "device memory_stats()['peak_bytes_in_use']: the process's peak so far, every earlier cell "
+            "included",
+        }
+    return {
+        "bytes": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024,
+        "what": "getrusage(RUSAGE_SELF).ru_maxrss: the process's peak resident memory so far (host), every "
+        "earlier cell included",
+    }
 
 
 def program_memory(compiled) -> Optional[dict]:
@@ -193,14 +217,17 @@ def program_memory(compiled) -> Optional[dict]:
         return None
     if analysis is None:
         return None
-    sizes = {name: int(getattr(analysis, f"{name}_size_in_bytes", 0) or 0)
-             for name in ("argument", "output", "temp", "generated_code")}
+    sizes = {
+        name: int(getattr(analysis, f"{name}_size_in_bytes", 0) or 0)
+        for name in ("argument", "output", "temp", "generated_code")
+    }
     sizes["total"] = sizes["argument"] + sizes["output"] + sizes["temp"]
     return sizes
 
 
-def compile_render(splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig,
-                   background: np.ndarray):
+def compile_render(
+    splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig, background: np.ndarray
+):
     """(the compiled batched render, compile seconds, its arguments): `render_splats` of all of `c2w`."""
 
     def run(splats, c2w, background):
@@ -246,25 +273,42 @@ def measure_cell(splats: Splats, count: int, size: int, population: int, args, b
     best, median = min(times), statistics.median(times)
     pairs = np.asarray(stats.pairs, np.float64)
     cell = {
-        "count": count, "size": size, "population": population, "status": "measured",
-        "views_per_s": population / best, "views_per_s_median": population / median,
+        "count": count,
+        "size": size,
+        "population": population,
+        "status": "measured",
+        "views_per_s": population / best,
+        "views_per_s_median": population / median,
         "rays_per_s": population * size * size / best,
-        "seconds_best": best, "seconds_median": median, "seconds_all": times, "repeats": len(times),
-        "first_call_s": first_s, "compile_s": compile_s, "calibration_s": calibration_s,
-        "max_pairs": max_pairs, "mean_pairs_per_view": float(pairs.mean()), "max_pairs_of_a_view": int(pairs.max()),
+        "seconds_best": best,
+        "seconds_median": median,
+        "seconds_all": times,
+        "repeats": len(times),
+        "first_call_s": first_s,
+        "compile_s": compile_s,
+        "calibration_s": calibration_s,
+        "max_pairs": max_pairs,
+        "mean_pairs_per_view": float(pairs.mean()),
+        "max_pairs_of_a_view": int(pairs.max()),
         "pairs_fill": float(pairs.max() / max_pairs),
-        "mean_visible_splats": float(np.mean(stats.visible)), "mean_chunks_per_view": float(np.mean(stats.chunks)),
-        "chunk_slots": config.chunk_slots(intrinsics), "max_tile_count": int(np.max(stats.max_tile_count)),
+        "mean_visible_splats": float(np.mean(stats.visible)),
+        "mean_chunks_per_view": float(np.mean(stats.chunks)),
+        "chunk_slots": config.chunk_slots(intrinsics),
+        "max_tile_count": int(np.max(stats.max_tile_count)),
         "alpha_slots_per_view": slots_per_view(config, intrinsics),
         "alpha_slots_per_s": population * slots_per_view(config, intrinsics) / best,
-        "pose_chunk": pose_chunk, "pair_overflow": overflow, "lossy_pixels": lossy,
+        "pose_chunk": pose_chunk,
+        "pair_overflow": overflow,
+        "lossy_pixels": lossy,
         "mean_acc": float(np.mean(np.asarray(output.acc))),
         "program_memory_bytes": program_memory(compiled),
         "peak_memory_bytes": peak_memory()["bytes"],
     }
     if overflow or lossy:  # recorded, and main fails after writing the JSON
-        log(f"  {count} splats, {size}^2, {population} poses: {overflow} pairs overflowed ({lossy} lossy pixels) "
-            "with max_pairs calibrated on these very poses")
+        log(
+            f"  {count} splats, {size}^2, {population} poses: {overflow} pairs overflowed ({lossy} lossy pixels) "
+            "with max_pairs calibrated on these very poses"
+        )
     return cell, lambda: compiled(*call_args)
 
 
@@ -277,8 +321,10 @@ def estimate_seconds(cell_work: float, count: int, measured: list, runs: int) ->
     if not pool:
         return None
     basis = same[-1] if same else max(pool, key=lambda c: c["alpha_slots_per_s"])
-    return {"seconds": runs * cell_work / basis["alpha_slots_per_s"],
-            "basis": f"{basis['count']} splats, {basis['size']}^2, {basis['population']} poses"}
+    return {
+        "seconds": runs * cell_work / basis["alpha_slots_per_s"],
+        "basis": f"{basis['count']} splats, {basis['size']}^2, {basis['population']} poses",
+    }
 
 
 def synthetic_part(args, base: SplatRenderConfig) -> tuple:
@@ -298,10 +344,20 @@ def synthetic_part(args, base: SplatRenderConfig) -> tuple:
                 work = population * slots_per_view(guess, intrinsics)
                 estimate = estimate_seconds(work, count, measured, 1 + args.repeats)
                 if estimate is not None and estimate["seconds"] > args.max_seconds_per_cell:
-                    reason = (f"estimated {estimate['seconds']:.0f} s for {1 + args.repeats} calls (from the alpha "
-                              f"slots/s of {estimate['basis']}) > --max-seconds-per-cell {args.max_seconds_per_cell:g}")
-                    cells.append({"count": count, "size": size, "population": population, "status": "skipped",
-                                  "reason": reason, "estimated_seconds": estimate["seconds"]})
+                    reason = (
+                        f"estimated {estimate['seconds']:.0f} s for {1 + args.repeats} calls (from the alpha "
+                        f"slots/s of {estimate['basis']}) > --max-seconds-per-cell {args.max_seconds_per_cell:g}"
+                    )
+                    cells.append(
+                        {
+                            "count": count,
+                            "size": size,
+                            "population": population,
+                            "status": "skipped",
+                            "reason": reason,
+                            "estimated_seconds": estimate["seconds"],
+                        }
+                    )
                     log(f"  {where}: skipped ({reason})")
                     continue
                 cell, render = measure_cell(splats, count, size, population, args, base)
@@ -311,25 +367,37 @@ def synthetic_part(args, base: SplatRenderConfig) -> tuple:
                     stages_of["cell"] = [count, size, population]
                 cells.append(cell)
                 measured.append(cell)
-                log(f"  {where}: {cell['views_per_s']:,.1f} views/s ({cell['seconds_best']:.3f} s), "
+                log(
+                    f"  {where}: {cell['views_per_s']:,.1f} views/s ({cell['seconds_best']:.3f} s), "
                     f"{cell['mean_pairs_per_view']:,.0f} pairs/view, max_pairs {cell['max_pairs']:,}, "
-                    f"pose_chunk {cell['pose_chunk']}, compile {cell['compile_s']:.1f} s")
+                    f"pose_chunk {cell['pose_chunk']}, compile {cell['compile_s']:.1f} s"
+                )
         del splats
     if not args.quick:
         for count in ISSUE_COUNTS:
             for size in ISSUE_SIZES:
                 for population in ISSUE_POPULATIONS:
                     if (count, size, population) not in requested:
-                        cells.append({"count": count, "size": size, "population": population, "status": "skipped",
-                                      "reason": "not in this run's grid (--counts {} --sizes {} --populations {}, "
-                                                "the {} default unless given)".format(
-                                                    *(",".join(map(str, v)) for v in
-                                                      (args.counts, args.sizes, args.populations)),
-                                                    args.backend_kind)})
+                        cells.append(
+                            {
+                                "count": count,
+                                "size": size,
+                                "population": population,
+                                "status": "skipped",
+                                "reason": "not in this run's grid (--counts {} --sizes {} --populations {}, "
+                                "the {} default unless given)".format(
+                                    *(",".join(map(str, v)) for v in (args.counts, args.sizes, args.populations)),
+                                    args.backend_kind,
+                                ),
+                            }
+                        )
     stages = None
     if args.stages_cell is not None and stages_of is None:
-        stages = {"cell": list(args.stages_cell), "status": "skipped",
-                  "reason": "the stages cell was not measured in this run (--stages-cell)"}
+        stages = {
+            "cell": list(args.stages_cell),
+            "status": "skipped",
+            "reason": "the stages cell was not measured in this run (--stages-cell)",
+        }
     elif stages_of is not None:
         stages = stages_of
     return cells, stages
@@ -344,8 +412,9 @@ def _checksum(*arrays) -> jax.Array:
     return sum(jnp.sum(jnp.asarray(a, jnp.float32)) for a in arrays)
 
 
-def stage_functions(splats: Splats, c2w, intrinsics: Intrinsics, config: SplatRenderConfig, pose_chunk: int,
-                    render) -> dict:
+def stage_functions(
+    splats: Splats, c2w, intrinsics: Intrinsics, config: SplatRenderConfig, pose_chunk: int, render
+) -> dict:
     """Functions of nothing, each with the renderer's pose loop over `c2w` (`lax.map`, `pose_chunk`): the
     projection alone, the projection + tile lists, and `render` (the cell's compiled `render_splats`)."""
 
@@ -360,15 +429,20 @@ def stage_functions(splats: Splats, c2w, intrinsics: Intrinsics, config: SplatRe
         def one(pose):
             p, total = projected(pose)
             return total + _checksum(*tile_lists(p, intrinsics, config))
+
         return jax.lax.map(one, c2w, batch_size=pose_chunk)
 
     c2w = jnp.asarray(c2w)
-    return {"project": functools.partial(jax.jit(project_only), c2w),
-            "project_tile_lists": functools.partial(jax.jit(with_lists), c2w), "render": render}
+    return {
+        "project": functools.partial(jax.jit(project_only), c2w),
+        "project_tile_lists": functools.partial(jax.jit(with_lists), c2w),
+        "render": render,
+    }
 
 
-def measure_stages(splats: Splats, size: int, population: int, max_pairs: int, render, args,
-                   base: SplatRenderConfig) -> dict:
+def measure_stages(
+    splats: Splats, size: int, population: int, max_pairs: int, render, args, base: SplatRenderConfig
+) -> dict:
     """Where one cell's time goes (see `stage_functions`); `render` is the cell's compiled render."""
     intrinsics = synthetic_camera(size, args.fov_deg)
     c2w = synthetic_poses(population, args.fov_deg)
@@ -381,17 +455,28 @@ def measure_stages(splats: Splats, size: int, population: int, max_pairs: int, r
     render_s = times["render"][0]
     composite_s = render_s - times["project_tile_lists"][0]
     result = {
-        "status": "measured", "pose_chunk": pose_chunk, "max_pairs": max_pairs, "repeats": args.repeats,
+        "status": "measured",
+        "pose_chunk": pose_chunk,
+        "max_pairs": max_pairs,
+        "repeats": args.repeats,
         "seconds_best": {name: t[0] for name, t in times.items()},
         "seconds_median": {name: t[1] for name, t in times.items()},
-        "project_s": project_s, "tile_lists_s": lists_s, "composite_s": composite_s, "render_s": render_s,
-        "fraction": {"project": project_s / render_s, "tile_lists": lists_s / render_s,
-                     "composite": composite_s / render_s},
+        "project_s": project_s,
+        "tile_lists_s": lists_s,
+        "composite_s": composite_s,
+        "render_s": render_s,
+        "fraction": {
+            "project": project_s / render_s,
+            "tile_lists": lists_s / render_s,
+            "composite": composite_s / render_s,
+        },
         "note": "best of each, timed alternately; tile_lists = (project + tile_lists) - project, composite = "
-                "render - (project + tile_lists) (gathers, the two chunk passes, the segmented scans, the image)",
+        "render - (project + tile_lists) (gathers, the two chunk passes, the segmented scans, the image)",
     }
-    log(f"stages ({splats.count} splats, {size}^2, {population} poses): project {project_s:.3f} s, tile lists "
-        f"{lists_s:.3f} s, composite {composite_s:.3f} s of {render_s:.3f} s")
+    log(
+        f"stages ({splats.count} splats, {size}^2, {population} poses): project {project_s:.3f} s, tile lists "
+        f"{lists_s:.3f} s, composite {composite_s:.3f} s of {render_s:.3f} s"
+    )
     return result
 
 
@@ -433,8 +518,15 @@ def pairs_from_args(args) -> list:
     if len(scenes) > len(splat_runs) or len(downscales) > len(splat_runs):
         raise SystemExit("--scene and --downscale go with a --splat-run / --nerf-run pair each")
     for i, (splat_run, nerf_run) in enumerate(zip(splat_runs, nerf_runs)):
-        pairs.append(ScenePair(Path(splat_run).name, splat_run, nerf_run, scenes[i] if i < len(scenes) else None,
-                               downscales[i] if i < len(downscales) else None))
+        pairs.append(
+            ScenePair(
+                Path(splat_run).name,
+                splat_run,
+                nerf_run,
+                scenes[i] if i < len(scenes) else None,
+                downscales[i] if i < len(downscales) else None,
+            )
+        )
     return pairs
 
 
@@ -511,16 +603,21 @@ def scene_part(pair: ScenePair, args) -> dict:
     if test_scene is None:
         raise SystemExit(f"{pair.name}: {pair.scene_path} has no held-out views")
     size = [test_scene.width, test_scene.height]
-    for what, have in (("NeRF", [scene.intrinsics.width, scene.intrinsics.height]),
-                       ("splat", splat_record.get("image_size"))):
+    for what, have in (
+        ("NeRF", [scene.intrinsics.width, scene.intrinsics.height]),
+        ("splat", splat_record.get("image_size")),
+    ):
         if have is not None and list(have) != size:
-            raise SystemExit(f"{pair.name}: held-out images are {size[0]}x{size[1]}, the {what} run was trained at "
-                             f"{have[0]}x{have[1]}: give the runs' downscale")
+            raise SystemExit(
+                f"{pair.name}: held-out images are {size[0]}x{size[1]}, the {what} run was trained at "
+                f"{have[0]}x{have[1]}: give the runs' downscale"
+            )
     nerf_background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
     splat_background = np.asarray(splat_record.get("background", nerf_background), np.float32)
     nerf_field = TrainedField.create(params, grid, config, scene.near, scene.far, nerf_background, scene.aabb)
-    base = SplatRenderConfig(tile_size=args.tile_size, chunk=args.chunk,
-                             background=tuple(float(v) for v in splat_background))
+    base = SplatRenderConfig(
+        tile_size=args.tile_size, chunk=args.chunk, background=tuple(float(v) for v in splat_background)
+    )
 
     log(f"{pair.name}: held-out PSNR of {test_scene.n_images} views at {size[0]}x{size[1]}")
     psnr_splats = evaluate_splats(splats, test_scene, base)
@@ -545,45 +642,75 @@ def scene_part(pair: ScenePair, args) -> dict:
         splat_best, nerf_best = times["splats"][0], times["nerf"][0]
         ratio = nerf_best / splat_best
         row = {
-            "size": side, "population": population,
-            "splats": {"views_per_s": population / splat_best, "rays_per_s": population * side * side / splat_best,
-                       "seconds_best": splat_best, "seconds_median": times["splats"][1],
-                       "seconds_all": times["splats"][2], "compile_s": compile_s,
-                       "max_pairs": splat_config.max_pairs, "mean_pairs_per_view": float(np.mean(stats.pairs)),
-                       "pair_overflow": overflow, "lossy_pixels": int(np.sum(stats.lossy_pixels)),
-                       "pose_chunk": min(default_pose_chunk(camera, splat_config), population)},
-            "nerf": {"views_per_s": population / nerf_best, "rays_per_s": population * side * side / nerf_best,
-                     "seconds_best": nerf_best, "seconds_median": times["nerf"][1], "seconds_all": times["nerf"][2],
-                     "render_step_scale": config.render_step_scale},
+            "size": side,
+            "population": population,
+            "splats": {
+                "views_per_s": population / splat_best,
+                "rays_per_s": population * side * side / splat_best,
+                "seconds_best": splat_best,
+                "seconds_median": times["splats"][1],
+                "seconds_all": times["splats"][2],
+                "compile_s": compile_s,
+                "max_pairs": splat_config.max_pairs,
+                "mean_pairs_per_view": float(np.mean(stats.pairs)),
+                "pair_overflow": overflow,
+                "lossy_pixels": int(np.sum(stats.lossy_pixels)),
+                "pose_chunk": min(default_pose_chunk(camera, splat_config), population),
+            },
+            "nerf": {
+                "views_per_s": population / nerf_best,
+                "rays_per_s": population * side * side / nerf_best,
+                "seconds_best": nerf_best,
+                "seconds_median": times["nerf"][1],
+                "seconds_all": times["nerf"][2],
+                "render_step_scale": config.render_step_scale,
+            },
             "ratio_views_per_s": ratio,
             "peak_memory_bytes": peak_memory()["bytes"],
         }
         rows.append(row)
-        log(f"  {side}^2, {population} poses: splats {row['splats']['views_per_s']:,.1f} views/s, NeRF "
-            f"{row['nerf']['views_per_s']:,.1f} views/s ({ratio:.2f}x)")
+        log(
+            f"  {side}^2, {population} poses: splats {row['splats']['views_per_s']:,.1f} views/s, NeRF "
+            f"{row['nerf']['views_per_s']:,.1f} views/s ({ratio:.2f}x)"
+        )
     difference = psnr_splats - psnr_nerf
-    at_target = next((r for r in rows if r["size"] == SCENE_TARGET["size"]
-                      and r["population"] == SCENE_TARGET["population"]), None)
+    at_target = next(
+        (r for r in rows if r["size"] == SCENE_TARGET["size"] and r["population"] == SCENE_TARGET["population"]), None
+    )
     cpu = jax.default_backend() == "cpu"
     met = None
     if at_target is not None and cpu:
-        met = bool(at_target["ratio_views_per_s"] >= SCENE_TARGET["ratio"] and difference >= -SCENE_TARGET["psnr_within_db"])
+        met = bool(
+            at_target["ratio_views_per_s"] >= SCENE_TARGET["ratio"] and difference >= -SCENE_TARGET["psnr_within_db"]
+        )
     return {
-        "name": pair.name, "splat_run": str(Path(pair.splat_run).resolve()),
-        "nerf_run": str(Path(pair.nerf_run).resolve()), "scene_path": str(Path(pair.scene_path).resolve()),
-        "downscale": pair.downscale, "training_resolution": size, "held_out_views": test_scene.n_images,
-        "splats": int(np.sum(np.asarray(model.splats.valid))), "sh_degree": model.splats.sh_degree,
+        "name": pair.name,
+        "splat_run": str(Path(pair.splat_run).resolve()),
+        "nerf_run": str(Path(pair.nerf_run).resolve()),
+        "scene_path": str(Path(pair.scene_path).resolve()),
+        "downscale": pair.downscale,
+        "training_resolution": size,
+        "held_out_views": test_scene.n_images,
+        "splats": int(np.sum(np.asarray(model.splats.valid))),
+        "sh_degree": model.splats.sh_degree,
         "backgrounds": {"splats": splat_background.tolist(), "nerf": nerf_background.tolist()},
-        "psnr": {"splats_train_json": splat_record.get("psnr_test"),
-                 "nerf_train_json": nerf_record.get("psnr_test", checkpoint.info.get("psnr_test")),
-                 "splats_measured": psnr_splats, "nerf_measured": psnr_nerf,
-                 "difference_db": difference},
+        "psnr": {
+            "splats_train_json": splat_record.get("psnr_test"),
+            "nerf_train_json": nerf_record.get("psnr_test", checkpoint.info.get("psnr_test")),
+            "splats_measured": psnr_splats,
+            "nerf_measured": psnr_nerf,
+            "difference_db": difference,
+        },
         "sizes": rows,
         "ratio_views_per_s": None if at_target is None else at_target["ratio_views_per_s"],
         "target_met": met,
-        "target_note": ("" if met is not None else
-                        "a CPU target, not judged on this backend" if not cpu else
-                        f"{SCENE_TARGET['size']}^2 x {SCENE_TARGET['population']} poses not measured"),
+        "target_note": (
+            ""
+            if met is not None
+            else "a CPU target, not judged on this backend"
+            if not cpu
+            else f"{SCENE_TARGET['size']}^2 x {SCENE_TARGET['population']} poses not measured"
+        ),
     }
 
 
@@ -600,8 +727,14 @@ def targets(cells: list, scenes: list, platform: str) -> list:
 
     gpu = platform == "gpu"
     for goal in GPU_TARGETS:
-        match = [c for c in cells if c.get("status") == "measured" and c["count"] == goal["count"]
-                 and c["size"] == goal["size"] and (goal["population"] is None or c["population"] == goal["population"])]
+        match = [
+            c
+            for c in cells
+            if c.get("status") == "measured"
+            and c["count"] == goal["count"]
+            and c["size"] == goal["size"]
+            and (goal["population"] is None or c["population"] == goal["population"])
+        ]
         best = max(match, key=lambda c: c["views_per_s"], default=None)
         pop = f"populations of {goal['population']}" if goal["population"] else "any population"
         text = f"GPU: >= {goal['views_per_s']:,.0f} views/s at {goal['size']}^2 for {goal['count']:,} splats ({pop})"
@@ -611,17 +744,30 @@ def targets(cells: list, scenes: list, platform: str) -> list:
             note = "not measured"
         elif not gpu:
             note += f"; measured on {platform}, not a GPU"
-        add(text, measured, (measured >= goal["views_per_s"]) if gpu and measured is not None else None, "views/s", note)
+        add(
+            text, measured, (measured >= goal["views_per_s"]) if gpu and measured is not None else None, "views/s", note
+        )
     for scene in scenes:
-        text = (f"CPU: {scene['name']}: fitted splats >= {SCENE_TARGET['ratio']:g}x the NeRF's views/s at "
-                f"{SCENE_TARGET['size']}^2 in populations of {SCENE_TARGET['population']}, held-out PSNR within "
-                f"{SCENE_TARGET['psnr_within_db']:g} dB or better")
-        measured = {"ratio_views_per_s": scene["ratio_views_per_s"], "psnr_difference_db": scene["psnr"]["difference_db"]}
+        text = (
+            f"CPU: {scene['name']}: fitted splats >= {SCENE_TARGET['ratio']:g}x the NeRF's views/s at "
+            f"{SCENE_TARGET['size']}^2 in populations of {SCENE_TARGET['population']}, held-out PSNR within "
+            f"{SCENE_TARGET['psnr_within_db']:g} dB or better"
+        )
+        measured = {
+            "ratio_views_per_s": scene["ratio_views_per_s"],
+            "psnr_difference_db": scene["psnr"]["difference_db"],
+        }
         add(text, measured, scene["target_met"], "x, dB", scene["target_note"])
     if not scenes:
-        add(f"CPU: fitted splats >= {SCENE_TARGET['ratio']:g}x the NeRF's views/s at {SCENE_TARGET['size']}^2 "
-            f"(populations of {SCENE_TARGET['population']}), held-out PSNR within {SCENE_TARGET['psnr_within_db']:g} dB",
-            None, None, "x, dB", "not measured (the scenes part needs --pair)")
+        add(
+            f"CPU: fitted splats >= {SCENE_TARGET['ratio']:g}x the NeRF's views/s at {SCENE_TARGET['size']}^2 "
+            f"(populations of {SCENE_TARGET['population']}), held-out PSNR within {SCENE_TARGET['psnr_within_db']:g} "
+            f"dB",
+            None,
+            None,
+            "x, dB",
+            "not measured (the scenes part needs --pair)",
+        )
     return rows
 
 
@@ -631,24 +777,37 @@ def _ints(text: str) -> tuple:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", default=None,
-                        help="comma list of synthetic, scenes (default: synthetic, plus scenes when pairs are given)")
-    parser.add_argument("--quick", action="store_true",
-                        help="tiny synthetic settings for a smoke test: 2k splats, 32^2, populations 1 and 4, 1 repeat")
+    parser.add_argument(
+        "--parts",
+        default=None,
+        help="comma list of synthetic, scenes (default: synthetic, plus scenes when pairs are given)",
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="tiny synthetic settings for a smoke test: 2k splats, 32^2, populations 1 and 4, 1 repeat",
+    )
     parser.add_argument("--counts", type=_ints, default=None, help="splat counts (default per backend)")
     parser.add_argument("--sizes", type=_ints, default=None, help="square image sides (default 64,128,256)")
     parser.add_argument("--populations", type=_ints, default=None, help="poses per call (default per backend)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per cell (default 3; --quick 1)")
-    parser.add_argument("--max-seconds-per-cell", type=float, default=None,
-                        help="skip a cell whose estimated timed calls pass this; cut its repeats to fit it "
-                             "(default 120 on a CPU, 60 on an accelerator)")
+    parser.add_argument(
+        "--max-seconds-per-cell",
+        type=float,
+        default=None,
+        help="skip a cell whose estimated timed calls pass this; cut its repeats to fit it "
+        "(default 120 on a CPU, 60 on an accelerator)",
+    )
     parser.add_argument("--sh-degree", type=int, default=0, help="SH degree of the synthetic splats")
     parser.add_argument("--fov-deg", type=float, default=50.0, help="field of view of the synthetic cameras")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile-size", type=int, default=SplatRenderConfig.tile_size)
     parser.add_argument("--chunk", type=int, default=SplatRenderConfig.chunk)
-    parser.add_argument("--stages-cell", default=None,
-                        help="COUNT,SIZE,POPULATION of the stage breakdown, or 'none' (default per backend)")
+    parser.add_argument(
+        "--stages-cell",
+        default=None,
+        help="COUNT,SIZE,POPULATION of the stage breakdown, or 'none' (default per backend)",
+    )
     parser.add_argument("--pair", action="append", help="NAME=SPLAT_RUN:NERF_RUN[:SCENE_PATH[:DOWNSCALE]] (repeatable)")
     parser.add_argument("--splat-run", action="append", help="a splat run folder (repeatable, with --nerf-run)")
     parser.add_argument("--nerf-run", action="append", help="a NeRF run folder (repeatable, with --splat-run)")
@@ -656,7 +815,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--downscale", action="append", type=float, help="the pair's downscale (default: train.json)")
     parser.add_argument("--scene-population", type=int, default=SCENE_TARGET["population"])
     parser.add_argument("--scene-sizes", type=_ints, default=(SCENE_TARGET["size"],))
-    parser.add_argument("--scene-repeats", type=int, default=None, help="timed rounds of the scenes part (default --repeats)")
+    parser.add_argument(
+        "--scene-repeats", type=int, default=None, help="timed rounds of the scenes part (default --repeats)"
+    )
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
@@ -680,8 +841,11 @@ def main(argv=None) -> dict:
         if len(args.stages_cell) != 3:
             parser.error("--stages-cell takes COUNT,SIZE,POPULATION or 'none'")
     pairs = pairs_from_args(args)
-    parts = ({"synthetic"} | ({"scenes"} if pairs else set()) if args.parts is None
-             else {p.strip() for p in args.parts.split(",") if p.strip()})
+    parts = (
+        {"synthetic"} | ({"scenes"} if pairs else set())
+        if args.parts is None
+        else {p.strip() for p in args.parts.split(",") if p.strip()}
+    )
     if parts - {"synthetic", "scenes"}:
         parser.error(f"--parts: unknown {sorted(parts - {'synthetic', 'scenes'})}")
     if "scenes" in parts and not pairs:
@@ -697,55 +861,74 @@ def main(argv=None) -> dict:
 
     measured = [c for c in cells if c["status"] == "measured"]
     result = header("render_splats")
-    result.update({
-        "settings": {
-            "parts": sorted(parts), "quick": args.quick, "defaults_of": args.backend_kind,
-            "counts": list(args.counts), "sizes": list(args.sizes), "populations": list(args.populations),
-            "repeats": args.repeats, "max_seconds_per_cell": args.max_seconds_per_cell, "sh_degree": args.sh_degree,
-            "fov_deg": args.fov_deg, "seed": args.seed, "box": [-BOX_HALF, BOX_HALF],
-            "scale": f"0.5 x N^(-1/3) x exp(N(0, {SCALE_SPREAD}^2)) per axis", "opacity": "uniform [0.1, 0.9]",
-            "poses": f"Fibonacci spiral, elevation within +-{MAX_ELEVATION_DEG:g} deg, z up, looking at the box centre, "
-                     "distance = bounding-sphere radius / sin(fov / 2)",
-            "renderer": {k: v for k, v in dataclasses.asdict(base).items() if k not in ("max_pairs", "background")},
-            "calibration": "max_pairs = calibrate_max_pairs(margin=1.0) on each cell's own poses",
-            "scene_population": args.scene_population, "scene_sizes": list(args.scene_sizes),
-            "scene_repeats": args.scene_repeats,
-        },
-        "synthetic": cells,
-        "views_per_s": {f"{c['count']}/{c['size']}/{c['population']}": c["views_per_s"] for c in measured},
-        "pair_overflow_total": int(sum(c["pair_overflow"] for c in measured)),
-        "stages": stages,
-        "scenes": scenes,
-        "peak_memory": peak_memory(),
-        "targets": targets(cells, scenes, platform),
-        "definitions": {
-            "views_per_s": "population / best seconds of one batched render_splats call of the whole population "
-                           "(compilation and the first call excluded, block_until_ready)",
-            "rays_per_s": "views_per_s x size^2",
-            "views_per_s key": "count/size/population",
-            "max_pairs": "(splat, tile) pairs a view may hold: calibrate_max_pairs(margin=1.0) on the cell's own poses",
-            "mean_pairs_per_view": "pairs the views needed (SplatStats.pairs), mean over the population",
-            "pairs_fill": "the most pairs a view needed / max_pairs",
-            "alpha_slots_per_view": "chunk_slots x chunk x tile_size^2: alpha evaluations of one pass over a view's "
-                                    "chunk slots (the renderer does two passes), whatever the view needs",
-            "pose_chunk": "poses per step of the renderer's pose loop (default_pose_chunk, at most the population)",
-            "pair_overflow": "pairs dropped over the population (must be 0: asserted)",
-            "program_memory_bytes": "XLA's memory analysis of the cell's compiled program (arguments, output, temp)",
-            "peak_memory_bytes": "the process's peak memory after the cell (see peak_memory.what): cumulative",
-            "stages": "one cell's projection, projection + tile lists, and whole render, each in the renderer's pose "
-                      "loop, timed alternately (best of --repeats); differences give each stage's share",
-            "ratio_views_per_s": "splats' views/s / NeRF's views/s at the same poses and camera, timed alternately",
-            "difference_db": "splats' re-measured held-out PSNR - NeRF's (both on the held-out views at the "
-                             "training resolution)",
-            "target_met": "CPU target: ratio >= 5 at 128^2 x 256 poses and difference_db >= -1 (null off a CPU)",
-        },
-    })
+    result.update(
+        {
+            "settings": {
+                "parts": sorted(parts),
+                "quick": args.quick,
+                "defaults_of": args.backend_kind,
+                "counts": list(args.counts),
+                "sizes": list(args.sizes),
+                "populations": list(args.populations),
+                "repeats": args.repeats,
+                "max_seconds_per_cell": args.max_seconds_per_cell,
+                "sh_degree": args.sh_degree,
+                "fov_deg": args.fov_deg,
+                "seed": args.seed,
+                "box": [-BOX_HALF, BOX_HALF],
+                "scale": f"0.5 x N^(-1/3) x exp(N(0, {SCALE_SPREAD}^2)) per axis",
+                "opacity": "uniform [0.1, 0.9]",
+                "poses": f"Fibonacci spiral, elevation within +-{MAX_ELEVATION_DEG:g} deg, z up, looking at the box "
+                f"centre, "
+                "distance = bounding-sphere radius / sin(fov / 2)",
+                "renderer": {k: v for k, v in dataclasses.asdict(base).items() if k not in ("max_pairs", "background")},
+                "calibration": "max_pairs = calibrate_max_pairs(margin=1.0) on each cell's own poses",
+                "scene_population": args.scene_population,
+                "scene_sizes": list(args.scene_sizes),
+                "scene_repeats": args.scene_repeats,
+            },
+            "synthetic": cells,
+            "views_per_s": {f"{c['count']}/{c['size']}/{c['population']}": c["views_per_s"] for c in measured},
+            "pair_overflow_total": int(sum(c["pair_overflow"] for c in measured)),
+            "stages": stages,
+            "scenes": scenes,
+            "peak_memory": peak_memory(),
+            "targets": targets(cells, scenes, platform),
+            "definitions": {
+                "views_per_s": "population / best seconds of one batched render_splats call of the whole population "
+                "(compilation and the first call excluded, block_until_ready)",
+                "rays_per_s": "views_per_s x size^2",
+                "views_per_s key": "count/size/population",
+                "max_pairs": "(splat, tile) pairs a view may hold: calibrate_max_pairs(margin=1.0) on the cell's own "
+                "poses",
+                "mean_pairs_per_view": "pairs the views needed (SplatStats.pairs), mean over the population",
+                "pairs_fill": "the most pairs a view needed / max_pairs",
+                "alpha_slots_per_view": "chunk_slots x chunk x tile_size^2: alpha evaluations of one pass over a "
+                "view's "
+                "chunk slots (the renderer does two passes), whatever the view needs",
+                "pose_chunk": "poses per step of the renderer's pose loop (default_pose_chunk, at most the population)",
+                "pair_overflow": "pairs dropped over the population (must be 0: asserted)",
+                "program_memory_bytes": "XLA's memory analysis of the cell's compiled program (arguments, output, "
+                "temp)",
+                "peak_memory_bytes": "the process's peak memory after the cell (see peak_memory.what): cumulative",
+                "stages": "one cell's projection, projection + tile lists, and whole render, each in the renderer's "
+                "pose "
+                "loop, timed alternately (best of --repeats); differences give each stage's share",
+                "ratio_views_per_s": "splats' views/s / NeRF's views/s at the same poses and camera, timed alternately",
+                "difference_db": "splats' re-measured held-out PSNR - NeRF's (both on the held-out views at the "
+                "training resolution)",
+                "target_met": "CPU target: ratio >= 5 at 128^2 x 256 poses and difference_db >= -1 (null off a CPU)",
+            },
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
     lost = [c for c in measured if c["pair_overflow"] or c["lossy_pixels"]]
     lost += [r for scene in scenes for r in scene["sizes"] if r["splats"]["pair_overflow"]]
     if lost:
-        raise AssertionError(f"{len(lost)} cells overflowed max_pairs calibrated on their own poses (recorded in "
-                             "the JSON): a bug in calibrate_max_pairs or the renderer")
+        raise AssertionError(
+            f"{len(lost)} cells overflowed max_pairs calibrated on their own poses (recorded in "
+            "the JSON): a bug in calibrate_max_pairs or the renderer"
+        )
     return result
 
 

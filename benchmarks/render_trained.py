@@ -17,7 +17,8 @@ one process:
             passes of the call / poses), `slots_used_fraction` (evaluations / slots the passes
             evaluated, padding included).
   field     the field alone on the very points that render evaluated (each ray's first marched samples,
-            in ray order), in calls of the renderer's largest pass size: `field_points_per_s`. `render_efficiency` = rays_per_s x evaluations_per_ray /
+            in ray order), in calls of the renderer's largest pass size: `field_points_per_s`. `render_efficiency` =
+            rays_per_s x evaluations_per_ray /
             field_points_per_s (1: the render costs its field evaluations and nothing more).
   loop      the same poses as a Python loop of one-pose calls: `speedup_batched_over_loop`.
 
@@ -104,7 +105,8 @@ def render_points(field: TrainedField, c2w, camera, evaluations: np.ndarray):
         origins, directions, _, _ = view_rays(c2w, camera, ids)
         t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid_, o, d, render_config))(origins, directions)
         t, _, _ = jax.vmap(lambda o, d, a, b: marching.march_ray(grid_, o, d, a, b, march))(
-            origins, directions, t_start, t_end)
+            origins, directions, t_start, t_end
+        )
         return origins, directions, t
 
     points, directions = [], []
@@ -120,8 +122,7 @@ def render_points(field: TrainedField, c2w, camera, evaluations: np.ndarray):
     return np.concatenate(points).astype(np.float32), np.concatenate(directions).astype(np.float32)
 
 
-def field_alone(config, params, points: np.ndarray, directions: np.ndarray, pass_slots: int,
-                packing: marched.Packing):
+def field_alone(config, params, points: np.ndarray, directions: np.ndarray, pass_slots: int, packing: marched.Packing):
     """The field on `points` [E, 3] along `directions` [E, 3] (the render's own samples, in ray order), in
     calls of `pass_slots` (the renderer's largest pass; the last call padded), each split into
     `packing.field_chunk` slots like the renderer's passes. Returns (a function that runs it, calls)."""
@@ -158,8 +159,14 @@ def quick_run(folder: Path, steps: int) -> tuple:
     test_scene = load_scene(scene_path, split="test")
     config = TrainConfig.preset("fast", train_scene, steps=steps)
     result = train(jax.random.key(0), train_scene, config, test_scene, progress=False)
-    save_checkpoint(folder / CHECKPOINT_NAME, result.params, result.config, train_scene, result.occupancy,
-                    info={"psnr_test": result.psnr_test, "steps": result.steps, "seconds": result.seconds})
+    save_checkpoint(
+        folder / CHECKPOINT_NAME,
+        result.params,
+        result.config,
+        train_scene,
+        result.occupancy,
+        info={"psnr_test": result.psnr_test, "steps": result.steps, "seconds": result.seconds},
+    )
     return folder, scene_path
 
 
@@ -167,19 +174,30 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", nargs="?", help="run directory with checkpoint.ckpt")
     parser.add_argument("scene_path", nargs="?", help="the run's scene (for the held-out images)")
-    parser.add_argument("--quick", action="store_true",
-                        help="train lego_tiny here (--quick-steps steps) and measure it: about a minute on 2 CPU cores")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="train lego_tiny here (--quick-steps steps) and measure it: about a minute on 2 CPU cores",
+    )
     parser.add_argument("--quick-steps", type=int, default=200)
     parser.add_argument("--downscale", type=float, default=None, help="as the run was trained")
     parser.add_argument("--poses", type=int, default=None, help="timing poses (default 16; --quick 2)")
     parser.add_argument("--size", default="144x256", help="timing image size WxH (default 144x256, fox's timing size)")
     parser.add_argument("--step-scales", default="1,2,3,4", help="marching steps (x the training step) for the curve")
-    parser.add_argument("--baseline-psnr", type=float, default=None,
-                        help="today's renderer's held-out PSNR on this run (default: this renderer at scale 1)")
+    parser.add_argument(
+        "--baseline-psnr",
+        type=float,
+        default=None,
+        help="today's renderer's held-out PSNR on this run (default: this renderer at scale 1)",
+    )
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats (default 3; --quick 1)")
-    parser.add_argument("--field-chunk", type=int, default=None,
-                        help="slots per field call within a pass (default: the backend's, Packing.for_backend; "
-                             "0: the whole pass in one call)")
+    parser.add_argument(
+        "--field-chunk",
+        type=int,
+        default=None,
+        help="slots per field call within a pass (default: the backend's, Packing.for_backend; "
+        "0: the whole pass in one call)",
+    )
     parser.add_argument("--skip", default="", help="comma-separated parts to skip: loop, curve")
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
@@ -209,8 +227,10 @@ def main(argv=None):
     config, scene = checkpoint.config, checkpoint.scene
     test_scene = load_scene(scene_path, downscale=args.downscale, split="test")
     if (test_scene.width, test_scene.height) != (scene.intrinsics.width, scene.intrinsics.height):
-        raise SystemExit(f"held-out images are {test_scene.width}x{test_scene.height}, the run was trained at "
-                         f"{scene.intrinsics.width}x{scene.intrinsics.height}: pass the run's --downscale")
+        raise SystemExit(
+            f"held-out images are {test_scene.width}x{test_scene.height}, the run was trained at "
+            f"{scene.intrinsics.width}x{scene.intrinsics.height}: pass the run's --downscale"
+        )
     background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
     params, grid = jax.device_put(checkpoint.params), jax.device_put(checkpoint.occupancy)
     packing = marched.Packing.for_backend(**({} if args.field_chunk is None else {"field_chunk": args.field_chunk}))
@@ -224,11 +244,13 @@ def main(argv=None):
     scale = config.render_step_scale
     curve = []
     scales = sorted({float(v) for v in args.step_scales.split(",") if v.strip()} | {1.0, scale})
-    for s in ([1.0, scale] if "curve" in skip else scales):
+    for s in [1.0, scale] if "curve" in skip else scales:
         if any(c["step_scale"] == s for c in curve):
             continue
         result = evaluate(params, grid, config, test_scene, step_scale=s)
-        curve.append({"step_scale": s, "psnr_test": result["psnr"], "evaluations_per_ray": result["evaluations_per_ray"]})
+        curve.append(
+            {"step_scale": s, "psnr_test": result["psnr"], "evaluations_per_ray": result["evaluations_per_ray"]}
+        )
         log(f"step x{s:g}: held-out PSNR {result['psnr']:.3f} dB, {result['evaluations_per_ray']:.1f} evaluations/ray")
     at_scale = next(c for c in curve if c["step_scale"] == scale)
     at_training_step = next(c for c in curve if c["step_scale"] == 1.0)
@@ -258,67 +280,91 @@ def main(argv=None):
     # round, so that a drift in the machine's speed falls on all of them alike.
     timings = {"batched": lambda: render(c2w), "field": field_fn}
     if "loop" not in skip:
-        timings["loop"] = lambda: [render(c2w[i:i + 1]) for i in range(poses)]
+        timings["loop"] = lambda: [render(c2w[i : i + 1]) for i in range(poses)]
     times = timed_alternately(timings, repeats)
     best, median, _ = times["batched"]
-    speed = {"seconds_best": best, "seconds_median": median, "rays_per_s": rays / best,
-             "evaluations_per_ray": evaluations / rays, "passes": passes, "passes_per_view": passes / poses,
-             "blocks": int(np.asarray(counted.passes).size), "rays_per_block": shape.rays,
-             "pass_slots": [r * shape.row_length for r in shape.rows], "slots_evaluated": slots,
-             "slots_used_fraction": evaluations / max(slots, 1),
-             "max_evaluations_of_a_ray": int(np.asarray(counted.evaluations).max()),
-             "rays_with_no_evaluation_fraction": float(np.mean(np.asarray(counted.evaluations) == 0))}
-    log(f"render: {best:.2f} s, {rays / best:,.0f} rays/s, {evaluations / rays:.1f} evaluations/ray, "
-        f"{passes / poses:.2f} passes/view")
+    speed = {
+        "seconds_best": best,
+        "seconds_median": median,
+        "rays_per_s": rays / best,
+        "evaluations_per_ray": evaluations / rays,
+        "passes": passes,
+        "passes_per_view": passes / poses,
+        "blocks": int(np.asarray(counted.passes).size),
+        "rays_per_block": shape.rays,
+        "pass_slots": [r * shape.row_length for r in shape.rows],
+        "slots_evaluated": slots,
+        "slots_used_fraction": evaluations / max(slots, 1),
+        "max_evaluations_of_a_ray": int(np.asarray(counted.evaluations).max()),
+        "rays_with_no_evaluation_fraction": float(np.mean(np.asarray(counted.evaluations) == 0)),
+    }
+    log(
+        f"render: {best:.2f} s, {rays / best:,.0f} rays/s, {evaluations / rays:.1f} evaluations/ray, "
+        f"{passes / poses:.2f} passes/view"
+    )
     # The padding of the field's last call is evaluated too: count only the render's points.
-    field = {"field_points": field_points, "field_calls": field_calls, "field_seconds_best": times["field"][0],
-             "field_seconds_median": times["field"][1], "field_points_per_s": field_points / times["field"][0]}
+    field = {
+        "field_points": field_points,
+        "field_calls": field_calls,
+        "field_seconds_best": times["field"][0],
+        "field_seconds_median": times["field"][1],
+        "field_points_per_s": field_points / times["field"][0],
+    }
     efficiency = speed["rays_per_s"] * speed["evaluations_per_ray"] / field["field_points_per_s"]
     log(f"field alone: {field['field_points_per_s']:,.0f} points/s; render efficiency {efficiency:.3f}")
 
     loop = None
     if "loop" in times:
         loop_best, loop_median, _ = times["loop"]
-        loop = {"seconds_best": loop_best, "seconds_median": loop_median,
-                "speedup_batched_over_loop": loop_best / best}
+        loop = {"seconds_best": loop_best, "seconds_median": loop_median, "speedup_batched_over_loop": loop_best / best}
         log(f"loop of one-pose calls: {loop_best:.2f} s ({loop_best / best:.2f}x)")
 
     out = header("render_trained")
-    out.update({
-        "run": "lego_tiny trained here (--quick)" if args.quick else str(Path(run).resolve()),
-        "run_info": {k: checkpoint.info.get(k) for k in ("psnr_test", "steps", "seconds")},
-        "scene_path": str(Path(scene_path).resolve()),
-        "training_resolution": [scene.intrinsics.width, scene.intrinsics.height],
-        "timing_size": [width, height],
-        "timing_poses": poses,
-        "psnr_views": test_scene.n_images,
-        "render_step_scale": scale,
-        "render_step_scale_calibrated_here": calibrated_here,
-        "calibration_curve": curve_calibration,
-        "quality_speed_curve": curve,
-        "psnr_test": at_scale["psnr_test"],
-        "psnr_test_training_step": at_training_step["psnr_test"],
-        "baseline_psnr": baseline,
-        "baseline_is": ("today's renderer on this run (--baseline-psnr)" if args.baseline_psnr is not None
-                        else "this renderer at the training step (scale 1)"),
-        "psnr_delta_db": at_scale["psnr_test"] - baseline,
-        "evaluations_per_ray_psnr_views": at_scale["evaluations_per_ray"],
-        **speed,
-        **field,
-        "render_efficiency": efficiency,
-        "batched_vs_loop": loop,
-        "speedup_batched_over_loop": None if loop is None else loop["speedup_batched_over_loop"],
-        "packing": {"rays_per_block": packing.rays_per_block, "slots_per_ray": packing.slots_per_ray,
-                    "row_length": packing.row_length, "max_rows_per_ray": packing.max_rows_per_ray,
-                    "field_chunk": packing.field_chunk},
-        "definitions": {
-            "evaluations_per_ray": "field evaluations the renderer spent per ray of the timing render",
-            "passes_per_view": "field passes (one per pass of a block) of the timing call / poses",
-            "field_points_per_s": "the field alone on the points the render evaluated, in calls of its largest pass",
-            "render_efficiency": "rays_per_s * evaluations_per_ray / field_points_per_s",
-            "psnr_delta_db": "held-out PSNR at the run's render step minus baseline_psnr",
-        },
-    })
+    out.update(
+        {
+            "run": "lego_tiny trained here (--quick)" if args.quick else str(Path(run).resolve()),
+            "run_info": {k: checkpoint.info.get(k) for k in ("psnr_test", "steps", "seconds")},
+            "scene_path": str(Path(scene_path).resolve()),
+            "training_resolution": [scene.intrinsics.width, scene.intrinsics.height],
+            "timing_size": [width, height],
+            "timing_poses": poses,
+            "psnr_views": test_scene.n_images,
+            "render_step_scale": scale,
+            "render_step_scale_calibrated_here": calibrated_here,
+            "calibration_curve": curve_calibration,
+            "quality_speed_curve": curve,
+            "psnr_test": at_scale["psnr_test"],
+            "psnr_test_training_step": at_training_step["psnr_test"],
+            "baseline_psnr": baseline,
+            "baseline_is": (
+                "today's renderer on this run (--baseline-psnr)"
+                if args.baseline_psnr is not None
+                else "this renderer at the training step (scale 1)"
+            ),
+            "psnr_delta_db": at_scale["psnr_test"] - baseline,
+            "evaluations_per_ray_psnr_views": at_scale["evaluations_per_ray"],
+            **speed,
+            **field,
+            "render_efficiency": efficiency,
+            "batched_vs_loop": loop,
+            "speedup_batched_over_loop": None if loop is None else loop["speedup_batched_over_loop"],
+            "packing": {
+                "rays_per_block": packing.rays_per_block,
+                "slots_per_ray": packing.slots_per_ray,
+                "row_length": packing.row_length,
+                "max_rows_per_ray": packing.max_rows_per_ray,
+                "field_chunk": packing.field_chunk,
+            },
+            "definitions": {
+                "evaluations_per_ray": "field evaluations the renderer spent per ray of the timing render",
+                "passes_per_view": "field passes (one per pass of a block) of the timing call / poses",
+                "field_points_per_s": "the field alone on the points the render evaluated, in calls of its largest "
+                "pass",
+                "render_efficiency": "rays_per_s * evaluations_per_ray / field_points_per_s",
+                "psnr_delta_db": "held-out PSNR at the run's render step minus baseline_psnr",
+            },
+        }
+    )
     emit_with_load(out, args.out, quiet, args.load_threshold)
     print(json.dumps(out))
     if tmp is not None:

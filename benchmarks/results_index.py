@@ -28,15 +28,25 @@ STATUS_WORDS = {"cpu", "gpu", "loaded", "packed", "rerun"}
 # Supersessions the file names cannot tell: {older file: (newer file, why)}.
 SUPERSEDED = {
     "train_fox_ds8_fast_cpu_loaded.json": (
-        "train_quality_fox_cpu_packed.json", "the same fast-preset fox training, with the packed training step"),
+        "train_quality_fox_cpu_packed.json",
+        "the same fast-preset fox training, with the packed training step",
+    ),
     "train_lego_tiny_fast_cpu.json": (
-        "train_quality_lego_tiny_cpu_packed.json", "the same fast-preset lego_tiny training, with the packed step"),
+        "train_quality_lego_tiny_cpu_packed.json",
+        "the same fast-preset lego_tiny training, with the packed step",
+    ),
     "render_trained_fox_steps_cpu_loaded.json": (
-        "render_trained_fox_cpu.json", "the marching-step curve of the packed renderer on the same fox run"),
+        "render_trained_fox_cpu.json",
+        "the marching-step curve of the packed renderer on the same fox run",
+    ),
     "render_population_cpu_p64_r64.json": (
-        "render_population_cpu_p256.json", "256 poses at 64^2, 128^2 and 256^2 (64^2 included)"),
+        "render_population_cpu_p256.json",
+        "256 poses at 64^2, 128^2 and 256^2 (64^2 included)",
+    ),
     "paper_tables_room_cpu_loaded.json": (
-        "paper_tables_room_seed0_paper_budget_cpu.json", "the same room and criteria at the paper's budgets, 10 seeds"),
+        "paper_tables_room_seed0_paper_budget_cpu.json",
+        "the same room and criteria at the paper's budgets, 10 seeds",
+    ),
 }
 
 HEX = re.compile(r"\b[0-9a-f]{7,40}\b")
@@ -72,7 +82,7 @@ def _commit(data: Dict[str, Any]) -> str:
     if not match:
         return "not recorded"
     text = match.group(0)[:7]
-    rest = str(raw)[match.end():]
+    rest = str(raw)[match.end() :]
     return text + ("+dirty" if rest.startswith("+dirty") or rest.startswith("+") else "")
 
 
@@ -104,14 +114,19 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     s = data.get("settings") or {}
     if bench == "paper_tables":
         children = s.get("children_override") or {}
-        budget = ("children per epoch " + ", ".join(f"{k}={v}" for k, v in children.items())) if children \
+        budget = (
+            ("children per epoch " + ", ".join(f"{k}={v}" for k, v in children.items()))
+            if children
             else "the paper's budgets"
+        )
         scenes = [f"room (seed {s.get('room_seed', 0)})" if x == "room" else x for x in s.get("scenes", [])]
         criteria = list(s.get("criteria") or [])
         if "room" in s.get("scenes", []):
             criteria += [c for c in s.get("waldo_criteria") or [] if c not in criteria]
-        return (f"CVIR / mCVIR of GRS, PIBS, EGPS: {_join(scenes)}; {_join(criteria)}; "
-                f"{s.get('resolution')} px, {s.get('seeds')} seeds, {budget}")
+        return (
+            f"CVIR / mCVIR of GRS, PIBS, EGPS: {_join(scenes)}; {_join(criteria)}; "
+            f"{s.get('resolution')} px, {s.get('seeds')} seeds, {budget}"
+        )
     if bench == "methods":
         argv = s.get("argv", "")
         scenes = s.get("scenes") or _argv_value(argv, "--scenes") or "room,fox"
@@ -120,8 +135,10 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         seeds = s.get("seeds") or _argv_value(argv, "--seeds")
         return f"search methods at equal cost: {scenes}; budgets {budgets}; methods {methods}; {seeds} seeds"
     if bench == "paths":
-        return (f"camera-path search on the room ({s.get('methods')}; {s.get('aggregates')}) against the straight "
-                f"path and the training trajectory; {s.get('seeds')} seeds, {s.get('budget')} budget")
+        return (
+            f"camera-path search on the room ({s.get('methods')}; {s.get('aggregates')}) against the straight "
+            f"path and the training trajectory; {s.get('seeds')} seeds, {s.get('budget')} budget"
+        )
     if bench == "render_trained":
         info = data.get("run_info") or {}
         scene = Path(str(data.get("scene_path", ""))).name or "?"
@@ -129,36 +146,57 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         chunk = re.search(r"field_chunk_(\d+)", name)
         if chunk:
             extra = f"; field calls of {chunk.group(1)} slots" if chunk.group(1) != "0" else "; one field call per pass"
-        if "steps" in name[len("render_trained"):]:
+        if "steps" in name[len("render_trained") :]:
             extra += "; coarser marching steps"
-        return (f"marched renderer on a trained {scene} run ({info.get('steps')} steps): rays/s, evaluations/ray, "
-                f"passes/view, the field alone, batched vs loop{extra}")
+        return (
+            f"marched renderer on a trained {scene} run ({info.get('steps')} steps): rays/s, evaluations/ray, "
+            f"passes/view, the field alone, batched vs loop{extra}"
+        )
     if bench == "render_population":
-        sizes = [f"{x['resolution']}^2" for x in data["sizes"]] if isinstance(data.get("sizes"), list) \
+        sizes = (
+            [f"{x['resolution']}^2" for x in data["sizes"]]
+            if isinstance(data.get("sizes"), list)
             else [f"{data.get('resolution')}^2"]
+        )
         return f"room, {data.get('poses')} poses at {_join(sizes)}: one batched render_views call vs a per-pose loop"
     if bench == "render_splats":
         syn = s.get("counts")
-        return (f"splat renderer on synthetic splats ({_join(syn or [])} splats; sizes {_join(s.get('sizes', []))}; "
-                f"populations {_join(s.get('populations', []))}): views/s and stage times")
+        return (
+            f"splat renderer on synthetic splats ({_join(syn or [])} splats; sizes {_join(s.get('sizes', []))}; "
+            f"populations {_join(s.get('populations', []))}): views/s and stage times"
+        )
     if bench == "train_quality":
         size = data.get("image_size") or ["?", "?"]
-        return (f"held-out PSNR against training time: {data.get('scene')} {size[0]}x{size[1]}, "
-                f"{data.get('preset')} preset, {data.get('steps')} steps")
+        return (
+            f"held-out PSNR against training time: {data.get('scene')} {size[0]}x{size[1]}, "
+            f"{data.get('preset')} preset, {data.get('steps')} steps"
+        )
     if bench == "train_step":
-        return (f"ms per training step against the field's forward + backward: {data.get('scene')}, "
-                f"{data.get('samples_per_batch')} samples a step")
+        return (
+            f"ms per training step against the field's forward + backward: {data.get('scene')}, "
+            f"{data.get('samples_per_batch')} samples a step"
+        )
     if bench == "criteria_throughput":
-        return f"images/s of every image criterion: batch {data.get('batch')} at {data.get('size')}^2 ({data.get('images')})"
+        return (
+            f"images/s of every image criterion: batch {data.get('batch')} at {data.get('size')}^2 "
+            f"({data.get('images')})"
+        )
     if bench == "search_overhead":
-        return f"us per generated pose of GRS / PIBS / EGPS without render or score ({data.get('generated_poses')} poses), vs evosax SimpleGA"
+        return (
+            f"us per generated pose of GRS / PIBS / EGPS without render or score ({data.get('generated_poses')} "
+            f"poses), vs evosax SimpleGA"
+        )
     if bench == "explore_room":
-        return (f"whole `waldo explore {data.get('source')}` command at {data.get('resolution')} px, "
-                f"{data.get('budget')} budget, criteria {_join(data.get('runs', {}))}")
+        return (
+            f"whole `waldo explore {data.get('source')}` command at {data.get('resolution')} px, "
+            f"{data.get('budget')} budget, criteria {_join(data.get('runs', {}))}"
+        )
     if bench == "trust_guard":
         methods = sorted({row.get("method") for row in data.get("guard", [])})
-        return (f"the trust guard on the demo's NeRF (procedural:{data.get('room_seed')}): waldo_found guarded by "
-                f"trust at thresholds, {_join(methods)}, {s.get('seeds')} seeds; trust vs render PSNR")
+        return (
+            f"the trust guard on the demo's NeRF (procedural:{data.get('room_seed')}): waldo_found guarded by "
+            f"trust at thresholds, {_join(methods)}, {s.get('seeds')} seeds; trust vs render PSNR"
+        )
     if bench == "perf":
         return f"the collected performance report: {data.get('mode')}"
     if bench == "before_packed_renderer":
@@ -167,7 +205,10 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         return "`waldo demo` end to end (full settings): stage times, CVIR / mCVIR per method"
     if bench.startswith("waldo train"):
         info = data.get("train_json") or {}
-        return f"`waldo train` ({info.get('preset')} preset, {info.get('steps')} steps): {Path(str(info.get('scene_path', ''))).name}"
+        return (
+            f"`waldo train` ({info.get('preset')} preset, {info.get('steps')} steps): "
+            f"{Path(str(info.get('scene_path', ''))).name}"
+        )
     return bench
 
 
@@ -175,10 +216,20 @@ def rows() -> List[Dict[str, str]]:
     entries = []
     for path in sorted(RESULTS.glob("*.json")):
         data = json.loads(path.read_text(encoding="utf-8"))
-        entries.append({"file": path.name, "benchmark": str(data.get("benchmark", "?")), "device": _device(data),
-                        "commit": _commit(data), "date": _date(data), "sort_date": str(data.get("date", "")),
-                        "loaded": _loaded(path.name, data), "what": _what(path.name, data), "key": _key(path.name),
-                        "status": "current"})
+        entries.append(
+            {
+                "file": path.name,
+                "benchmark": str(data.get("benchmark", "?")),
+                "device": _device(data),
+                "commit": _commit(data),
+                "date": _date(data),
+                "sort_date": str(data.get("date", "")),
+                "loaded": _loaded(path.name, data),
+                "what": _what(path.name, data),
+                "key": _key(path.name),
+                "status": "current",
+            }
+        )
     by_key: Dict[tuple, List[Dict[str, str]]] = {}
     for entry in entries:
         by_key.setdefault((entry["benchmark"], entry["key"]), []).append(entry)
@@ -197,17 +248,23 @@ def rows() -> List[Dict[str, str]]:
 
 
 def render() -> str:
-    lines = ["# Result files", "",
-             "Generated by `python benchmarks/results_index.py` from the JSONs in this folder: do not edit by hand.",
-             "Each JSON holds the full record (settings, versions, XLA flags, load averages); figures folders",
-             "(`*_figures/`) belong to the JSON of the same name. *loaded*: measured while other jobs shared the",
-             "machine, so its timings are pessimistic (its scores are not affected); n/r: not recorded.",
-             "A superseded file is kept because the docs cite it as the \"before\" of a change.", "",
-             "| file | benchmark | device | commit | date | loaded | what it measured | status |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Result files",
+        "",
+        "Generated by `python benchmarks/results_index.py` from the JSONs in this folder: do not edit by hand.",
+        "Each JSON holds the full record (settings, versions, XLA flags, load averages); figures folders",
+        "(`*_figures/`) belong to the JSON of the same name. *loaded*: measured while other jobs shared the",
+        "machine, so its timings are pessimistic (its scores are not affected); n/r: not recorded.",
+        'A superseded file is kept because the docs cite it as the "before" of a change.',
+        "",
+        "| file | benchmark | device | commit | date | loaded | what it measured | status |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for e in rows():
-        lines.append(f"| [{e['file']}]({e['file']}) | {e['benchmark']} | {e['device']} | `{e['commit']}` | {e['date']} | "
-                     f"{e['loaded']} | {e['what']} | {e['status']} |")
+        lines.append(
+            f"| [{e['file']}]({e['file']}) | {e['benchmark']} | {e['device']} | `{e['commit']}` | {e['date']} | "
+            f"{e['loaded']} | {e['what']} | {e['status']} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -218,7 +275,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     text = render()
     old = INDEX.read_text(encoding="utf-8") if INDEX.exists() else ""
     if args.check:
-        print("INDEX.md is up to date" if old == text else "INDEX.md is out of date: run python benchmarks/results_index.py")
+        print(
+            "INDEX.md is up to date"
+            if old == text
+            else "INDEX.md is out of date: run python benchmarks/results_index.py"
+        )
         return 0 if old == text else 1
     if old != text:
         INDEX.write_text(text, encoding="utf-8")

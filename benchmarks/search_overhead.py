@@ -58,15 +58,10 @@ def training_ring(num_views: int) -> np.ndarray:
     """float32 [num_views, 4, 4]: cameras on a ring of radius 3 at heights 1..2, looking at the middle."""
     angle = np.linspace(0.0, 2.0 * np.pi, num_views, endpoint=False)
     origins = np.stack([3.0 * np.cos(angle), 1.0 + (np.arange(num_views) % 3) / 2.0, 3.0 * np.sin(angle)], -1)
-    c2w = jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins, jnp.float32), jnp.zeros(3),
-                                                      jnp.array([0.0, 1.0, 0.0]))
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(
+        jnp.asarray(origins, jnp.float32), jnp.zeros(3), jnp.array([0.0, 1.0, 0.0])
+    )
     return np.asarray(c2w, np.float32)
-
-
-
-
-
-
 
 
 def time_method(name: str, initial: Initial, config: ExploreConfig, repeats: int) -> dict:
@@ -188,21 +183,25 @@ def main(argv=None):
     simple_ga = time_simple_ga(args.children, args.epochs, args.repeats)
 
     result = header("search_overhead")
-    result.update({
-        "train_views": args.train,
-        "epochs": args.epochs,
-        "children_per_epoch": args.children,
-        "generated_poses": args.epochs * args.children,
-        "repeats": args.repeats,
-        "score_fn": "minus the distance of the camera origin to a fixed point (no render)",
-        "target_us_per_pose": 5.0,
-        "paper_us_per_pose_python": [700.0, 800.0],
-        "methods": methods,
-        "evosax_simple_ga": simple_ga,
-        "egps_vs_simple_ga_per_generation": (
-            methods["egps"]["us_per_epoch_best"] / simple_ga["us_per_generation_best"]
-            if "egps" in methods and simple_ga.get("available") else None),
-    })
+    result.update(
+        {
+            "train_views": args.train,
+            "epochs": args.epochs,
+            "children_per_epoch": args.children,
+            "generated_poses": args.epochs * args.children,
+            "repeats": args.repeats,
+            "score_fn": "minus the distance of the camera origin to a fixed point (no render)",
+            "target_us_per_pose": 5.0,
+            "paper_us_per_pose_python": [700.0, 800.0],
+            "methods": methods,
+            "evosax_simple_ga": simple_ga,
+            "egps_vs_simple_ga_per_generation": (
+                methods["egps"]["us_per_epoch_best"] / simple_ga["us_per_generation_best"]
+                if "egps" in methods and simple_ga.get("available")
+                else None
+            ),
+        }
+    )
     emit_with_load(result, args.out, quiet, args.load_threshold)
 
 

@@ -75,7 +75,7 @@ class CpuShare:
     @staticmethod
     def _own() -> float:
         stat = Path("/proc/self/stat").read_text()
-        fields = stat[stat.rindex(")") + 2:].split()
+        fields = stat[stat.rindex(")") + 2 :].split()
         return float(fields[11]) + float(fields[12])  # utime + stime (all threads), in ticks
 
     def start(self):
@@ -88,8 +88,6 @@ class CpuShare:
         return {"own_cores": own / seconds, "others_cores": max(0.0, busy - own) / seconds, "seconds": seconds}
 
 
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scene_path")
@@ -98,12 +96,18 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=None, help="default: the preset's")
     parser.add_argument("--seconds", type=float, default=None, help="training wall-clock budget (default: none)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--eval-at", default="60,120,300,600",
-                        help="comma-separated training seconds after which to measure held-out PSNR")
+    parser.add_argument(
+        "--eval-at",
+        default="60,120,300,600",
+        help="comma-separated training seconds after which to measure held-out PSNR",
+    )
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--others-threshold", type=float, default=0.5)
-    parser.add_argument("--checkpoint-out", default=None,
-                        help="also save the trained run (checkpoint.ckpt) into this new folder (keep it out of the repo)")
+    parser.add_argument(
+        "--checkpoint-out",
+        default=None,
+        help="also save the trained run (checkpoint.ckpt) into this new folder (keep it out of the repo)",
+    )
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
     args = parser.parse_args(argv)
 
@@ -127,8 +131,15 @@ def main(argv=None):
         if crossed and done < config.steps and not over_budget:
             eval_at[:] = [t for t in eval_at if t > seconds]
             psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
-            checkpoints.append({"step": done, "train_seconds": round(seconds, 2), "psnr_test": psnr,
-                                "train_psnr_batch": entry["psnr"], "loadavg_1min": os.getloadavg()[0]})
+            checkpoints.append(
+                {
+                    "step": done,
+                    "train_seconds": round(seconds, 2),
+                    "psnr_test": psnr,
+                    "train_psnr_batch": entry["psnr"],
+                    "loadavg_1min": os.getloadavg()[0],
+                }
+            )
             print(f"step {done}: {seconds:.0f} s, held-out PSNR {psnr:.2f} dB", file=sys.stderr)
         if over_budget and done < config.steps:
             stopped_by[0] = "seconds"
@@ -144,45 +155,56 @@ def main(argv=None):
     # step, the final evaluation) is evaluation time.
     eval_seconds = time.perf_counter() - start - run.seconds
     last = next(h for h in reversed(run.history) if "loss" in h)
-    checkpoints.append({"step": run.steps, "train_seconds": round(run.seconds, 2), "psnr_test": run.psnr_test,
-                        "train_psnr_batch": last["psnr"], "loadavg_1min": os.getloadavg()[0]})
+    checkpoints.append(
+        {
+            "step": run.steps,
+            "train_seconds": round(run.seconds, 2),
+            "psnr_test": run.psnr_test,
+            "train_psnr_batch": last["psnr"],
+            "loadavg_1min": os.getloadavg()[0],
+        }
+    )
     load_after = os.getloadavg()
     loaded = load_before[0] > args.load_threshold or cpu["others_cores"] > args.others_threshold
 
     result = header("train_quality")
-    result.update({
-        "scene_path": str(Path(args.scene_path).resolve()),
-        "scene": train_scene.name,
-        "scene_format": train_scene.format,
-        "downscale": train_scene.metadata.get("downscale"),
-        "image_size": [train_scene.width, train_scene.height],
-        "n_train": train_scene.n_images,
-        "n_test": test_scene.n_images,
-        "preset": args.preset,
-        "seed": args.seed,
-        "budget_seconds": args.seconds,
-        "steps_planned": config.steps,
-        "steps": run.steps,
-        "stopped_by": stopped_by[0],
-        "seconds": round(run.seconds, 2),
-        "compile_seconds": round(run.compile_seconds, 2),
-        "eval_seconds_excluded": round(eval_seconds, 2),
-        "rays_per_second": run.rays_per_second,
-        "steps_per_second": run.steps / max(run.seconds, 1e-9),
-        "psnr_test": run.psnr_test,
-        "psnr_test_training_step": run.psnr_test_training_step,
-        "render_step_scale": run.config.render_step_scale,
-        "render_step_curve": run.render_step_curve,
-        "checkpoints": checkpoints,
-        "loadavg_start": list(load_before),
-        "loadavg_end": list(load_after),
-        "cpu_during_training": {k: round(v, 3) for k, v in cpu.items()},
-        "loaded": loaded,
-        "loaded_rule": (f"loaded = 1-min load average before the run > {args.load_threshold} or other processes "
-                        f"used > {args.others_threshold} cores on average during training (from /proc; this "
-                        "process's own threads excluded, since a 2-core training run alone reads ~2 in loadavg)"),
-        "config": run.config.to_dict(),
-    })
+    result.update(
+        {
+            "scene_path": str(Path(args.scene_path).resolve()),
+            "scene": train_scene.name,
+            "scene_format": train_scene.format,
+            "downscale": train_scene.metadata.get("downscale"),
+            "image_size": [train_scene.width, train_scene.height],
+            "n_train": train_scene.n_images,
+            "n_test": test_scene.n_images,
+            "preset": args.preset,
+            "seed": args.seed,
+            "budget_seconds": args.seconds,
+            "steps_planned": config.steps,
+            "steps": run.steps,
+            "stopped_by": stopped_by[0],
+            "seconds": round(run.seconds, 2),
+            "compile_seconds": round(run.compile_seconds, 2),
+            "eval_seconds_excluded": round(eval_seconds, 2),
+            "rays_per_second": run.rays_per_second,
+            "steps_per_second": run.steps / max(run.seconds, 1e-9),
+            "psnr_test": run.psnr_test,
+            "psnr_test_training_step": run.psnr_test_training_step,
+            "render_step_scale": run.config.render_step_scale,
+            "render_step_curve": run.render_step_curve,
+            "checkpoints": checkpoints,
+            "loadavg_start": list(load_before),
+            "loadavg_end": list(load_after),
+            "cpu_during_training": {k: round(v, 3) for k, v in cpu.items()},
+            "loaded": loaded,
+            "loaded_rule": (
+                f"loaded = 1-min load average before the run > {args.load_threshold} or other processes "
+                f"used > {args.others_threshold} cores on average during training (from /proc; this "
+                "process's own threads excluded, since a 2-core training run alone reads ~2 in loadavg)"
+            ),
+            "config": run.config.to_dict(),
+        }
+    )
     out = args.out
     if out and loaded:
         out = loaded_name(out)
@@ -192,9 +214,20 @@ def main(argv=None):
         from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 
         folder = prepare_output_dir(args.checkpoint_out, force=False)
-        save_checkpoint(folder / CHECKPOINT_NAME, run.params, run.config, train_scene, run.occupancy,
-                        info={"psnr_test": run.psnr_test, "steps": run.steps, "seconds": run.seconds,
-                              "n_train": train_scene.n_images, "n_test": test_scene.n_images})
+        save_checkpoint(
+            folder / CHECKPOINT_NAME,
+            run.params,
+            run.config,
+            train_scene,
+            run.occupancy,
+            info={
+                "psnr_test": run.psnr_test,
+                "steps": run.steps,
+                "seconds": run.seconds,
+                "n_train": train_scene.n_images,
+                "n_test": test_scene.n_images,
+            },
+        )
         result["checkpoint_out"] = str(folder)
     emit(result, out)
 

@@ -68,8 +68,11 @@ def time_field(config: TrainConfig, params, points: np.ndarray, repeats: int) ->
         start = time.perf_counter()
         jax.block_until_ready(fwd_bwd(params, x, d))
         times.append(time.perf_counter() - start)
-    return {"field_fwd_bwd_ms": 1e3 * min(times), "field_fwd_bwd_ms_median": 1e3 * statistics.median(times),
-            "points": int(points.shape[0])}
+    return {
+        "field_fwd_bwd_ms": 1e3 * min(times),
+        "field_fwd_bwd_ms_median": 1e3 * statistics.median(times),
+        "points": int(points.shape[0]),
+    }
 
 
 def main(argv=None):
@@ -118,34 +121,38 @@ def main(argv=None):
     points = occupied_points(jax.random.key(args.seed), result.occupancy, config.samples_per_batch)
     field = time_field(config, result.params, points, args.repeats)
     out = header("train_step")
-    out.update({
-        "scene_path": str(Path(args.scene_path).resolve()),
-        "scene": scene.name,
-        "downscale": scene.metadata.get("downscale"),
-        "image_size": [scene.width, scene.height],
-        "preset": args.preset,
-        "steps": result.steps,
-        "samples_per_batch": config.samples_per_batch,
-        "ms_per_step": ms_per_step,
-        "rays_per_step": rays,
-        "samples_per_step": samples,
-        "budget_filled": samples / config.samples_per_batch,
-        "rays_marched_last": main_phase[-1]["rays_marched"],
-        "steady_steps_timed": steps,
-        **field,
-        "step_over_field": ms_per_step / field["field_fwd_bwd_ms"],
-        "compile_seconds": result.compile_seconds,
-        "train_seconds": result.seconds,
-        "chunks": [{k: c[k] for k in ("step", "rays", "samples", "rays_marched", "warmup", "chunk_seconds",
-                                      "chunk_steps")} for c in steady],
-        "definitions": {
-            "ms_per_step": "wall-clock per step over the chunks after the warm-up that did not compile",
-            "field_fwd_bwd_ms": "jitted value_and_grad of sum(sigma) + sum(rgb) over samples_per_batch points in "
-                                "the trained occupied cells, wrt the field parameters (best of --repeats)",
-            "step_over_field": "ms_per_step / field_fwd_bwd_ms",
-        },
-        "config": result.config.to_dict(),
-    })
+    out.update(
+        {
+            "scene_path": str(Path(args.scene_path).resolve()),
+            "scene": scene.name,
+            "downscale": scene.metadata.get("downscale"),
+            "image_size": [scene.width, scene.height],
+            "preset": args.preset,
+            "steps": result.steps,
+            "samples_per_batch": config.samples_per_batch,
+            "ms_per_step": ms_per_step,
+            "rays_per_step": rays,
+            "samples_per_step": samples,
+            "budget_filled": samples / config.samples_per_batch,
+            "rays_marched_last": main_phase[-1]["rays_marched"],
+            "steady_steps_timed": steps,
+            **field,
+            "step_over_field": ms_per_step / field["field_fwd_bwd_ms"],
+            "compile_seconds": result.compile_seconds,
+            "train_seconds": result.seconds,
+            "chunks": [
+                {k: c[k] for k in ("step", "rays", "samples", "rays_marched", "warmup", "chunk_seconds", "chunk_steps")}
+                for c in steady
+            ],
+            "definitions": {
+                "ms_per_step": "wall-clock per step over the chunks after the warm-up that did not compile",
+                "field_fwd_bwd_ms": "jitted value_and_grad of sum(sigma) + sum(rgb) over samples_per_batch points in "
+                "the trained occupied cells, wrt the field parameters (best of --repeats)",
+                "step_over_field": "ms_per_step / field_fwd_bwd_ms",
+            },
+            "config": result.config.to_dict(),
+        }
+    )
     emit_with_load(out, args.out, quiet, args.load_threshold)
 
 

@@ -80,16 +80,26 @@ def sweep(source, runs: dict) -> dict:
             params = trust_params(source.train_c2w, ratio, math.radians(angle))
             trust = np.asarray(trust_scores(params, jnp.asarray(c2w), source.intrinsics))
             kept = trust >= 0.5
-            rows.append({"max_ratio": ratio, "max_angle_deg": angle,
-                         "spearman_trust_psnr": round(spearman(trust, psnr), 3),
-                         "trust_mean": round(float(trust.mean()), 3), "kept_at_0.5": int(kept.sum()),
-                         "psnr_kept_at_0.5": round(float(psnr[kept].mean()), 2) if kept.any() else None,
-                         "psnr_dropped_at_0.5": round(float(psnr[~kept].mean()), 2) if (~kept).any() else None})
+            rows.append(
+                {
+                    "max_ratio": ratio,
+                    "max_angle_deg": angle,
+                    "spearman_trust_psnr": round(spearman(trust, psnr), 3),
+                    "trust_mean": round(float(trust.mean()), 3),
+                    "kept_at_0.5": int(kept.sum()),
+                    "psnr_kept_at_0.5": round(float(psnr[kept].mean()), 2) if kept.any() else None,
+                    "psnr_dropped_at_0.5": round(float(psnr[~kept].mean()), 2) if (~kept).any() else None,
+                }
+            )
     default = trust_params(source.train_c2w)
     trust = np.asarray(trust_scores(default, jnp.asarray(c2w), source.intrinsics))
-    return {"views": int(len(c2w)), "psnr_mean": round(float(psnr.mean()), 2), "rows": rows,
-            "default": {"max_ratio": MAX_RATIO, "max_angle_deg": round(math.degrees(MAX_ANGLE), 1)},
-            "per_view": {"psnr": np.round(psnr, 2).tolist(), "trust_default": np.round(trust, 3).tolist()}}
+    return {
+        "views": int(len(c2w)),
+        "psnr_mean": round(float(psnr.mean()), 2),
+        "rows": rows,
+        "default": {"max_ratio": MAX_RATIO, "max_angle_deg": round(math.degrees(MAX_ANGLE), 1)},
+        "per_view": {"psnr": np.round(psnr, 2).tolist(), "trust_default": np.round(trust, 3).tolist()},
+    }
 
 
 def guarded(source, context, method: str, threshold, seeds: int, variant=None) -> tuple:
@@ -102,24 +112,34 @@ def guarded(source, context, method: str, threshold, seeds: int, variant=None) -
         guard = guard.replace(params=trust_params(source.train_c2w, variant[0], math.radians(variant[1])))
         criterion = constrained(criterion, guard, threshold)
     t0 = time.perf_counter()
-    run = run_explore(source, criterion, ExploreConfig(method=method, budget="low"), seed=demo.DEMO_ROOM_SEED,
-                      seeds=seeds)
+    run = run_explore(
+        source, criterion, ExploreConfig(method=method, budget="low"), seed=demo.DEMO_ROOM_SEED, seeds=seeds
+    )
     seconds = time.perf_counter() - t0
     best = np.stack([np.asarray(r.top_c2w[0]) for r in run.results]).astype(np.float32)
     visible = np.asarray(waldo_visibility_batch(source.room, jnp.asarray(best), source.intrinsics))
     params = trust_params(source.train_c2w, *(() if variant is None else (variant[0], math.radians(variant[1]))))
     trust_best = np.asarray(trust_scores(params, jnp.asarray(best), source.intrinsics))
     psnr = render_psnr_of(source, best)
-    row = {"method": method, "threshold": threshold, "criterion": criterion.name,
-           "trust_max_ratio": MAX_RATIO if variant is None else variant[0],
-           "trust_max_angle_deg": round(math.degrees(MAX_ANGLE), 1) if variant is None else variant[1],
-           "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)), "seeds": seeds,
-           "visible_mean": round(float(visible.mean()), 4), "psnr_best_mean": round(float(psnr.mean()), 2),
-           "trust_best_mean": round(float(trust_best.mean()), 3),
-           "best_score_mean": round(float(np.mean([float(r.metrics.best[-1]) for r in run.results])), 4),
-           "search_seconds": round(seconds, 1),
-           "per_seed": {"visible": np.round(visible, 4).tolist(), "psnr": np.round(psnr, 2).tolist(),
-                        "trust": np.round(trust_best, 3).tolist()}}
+    row = {
+        "method": method,
+        "threshold": threshold,
+        "criterion": criterion.name,
+        "trust_max_ratio": MAX_RATIO if variant is None else variant[0],
+        "trust_max_angle_deg": round(math.degrees(MAX_ANGLE), 1) if variant is None else variant[1],
+        "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)),
+        "seeds": seeds,
+        "visible_mean": round(float(visible.mean()), 4),
+        "psnr_best_mean": round(float(psnr.mean()), 2),
+        "trust_best_mean": round(float(trust_best.mean()), 3),
+        "best_score_mean": round(float(np.mean([float(r.metrics.best[-1]) for r in run.results])), 4),
+        "search_seconds": round(seconds, 1),
+        "per_seed": {
+            "visible": np.round(visible, 4).tolist(),
+            "psnr": np.round(psnr, 2).tolist(),
+            "trust": np.round(trust_best, 3).tolist(),
+        },
+    }
     return run, row
 
 
@@ -128,8 +148,12 @@ def main() -> None:
     parser.add_argument("--methods", default="egps,pibs,grs", help="comma-separated search methods")
     parser.add_argument("--thresholds", default="none,0.25,0.5,0.75", help="comma-separated trust thresholds")
     parser.add_argument("--seeds", type=int, default=8)
-    parser.add_argument("--variants", default="1.25:20", help="comma-separated RATIO:ANGLE_DEG of trust, guarded at "
-                        "the same thresholds with the first method only (after its default rows; '' for none)")
+    parser.add_argument(
+        "--variants",
+        default="1.25:20",
+        help="comma-separated RATIO:ANGLE_DEG of trust, guarded at "
+        "the same thresholds with the first method only (after its default rows; '' for none)",
+    )
     parser.add_argument("--load-threshold", type=float, default=1.0)
     parser.add_argument("--wait", type=float, default=0.0, help="seconds to wait for a quiet machine (default 0)")
     parser.add_argument("--out", default=None)
@@ -146,15 +170,26 @@ def main() -> None:
     scene, room, test_scene = demo.room_scenes(seed, settings)
     with tempfile.TemporaryDirectory() as run_dir:
         trained, stats = demo.train_room_nerf(scene, test_scene, settings, seed, Path(run_dir), progress=False)
-        source = demo.nerf_source(Path(run_dir), seed, scene, room, TrainedField.from_result(trained, scene),
-                                   stats["psnr_test"])
+        source = demo.nerf_source(
+            Path(run_dir), seed, scene, room, TrainedField.from_result(trained, scene), stats["psnr_test"]
+        )
         t_train = time.perf_counter() - t0
         print(f"NeRF: held-out {stats['psnr_test']:.2f} dB, {t_train:.0f} s", file=sys.stderr, flush=True)
         context = CriterionContext(room=room, source=source.spec, train_c2w=source.train_c2w)
-        result.update({"room_seed": seed, "settings": {"views": settings.views, "resolution": settings.resolution,
-                                                       "train_steps": settings.train_steps, "seeds": args.seeds},
-                       "nerf": {"psnr_test": round(float(stats["psnr_test"]), 2), "seconds": round(t_train, 1)},
-                       "budget": "low", "criterion": "waldo_found"})
+        result.update(
+            {
+                "room_seed": seed,
+                "settings": {
+                    "views": settings.views,
+                    "resolution": settings.resolution,
+                    "train_steps": settings.train_steps,
+                    "seeds": args.seeds,
+                },
+                "nerf": {"psnr_test": round(float(stats["psnr_test"]), 2), "seconds": round(t_train, 1)},
+                "budget": "low",
+                "criterion": "waldo_found",
+            }
+        )
         rows, unguarded = [], {}
         jobs = [(m, t, None) for t in thresholds for m in methods[:1]]
         jobs += [(methods[0], t, v) for v in variants for t in thresholds if t is not None]
@@ -163,10 +198,13 @@ def main() -> None:
             run, row = guarded(source, context, method, threshold, args.seeds, variant)
             if threshold is None:
                 unguarded[method] = run
-            print(f"{method} trust:{threshold} {variant or ''}: found {row['found_seeds']}/{args.seeds}, visible "
-                  f"{row['visible_mean']:.2f}, PSNR {row['psnr_best_mean']:.2f} dB, "
-                  f"trust {row['trust_best_mean']:.2f}",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{method} trust:{threshold} {variant or ''}: found {row['found_seeds']}/{args.seeds}, visible "
+                f"{row['visible_mean']:.2f}, PSNR {row['psnr_best_mean']:.2f} dB, "
+                f"trust {row['trust_best_mean']:.2f}",
+                file=sys.stderr,
+                flush=True,
+            )
             rows.append(row)
         result["guard"] = rows
         if unguarded:

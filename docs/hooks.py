@@ -35,7 +35,8 @@ KNOWN_DOCSTRING_WARNINGS: dict = {}
 def _known(record: logging.LogRecord) -> bool:
     message = record.getMessage()
     return record.levelno == logging.WARNING and any(
-        where in message and start in message for where, start in KNOWN_DOCSTRING_WARNINGS)
+        where in message and start in message for where, start in KNOWN_DOCSTRING_WARNINGS
+    )
 
 
 class _Demote(logging.Filter):
@@ -75,8 +76,11 @@ def _mounted() -> list:
 def on_files(files, config):
     for uri in _mounted():
         if files.get_file_from_path(uri) is None:
-            files.append(File(uri, src_dir=str(ROOT), dest_dir=config["site_dir"],
-                              use_directory_urls=config["use_directory_urls"]))
+            files.append(
+                File(
+                    uri, src_dir=str(ROOT), dest_dir=config["site_dir"], use_directory_urls=config["use_directory_urls"]
+                )
+            )
     return files
 
 

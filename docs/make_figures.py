@@ -1,6 +1,6 @@
 """Regenerates the README's pictures of the procedural Waldo room (CPU, about a minute).
 
-  python docs/make_figures.py
+python docs/make_figures.py
 """
 
 from pathlib import Path
@@ -22,8 +22,10 @@ def main():
     OUT.mkdir(exist_ok=True)
     scene, room = room_scene(0, num_views=12, resolution=96)
     train_vis = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
-    save_png(OUT / "procedural_room_training_views.png",
-             contact_sheet(list(scene.images), columns=6, labels=[f"train {v:.0%}" for v in train_vis]))
+    save_png(
+        OUT / "procedural_room_training_views.png",
+        contact_sheet(list(scene.images), columns=6, labels=[f"train {v:.0%}" for v in train_vis]),
+    )
     # 2000 random poses within the training cameras' bounds, looking near Waldo; the four best.
     k_o, k_t = jax.random.split(jax.random.key(0))
     origins = scene.c2w[:, :3, 3]
@@ -34,9 +36,14 @@ def main():
     best = np.argsort(-vis)[:6]
     images = np.asarray(render_views(room_field, room, c2w[best], scene.intrinsics, room_render_config(room)).rgb)
     order = np.argsort(-train_vis)[:6]
-    save_png(OUT / "procedural_room_best_vs_train.png", contact_sheet(
-        list(scene.images[order]) + list(images), columns=6,
-        labels=[f"train {v:.0%}" for v in train_vis[order]] + [f"random {v:.0%}" for v in vis[best]]))
+    save_png(
+        OUT / "procedural_room_best_vs_train.png",
+        contact_sheet(
+            list(scene.images[order]) + list(images),
+            columns=6,
+            labels=[f"train {v:.0%}" for v in train_vis[order]] + [f"random {v:.0%}" for v in vis[best]],
+        ),
+    )
     print(f"best training visibility {train_vis.max():.3f}; best of 2000 random poses {vis.max():.3f}")
 
 

@@ -26,12 +26,18 @@ def main(run_dir: str, test_index: int = 1) -> None:
     fox = scene_path("fox")
     train = load_scene(fox, downscale=8, split="train")
     test = load_scene(fox, downscale=8, split="test")
-    out = render_trained(TrainedField.from_checkpoint(checkpoint), test.c2w[test_index:test_index + 1], test.intrinsics)
+    out = render_trained(
+        TrainedField.from_checkpoint(checkpoint), test.c2w[test_index : test_index + 1], test.intrinsics
+    )
     render = np.asarray(jax.device_get(out.rgb))[0]
     mse = float(np.mean((render - test.images[test_index]) ** 2))
     psnr = -10 * np.log10(mse)
-    sheet = contact_sheet([train.images[0], test.images[test_index], render], columns=3,
-                          labels=["training view", "held-out photo", f"render {psnr:.1f} dB"], min_cell=135)
+    sheet = contact_sheet(
+        [train.images[0], test.images[test_index], render],
+        columns=3,
+        labels=["training view", "held-out photo", f"render {psnr:.1f} dB"],
+        min_cell=135,
+    )
     save_png(OUT, sheet)
     print(f"wrote {OUT} (held-out view {test.file_names[test_index]}, PSNR {psnr:.2f} dB)")
 

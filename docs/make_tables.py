@@ -37,9 +37,12 @@ import paper_values  # noqa: E402  (benchmarks/paper_values.py: reads the paper'
 
 from waldo_jax.paths import data_dir  # noqa: E402
 
-MARKER = re.compile(r"(<!-- generated: (?P<name>[\w-]+) \(python docs/make_tables.py\) -->\n)"
-                    r"(?P<body>.*?)"
-                    r"(<!-- end generated: (?P=name) -->)", re.S)
+MARKER = re.compile(
+    r"(<!-- generated: (?P<name>[\w-]+) \(python docs/make_tables.py\) -->\n)"
+    r"(?P<body>.*?)"
+    r"(<!-- end generated: (?P=name) -->)",
+    re.S,
+)
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
@@ -77,10 +80,14 @@ def _pm(mean, std, digits: int = 0) -> str:
 
 def readme_paper_table() -> str:
     """Saliency at the paper's budgets on the paper's own scenes fox and face, ours beside the paper's."""
-    files = {"fox": "paper_tables_saliency_paper_budget_cpu_fox.json",
-             "face": "paper_tables_saliency_paper_budget_cpu_face_loaded.json"}
-    lines = ["| scene | budget | method | CVIR % (ours) | CVIR % (paper) | mCVIR % (ours) | mCVIR % (paper) |",
-             "|---|---|---|---:|---:|---:|---:|"]
+    files = {
+        "fox": "paper_tables_saliency_paper_budget_cpu_fox.json",
+        "face": "paper_tables_saliency_paper_budget_cpu_face_loaded.json",
+    }
+    lines = [
+        "| scene | budget | method | CVIR % (ours) | CVIR % (paper) | mCVIR % (ours) | mCVIR % (paper) |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
     seeds = set()
     for scene, name in files.items():
         data = _json(name)
@@ -91,16 +98,19 @@ def readme_paper_table() -> str:
                 cell = cells[budget][method]
                 paper = paper_values.lookup("saliency", scene, budget, method)
                 p_cvir, p_mcvir = ("n/a", "n/a") if paper is None else (f"{paper[0]:.1f}", f"{paper[1]:.1f}")
-                lines.append(f"| {scene} | {budget} | {method.upper()} | {_pm(cell['cvir_mean'], cell['cvir_std'])} | "
-                             f"{p_cvir} | {_pm(cell['mcvir_mean'], cell['mcvir_std'])} | {p_mcvir} |")
+                lines.append(
+                    f"| {scene} | {budget} | {method.upper()} | {_pm(cell['cvir_mean'], cell['cvir_std'])} | "
+                    f"{p_cvir} | {_pm(cell['mcvir_mean'], cell['mcvir_std'])} | {p_mcvir} |"
+                )
     (n_seeds,) = seeds
     label = paper_values.label("saliency")
-    label = label[len("paper ("):-1] if label.startswith("paper (") and label.endswith(")") else label
+    label = label[len("paper (") : -1] if label.startswith("paper (") and label.endswith(")") else label
     sources = " and ".join(f"`benchmarks/results/{n}`" for n in files.values())
     return "\n".join(lines) + (
         f"\n\nOurs: mean ± std over {n_seeds} seeds, CSNet saliency on 32 px renders of CPU-trained fast-preset "
         f"NeRFs, initial scores on renders at the training poses ({sources}). "
-        f"Paper: {label}; read from `$WALDO_DATA/paper/finding_waldo_tables.json`.")
+        f"Paper: {label}; read from `$WALDO_DATA/paper/finding_waldo_tables.json`."
+    )
 
 
 # ---------------------------------------------------------------------------------------------- results
@@ -121,24 +131,30 @@ def methods_table() -> str:
     return "\n".join([low] + fox_high) + (
         "\n\nFrom `benchmarks/results/methods_room_fox_low_cpu_loaded.json` (room, fox low), "
         "`methods_fox_high_cpu_loaded.json` (fox high: EGPS, `egps+refine`) and "
-        "`methods_fox_high_rest_cpu_loaded.json` (fox high: the others).")
+        "`methods_fox_high_rest_cpu_loaded.json` (fox high: the others)."
+    )
 
 
 def waldo_found_table() -> str:
     """Waldo found: per room and method, the seeds whose best view shows him >= 90 % visible."""
     data = _json("methods_room_found_cpu_loaded.json")
     seeds = data["settings"]["seeds"]
-    lines = ["| room | method | Waldo found (seeds) | Waldo visible in the best view (mean) | mCVIR % (95 % CI) |",
-             "|---|---|---:|---:|---:|"]
+    lines = [
+        "| room | method | Waldo found (seeds) | Waldo visible in the best view (mean) | mCVIR % (95 % CI) |",
+        "|---|---|---:|---:|---:|",
+    ]
     for cell in data["cells"]:
         visible = sum(cell["best_visible"]) / len(cell["best_visible"])
         low, high = cell["mcvir"]["ci95"]
-        lines.append(f"| {cell['source']} | {cell['method'].upper()} | {cell['found_seeds']} / {seeds} | "
-                     f"{visible:.0%} | {cell['mcvir']['mean']:.0f} [{low:.0f}, {high:.0f}] |")
+        lines.append(
+            f"| {cell['source']} | {cell['method'].upper()} | {cell['found_seeds']} / {seeds} | "
+            f"{visible:.0%} | {cell['mcvir']['mean']:.0f} [{low:.0f}, {high:.0f}] |"
+        )
     budget = data["settings"]["budgets"]
     return "\n".join(lines) + (
         f"\n\nCriterion `{data['settings']['room_criterion']}`, budget {budget}, {seeds} seeds per cell, exact "
-        f"(the room's oracle scores the poses; no NeRF). From `benchmarks/results/methods_room_found_cpu_loaded.json`.")
+        f"(the room's oracle scores the poses; no NeRF). From `benchmarks/results/methods_room_found_cpu_loaded.json`."
+    )
 
 
 def paths_table() -> str:
@@ -152,21 +168,31 @@ def paths_table() -> str:
     def motion(entry: dict) -> str:
         return f"{max(entry['max_speed']['values']):.3f} / {max(entry['max_turn_degrees']['values']):.1f}"
 
-    lines = ["| path | objective | mean per-frame score | worst frame | beats straight (mean / worst) | "
-             "max speed / turn |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| path | objective | mean per-frame score | worst frame | beats straight (mean / worst) | max speed / turn |",
+        "|---|---|---|---|---|---|",
+    ]
     for cell in data["cells"]:
         beats = cell["beats_straight_rate"]
-        lines.append(f"| found, {cell['method']} | {cell['aggregate']} | {stat(cell['found']['mean'])} | "
-                     f"{stat(cell['found']['worst'])} | {round(beats['mean'] * seeds)}/{seeds} / "
-                     f"{round(beats['worst'] * seeds)}/{seeds} | {motion(cell['found'])} |")
+        lines.append(
+            f"| found, {cell['method']} | {cell['aggregate']} | {stat(cell['found']['mean'])} | "
+            f"{stat(cell['found']['worst'])} | {round(beats['mean'] * seeds)}/{seeds} / "
+            f"{round(beats['worst'] * seeds)}/{seeds} | {motion(cell['found'])} |"
+        )
     first = data["cells"][0]
-    lines.append(f"| straight, two best anchors | | {stat(first['straight']['mean'])} | "
-                 f"{stat(first['straight']['worst'])} | | {motion(first['straight'])} |")
-    lines.append(f"| training trajectory | | {stat(first['training']['mean'])} | {stat(first['training']['worst'])} | "
-                 f"| {motion(first['training'])} (breaks the limits) |")
+    lines.append(
+        f"| straight, two best anchors | | {stat(first['straight']['mean'])} | "
+        f"{stat(first['straight']['worst'])} | | {motion(first['straight'])} |"
+    )
+    lines.append(
+        f"| training trajectory | | {stat(first['training']['mean'])} | {stat(first['training']['worst'])} | "
+        f"| {motion(first['training'])} (breaks the limits) |"
+    )
     return "\n".join(lines) + (
         f"\n\n`waldo_oracle` per frame, mean ± std over {seeds} seeds [95 % bootstrap interval]; speed in scene "
-        "extents per frame and turn in degrees per frame, the largest over the seeds. From `benchmarks/results/paths_room_cpu_loaded.json`.")
+        "extents per frame and turn in degrees per frame, the largest over the seeds. From "
+        "`benchmarks/results/paths_room_cpu_loaded.json`."
+    )
 
 
 def iqa_composition_fox_table() -> str:
@@ -190,7 +216,8 @@ def perf_table() -> str:
     return "\n".join(out) + (
         f"\n\nFrom `benchmarks/results/{name}` (each part's device, commit and date are in the JSON and in "
         "[the index of result files](../benchmarks/results/INDEX.md); `loaded`: measured while other jobs "
-        "shared the cores, so those timings are pessimistic).")
+        "shared the cores, so those timings are pessimistic)."
+    )
 
 
 def packed_table() -> str:
@@ -205,64 +232,147 @@ def packed_table() -> str:
     size = "x".join(str(v) for v in fox["timing_size"])
     speedups = ", ".join(f"{x['speedup_batched_over_loop']:.3f}x at {x['resolution']}^2" for x in population["sizes"])
     rows = [
-        ("trained fox (fast preset, 1000 steps), held-out PSNR", f"{bf['psnr_test']:.3f} dB",
-         f"{fox['psnr_test']:.3f} dB ({fox['psnr_delta_db']:+.3f} dB, step x{fox['render_step_scale']:g} chosen by the "
-         "run's own calibration)", ">= -0.1 dB", "render_trained_fox_cpu.json"),
-        ("trained fox, field evaluations per ray (held-out views)", f"{bf['evaluations_per_ray_psnr_views']:.0f}",
-         f"**{fox['evaluations_per_ray_psnr_views']:.0f}**", "<= 80", "same"),
-        (f"trained fox, field passes per {size} view ({fox['timing_poses']} poses in one call)",
-         f"{bf['passes_per_view']:.0f}", f"**{fox['passes_per_view']:.1f}**", "<= 10", "same"),
-        (f"trained fox, {fox['timing_poses']} poses at {size}, rays/s", f"{bf['rays_per_s']:,.0f}",
-         f"{fox['rays_per_s']:,.0f} ({fox['rays_per_s'] / bf['rays_per_s']:.2f}x)", "", "same"),
-        ("trained fox, render efficiency (rays/s x evaluations/ray / field alone points/s)", "",
-         f"{fox['render_efficiency']:.2f}", "(a GPU figure)", "same"),
-        ("trained fox, one batched call / loop of one-pose calls", "", f"{fox['speedup_batched_over_loop']:.2f}x", "",
-         "same"),
-        ("trained lego_tiny (fast, 1000 steps), held-out PSNR", f"{bl['psnr_test']:.3f} dB",
-         f"{lego['psnr_test']:.3f} dB (step x{lego['render_step_scale']:g})", ">= -0.1 dB",
-         "render_trained_lego_tiny_cpu.json"),
-        ("trained lego_tiny, evaluations per ray (held-out) / passes per view",
-         f"{bl['evaluations_per_ray_psnr_views']:.1f} / {bl['passes_per_view']:.0f}",
-         f"{lego['evaluations_per_ray_psnr_views']:.1f} / **{lego['passes_per_view']:.1f}**", "<= 10 passes", "same"),
-        (f"trained lego_tiny, {lego['timing_poses']} poses at {size}, rays/s", f"{bl['rays_per_s']:,.0f}",
-         f"{lego['rays_per_s']:,.0f} ({lego['rays_per_s'] / bl['rays_per_s']:.2f}x)", "", "same"),
-        ("trained lego_tiny, render efficiency; batched / loop", "",
-         f"{lego['render_efficiency']:.2f}; {lego['speedup_batched_over_loop']:.2f}x", "", "same"),
-        (f"`render_trained.py --quick` (lego_tiny, {quick['run_info']['steps']} steps, trained in the run)", "",
-         f"{quick['rays_per_s']:,.0f} rays/s, {quick['passes_per_view']:.1f} passes/view, efficiency "
-         f"{quick['render_efficiency']:.2f}", "", "render_trained_quick_lego_tiny_cpu.json"),
-        (f"fox training step (fast, {step_fox['samples_per_batch']:,} samples), ms", f"{tf['ms_per_step']:.0f}",
-         f"**{step_fox['ms_per_step']:.1f}**", "", "train_step_fox_cpu.json"),
-        ("fox step / the field's forward + backward alone on the same budget", f"{tf['step_over_field']:.2f}",
-         f"**{step_fox['step_over_field']:.2f}**", "<= 3", "same"),
-        ("lego_tiny training step, ms; step / field", f"{tl['ms_per_step']:.1f}; {tl['step_over_field']:.2f}",
-         f"{step_lego['ms_per_step']:.1f}; **{step_lego['step_over_field']:.2f}**", "<= 3",
-         "train_step_lego_tiny_cpu.json"),
-        (f"`render_views`, {population['poses']} poses, batched / per-pose loop (best of {population['repeats']})", "",
-         speedups, ">= 1.0", "render_population_cpu_p256.json"),
+        (
+            "trained fox (fast preset, 1000 steps), held-out PSNR",
+            f"{bf['psnr_test']:.3f} dB",
+            f"{fox['psnr_test']:.3f} dB ({fox['psnr_delta_db']:+.3f} dB, step x{fox['render_step_scale']:g} chosen by "
+            f"the "
+            "run's own calibration)",
+            ">= -0.1 dB",
+            "render_trained_fox_cpu.json",
+        ),
+        (
+            "trained fox, field evaluations per ray (held-out views)",
+            f"{bf['evaluations_per_ray_psnr_views']:.0f}",
+            f"**{fox['evaluations_per_ray_psnr_views']:.0f}**",
+            "<= 80",
+            "same",
+        ),
+        (
+            f"trained fox, field passes per {size} view ({fox['timing_poses']} poses in one call)",
+            f"{bf['passes_per_view']:.0f}",
+            f"**{fox['passes_per_view']:.1f}**",
+            "<= 10",
+            "same",
+        ),
+        (
+            f"trained fox, {fox['timing_poses']} poses at {size}, rays/s",
+            f"{bf['rays_per_s']:,.0f}",
+            f"{fox['rays_per_s']:,.0f} ({fox['rays_per_s'] / bf['rays_per_s']:.2f}x)",
+            "",
+            "same",
+        ),
+        (
+            "trained fox, render efficiency (rays/s x evaluations/ray / field alone points/s)",
+            "",
+            f"{fox['render_efficiency']:.2f}",
+            "(a GPU figure)",
+            "same",
+        ),
+        (
+            "trained fox, one batched call / loop of one-pose calls",
+            "",
+            f"{fox['speedup_batched_over_loop']:.2f}x",
+            "",
+            "same",
+        ),
+        (
+            "trained lego_tiny (fast, 1000 steps), held-out PSNR",
+            f"{bl['psnr_test']:.3f} dB",
+            f"{lego['psnr_test']:.3f} dB (step x{lego['render_step_scale']:g})",
+            ">= -0.1 dB",
+            "render_trained_lego_tiny_cpu.json",
+        ),
+        (
+            "trained lego_tiny, evaluations per ray (held-out) / passes per view",
+            f"{bl['evaluations_per_ray_psnr_views']:.1f} / {bl['passes_per_view']:.0f}",
+            f"{lego['evaluations_per_ray_psnr_views']:.1f} / **{lego['passes_per_view']:.1f}**",
+            "<= 10 passes",
+            "same",
+        ),
+        (
+            f"trained lego_tiny, {lego['timing_poses']} poses at {size}, rays/s",
+            f"{bl['rays_per_s']:,.0f}",
+            f"{lego['rays_per_s']:,.0f} ({lego['rays_per_s'] / bl['rays_per_s']:.2f}x)",
+            "",
+            "same",
+        ),
+        (
+            "trained lego_tiny, render efficiency; batched / loop",
+            "",
+            f"{lego['render_efficiency']:.2f}; {lego['speedup_batched_over_loop']:.2f}x",
+            "",
+            "same",
+        ),
+        (
+            f"`render_trained.py --quick` (lego_tiny, {quick['run_info']['steps']} steps, trained in the run)",
+            "",
+            f"{quick['rays_per_s']:,.0f} rays/s, {quick['passes_per_view']:.1f} passes/view, efficiency "
+            f"{quick['render_efficiency']:.2f}",
+            "",
+            "render_trained_quick_lego_tiny_cpu.json",
+        ),
+        (
+            f"fox training step (fast, {step_fox['samples_per_batch']:,} samples), ms",
+            f"{tf['ms_per_step']:.0f}",
+            f"**{step_fox['ms_per_step']:.1f}**",
+            "",
+            "train_step_fox_cpu.json",
+        ),
+        (
+            "fox step / the field's forward + backward alone on the same budget",
+            f"{tf['step_over_field']:.2f}",
+            f"**{step_fox['step_over_field']:.2f}**",
+            "<= 3",
+            "same",
+        ),
+        (
+            "lego_tiny training step, ms; step / field",
+            f"{tl['ms_per_step']:.1f}; {tl['step_over_field']:.2f}",
+            f"{step_lego['ms_per_step']:.1f}; **{step_lego['step_over_field']:.2f}**",
+            "<= 3",
+            "train_step_lego_tiny_cpu.json",
+        ),
+        (
+            f"`render_views`, {population['poses']} poses, batched / per-pose loop (best of {population['repeats']})",
+            "",
+            speedups,
+            ">= 1.0",
+            "render_population_cpu_p256.json",
+        ),
     ]
     lines = ["| figure (CPU) | before | now | target (CPU) | file |", "|---|---|---|---|---|"]
     lines += ["| " + " | ".join(row[:4]) + f" | {row[4] if row[4] == 'same' else '`' + row[4] + '`'} |" for row in rows]
     return "\n".join(lines) + (
-        "\n\n\"before\": the renderer and training step before the packed ones, measured on the same trained runs "
-        "and settings (`benchmarks/results/before_packed_renderer_cpu.json`).")
+        '\n\n"before": the renderer and training step before the packed ones, measured on the same trained runs '
+        "and settings (`benchmarks/results/before_packed_renderer_cpu.json`)."
+    )
 
 
 def training_table() -> str:
     """Held-out PSNR against training time, fast preset (the packed step where measured, else the one before)."""
-    names = ["train_quality_lego_tiny_cpu_packed.json", "train_quality_fox_cpu_packed.json",
-             "train_quality_face_cpu_loaded.json", "train_quality_fern_cpu_loaded.json"]
-    lines = ["| scene | image | steps | held-out PSNR | training time | on the way | training step | file |",
-             "|---|---|---:|---:|---:|---|---|---|"]
+    names = [
+        "train_quality_lego_tiny_cpu_packed.json",
+        "train_quality_fox_cpu_packed.json",
+        "train_quality_face_cpu_loaded.json",
+        "train_quality_fern_cpu_loaded.json",
+    ]
+    lines = [
+        "| scene | image | steps | held-out PSNR | training time | on the way | training step | file |",
+        "|---|---|---:|---:|---:|---|---|---|",
+    ]
     for name in names:
         d = _json(name)
         marks = ", ".join(f"{c['psnr_test']:.1f} dB at {c['train_seconds']:.0f} s" for c in d["checkpoints"][:-1])
         step = "packed" if "render_step_curve" in d else "before the packed step"
-        lines.append(f"| {d['scene']} | {d['image_size'][0]}x{d['image_size'][1]} | {d['steps']} | "
-                     f"{d['psnr_test']:.2f} dB | {d['seconds']:.0f} s | {marks} | {step} | `{name}` |")
+        lines.append(
+            f"| {d['scene']} | {d['image_size'][0]}x{d['image_size'][1]} | {d['steps']} | "
+            f"{d['psnr_test']:.2f} dB | {d['seconds']:.0f} s | {marks} | {step} | `{name}` |"
+        )
     return "\n".join(lines) + (
         "\n\nFast preset, 2-core CPU; training time excludes the held-out evaluations. Rows measured while other "
-        "jobs shared the machine carry `_loaded` in their file name.")
+        "jobs shared the machine carry `_loaded` in their file name."
+    )
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -303,8 +413,9 @@ def _sha256(path: Path) -> str:
 def folder_manifest(folder: Path) -> str:
     """The sha256 of the folder's manifest: exactly what
     `find . -type f -print0 | LC_ALL=C sort -z | xargs -0 sha256sum | sha256sum` prints inside it."""
-    names = sorted((p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()),
-                   key=lambda n: ("./" + n).encode())
+    names = sorted(
+        (p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()), key=lambda n: ("./" + n).encode()
+    )
     manifest = "".join(f"{_sha256(folder / n)}  ./{n}\n" for n in names)
     return hashlib.sha256(manifest.encode()).hexdigest()
 
@@ -341,13 +452,17 @@ BLOCKS: Dict[str, Callable[[], str]] = {
     "readme-paper-table": readme_paper_table,
     "paper-tables-cpu": lambda: _tables("paper_tables_cpu_loaded.json"),
     "saliency-paper-budgets": lambda: _tables(
-        "paper_tables_saliency_paper_budget_cpu_fox.json", "paper_tables_saliency_paper_budget_cpu_face_loaded.json",
-        "paper_tables_saliency_paper_budget_cpu_fern_loaded.json", "paper_tables_saliency_paper_budget_cpu_garden.json",
-        "paper_tables_saliency_paper_budget_cpu_room_loaded.json"),
+        "paper_tables_saliency_paper_budget_cpu_fox.json",
+        "paper_tables_saliency_paper_budget_cpu_face_loaded.json",
+        "paper_tables_saliency_paper_budget_cpu_fern_loaded.json",
+        "paper_tables_saliency_paper_budget_cpu_garden.json",
+        "paper_tables_saliency_paper_budget_cpu_room_loaded.json",
+    ),
     "iqa-composition-fox": iqa_composition_fox_table,
     "cpu64": lambda: _tables("paper_tables_cpu64_saliency.json", "paper_tables_cpu64_iqa_composition.json"),
-    "waldo-room": lambda: _tables("paper_tables_room_seed1_paper_budget_cpu.json",
-                                  "paper_tables_room_seed0_paper_budget_cpu.json"),
+    "waldo-room": lambda: _tables(
+        "paper_tables_room_seed1_paper_budget_cpu.json", "paper_tables_room_seed0_paper_budget_cpu.json"
+    ),
     "methods": methods_table,
     "paths": paths_table,
     "waldo-found": waldo_found_table,
@@ -387,7 +502,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         outputs[path] = (old, regenerate(old, cache))
     outputs[ROOT / "docs" / "data.sha256"] = (
         (ROOT / "docs" / "data.sha256").read_text(encoding="utf-8") if (ROOT / "docs" / "data.sha256").exists() else "",
-        data_sha256_file())
+        data_sha256_file(),
+    )
     for path, (old, new) in outputs.items():
         if old != new:
             stale.append(path.relative_to(ROOT).as_posix())

@@ -98,18 +98,27 @@ def trained_lego_fast(tmp_path_factory):
     def build(folder):
         train_scene = load_scene(path, split="train")
         test_scene = load_scene(path, split="test")
-        config = TrainConfig.preset("fast", train_scene, steps=250, chunk=50, num_samples=128,
-                                    samples_per_batch=2**14, eval_samples=128)
+        config = TrainConfig.preset(
+            "fast", train_scene, steps=250, chunk=50, num_samples=128, samples_per_batch=2**14, eval_samples=128
+        )
         hashgrid = dataclasses.replace(config.field.hashgrid, L=8, T=2**14)
         config = config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
         start = time.perf_counter()
         result = tr.train(jax.random.key(0), train_scene, config, test_scene, progress=False)
         seconds = time.perf_counter() - start
         save_checkpoint(folder / "lego.ckpt", result.params, result.config, train_scene, result.occupancy)
-        summary = {"psnr_test": result.psnr_test, "steps": result.steps, "n_train": result.n_train,
-                   "n_test": result.n_test, "history": result.history, "render_step_curve": result.render_step_curve,
-                   "render_step_scale": result.config.render_step_scale, "sampler": config.sampler,
-                   "rays_per_second": result.rays_per_second, "seconds": seconds}
+        summary = {
+            "psnr_test": result.psnr_test,
+            "steps": result.steps,
+            "n_train": result.n_train,
+            "n_test": result.n_test,
+            "history": result.history,
+            "render_step_curve": result.render_step_curve,
+            "render_step_scale": result.config.render_step_scale,
+            "sampler": config.sampler,
+            "rays_per_second": result.rays_per_second,
+            "seconds": seconds,
+        }
         (folder / "summary.json").write_text(json.dumps(summary, default=float))
 
     folder = built_once(tmp_path_factory, "trained_lego_fast", build)
@@ -125,11 +134,29 @@ def trained_lego_fast(tmp_path_factory):
 # otherwise sorts the files by their number of tests): taking the heavy files first keeps one worker
 # from running a long file alone at the end. test_marched builds the lego_tiny training that
 # test_train then reads.
-HEAVY_FIRST = ("test_device_check.py", "test_splat_cli.py", "test_explore_cli.py", "test_splat_render.py",
-               "test_nerf_reverse.py", "test_interrupt.py", "test_exports_consumers.py", "test_paper_tables.py",
-               "test_marched.py", "test_search_path.py", "test_criteria_all.py", "test_notebooks.py", "test_finder.py",
-               "test_train.py", "test_bad_input.py", "test_cli_conventions.py", "test_csnet.py", "test_search_beyond.py",
-               "test_sharding.py", "test_xla_guard.py", "test_multiprocess.py")
+HEAVY_FIRST = (
+    "test_device_check.py",
+    "test_splat_cli.py",
+    "test_explore_cli.py",
+    "test_splat_render.py",
+    "test_nerf_reverse.py",
+    "test_interrupt.py",
+    "test_exports_consumers.py",
+    "test_paper_tables.py",
+    "test_marched.py",
+    "test_search_path.py",
+    "test_criteria_all.py",
+    "test_notebooks.py",
+    "test_finder.py",
+    "test_train.py",
+    "test_bad_input.py",
+    "test_cli_conventions.py",
+    "test_csnet.py",
+    "test_search_beyond.py",
+    "test_sharding.py",
+    "test_xla_guard.py",
+    "test_multiprocess.py",
+)
 
 
 def pytest_collection_modifyitems(config, items):

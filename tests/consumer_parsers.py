@@ -57,11 +57,13 @@ def _quat_xyzw_of(rotation: np.ndarray) -> np.ndarray:
 def _matrix_of_quat_xyzw(q: Sequence[float]) -> np.ndarray:
     """The rotation matrix of a unit quaternion (x, y, z, w) (columns = rotated axes)."""
     x, y, z, w = np.asarray(q, np.float64)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _rotation_x(radians: float) -> np.ndarray:
@@ -99,8 +101,9 @@ def ns_rotation_matrix_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
 
 
-def ns_auto_orient_and_center_poses(poses: np.ndarray, method: str = "up",
-                                    center_method: str = "poses") -> Tuple[np.ndarray, np.ndarray]:
+def ns_auto_orient_and_center_poses(
+    poses: np.ndarray, method: str = "up", center_method: str = "poses"
+) -> Tuple[np.ndarray, np.ndarray]:
     """(oriented poses [N, 3, 4], transform [3, 4]) of camera-to-world poses [N, 4, 4].
 
     From NS nerfstudio/cameras/camera_utils.py `auto_orient_and_center_poses`, for the orientation
@@ -131,8 +134,13 @@ def ns_auto_orient_and_center_poses(poses: np.ndarray, method: str = "up",
 NS_COLMAP_DEFAULT_APPLIED_TRANSFORM = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
 
 
-def ns_nerfstudio_dataparser(folder: Path, orientation_method: str = "up", center_method: str = "poses",
-                             auto_scale_poses: bool = True, scale_factor: float = 1.0) -> Dict[str, Any]:
+def ns_nerfstudio_dataparser(
+    folder: Path,
+    orientation_method: str = "up",
+    center_method: str = "poses",
+    auto_scale_poses: bool = True,
+    scale_factor: float = 1.0,
+) -> Dict[str, Any]:
     """The cameras and `dataparser_transforms.json` that `ns-train` (nerfstudio-data) makes of a transforms.json.
 
     From NS nerfstudio/data/dataparsers/nerfstudio_dataparser.py `Nerfstudio._generate_dataparser_outputs`
@@ -164,8 +172,13 @@ def ns_nerfstudio_dataparser(folder: Path, orientation_method: str = "up", cente
         applied = NS_COLMAP_DEFAULT_APPLIED_TRANSFORM
     saved = transform if applied is None else transform @ _homogeneous(np.asarray(applied, np.float64))
     saved_scale = scale * float(meta.get("applied_scale", 1.0))
-    return {"file_paths": [f["file_path"] for f in frames], "poses": poses, "transform": transform, "scale": scale,
-            "dataparser_transforms": {"transform": saved.tolist(), "scale": saved_scale}}
+    return {
+        "file_paths": [f["file_path"] for f in frames],
+        "poses": poses,
+        "transform": transform,
+        "scale": scale,
+        "dataparser_transforms": {"transform": saved.tolist(), "scale": saved_scale},
+    }
 
 
 def ns_blender_dataparser(folder: Path, split: str = "train", scale_factor: float = 1.0) -> Dict[str, Any]:
@@ -179,8 +192,13 @@ def ns_blender_dataparser(folder: Path, split: str = "train", scale_factor: floa
     poses = np.array([f["transform_matrix"] for f in meta["frames"]]).astype(np.float32).astype(np.float64)[:, :3]
     poses[:, :, 3] *= scale_factor
     transform = np.eye(4)[:3]
-    return {"file_paths": [f["file_path"] for f in meta["frames"]], "poses": poses, "transform": transform,
-            "scale": scale_factor, "dataparser_transforms": {"transform": transform.tolist(), "scale": scale_factor}}
+    return {
+        "file_paths": [f["file_path"] for f in meta["frames"]],
+        "poses": poses,
+        "transform": transform,
+        "scale": scale_factor,
+        "dataparser_transforms": {"transform": transform.tolist(), "scale": scale_factor},
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -205,8 +223,16 @@ def ns_get_path_from_json(camera_path: Dict[str, Any]) -> Dict[str, Any]:
         c2w.append(np.asarray(camera["camera_to_world"], np.float32).reshape(4, 4)[:3].astype(np.float64))
         focal.append((height / 2.0) / math.tan(math.radians(camera["fov"]) / 2.0))
     seconds = camera_path["seconds"]
-    return {"c2w": np.stack(c2w), "fx": np.asarray(focal), "fy": np.asarray(focal), "cx": width / 2.0,
-            "cy": height / 2.0, "width": width, "height": height, "video_fps": len(c2w) / seconds}
+    return {
+        "c2w": np.stack(c2w),
+        "fx": np.asarray(focal),
+        "fy": np.asarray(focal),
+        "cx": width / 2.0,
+        "cy": height / 2.0,
+        "width": width,
+        "height": height,
+        "video_fps": len(c2w) / seconds,
+    }
 
 
 VISER_NERFSTUDIO_SCALE_RATIO = 10.0  # NS nerfstudio/viewer/viewer.py: the viewer's scene is nerfstudio's world x 10
@@ -227,17 +253,22 @@ def ns_viewer_load_path(json_data: Dict[str, Any]) -> Dict[str, Any]:
         matrix = np.asarray(frame["matrix"], np.float64).reshape(4, 4)
         rotation = matrix[:3, :3] @ _rotation_x(math.pi)
         xyzw = _quat_xyzw_of(rotation)
-        keyframes.append({
-            "position": matrix[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO,
-            "wxyz": np.roll(xyzw, 1),
-            "override_fov_enabled": abs(frame["fov"] - json_data.get("default_fov", 0.0)) > 1e-3,
-            "override_fov_rad": frame["fov"] / 180.0 * math.pi,
-            "aspect": frame["aspect"],
-            "override_transition_enabled": frame.get("override_transition_enabled", None),
-            "override_transition_sec": frame.get("override_transition_sec", None),
-        })
-    return {"keyframes": keyframes, "default_transition_sec": json_data.get("default_transition_sec", 0.5),
-            "default_fov_rad": math.radians(json_data.get("default_fov", 0.0))}
+        keyframes.append(
+            {
+                "position": matrix[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO,
+                "wxyz": np.roll(xyzw, 1),
+                "override_fov_enabled": abs(frame["fov"] - json_data.get("default_fov", 0.0)) > 1e-3,
+                "override_fov_rad": frame["fov"] / 180.0 * math.pi,
+                "aspect": frame["aspect"],
+                "override_transition_enabled": frame.get("override_transition_enabled", None),
+                "override_transition_sec": frame.get("override_transition_sec", None),
+            }
+        )
+    return {
+        "keyframes": keyframes,
+        "default_transition_sec": json_data.get("default_transition_sec", 0.5),
+        "default_fov_rad": math.radians(json_data.get("default_fov", 0.0)),
+    }
 
 
 def ns_viewer_keyframe_matrix(keyframe: Dict[str, Any]) -> np.ndarray:
@@ -308,8 +339,12 @@ def ngp_load_nerf_frame(jsons: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
             length = max(1e-6, float(np.max(np.abs(hi - lo))))
             scale = 1.0 / length
             offset = (hi + lo) * 0.5 * -scale + 0.5
-    return {"scale": float(np.float32(scale)), "offset": np.asarray(offset, np.float32).astype(np.float64),
-            "from_mitsuba": from_mitsuba, "aabb_scale": aabb_scale}
+    return {
+        "scale": float(np.float32(scale)),
+        "offset": np.asarray(offset, np.float32).astype(np.float64),
+        "from_mitsuba": from_mitsuba,
+        "aabb_scale": aabb_scale,
+    }
 
 
 def ngp_nerf_matrix_to_ngp(matrix: np.ndarray, frame: Dict[str, Any]) -> np.ndarray:
@@ -360,12 +395,23 @@ def ngp_load_camera_path(j: Dict[str, Any]) -> Dict[str, Any]:
     """
     keyframes = []
     for el in j.get("path", []):
-        keyframes.append({"R": np.asarray(el["R"], np.float64), "T": np.asarray(el["T"], np.float64),
-                          "slice": float(el["slice"]), "scale": float(el["scale"]), "fov": float(el["fov"]),
-                          "aperture_size": float(el["dof"] if "dof" in el else el["aperture_size"]),
-                          "timestamp": float(np.float32(el.get("timestamp", 0.0)))})
-    path = {"keyframes": keyframes, "loop": bool(j.get("loop", False)),
-            "duration_seconds": float(j.get("duration_seconds", 0.0)), "spline_order": int(j.get("spline_order", 3))}
+        keyframes.append(
+            {
+                "R": np.asarray(el["R"], np.float64),
+                "T": np.asarray(el["T"], np.float64),
+                "slice": float(el["slice"]),
+                "scale": float(el["scale"]),
+                "fov": float(el["fov"]),
+                "aperture_size": float(el["dof"] if "dof" in el else el["aperture_size"]),
+                "timestamp": float(np.float32(el.get("timestamp", 0.0))),
+            }
+        )
+    path = {
+        "keyframes": keyframes,
+        "loop": bool(j.get("loop", False)),
+        "duration_seconds": float(j.get("duration_seconds", 0.0)),
+        "spline_order": int(j.get("spline_order", 3)),
+    }
     previous, valid = 0.0, True
     for keyframe in keyframes:
         if not keyframe["timestamp"] > previous:
@@ -380,15 +426,28 @@ def ngp_load_camera_path(j: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def _kf_scale(k: Dict[str, Any], f: float) -> Dict[str, Any]:
-    return {"R": k["R"] * f, "T": k["T"] * f, "slice": k["slice"] * f, "scale": k["scale"] * f, "fov": k["fov"] * f,
-            "aperture_size": k["aperture_size"] * f, "timestamp": k["timestamp"]}
+    return {
+        "R": k["R"] * f,
+        "T": k["T"] * f,
+        "slice": k["slice"] * f,
+        "scale": k["scale"] * f,
+        "fov": k["fov"] * f,
+        "aperture_size": k["aperture_size"] * f,
+        "timestamp": k["timestamp"],
+    }
 
 
 def _kf_add(a: Dict[str, Any], b: Dict[str, Any]) -> Dict[str, Any]:
     rb = -b["R"] if np.dot(b["R"], a["R"]) < 0.0 else b["R"]  # CameraKeyframe::operator+: the short way round
-    return {"R": a["R"] + rb, "T": a["T"] + b["T"], "slice": a["slice"] + b["slice"], "scale": a["scale"] + b["scale"],
-            "fov": a["fov"] + b["fov"], "aperture_size": a["aperture_size"] + b["aperture_size"],
-            "timestamp": b["timestamp"]}
+    return {
+        "R": a["R"] + rb,
+        "T": a["T"] + b["T"],
+        "slice": a["slice"] + b["slice"],
+        "scale": a["scale"] + b["scale"],
+        "fov": a["fov"] + b["fov"],
+        "aperture_size": a["aperture_size"] + b["aperture_size"],
+        "timestamp": b["timestamp"],
+    }
 
 
 def _kf_normalize(k: Dict[str, Any]) -> Dict[str, Any]:
@@ -433,8 +492,12 @@ def ngp_eval_camera_path(path: Dict[str, Any], playtime: float) -> Dict[str, Any
         weights = [(1 - t) * (1 - t) * 0.5, (-2.0 * t * t + 2.0 * t + 1.0) * 0.5, t * t * 0.5]
         points = [key(i - 1), key(i), key(i + 1)]
     elif order == 3:
-        weights = [(1 - t) ** 3 / 6.0, (3.0 * t**3 - 6.0 * t**2 + 4.0) / 6.0,
-                   (-3.0 * t**3 + 3.0 * t**2 + 3.0 * t + 1.0) / 6.0, t**3 / 6.0]
+        weights = [
+            (1 - t) ** 3 / 6.0,
+            (3.0 * t**3 - 6.0 * t**2 + 4.0) / 6.0,
+            (-3.0 * t**3 + 3.0 * t**2 + 3.0 * t + 1.0) / 6.0,
+            t**3 / 6.0,
+        ]
         points = [key(i - 1), key(i), key(i + 1), key(i + 2)]
     else:
         raise ValueError(f"Spline of order {order} is not supported.")

@@ -75,29 +75,36 @@ def mscn(grey: np.ndarray) -> np.ndarray:
 def aggd(vec: np.ndarray) -> Dict[str, float]:
     vec = np.asarray(vec, np.float64).ravel()
     left, right = vec[vec < 0], vec[vec > 0]
-    lstd = np.sqrt(np.mean(left ** 2)) if left.size else 0.0
-    rstd = np.sqrt(np.mean(right ** 2)) if right.size else 0.0
-    mean_sq = np.mean(vec ** 2)
+    lstd = np.sqrt(np.mean(left**2)) if left.size else 0.0
+    rstd = np.sqrt(np.mean(right**2)) if right.size else 0.0
+    mean_sq = np.mean(vec**2)
     rhat = np.mean(np.abs(vec)) ** 2 / mean_sq if mean_sq > 0 else 0.0
     if rstd > 0:
         g = lstd / rstd
-        rhatnorm = rhat * (g ** 3 + 1) * (g + 1) / (g ** 2 + 1) ** 2
+        rhatnorm = rhat * (g**3 + 1) * (g + 1) / (g**2 + 1) ** 2
     else:
         rhatnorm = rhat  # the limit g -> inf (or the symmetric 1 when both sides are empty)
     alpha = GRID[np.argmin((R_GAM - rhatnorm) ** 2)]
     ratio = np.sqrt(scipy.special.gamma(1 / alpha) / scipy.special.gamma(3 / alpha))
     betal, betar = lstd * ratio, rstd * ratio
     eta = (betar - betal) * scipy.special.gamma(2 / alpha) / scipy.special.gamma(1 / alpha)
-    return {"alpha": alpha, "lstd": lstd, "rstd": rstd, "betal": betal, "betar": betar, "eta": eta,
-            "valid": bool(left.size and right.size)}
+    return {
+        "alpha": alpha,
+        "lstd": lstd,
+        "rstd": rstd,
+        "betal": betal,
+        "betar": betar,
+        "eta": eta,
+        "valid": bool(left.size and right.size),
+    }
 
 
 def ggd(vec: np.ndarray) -> Tuple[float, float]:
     vec = np.asarray(vec, np.float64).ravel()
-    rho = np.mean(vec ** 2) / np.mean(np.abs(vec)) ** 2
+    rho = np.mean(vec**2) / np.mean(np.abs(vec)) ** 2
     g = GRID
     table = scipy.special.gamma(1 / g) * scipy.special.gamma(3 / g) / scipy.special.gamma(2 / g) ** 2
-    return GRID[np.argmin(np.abs(rho - table))], np.mean(vec ** 2)
+    return GRID[np.argmin(np.abs(rho - table))], np.mean(vec**2)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -107,9 +114,9 @@ def ggd(vec: np.ndarray) -> Tuple[float, float]:
 def _matlab_cubic(x: float) -> float:
     x = abs(x)
     if x <= 1:
-        return 1.5 * x ** 3 - 2.5 * x ** 2 + 1
+        return 1.5 * x**3 - 2.5 * x**2 + 1
     if x <= 2:
-        return -0.5 * x ** 3 + 2.5 * x ** 2 - 4 * x + 2
+        return -0.5 * x**3 + 2.5 * x**2 - 4 * x + 2
     return 0.0
 
 
@@ -146,15 +153,15 @@ def niqe_patch_features(patch: np.ndarray) -> Tuple[np.ndarray, bool]:
 def niqe_features(image: np.ndarray, patch: int = 96) -> Tuple[np.ndarray, np.ndarray]:
     grey = grey_matlab(image)
     rows, cols = grey.shape[0] // patch, grey.shape[1] // patch
-    grey = grey[:rows * patch, :cols * patch]
+    grey = grey[: rows * patch, : cols * patch]
     scales = []
     for level in range(2):
         coefficients = mscn(grey)
-        side = patch // (2 ** level)
+        side = patch // (2**level)
         feats, valid = [], []
         for r in range(rows):
             for c in range(cols):
-                f, v = niqe_patch_features(coefficients[r * side:(r + 1) * side, c * side:(c + 1) * side])
+                f, v = niqe_patch_features(coefficients[r * side : (r + 1) * side, c * side : (c + 1) * side])
                 feats.append(f)
                 valid.append(v)
         scales.append((np.array(feats), np.array(valid)))
@@ -221,7 +228,7 @@ def brisque_features(image: np.ndarray) -> np.ndarray:
             for i in range(h):
                 if 0 <= i + di < h:
                     lo, hi = max(0, -dj), min(w, w - dj)
-                    shifted[i, lo:hi] = coefficients[i + di, lo + dj:hi + dj]
+                    shifted[i, lo:hi] = coefficients[i + di, lo + dj : hi + dj]
             pair = aggd(coefficients * shifted)
             feats += [pair["alpha"], pair["eta"], pair["lstd"] ** 2, pair["rstd"] ** 2]
     return np.array(feats)
@@ -232,14 +239,14 @@ _FLOAT = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 def load_brisque(model_path: str, range_path: str) -> Dict[str, np.ndarray]:
     text = open(model_path).read()
-    sv_text = text[text.index("support_vectors:"):text.index("decision_functions:")]
+    sv_text = text[text.index("support_vectors:") : text.index("decision_functions:")]
     sv = np.array([float(v) for v in re.findall(_FLOAT, sv_text.split(":", 1)[1])]).reshape(-1, 36)
-    alpha_text = text[text.index("alpha:") + len("alpha:"):]
+    alpha_text = text[text.index("alpha:") + len("alpha:") :]
     alpha = np.array([float(v) for v in re.findall(_FLOAT, alpha_text)])
     rho = float(re.search(r"rho:\s*(" + _FLOAT + ")", text).group(1))
     gamma = float(re.search(r"gamma:\s*(" + _FLOAT + ")", text).group(1))
     rtext = open(range_path).read()
-    data = np.array([float(v) for v in re.findall(_FLOAT, rtext[rtext.index("data:") + 5:])]).reshape(2, 36)
+    data = np.array([float(v) for v in re.findall(_FLOAT, rtext[rtext.index("data:") + 5 :])]).reshape(2, 36)
     return {"sv": sv, "alpha": alpha, "rho": rho, "gamma": gamma, "min": data[0], "max": data[1]}
 
 

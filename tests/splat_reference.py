@@ -14,8 +14,15 @@ import numpy as np
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396]
-SH_C3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-         1.445305721320277, -0.5900435899266435]
+SH_C3 = [
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+]
 
 
 def sh_colour(sh: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -26,29 +33,60 @@ def sh_colour(sh: np.ndarray, d: np.ndarray) -> np.ndarray:
     if k > 1:
         c = c - SH_C1 * y * sh[1] + SH_C1 * z * sh[2] - SH_C1 * x * sh[3]
     if k > 4:
-        c = (c + SH_C2[0] * x * y * sh[4] + SH_C2[1] * y * z * sh[5] + SH_C2[2] * (2 * z * z - x * x - y * y) * sh[6]
-             + SH_C2[3] * x * z * sh[7] + SH_C2[4] * (x * x - y * y) * sh[8])
+        c = (
+            c
+            + SH_C2[0] * x * y * sh[4]
+            + SH_C2[1] * y * z * sh[5]
+            + SH_C2[2] * (2 * z * z - x * x - y * y) * sh[6]
+            + SH_C2[3] * x * z * sh[7]
+            + SH_C2[4] * (x * x - y * y) * sh[8]
+        )
     if k > 9:
-        c = (c + SH_C3[0] * y * (3 * x * x - y * y) * sh[9] + SH_C3[1] * x * y * z * sh[10]
-             + SH_C3[2] * y * (4 * z * z - x * x - y * y) * sh[11]
-             + SH_C3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y) * sh[12]
-             + SH_C3[4] * x * (4 * z * z - x * x - y * y) * sh[13] + SH_C3[5] * z * (x * x - y * y) * sh[14]
-             + SH_C3[6] * x * (x * x - 3 * y * y) * sh[15])
+        c = (
+            c
+            + SH_C3[0] * y * (3 * x * x - y * y) * sh[9]
+            + SH_C3[1] * x * y * z * sh[10]
+            + SH_C3[2] * y * (4 * z * z - x * x - y * y) * sh[11]
+            + SH_C3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y) * sh[12]
+            + SH_C3[4] * x * (4 * z * z - x * x - y * y) * sh[13]
+            + SH_C3[5] * z * (x * x - y * y) * sh[14]
+            + SH_C3[6] * x * (x * x - 3 * y * y) * sh[15]
+        )
     return np.maximum(c + 0.5, 0.0)
 
 
 def rotation(q: np.ndarray) -> np.ndarray:
     """Unit-normalised quaternion (w, x, y, z) -> 3x3 rotation."""
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
-def render_reference(means, log_scales, quats, logits, sh, c2w, width, height, fx, fy, cx, cy, *, near=0.01,
-                     background=(0.0, 0.0, 0.0), low_pass=0.3, clamp=1.3, return_depth=False):
+def render_reference(
+    means,
+    log_scales,
+    quats,
+    logits,
+    sh,
+    c2w,
+    width,
+    height,
+    fx,
+    fy,
+    cx,
+    cy,
+    *,
+    near=0.01,
+    background=(0.0, 0.0, 0.0),
+    low_pass=0.3,
+    clamp=1.3,
+    return_depth=False,
+):
     """The image [H, W, 3] and accumulated opacity [H, W] of splats (raw parameters, float64) seen from
     the OpenGL camera-to-world `c2w` [4, 4] through a pinhole; with `return_depth`, also the
     alpha-weighted camera depth [H, W] (the same weights as the colour, 0 where empty)."""

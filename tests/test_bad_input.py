@@ -29,8 +29,11 @@ CASES = [
     ("train-seed-negative", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--seed", "-1"], "--seed"),
     ("render-seed-overflow", ["render", "procedural", "--out", "{tmp}/new", "--seed", BIG], BIG),
     ("explore-seed-overflow", ["explore", "procedural", "--out", "{tmp}/new", "--seed", BIG], BIG),
-    ("explore-seeds-past-the-limit", ["explore", "procedural", "--out", "{tmp}/new", "--seed", str(MAX_SEED),
-                                      "--seeds", "2"], str(MAX_SEED)),
+    (
+        "explore-seeds-past-the-limit",
+        ["explore", "procedural", "--out", "{tmp}/new", "--seed", str(MAX_SEED), "--seeds", "2"],
+        str(MAX_SEED),
+    ),
     ("demo-seed-overflow", ["demo", "--out", "{tmp}/new", "--seed", BIG], BIG),
     ("procedural-negative-seed", ["explore", "procedural:-1", "--out", "{tmp}/new"], "procedural:-1"),
     ("procedural-seed-overflow", ["render", f"procedural:{BIG}", "--out", "{tmp}/new"], BIG),
@@ -39,111 +42,243 @@ CASES = [
     ("scene-info-translation-overflow", ["scene", "info", "{tmp}/far", "--json"], "1e+308"),
     ("train-translation-overflow", ["train", "{tmp}/far", "--out", "{tmp}/new"], "far/transforms.json"),
     ("scene-negative-aabb-scale", ["scene", "info", "{tmp}/negative_aabb"], "'aabb_scale'"),
-    ("train-downscale-to-1px", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--downscale", "1000"],
-     "--downscale 1000 leaves 1x1"),
+    (
+        "train-downscale-to-1px",
+        ["train", "{tmp}/scene", "--out", "{tmp}/new", "--downscale", "1000"],
+        "--downscale 1000 leaves 1x1",
+    ),
     # Output folders that cannot be written, checked before any work.
-    ("train-out-under-a-file", ["train", "{tmp}/scene", "--out", "{tmp}/run/keep.txt/new"], "keep.txt is not a directory"),
+    (
+        "train-out-under-a-file",
+        ["train", "{tmp}/scene", "--out", "{tmp}/run/keep.txt/new"],
+        "keep.txt is not a directory",
+    ),
     ("train-out-name-too-long", ["train", "{tmp}/scene", "--out", "{tmp}/" + LONG], "300 bytes"),
     ("explore-out-name-too-long", ["explore", "procedural", "--out", "{tmp}/" + LONG], "300 bytes"),
     ("render-into-an-earlier-run", ["render", "{tmp}/tiny_run", "--poses", "train", "--out", "{tmp}/run"], "not empty"),
     # Sizes a user can ask for: each with its limit.
-    ("render-resolution-huge", ["render", "procedural", "--out", "{tmp}/new", "--resolution", "100000"],
-     f"between 8 and {MAX_RESOLUTION}"),
-    ("render-run-resolution-huge", ["render", "{tmp}/tiny_run", "--poses", "train", "--out", "{tmp}/new",
-                                    "--resolution", "100000"], f"between 8 and {MAX_RESOLUTION}"),
-    ("render-poses-file-width-huge", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/wide_poses.json",
-                                      "--out", "{tmp}/new"], "wide_poses.json: camera of 100000x100"),
-    ("explore-resolution-huge", ["explore", "procedural", "--out", "{tmp}/new", "--resolution", "100000"],
-     f"between 8 and {MAX_RESOLUTION}"),
-    ("explore-top-k-past-capacity", ["explore", "procedural", "--out", "{tmp}/new", "--top-k", "1000"],
-     "--top-k) 1000 exceeds the 274 views"),
-    ("explore-seeds-past-memory", ["explore", "procedural", "--criterion", "colorfulness", "--out", "{tmp}/new",
-                                   "--seeds", "100000"], "at most --seeds"),
-    ("explore-views-too-many", ["explore", "procedural", "--out", "{tmp}/new", "--views", "100000"],
-     "--views must be an integer between 1 and 1000"),
-    ("explore-target-too-large", ["explore", "procedural", "--criterion", "waldo", "--target", "{tmp}/huge.png",
-                                  "--out", "{tmp}/new"], f"huge.png: the image is 4100x8; sides must lie between 2 and {MAX_RESOLUTION}"),
+    (
+        "render-resolution-huge",
+        ["render", "procedural", "--out", "{tmp}/new", "--resolution", "100000"],
+        f"between 8 and {MAX_RESOLUTION}",
+    ),
+    (
+        "render-run-resolution-huge",
+        ["render", "{tmp}/tiny_run", "--poses", "train", "--out", "{tmp}/new", "--resolution", "100000"],
+        f"between 8 and {MAX_RESOLUTION}",
+    ),
+    (
+        "render-poses-file-width-huge",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/wide_poses.json", "--out", "{tmp}/new"],
+        "wide_poses.json: camera of 100000x100",
+    ),
+    (
+        "explore-resolution-huge",
+        ["explore", "procedural", "--out", "{tmp}/new", "--resolution", "100000"],
+        f"between 8 and {MAX_RESOLUTION}",
+    ),
+    (
+        "explore-top-k-past-capacity",
+        ["explore", "procedural", "--out", "{tmp}/new", "--top-k", "1000"],
+        "--top-k) 1000 exceeds the 274 views",
+    ),
+    (
+        "explore-seeds-past-memory",
+        ["explore", "procedural", "--criterion", "colorfulness", "--out", "{tmp}/new", "--seeds", "100000"],
+        "at most --seeds",
+    ),
+    (
+        "explore-views-too-many",
+        ["explore", "procedural", "--out", "{tmp}/new", "--views", "100000"],
+        "--views must be an integer between 1 and 1000",
+    ),
+    (
+        "explore-target-too-large",
+        ["explore", "procedural", "--criterion", "waldo", "--target", "{tmp}/huge.png", "--out", "{tmp}/new"],
+        f"huge.png: the image is 4100x8; sides must lie between 2 and {MAX_RESOLUTION}",
+    ),
     ("score-1x1-image", ["score", "--criterion", "brisque", "{tmp}/dot.png"], "dot.png: the image is 1x1"),
     # Arguments that were accepted without a word.
-    ("guard-fails-every-view", ["explore", "procedural", "--criterion", "colorfulness", "--guard", "opacity:2",
-                                "--out", "{tmp}/new"], "fails every view"),
-    ("guard-passes-every-view", ["explore", "procedural", "--criterion", "colorfulness", "--guard", "opacity:-1",
-                                 "--out", "{tmp}/new"], "passes every view"),
-    ("weighted-one-criterion-no-weight", ["explore", "procedural", "--criterion", "weighted:composition",
-                                          "--out", "{tmp}/new"], "bad weight"),
-    ("weighted-duplicate", ["explore", "procedural", "--criterion", "weighted:opacity=1,opacity=2",
-                            "--out", "{tmp}/new"], "names 'opacity' twice"),
-    ("explore-views-on-a-run", ["explore", "{tmp}/tiny_run", "--views", "5", "--criterion", "colorfulness",
-                                "--out", "{tmp}/new"], "--views is for procedural sources"),
-    ("render-views-on-a-run", ["render", "{tmp}/tiny_run", "--poses", "train", "--views", "5", "--out", "{tmp}/new"],
-     "--views: for procedural sources only"),
+    (
+        "guard-fails-every-view",
+        ["explore", "procedural", "--criterion", "colorfulness", "--guard", "opacity:2", "--out", "{tmp}/new"],
+        "fails every view",
+    ),
+    (
+        "guard-passes-every-view",
+        ["explore", "procedural", "--criterion", "colorfulness", "--guard", "opacity:-1", "--out", "{tmp}/new"],
+        "passes every view",
+    ),
+    (
+        "weighted-one-criterion-no-weight",
+        ["explore", "procedural", "--criterion", "weighted:composition", "--out", "{tmp}/new"],
+        "bad weight",
+    ),
+    (
+        "weighted-duplicate",
+        ["explore", "procedural", "--criterion", "weighted:opacity=1,opacity=2", "--out", "{tmp}/new"],
+        "names 'opacity' twice",
+    ),
+    (
+        "explore-views-on-a-run",
+        ["explore", "{tmp}/tiny_run", "--views", "5", "--criterion", "colorfulness", "--out", "{tmp}/new"],
+        "--views is for procedural sources",
+    ),
+    (
+        "render-views-on-a-run",
+        ["render", "{tmp}/tiny_run", "--poses", "train", "--views", "5", "--out", "{tmp}/new"],
+        "--views: for procedural sources only",
+    ),
     # Non-finite data: refused naming the file.
-    ("render-nan-checkpoint", ["render", "{tmp}/nan_run", "--poses", "train", "--out", "{tmp}/new"],
-     "nan_run/checkpoint.ckpt: the field's parameters hold NaN"),
-    ("explore-nan-checkpoint", ["explore", "{tmp}/nan_run", "--criterion", "colorfulness", "--out", "{tmp}/new"],
-     "nan_run/checkpoint.ckpt: the field's parameters hold NaN"),
+    (
+        "render-nan-checkpoint",
+        ["render", "{tmp}/nan_run", "--poses", "train", "--out", "{tmp}/new"],
+        "nan_run/checkpoint.ckpt: the field's parameters hold NaN",
+    ),
+    (
+        "explore-nan-checkpoint",
+        ["explore", "{tmp}/nan_run", "--criterion", "colorfulness", "--out", "{tmp}/new"],
+        "nan_run/checkpoint.ckpt: the field's parameters hold NaN",
+    ),
     ("score-nan-pixel", ["score", "--criterion", "colorfulness", "{tmp}/nan.tiff"], "nan.tiff: the image has 1 NaN"),
     # Numbers that reach a division, a float32 / int32 cast or a shape: checked where they enter
     # (errors.check_float32 / check_int, scenes.common.focal_from_angle / intrinsics_problem).
     ("scene-negative-w", ["scene", "info", "{tmp}/negative_w"], "negative_w/transforms.json: 'w' must be a positive"),
-    ("scene-zero-fov", ["scene", "info", "{tmp}/zero_fov"],
-     "zero_fov/transforms.json: 'camera_angle_x' must be a field of view between 0 and 3.14159 radians"),
+    (
+        "scene-zero-fov",
+        ["scene", "info", "{tmp}/zero_fov"],
+        "zero_fov/transforms.json: 'camera_angle_x' must be a field of view between 0 and 3.14159 radians",
+    ),
     ("train-zero-fov", ["train", "{tmp}/zero_fov", "--out", "{tmp}/new"], "'camera_angle_x' must be a field of view"),
-    ("render-poses-zero-fov", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_poses.json", "--out", "{tmp}/new"],
-     "zero_fov_poses.json: 'camera_angle_x' must be a field of view"),
-    ("render-camera-path-zero-fov", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_path.json", "--out",
-                                     "{tmp}/new"], "zero_fov_path.json: 'fov' must be a field of view between 0 and 180"),
+    (
+        "render-poses-zero-fov",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_poses.json", "--out", "{tmp}/new"],
+        "zero_fov_poses.json: 'camera_angle_x' must be a field of view",
+    ),
+    (
+        "render-camera-path-zero-fov",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/zero_fov_path.json", "--out", "{tmp}/new"],
+        "zero_fov_path.json: 'fov' must be a field of view between 0 and 180",
+    ),
     ("scene-fov-of-180-degrees", ["scene", "info", "{tmp}/flat_fov"], "a pinhole camera needs 0.001 to 179"),
-    ("scene-focal-zero-in-float32", ["scene", "info", "{tmp}/tiny_focal"], "'fl_x' must be a positive number that float32"),
-    ("render-poses-focal-zero-in-float32", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/tiny_focal_poses.json",
-                                            "--out", "{tmp}/new"], "tiny_focal_poses.json: 'fl_x' must be a positive"),
-    ("render-poses-focal-inf-in-float32", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/huge_focal_poses.json",
-                                           "--out", "{tmp}/new"], "huge_focal_poses.json: 'fl_x' must be a finite number"),
-    ("train-steps-past-int32", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "1000000000000"],
-     "--steps must be a positive integer of at most 2147483647"),
-    ("explore-children-past-int32", ["explore", "procedural", "--children-per-epoch", "3000000000", "--out", "{tmp}/new"],
-     "--children-per-epoch must be an integer between 1 and 2147483647"),
-    ("explore-refine-step-zero-in-float32", ["explore", "procedural", "--method", "egps+refine", "--refine-step-size",
-                                             "1e-300", "--out", "{tmp}/new"], "--refine-step-size must be a positive"),
-    ("path-fps-zero-in-float32", ["path", "procedural", "--criterion", "colorfulness", "--fps", "1e-300", "--out",
-                                  "{tmp}/new"], "--fps must be a positive number that float32 holds"),
-    ("train-render-step-scale-zero-in-float32", ["train", "{tmp}/scene", "--out", "{tmp}/new", "--render-step-scale",
-                                                "1e-300"], "--render-step-scale must be a positive number that float32"),
+    (
+        "scene-focal-zero-in-float32",
+        ["scene", "info", "{tmp}/tiny_focal"],
+        "'fl_x' must be a positive number that float32",
+    ),
+    (
+        "render-poses-focal-zero-in-float32",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/tiny_focal_poses.json", "--out", "{tmp}/new"],
+        "tiny_focal_poses.json: 'fl_x' must be a positive",
+    ),
+    (
+        "render-poses-focal-inf-in-float32",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/huge_focal_poses.json", "--out", "{tmp}/new"],
+        "huge_focal_poses.json: 'fl_x' must be a finite number",
+    ),
+    (
+        "train-steps-past-int32",
+        ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "1000000000000"],
+        "--steps must be a positive integer of at most 2147483647",
+    ),
+    (
+        "explore-children-past-int32",
+        ["explore", "procedural", "--children-per-epoch", "3000000000", "--out", "{tmp}/new"],
+        "--children-per-epoch must be an integer between 1 and 2147483647",
+    ),
+    (
+        "explore-refine-step-zero-in-float32",
+        ["explore", "procedural", "--method", "egps+refine", "--refine-step-size", "1e-300", "--out", "{tmp}/new"],
+        "--refine-step-size must be a positive",
+    ),
+    (
+        "path-fps-zero-in-float32",
+        ["path", "procedural", "--criterion", "colorfulness", "--fps", "1e-300", "--out", "{tmp}/new"],
+        "--fps must be a positive number that float32 holds",
+    ),
+    (
+        "train-render-step-scale-zero-in-float32",
+        ["train", "{tmp}/scene", "--out", "{tmp}/new", "--render-step-scale", "1e-300"],
+        "--render-step-scale must be a positive number that float32",
+    ),
     # Checkpoints checked as a whole when opened: camera, box, near/far, poses, background.
-    ("render-checkpoint-near-beyond-far", ["render", "{tmp}/near_far_run", "--poses", "train", "--out", "{tmp}/new"],
-     "near_far_run/checkpoint.ckpt: near/far bounds 5 / 1 do not satisfy 0 < near < far"),
-    ("explore-checkpoint-nan-pose", ["explore", "{tmp}/nan_pose_run", "--criterion", "colorfulness", "--out",
-                                     "{tmp}/new"], "nan_pose_run/checkpoint.ckpt: training pose 3: pose has non-finite"),
-    ("render-checkpoint-sheared-pose", ["render", "{tmp}/sheared_pose_run", "--poses", "train", "--out", "{tmp}/new"],
-     "sheared_pose_run/checkpoint.ckpt: training pose 0: pose is not rigid"),
-    ("render-checkpoint-nan-background", ["render", "{tmp}/nan_background_run", "--poses", "train", "--out",
-                                          "{tmp}/new"], "the background colour [nan, 0.5, 0.5] is not 3 numbers in [0, 1]"),
-    ("explore-checkpoint-nan-background", ["explore", "{tmp}/nan_background_run", "--criterion", "colorfulness",
-                                           "--out", "{tmp}/new"], "nan_background_run/checkpoint.ckpt: the background"),
-    ("render-checkpoint-zero-focal", ["render", "{tmp}/zero_focal_run", "--poses", "train", "--out", "{tmp}/new"],
-     "zero_focal_run/checkpoint.ckpt: the training camera: focal length fx = 0 px"),
-    ("render-checkpoint-huge-camera", ["render", "{tmp}/huge_camera_run", "--poses", "train", "--out", "{tmp}/new"],
-     "huge_camera_run/checkpoint.ckpt: the training camera: camera of 100000x100000 pixels"),
-    ("render-checkpoint-flipped-box", ["render", "{tmp}/flipped_box_run", "--poses", "train", "--out", "{tmp}/new"],
-     "flipped_box_run/checkpoint.ckpt: scene box"),
+    (
+        "render-checkpoint-near-beyond-far",
+        ["render", "{tmp}/near_far_run", "--poses", "train", "--out", "{tmp}/new"],
+        "near_far_run/checkpoint.ckpt: near/far bounds 5 / 1 do not satisfy 0 < near < far",
+    ),
+    (
+        "explore-checkpoint-nan-pose",
+        ["explore", "{tmp}/nan_pose_run", "--criterion", "colorfulness", "--out", "{tmp}/new"],
+        "nan_pose_run/checkpoint.ckpt: training pose 3: pose has non-finite",
+    ),
+    (
+        "render-checkpoint-sheared-pose",
+        ["render", "{tmp}/sheared_pose_run", "--poses", "train", "--out", "{tmp}/new"],
+        "sheared_pose_run/checkpoint.ckpt: training pose 0: pose is not rigid",
+    ),
+    (
+        "render-checkpoint-nan-background",
+        ["render", "{tmp}/nan_background_run", "--poses", "train", "--out", "{tmp}/new"],
+        "the background colour [nan, 0.5, 0.5] is not 3 numbers in [0, 1]",
+    ),
+    (
+        "explore-checkpoint-nan-background",
+        ["explore", "{tmp}/nan_background_run", "--criterion", "colorfulness", "--out", "{tmp}/new"],
+        "nan_background_run/checkpoint.ckpt: the background",
+    ),
+    (
+        "render-checkpoint-zero-focal",
+        ["render", "{tmp}/zero_focal_run", "--poses", "train", "--out", "{tmp}/new"],
+        "zero_focal_run/checkpoint.ckpt: the training camera: focal length fx = 0 px",
+    ),
+    (
+        "render-checkpoint-huge-camera",
+        ["render", "{tmp}/huge_camera_run", "--poses", "train", "--out", "{tmp}/new"],
+        "huge_camera_run/checkpoint.ckpt: the training camera: camera of 100000x100000 pixels",
+    ),
+    (
+        "render-checkpoint-flipped-box",
+        ["render", "{tmp}/flipped_box_run", "--poses", "train", "--out", "{tmp}/new"],
+        "flipped_box_run/checkpoint.ckpt: scene box",
+    ),
     # Images outside the range they are read in: refused in one line, not clipped or misread.
-    ("score-float-tiff-beyond-1", ["score", "--criterion", "colorfulness", "{tmp}/hdr.tiff"],
-     "hdr.tiff: a float32 image with values in [0"),
-    ("explore-target-float-tiff-beyond-1", ["explore", "procedural", "--criterion", "waldo", "--target",
-                                            "{tmp}/hdr.tiff", "--out", "{tmp}/new"], "hdr.tiff: a float32 image"),
-    ("train-float-image-beyond-1", ["train", "{tmp}/float_scene", "--out", "{tmp}/new"],
-     "float_scene/images/1.tiff: a F-mode image with values in [0, 255], outside [0, 1]"),
+    (
+        "score-float-tiff-beyond-1",
+        ["score", "--criterion", "colorfulness", "{tmp}/hdr.tiff"],
+        "hdr.tiff: a float32 image with values in [0",
+    ),
+    (
+        "explore-target-float-tiff-beyond-1",
+        ["explore", "procedural", "--criterion", "waldo", "--target", "{tmp}/hdr.tiff", "--out", "{tmp}/new"],
+        "hdr.tiff: a float32 image",
+    ),
+    (
+        "train-float-image-beyond-1",
+        ["train", "{tmp}/float_scene", "--out", "{tmp}/new"],
+        "float_scene/images/1.tiff: a F-mode image with values in [0, 255], outside [0, 1]",
+    ),
     # Files that are not what they should be: said as they are, not "not found".
     ("score-a-directory", ["score", "--criterion", "colorfulness", "{tmp}/run"], "run: a directory"),
     ("score-a-fifo", ["score", "--criterion", "colorfulness", "{tmp}/fifo"], "fifo: a FIFO"),
     ("score-a-symlink-loop", ["score", "--criterion", "colorfulness", "{tmp}/loop"], "loop: a symbolic link loop"),
-    ("score-not-an-image", ["score", "--criterion", "colorfulness", "{tmp}/junk.png"], "junk.png: not a readable image"),
-    ("render-poses-a-directory", ["render", "{tmp}/tiny_run", "--poses", "{tmp}/run", "--out", "{tmp}/new"],
-     "run: a directory"),
+    (
+        "score-not-an-image",
+        ["score", "--criterion", "colorfulness", "{tmp}/junk.png"],
+        "junk.png: not a readable image",
+    ),
+    (
+        "render-poses-a-directory",
+        ["render", "{tmp}/tiny_run", "--poses", "{tmp}/run", "--out", "{tmp}/new"],
+        "run: a directory",
+    ),
     ("scene-a-symlink-loop", ["scene", "info", "{tmp}/loop"], "loop: a symbolic link that leads nowhere"),
     ("train-scene-a-fifo", ["train", "{tmp}/fifo", "--out", "{tmp}/new"], "fifo: unknown scene format"),
-    ("render-checkpoint-a-fifo", ["render", "{tmp}/fifo_run", "--poses", "train", "--out", "{tmp}/new"],
-     "checkpoint.ckpt: a FIFO"),
+    (
+        "render-checkpoint-a-fifo",
+        ["render", "{tmp}/fifo_run", "--poses", "train", "--out", "{tmp}/new"],
+        "checkpoint.ckpt: a FIFO",
+    ),
 ]
 
 
@@ -158,8 +293,14 @@ def _write_scene(folder, translation=None, float_images=False, **meta):
     frames = []
     for i in range(8):
         angle = 2 * np.pi * i / 8
-        c2w = np.asarray(look_at(np.array([3 * np.cos(angle), 0.5, 3 * np.sin(angle)], np.float32), np.zeros(3),
-                                 np.array([0.0, 1.0, 0.0])), np.float64)
+        c2w = np.asarray(
+            look_at(
+                np.array([3 * np.cos(angle), 0.5, 3 * np.sin(angle)], np.float32),
+                np.zeros(3),
+                np.array([0.0, 1.0, 0.0]),
+            ),
+            np.float64,
+        )
         c2w = np.concatenate([c2w[:3], [[0, 0, 0, 1]]])
         if translation is not None:
             c2w[0, 3] = translation
@@ -183,16 +324,23 @@ def _write_run(folder, nan=False, **record):
     from waldo_jax.scenes import load_scene
 
     scene = load_scene(folder.parent / "scene")
-    field = NGPFieldConfig(aabb=tuple(map(tuple, scene.aabb.tolist())),
-                           hashgrid=HashGridConfig(L=2, T=2**8, F=2, N_min=4, N_max=8),
-                           density_hidden=(8,), color_hidden=(8,))
+    field = NGPFieldConfig(
+        aabb=tuple(map(tuple, scene.aabb.tolist())),
+        hashgrid=HashGridConfig(L=2, T=2**8, F=2, N_min=4, N_max=8),
+        density_hidden=(8,),
+        color_hidden=(8,),
+    )
     config = TrainConfig(field=field, steps=1, sampler="dense", num_samples=8, samples_per_batch=256, eval_samples=8)
     params = init_field(jax.random.key(0), field)
     if nan:
         params = jax.tree.map(lambda a: np.full_like(a, np.nan), params)
     folder.mkdir()
-    save_checkpoint(folder / CHECKPOINT_NAME, params, config,
-                    dataclasses.replace(SceneRecord.from_scene(scene), **record) if record else scene)
+    save_checkpoint(
+        folder / CHECKPOINT_NAME,
+        params,
+        config,
+        dataclasses.replace(SceneRecord.from_scene(scene), **record) if record else scene,
+    )
 
 
 def _inputs(tmp):
@@ -215,8 +363,9 @@ def _inputs(tmp):
     nan[3, 3, 0] = np.nan
     iio.imwrite(tmp / "nan.tiff", nan)
     c2w = json.loads((tmp / "scene" / "transforms.json").read_text())["frames"][0]["transform_matrix"]
-    (tmp / "wide_poses.json").write_text(json.dumps({"fl_x": 100, "w": 100000, "h": 100,
-                                                     "frames": [{"transform_matrix": c2w}]}))
+    (tmp / "wide_poses.json").write_text(
+        json.dumps({"fl_x": 100, "w": 100000, "h": 100, "frames": [{"transform_matrix": c2w}]})
+    )
     _broken_camera_inputs(tmp, c2w)
 
 
@@ -232,13 +381,23 @@ def _broken_camera_inputs(tmp, c2w):
     _write_scene(tmp / "tiny_focal", fl_x=1e-300)  # > 0 in float64, 0 in float32
     _write_scene(tmp / "float_scene", float_images=True)
     frames = [{"transform_matrix": c2w}]
-    for name, camera in (("zero_fov_poses", {"camera_angle_x": 0}), ("tiny_focal_poses", {"fl_x": 1e-300}),
-                         ("huge_focal_poses", {"fl_x": 1e300})):
+    for name, camera in (
+        ("zero_fov_poses", {"camera_angle_x": 0}),
+        ("tiny_focal_poses", {"fl_x": 1e-300}),
+        ("huge_focal_poses", {"fl_x": 1e300}),
+    ):
         (tmp / f"{name}.json").write_text(json.dumps({**camera, "w": 16, "h": 16, "frames": frames}))
     flat = np.asarray(c2w, np.float64).reshape(-1).tolist()
-    (tmp / "zero_fov_path.json").write_text(json.dumps({  # a camera path as `waldo path` writes one, fov 0
-        "render_width": 16, "render_height": 16, "camera_path": [{"camera_to_world": flat, "fov": 0, "aspect": 1}],
-        "waldo": {"world": "scene"}}))
+    (tmp / "zero_fov_path.json").write_text(
+        json.dumps(
+            {  # a camera path as `waldo path` writes one, fov 0
+                "render_width": 16,
+                "render_height": 16,
+                "camera_path": [{"camera_to_world": flat, "fov": 0, "aspect": 1}],
+                "waldo": {"world": "scene"},
+            }
+        )
+    )
     c2w_nan = np.stack([np.asarray(c2w, np.float32)] * 8)
     c2w_nan[3, 0, 3] = np.nan
     c2w_sheared = np.stack([np.asarray(c2w, np.float32)] * 8)
@@ -308,13 +467,30 @@ def test_a_backend_the_machine_lacks_is_one_line_before_anything_is_created(tmp_
 
     missing = "tpu" if jax.default_backend() == "gpu" else "gpu"
     out = tmp_path / "new"
-    result = subprocess.run([sys.executable, "-m", "waldo_jax", "render", "procedural", "--views", "2",
-                             "--resolution", "8", "--out", str(out)], env={**os.environ, "JAX_PLATFORMS": missing},
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "waldo_jax",
+            "render",
+            "procedural",
+            "--views",
+            "2",
+            "--resolution",
+            "8",
+            "--out",
+            str(out),
+        ],
+        env={**os.environ, "JAX_PLATFORMS": missing},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 1, result.stderr
-    assert len(lines) == 1 and lines[0].startswith(f"waldo: error: JAX_PLATFORMS={missing}: this machine cannot "
-                                                   "start that backend"), result.stderr
+    assert len(lines) == 1 and lines[0].startswith(
+        f"waldo: error: JAX_PLATFORMS={missing}: this machine cannot start that backend"
+    ), result.stderr
     assert not out.exists() and os.listdir(tmp_path) == []
 
 
@@ -387,12 +563,14 @@ def test_a_bad_criterion_is_refused_before_the_source_loads(tmp_path, capsys, mo
     module = cli_explore if command == "explore" else cli_path
     real_load = module.load_source
     monkeypatch.setattr(module, "load_source", lambda *a, **k: pytest.fail("loaded the source before the criterion"))
-    bad = [(["--criterion", "weighted:composition"], "bad weight"),
-           (["--criterion", "weighted:opacity=1,opacity=2"], "names 'opacity' twice"),
-           (["--criterion", "colourfulness"], "unknown criterion 'colourfulness'"),
-           (["--criterion", "colorfulness", "--guard", "opacty:0.5"], "unknown criterion 'opacty'"),
-           (["--criterion", "colorfulness", "--guard", "opacity:2"], "fails every view"),
-           (["--criterion", "waldo", "--target", str(tmp_path / "missing.png")], "missing.png")]
+    bad = [
+        (["--criterion", "weighted:composition"], "bad weight"),
+        (["--criterion", "weighted:opacity=1,opacity=2"], "names 'opacity' twice"),
+        (["--criterion", "colourfulness"], "unknown criterion 'colourfulness'"),
+        (["--criterion", "colorfulness", "--guard", "opacty:0.5"], "unknown criterion 'opacty'"),
+        (["--criterion", "colorfulness", "--guard", "opacity:2"], "fails every view"),
+        (["--criterion", "waldo", "--target", str(tmp_path / "missing.png")], "missing.png"),
+    ]
     if command == "explore":
         bad.append((["--criterion", "niqe", "--method", "egps+refine"], "'niqe' is not differentiable"))
     for flags, message in bad:
@@ -405,8 +583,21 @@ def test_a_bad_criterion_is_refused_before_the_source_loads(tmp_path, capsys, mo
     # refused, as its guard's threshold lies outside the guard's range), before any output exists.
     calls = []
     monkeypatch.setattr(module, "load_source", lambda *a, **k: calls.append(a) or real_load(*a, **k))
-    assert main([command, "procedural:1", "--out", str(tmp_path / "oracle"), "--criterion", "waldo_oracle",
-                 "--guard", "waldo_visible:2"]) == 1
+    assert (
+        main(
+            [
+                command,
+                "procedural:1",
+                "--out",
+                str(tmp_path / "oracle"),
+                "--criterion",
+                "waldo_oracle",
+                "--guard",
+                "waldo_visible:2",
+            ]
+        )
+        == 1
+    )
     assert calls and "fails every view" in capsys.readouterr().err
     assert not (tmp_path / "oracle").exists()
 
@@ -469,8 +660,30 @@ def test_render_force_replaces_an_earlier_render_without_stale_files(tmp_path, c
     out = tmp_path / "views"
     assert main(["render", "procedural", "--views", "3", "--resolution", "8", "--samples", "8", "--out", str(out)]) == 0
     (out / "notes.txt").write_text("mine")
-    assert main(["render", "procedural", "--views", "2", "--resolution", "8", "--samples", "8", "--out", str(out),
-                 "--force"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "procedural",
+                "--views",
+                "2",
+                "--resolution",
+                "8",
+                "--samples",
+                "8",
+                "--out",
+                str(out),
+                "--force",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert sorted(os.listdir(out)) == ["contact_sheet.png", "notes.txt", "room.json", "transforms.json",
-                                       "view_000.png", "view_001.png"]
+    assert sorted(os.listdir(out)) == [
+        "contact_sheet.png",
+        "notes.txt",
+        "room.json",
+        "transforms.json",
+        "view_000.png",
+        "view_001.png",
+    ]

@@ -74,9 +74,7 @@ def _project_with(c2w, k: Intrinsics, points):
 
 # A fixed, generic weighting so that the "sum over outputs" loss has no symmetric cancellations.
 _LOSS_WEIGHTS = np.linspace(-1.0, 2.0, 16, dtype=np.float32).reshape(4, 4)
-_look_at_grad = jax.jit(
-    jax.grad(lambda o, t, u: jnp.sum(look_at(o, t, u) * _LOSS_WEIGHTS), argnums=(0, 1, 2))
-)
+_look_at_grad = jax.jit(jax.grad(lambda o, t, u: jnp.sum(look_at(o, t, u) * _LOSS_WEIGHTS), argnums=(0, 1, 2)))
 
 # ------------------------------------------------------------------------------------------------
 # Strategies and float64 helpers.
@@ -84,12 +82,12 @@ _look_at_grad = jax.jit(
 _coord = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False, width=32)
 vec3 = st.tuples(_coord, _coord, _coord).map(lambda v: np.asarray(v, np.float32))
 _unit_coord = st.floats(-1.0, 1.0, allow_nan=False, width=32)
-quat = st.tuples(_unit_coord, _unit_coord, _unit_coord, _unit_coord).map(np.asarray).filter(
-    lambda q: np.linalg.norm(q) > 0.1
+quat = (
+    st.tuples(_unit_coord, _unit_coord, _unit_coord, _unit_coord)
+    .map(np.asarray)
+    .filter(lambda q: np.linalg.norm(q) > 0.1)
 )
-axis = st.tuples(_unit_coord, _unit_coord, _unit_coord).map(np.asarray).filter(
-    lambda a: np.linalg.norm(a) > 0.1
-)
+axis = st.tuples(_unit_coord, _unit_coord, _unit_coord).map(np.asarray).filter(lambda a: np.linalg.norm(a) > 0.1)
 
 
 def _rotation_of(q_wxyz: np.ndarray) -> np.ndarray:
@@ -365,8 +363,9 @@ def test_slerp_constant_angular_speed_and_linear_translation(qa, a, angle, oa, o
         np.testing.assert_allclose(_angle64(c[:3, :3], rb), (1 - t) * total, atol=1e-4)
         np.testing.assert_allclose(c[:3, 3], (1 - t) * oa.astype(np.float64) + t * ob, atol=1e-5)
         # The library's own angle agrees (looser: float32 arccos).
-        np.testing.assert_allclose(_rotation_angle(ra.astype(np.float32), c[:3, :3].astype(np.float32)),
-                                   t * total, atol=2e-3)
+        np.testing.assert_allclose(
+            _rotation_angle(ra.astype(np.float32), c[:3, :3].astype(np.float32)), t * total, atol=2e-3
+        )
 
 
 @PROPERTY
@@ -558,9 +557,7 @@ def test_centre_ray_is_minus_z_and_image_orientation(q, origin):
 def test_camera_rays_vmap_over_poses_equals_per_camera_calls():
     intrinsics = _CAMERAS["fox"]
     rng = np.random.default_rng(2)
-    c2ws = np.stack([
-        _rigid(Rotation.random(random_state=i).as_matrix(), rng.uniform(-2, 2, 3)) for i in range(5)
-    ])
+    c2ws = np.stack([_rigid(Rotation.random(random_state=i).as_matrix(), rng.uniform(-2, 2, 3)) for i in range(5)])
     origins, dirs = jax.jit(jax.vmap(lambda m: camera_rays(m, intrinsics)))(c2ws)
     assert dirs.shape == (5, intrinsics.height, intrinsics.width, 3)
     for i, c2w in enumerate(c2ws):

@@ -26,13 +26,21 @@ from waldo_jax.nerf.samplers import make_sampler
 from waldo_jax.types import Intrinsics, Scene
 
 BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
-FIELD = NGPFieldConfig(aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**10, F=2, N_min=4, N_max=32),
-                       density_hidden=(16,), color_hidden=(16,))
+FIELD = NGPFieldConfig(
+    aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**10, F=2, N_min=4, N_max=32), density_hidden=(16,), color_hidden=(16,)
+)
 
 
 def _config(sampler: str = "dense") -> TrainConfig:
-    return TrainConfig(field=FIELD, steps=10, sampler=sampler, occupancy_resolution=8, num_samples=16,
-                       samples_per_batch=256, eval_samples=16)
+    return TrainConfig(
+        field=FIELD,
+        steps=10,
+        sampler=sampler,
+        occupancy_resolution=8,
+        num_samples=16,
+        samples_per_batch=256,
+        eval_samples=16,
+    )
 
 
 def _scene() -> Scene:
@@ -71,7 +79,9 @@ def _occupancy(config: TrainConfig):
     density = jax.random.uniform(jax.random.key(2), grid.density.shape)
     # A NaN payload and inf: stored bit for bit.
     nan_payload = jnp.asarray(np.array([0x7FC00123], np.uint32).view(np.float32))
-    density = density.reshape(-1).at[:2].set(jnp.concatenate([nan_payload, jnp.array([jnp.inf])])).reshape(density.shape)
+    density = (
+        density.reshape(-1).at[:2].set(jnp.concatenate([nan_payload, jnp.array([jnp.inf])])).reshape(density.shape)
+    )
     return grid.replace(density=density, bitfield=density > 0.5)
 
 
@@ -98,8 +108,9 @@ def test_round_trip_is_bit_exact(tmp_path, sampler):
     params = _params()
     occupancy = _occupancy(config) if sampler == "occupancy" else None
     scene = _scene()
-    path = ckpt.save_checkpoint(tmp_path / "model.ckpt", params, config, scene, occupancy,
-                                info={"steps": 10, "psnr_test": float("nan")})
+    path = ckpt.save_checkpoint(
+        tmp_path / "model.ckpt", params, config, scene, occupancy, info={"steps": 10, "psnr_test": float("nan")}
+    )
     loaded = ckpt.load_checkpoint(path)
     assert _bytes(loaded.params) == _bytes(params)
     assert jax.tree.structure(loaded.params) == jax.tree.structure(params)
@@ -145,8 +156,9 @@ def test_trained_field_of_a_checkpoint_is_one_pytree_with_its_scene_settings(sav
     np.testing.assert_array_equal(TrainedField.from_checkpoint(opaque).background, np.zeros(3, np.float32))
     c2w, intrinsics = loaded.scene.c2w[:1], loaded.scene.intrinsics.scaled(8, 6)
     by_hand = TrainedField.create(loaded.params, None, loaded.config, 2.0, 6.0, np.ones(3), BOX)
-    np.testing.assert_array_equal(np.asarray(render_trained(field, c2w, intrinsics).rgb),
-                                  np.asarray(render_trained(by_hand, c2w, intrinsics).rgb))
+    np.testing.assert_array_equal(
+        np.asarray(render_trained(field, c2w, intrinsics).rgb), np.asarray(render_trained(by_hand, c2w, intrinsics).rgb)
+    )
 
 
 def _dir_with(tmp_path, path):
@@ -191,8 +203,12 @@ def test_wrong_format_version_is_a_clear_error(tmp_path, monkeypatch):
 
 
 def test_shape_mismatch_with_the_stored_config_names_the_array(tmp_path):
-    bigger = NGPFieldConfig(aabb=BOX, hashgrid=HashGridConfig(L=4, T=2**11, F=2, N_min=4, N_max=64),
-                            density_hidden=(16,), color_hidden=(16,))
+    bigger = NGPFieldConfig(
+        aabb=BOX,
+        hashgrid=HashGridConfig(L=4, T=2**11, F=2, N_min=4, N_max=64),
+        density_hidden=(16,),
+        color_hidden=(16,),
+    )
     params = init_field(jax.random.key(0), bigger)
     path = ckpt.save_checkpoint(tmp_path / "mismatch.ckpt", params, _config(), _scene())
     with pytest.raises(ckpt.CheckpointError, match=r"incompatible.*params/hash") as info:
@@ -257,12 +273,15 @@ def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
         forced.handler(forced)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--preset", "best"], "unknown --preset 'best'"),  # refused by the parser (choices), one line too
-    (["--steps", "0"], "--steps must be a positive integer"),
-    (["--downscale", "-2"], "--downscale must be a positive number"),
-    (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--preset", "best"], "unknown --preset 'best'"),  # refused by the parser (choices), one line too
+        (["--steps", "0"], "--steps must be a positive integer"),
+        (["--downscale", "-2"], "--downscale must be a positive number"),
+        (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
+    ],
+)
 def test_train_rejects_bad_arguments(tmp_path, argv, message):
     with pytest.raises(WaldoError, match=message):
         args = _parse(["train", str(tmp_path), "--out", str(tmp_path / "run")] + argv)
@@ -282,13 +301,28 @@ def test_render_writes_pngs_of_train_poses_and_a_poses_file(tmp_path, capsys):
     assert files == ["0000.png", "0001.png", "0002.png"]
     assert iio.imread(tmp_path / "train_views" / "0000.png").shape == (6, 8, 3)
 
-    poses = {"w": 20, "h": 10, "fl_x": 18.0, "frames": [
-        {"file_path": "a.png", "transform_matrix": np.asarray(scene.c2w[1], np.float64).tolist()},
-        {"file_path": "b.png", "transform_matrix": np.asarray(scene.c2w[2], np.float64).tolist()},
-    ]}
+    poses = {
+        "w": 20,
+        "h": 10,
+        "fl_x": 18.0,
+        "frames": [
+            {"file_path": "a.png", "transform_matrix": np.asarray(scene.c2w[1], np.float64).tolist()},
+            {"file_path": "b.png", "transform_matrix": np.asarray(scene.c2w[2], np.float64).tolist()},
+        ],
+    }
     (tmp_path / "poses.json").write_text(json.dumps(poses))
-    args = _parse(["render", str(run), "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "novel"),
-                   "--resolution", "12"])
+    args = _parse(
+        [
+            "render",
+            str(run),
+            "--poses",
+            str(tmp_path / "poses.json"),
+            "--out",
+            str(tmp_path / "novel"),
+            "--resolution",
+            "12",
+        ]
+    )
     assert args.handler(args) == 0
     assert sorted(os.listdir(tmp_path / "novel")) == ["0000.png", "0001.png"]
     assert iio.imread(tmp_path / "novel" / "0001.png").shape == (6, 12, 3)  # longer side 12, aspect 2:1
@@ -315,6 +349,9 @@ def test_non_finite_field_parameters_are_refused_naming_the_file(tmp_path):
     params = init_field(jax.random.key(0), FIELD)
     params["hash"] = params["hash"].at[3, 1].set(jnp.nan)
     path = ckpt.save_checkpoint(tmp_path / "diverged.ckpt", params, _config(), _scene())
-    with pytest.raises(ckpt.CheckpointError, match=r"diverged\.ckpt: the field's parameters hold NaN or infinity "
-                                                   r"\(1 arrays, e.g. \['hash'\]\)"):
+    with pytest.raises(
+        ckpt.CheckpointError,
+        match=r"diverged\.ckpt: the field's parameters hold NaN or infinity "
+        r"\(1 arrays, e.g. \['hash'\]\)",
+    ):
         ckpt.load_checkpoint(path)

@@ -83,7 +83,14 @@ def test_render_procedural_writes_views_sheet_and_refuses_to_overwrite(tmp_path,
     args = ["render", "procedural:2", "--views", "3", "--resolution", "16", "--samples", "32", "--out", str(out)]
     assert main(args) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["contact_sheet.png", "room.json", "transforms.json", "view_000.png", "view_001.png", "view_002.png"]
+    assert names == [
+        "contact_sheet.png",
+        "room.json",
+        "transforms.json",
+        "view_000.png",
+        "view_001.png",
+        "view_002.png",
+    ]
     assert iio.imread(out / "view_000.png").shape == (16, 16, 3)
     room = json.loads((out / "room.json").read_text())
     assert room["seed"] == 2 and len(room["waldo_visibility"]) == 3

@@ -19,8 +19,16 @@ from waldo_jax.version import UNKNOWN_VERSION, package_version
 
 ROOT = Path(__file__).resolve().parent.parent
 # Commands that print progress or chatter (bars, phase names, "rendering N views ...", per-model lines).
-QUIET_COMMANDS = [("demo",), ("explore",), ("train",), ("path",), ("render",), ("score",), ("scene", "info"),
-                  ("weights", "convert")]
+QUIET_COMMANDS = [
+    ("demo",),
+    ("explore",),
+    ("train",),
+    ("path",),
+    ("render",),
+    ("score",),
+    ("scene", "info"),
+    ("weights", "convert"),
+]
 
 
 class _Terminal(io.StringIO):
@@ -47,8 +55,9 @@ def _pyproject_version():
 
 
 def test_version_flag_prints_the_package_version():
-    result = subprocess.run([sys.executable, "-m", "waldo_jax", "--version"], capture_output=True, text=True,
-                            timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "waldo_jax", "--version"], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert result.stdout == f"waldo {_pyproject_version()}\n"
     assert waldo_jax.__version__ == _pyproject_version()
@@ -56,8 +65,9 @@ def test_version_flag_prints_the_package_version():
 
 def test_version_falls_back_to_pyproject_then_to_unknown(tmp_path):
     pyproject = tmp_path / "pyproject.toml"
-    pyproject.write_text('[build-system]\nrequires = []\n\n[project]\nname = "x"\nversion = "9.8.7"\n'
-                         '[tool.other]\nversion = "1.0"\n')
+    pyproject.write_text(
+        '[build-system]\nrequires = []\n\n[project]\nname = "x"\nversion = "9.8.7"\n[tool.other]\nversion = "1.0"\n'
+    )
     assert package_version("waldo-jax-never-installed", pyproject) == "9.8.7"
     assert package_version("waldo-jax-never-installed", tmp_path / "missing.toml") == UNKNOWN_VERSION
 
@@ -65,23 +75,29 @@ def test_version_falls_back_to_pyproject_then_to_unknown(tmp_path):
 def test_every_command_that_prints_progress_takes_quiet():
     commands = _commands()
     assert set(QUIET_COMMANDS) <= set(commands), sorted(commands)
-    lacking = [" ".join(c) for c in QUIET_COMMANDS
-               if "--quiet" not in {s for a in commands[c]._actions for s in a.option_strings}]
+    lacking = [
+        " ".join(c)
+        for c in QUIET_COMMANDS
+        if "--quiet" not in {s for a in commands[c]._actions for s in a.option_strings}
+    ]
     assert not lacking, f"without --quiet: {lacking}"
 
 
-@pytest.mark.parametrize("argv, flag, value", [
-    (["explore", "procedural", "--out", "{tmp}/new", "--budget", "huge"], "--budget", "huge"),
-    (["explore", "procedural", "--out", "{tmp}/new", "--pibs-fallback", "egps"], "--pibs-fallback", "egps"),
-    (["explore", "procedural", "--out", "{tmp}/new", "--initial", "photos"], "--initial", "photos"),
-    (["path", "procedural", "--out", "{tmp}/new", "--aggregate", "max"], "--aggregate", "max"),
-    (["path", "procedural", "--out", "{tmp}/new", "--budget", "medium"], "--budget", "medium"),
-    (["train", "{tmp}", "--out", "{tmp}/new", "--preset", "best"], "--preset", "best"),
-    (["train", "{tmp}", "--out", "{tmp}/new", "--sampler", "grid"], "--sampler", "grid"),
-    (["train", "{tmp}", "--out", "{tmp}/new", "--model", "mesh"], "--model", "mesh"),
-    (["scene", "info", "{tmp}", "--split", "holdout"], "--split", "holdout"),
-    (["sceen", "info", "{tmp}"], "COMMAND", "sceen"),
-])
+@pytest.mark.parametrize(
+    "argv, flag, value",
+    [
+        (["explore", "procedural", "--out", "{tmp}/new", "--budget", "huge"], "--budget", "huge"),
+        (["explore", "procedural", "--out", "{tmp}/new", "--pibs-fallback", "egps"], "--pibs-fallback", "egps"),
+        (["explore", "procedural", "--out", "{tmp}/new", "--initial", "photos"], "--initial", "photos"),
+        (["path", "procedural", "--out", "{tmp}/new", "--aggregate", "max"], "--aggregate", "max"),
+        (["path", "procedural", "--out", "{tmp}/new", "--budget", "medium"], "--budget", "medium"),
+        (["train", "{tmp}", "--out", "{tmp}/new", "--preset", "best"], "--preset", "best"),
+        (["train", "{tmp}", "--out", "{tmp}/new", "--sampler", "grid"], "--sampler", "grid"),
+        (["train", "{tmp}", "--out", "{tmp}/new", "--model", "mesh"], "--model", "mesh"),
+        (["scene", "info", "{tmp}", "--split", "holdout"], "--split", "holdout"),
+        (["sceen", "info", "{tmp}"], "COMMAND", "sceen"),
+    ],
+)
 def test_a_value_outside_the_choices_is_one_line_and_exit_1(tmp_path, capsys, argv, flag, value):
     status = main([a.replace("{tmp}", str(tmp_path)) for a in argv])
     err = capsys.readouterr().err.strip().splitlines()
@@ -91,9 +107,11 @@ def test_a_value_outside_the_choices_is_one_line_and_exit_1(tmp_path, capsys, ar
 
 
 def test_other_argument_errors_are_one_line_and_exit_1(capsys):
-    for argv, message in ((["render", "procedural", "--out", "x", "--resolutoin", "8"], "unrecognized arguments"),
-                          (["render", "procedural", "--out", "x", "--views", "many"], "invalid int value: 'many'"),
-                          ([], "required: COMMAND")):
+    for argv, message in (
+        (["render", "procedural", "--out", "x", "--resolutoin", "8"], "unrecognized arguments"),
+        (["render", "procedural", "--out", "x", "--views", "many"], "invalid int value: 'many'"),
+        ([], "required: COMMAND"),
+    ):
         assert main(argv) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("waldo: error: ") and message in err[0], err
@@ -139,12 +157,25 @@ def test_render_quiet_keeps_the_result_line_and_the_images(tmp_path, capsys, mon
     result line and the images are the same."""
     from waldo_jax.cameras import look_at
 
-    c2w = [np.concatenate([np.asarray(look_at(np.array([2.0 * np.cos(a), 0.4, 2.0 * np.sin(a)], np.float32),
-                                              np.zeros(3), np.array([0.0, 1.0, 0.0])))[:3], [[0, 0, 0, 1]]]).tolist()
-           for a in (0.0, 2.0)]
+    c2w = [
+        np.concatenate(
+            [
+                np.asarray(
+                    look_at(
+                        np.array([2.0 * np.cos(a), 0.4, 2.0 * np.sin(a)], np.float32),
+                        np.zeros(3),
+                        np.array([0.0, 1.0, 0.0]),
+                    )
+                )[:3],
+                [[0, 0, 0, 1]],
+            ]
+        ).tolist()
+        for a in (0.0, 2.0)
+    ]
     poses = tmp_path / "poses.json"
-    poses.write_text(json.dumps({"camera_angle_x": 1.0, "w": 8, "h": 8,
-                                 "frames": [{"transform_matrix": m} for m in c2w]}))
+    poses.write_text(
+        json.dumps({"camera_angle_x": 1.0, "w": 8, "h": 8, "frames": [{"transform_matrix": m} for m in c2w]})
+    )
     outputs = {}
     for quiet in (False, True):
         terminal = _Terminal()
@@ -164,9 +195,28 @@ def test_render_quiet_keeps_the_result_line_and_the_images(tmp_path, capsys, mon
 def test_path_shows_its_phases_on_a_terminal_and_quiet_hides_them(tmp_path, capsys, monkeypatch):
     """`waldo path` names its phases (loading, compiling and searching, rendering, writing) on a terminal's
     stderr; --quiet prints none of them, and the search finds the same path either way."""
-    tiny = ["--criterion", "waldo_oracle", "--resolution", "16", "--views", "8", "--keyframes", "3", "--frames", "8",
-            "--epochs", "1", "--initial-paths", "4", "--paths-per-epoch", "3", "--max-speed", "0.5",
-            "--max-turn", "60"]
+    tiny = [
+        "--criterion",
+        "waldo_oracle",
+        "--resolution",
+        "16",
+        "--views",
+        "8",
+        "--keyframes",
+        "3",
+        "--frames",
+        "8",
+        "--epochs",
+        "1",
+        "--initial-paths",
+        "4",
+        "--paths-per-epoch",
+        "3",
+        "--max-speed",
+        "0.5",
+        "--max-turn",
+        "60",
+    ]
     found = {}
     for quiet in (False, True):
         terminal = _Terminal()
@@ -175,8 +225,12 @@ def test_path_shows_its_phases_on_a_terminal_and_quiet_hides_them(tmp_path, caps
         assert main(["path", "procedural:1", "--out", str(out), *tiny] + ["--quiet"] * quiet) == 0
         monkeypatch.undo()
         text = terminal.getvalue()
-        phases = ("loading procedural:1", "compiling and searching (1 epoch, 1 seed)", "rendering the 8 video frames",
-                  "writing the exports")
+        phases = (
+            "loading procedural:1",
+            "compiling and searching (1 epoch, 1 seed)",
+            "rendering the 8 video frames",
+            "writing the exports",
+        )
         assert all((phase in text) != quiet for phase in phases), text
         stdout = capsys.readouterr().out.strip().splitlines()
         assert len(stdout) == 1 and stdout[0].startswith("EGPS path on ") and str(out) in stdout[0]

@@ -1,7 +1,6 @@
 """CNNIQA (`iqa_cnn`): the pipeline against an independent NumPy/SciPy port of the reference
 (lidq92/CNNIQA), the weights converter's errors, and the score's response to blur and noise."""
 
-
 import waldo_jax  # noqa: F401  (XLA flags before JAX starts)
 
 import chex
@@ -35,8 +34,13 @@ def np_local_normalisation(patch, P=3, Q=3, C=1.0):
 def np_patches(grey):
     """`NonOverlappingCropPatches` (its loop bounds included) on a grey image [h, w] in [0, 1]."""
     h, w = grey.shape
-    return np.stack([np_local_normalisation(grey[i:i + 32, j:j + 32].astype(np.float64))
-                     for i in range(0, h - 32, 32) for j in range(0, w - 32, 32)])
+    return np.stack(
+        [
+            np_local_normalisation(grey[i : i + 32, j : j + 32].astype(np.float64))
+            for i in range(0, h - 32, 32)
+            for j in range(0, w - 32, 32)
+        ]
+    )
 
 
 def np_forward(sd, patches):
@@ -55,8 +59,10 @@ def np_forward(sd, patches):
 
 def random_state_dict(seed):
     rng = np.random.default_rng(seed)
-    return {name: (rng.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) if len(shape) > 1 else 10.0)
-                   ).astype(np.float32) for name, shape in cnniqa.TORCH_SHAPES.items()}
+    return {
+        name: (rng.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) if len(shape) > 1 else 10.0)).astype(np.float32)
+        for name, shape in cnniqa.TORCH_SHAPES.items()
+    }
 
 
 def rgb_to_grey(image):
@@ -94,8 +100,11 @@ def load_image(path, side):
 def real_images():
     fox = require_scene("fox") / "images"
     fern = require_scene("fern") / "images_8"
-    return [load_image(fox / "0001.jpg", 256), load_image(fox / "0030.jpg", 256),
-            load_image(fern / "image000.png", 256)]
+    return [
+        load_image(fox / "0001.jpg", 256),
+        load_image(fox / "0030.jpg", 256),
+        load_image(fern / "image000.png", 256),
+    ]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -106,12 +115,14 @@ def real_images():
 def test_local_normalisation_and_patch_grid_match_the_reference():
     rng = np.random.default_rng(0)
     patch = rng.random((32, 32))
-    np.testing.assert_allclose(np.asarray(cnniqa.local_normalise(jnp.asarray(patch, jnp.float32))),
-                               np_local_normalisation(patch), atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(cnniqa.local_normalise(jnp.asarray(patch, jnp.float32))), np_local_normalisation(patch), atol=1e-5
+    )
     # A bright, textured patch: sigma is large enough here for the +1 to matter less.
     patch = 0.5 + 0.5 * np.sin(np.arange(32)[:, None] * 1.3 + np.arange(32) * 0.7)
-    np.testing.assert_allclose(np.asarray(cnniqa.local_normalise(jnp.asarray(patch, jnp.float32))),
-                               np_local_normalisation(patch), atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(cnniqa.local_normalise(jnp.asarray(patch, jnp.float32))), np_local_normalisation(patch), atol=1e-5
+    )
     # Grid: 100 x 70 px -> rows 0, 32, 64 and columns 0, 32; a 64 px side drops the second patch as
     # the reference's range(0, side - 32, 32) does.
     image = rng.random((100, 70, 3)).astype(np.float32)
@@ -239,11 +250,18 @@ def test_jit_compiles_once_per_image_size(crit, params):
 def test_batches_deterministic_extremes_and_failures(crit, real_images):
     fox = real_images[0][:96, :96]
     rng = np.random.default_rng(3)
-    batch = np.stack([fox, rng.random((96, 96, 3)).astype(np.float32), blur(fox, 2.0),
-                      np.zeros((96, 96, 3), np.float32), np.ones((96, 96, 3), np.float32)])
+    batch = np.stack(
+        [
+            fox,
+            rng.random((96, 96, 3)).astype(np.float32),
+            blur(fox, 2.0),
+            np.zeros((96, 96, 3), np.float32),
+            np.ones((96, 96, 3), np.float32),
+        ]
+    )
     score = jax.jit(lambda c, x: c.score_images(x))
     scores = np.asarray(score(crit, batch))
-    singles = np.array([float(score(crit, batch[i:i + 1])[0]) for i in range(len(batch))])
+    singles = np.array([float(score(crit, batch[i : i + 1])[0]) for i in range(len(batch))])
     np.testing.assert_allclose(scores, singles, rtol=1e-5, atol=1e-4)
     np.testing.assert_array_equal(scores, np.asarray(score(crit, batch)))  # bit-identical again
     assert np.all(np.isfinite(scores))

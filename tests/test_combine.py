@@ -11,8 +11,15 @@ import pytest
 
 import waldo_jax  # noqa: F401
 from waldo_jax.cli import main
-from waldo_jax.criteria import (Criterion, CriterionContext, CriterionError, build_criterion, constrained,
-                                make_criterion, weighted)
+from waldo_jax.criteria import (
+    Criterion,
+    CriterionContext,
+    CriterionError,
+    build_criterion,
+    constrained,
+    make_criterion,
+    weighted,
+)
 from waldo_jax.criteria.combine import parse_guard, spec_names
 from waldo_jax.criteria.composition import composition_from_map, composition_terms
 
@@ -26,8 +33,15 @@ def _rgba(colors, alphas, size=8):
 
 def _brightness(direction="max", value_range=(0.0, 1.0)):
     """A toy image criterion: the mean intensity."""
-    return Criterion(params=(), name="bright", direction=direction, value_range=value_range, inputs="images",
-                     apply=lambda p, images: jnp.mean(images, axis=(1, 2, 3)), description="mean intensity")
+    return Criterion(
+        params=(),
+        name="bright",
+        direction=direction,
+        value_range=value_range,
+        inputs="images",
+        apply=lambda p, images: jnp.mean(images, axis=(1, 2, 3)),
+        description="mean intensity",
+    )
 
 
 def test_opacity_is_the_mean_alpha_and_photographs_are_opaque():
@@ -160,7 +174,10 @@ def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
     assert main(["score", "--criterion", "colorfulness", str(paths[0]), str(paths[2])]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("# colorfulness (higher is better)")
-    assert float(lines[1].split()[0]) == pytest.approx(0.3 * np.hypot(255, 127.5), rel=1e-5) and abs(float(lines[2].split()[0])) < 1e-3  # red vs grey
+    assert (
+        float(lines[1].split()[0]) == pytest.approx(0.3 * np.hypot(255, 127.5), rel=1e-5)
+        and abs(float(lines[2].split()[0])) < 1e-3
+    )  # red vs grey
     assert main(["score", "--criterion", "colorfulness", str(tmp_path / "missing.png")]) == 1
     assert "no such image file" in capsys.readouterr().err
     (tmp_path / "junk.png").write_bytes(b"not an image")
@@ -197,4 +214,6 @@ def test_composition_terms_on_analytic_maps():
     assert empty["emphasis"] == 0.0 and empty["symmetry"] == 0.0
     full = composition_terms(np.ones((32, 32), np.float32))
     assert float(full["emphasis"]) == 0.0  # a view that is all "subject" has no subject
-    assert float(composition_from_map(np.zeros((32, 32), np.float32))) < float(composition_from_map(_blob_map(0.5, 0.5)))
+    assert float(composition_from_map(np.zeros((32, 32), np.float32))) < float(
+        composition_from_map(_blob_map(0.5, 0.5))
+    )

@@ -17,9 +17,13 @@ from waldo_jax.criteria.base import worst_score
 from conftest import require_scene, require_weights
 
 IMAGE_CRITERIA = sorted(name for name, spec in CRITERIA.items() if spec.inputs != "poses")
-NEEDS_WEIGHTS = {"saliency": "csnet/csnet-L-x1.pth.tar", "composition": "csnet/csnet-L-x1.pth.tar",
-                 "iqa_cnn": "cnniqa/CNNIQA-LIVE", "niqe": "niqe/niqe_image_params.mat",
-                 "brisque": "brisque/brisque_model_live.yml"}
+NEEDS_WEIGHTS = {
+    "saliency": "csnet/csnet-L-x1.pth.tar",
+    "composition": "csnet/csnet-L-x1.pth.tar",
+    "iqa_cnn": "cnniqa/CNNIQA-LIVE",
+    "niqe": "niqe/niqe_image_params.mat",
+    "brisque": "brisque/brisque_model_live.yml",
+}
 SIZE = 112  # NIQE needs whole 96x96 patches; the networks resize inside
 
 
@@ -86,8 +90,9 @@ def test_criterion_contract(name, images):
     assert big.shape == (64,) and np.all(np.isfinite(big))
     np.testing.assert_allclose(big[:8], first, rtol=1e-3, atol=1e-3)
     # black, white and NaN images, in a batch of the first shape: no new trace
-    special = np.concatenate([np.stack([np.zeros_like(images[0]), np.ones_like(images[0]), images[1], images[2]]),
-                              images[4:]])
+    special = np.concatenate(
+        [np.stack([np.zeros_like(images[0]), np.ones_like(images[0]), images[1], images[2]]), images[4:]]
+    )
     special[2, 10:20, 10:20, 1] = np.nan
     special[3, 0, 0, 0] = np.inf
     out = np.asarray(score(criterion, jnp.asarray(special)))

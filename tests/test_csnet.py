@@ -46,8 +46,12 @@ def np_conv(x, w, stride=1, padding=0, dilation=1, groups=1):
     out = np.zeros((groups, c_out // groups, oh, ow))
     for a in range(kh):
         for b in range(kw):
-            window = xg[:, :, a * dilation:a * dilation + stride * (oh - 1) + 1:stride,
-                        b * dilation:b * dilation + stride * (ow - 1) + 1:stride]
+            window = xg[
+                :,
+                :,
+                a * dilation : a * dilation + stride * (oh - 1) + 1 : stride,
+                b * dilation : b * dilation + stride * (ow - 1) + 1 : stride,
+            ]
             out += np.einsum("goc,gchw->gohw", wg[..., a, b], window)
     return out.reshape(c_out, oh, ow)
 
@@ -55,7 +59,7 @@ def np_conv(x, w, stride=1, padding=0, dilation=1, groups=1):
 def np_pool(x, k, reduce):
     """torch `max_pool2d` / `avg_pool2d` with kernel = stride = k: x [C, H, W]."""
     c, h, w = x.shape
-    return reduce(x[:, :h // k * k, :w // k * k].reshape(c, h // k, k, w // k, k), axis=(2, 4))
+    return reduce(x[:, : h // k * k, : w // k * k].reshape(c, h // k, k, w // k, k), axis=(2, 4))
 
 
 def np_upsample(x, factor):
@@ -78,8 +82,9 @@ def np_upsample(x, factor):
 def np_bn_prelu(sd, bn, prelu, x):
     """`BatchNorm2d` (eval) then `PReLU`, x [C, H, W]."""
     col = lambda name: sd[name].astype(np.float64)[:, None, None]  # noqa: E731
-    y = (x - col(f"{bn}.running_mean")) / np.sqrt(col(f"{bn}.running_var") + BN_EPS) * col(f"{bn}.weight") \
-        + col(f"{bn}.bias")
+    y = (x - col(f"{bn}.running_mean")) / np.sqrt(col(f"{bn}.running_var") + BN_EPS) * col(f"{bn}.weight") + col(
+        f"{bn}.bias"
+    )
     return np.where(y >= 0, y, col(f"{prelu}.weight") * y)
 
 
@@ -96,7 +101,7 @@ def np_goctave_cbr(sd, prefix, xs, in_splits, out_splits, kernel_size, stride):
             if stride == 2:
                 x = np_pool(x, 2, np.mean)
             for j in range(len(out_splits)):
-                part = weight[out_bounds[j]:out_bounds[j + 1], in_bounds[i]:in_bounds[i + 1]]
+                part = weight[out_bounds[j] : out_bounds[j + 1], in_bounds[i] : in_bounds[i + 1]]
                 if i > j:
                     y = np_upsample(np_conv(x, part, padding=pad), 2 ** (i - j))
                 elif i < j:
@@ -109,16 +114,24 @@ def np_goctave_cbr(sd, prefix, xs, in_splits, out_splits, kernel_size, stride):
 
 def np_depthwise_cbr(sd, prefix, xs):
     """`SimplifiedGOctConvBR.forward`: per branch a depthwise 3x3 `Conv2dX100`, BN, PReLU."""
-    return [np_bn_prelu(sd, f"{prefix}.bns.{i}", f"{prefix}.prelus.{i}",
-                        np_conv(x, 100.0 * sd[f"{prefix}.convs.{i}.weight"].astype(np.float64), padding=1,
-                                groups=x.shape[0]))
-            for i, x in enumerate(xs)]
+    return [
+        np_bn_prelu(
+            sd,
+            f"{prefix}.bns.{i}",
+            f"{prefix}.prelus.{i}",
+            np_conv(x, 100.0 * sd[f"{prefix}.convs.{i}.weight"].astype(np.float64), padding=1, groups=x.shape[0]),
+        )
+        for i, x in enumerate(xs)
+    ]
 
 
 def np_multiscale(sd, prefix, x, dilation_channels):
     """`MSBlock.forward`: dilated 3x3 `Conv2dX100`s (absent where the split is 0), concat, BN, PReLU."""
-    outs = [np_conv(x, 100.0 * sd[f"{prefix}.msconv.{k}.weight"].astype(np.float64), padding=d, dilation=d)
-            for k, (d, c) in enumerate(zip(DILATIONS, dilation_channels)) if c]
+    outs = [
+        np_conv(x, 100.0 * sd[f"{prefix}.msconv.{k}.weight"].astype(np.float64), padding=d, dilation=d)
+        for k, (d, c) in enumerate(zip(DILATIONS, dilation_channels))
+        if c
+    ]
     return np_bn_prelu(sd, f"{prefix}.bn", f"{prefix}.prelu", np.concatenate(outs, axis=0))
 
 
@@ -139,8 +152,15 @@ def np_blocks(layer_config):
     for stage in range(1, 5):
         for k in range(stages[stage - 1]):
             stride = 2 if stage > 1 and k == 0 else 1
-            blocks.append((f"stage{stage}.{k}", *layer_config[index], 3 if stride == 2 else 1, stride,
-                           stage > 1 and k == stages[stage - 1] - 1))
+            blocks.append(
+                (
+                    f"stage{stage}.{k}",
+                    *layer_config[index],
+                    3 if stride == 2 else 1,
+                    stride,
+                    stage > 1 and k == stages[stage - 1] - 1,
+                )
+            )
             index += 1
     return blocks
 
@@ -253,8 +273,13 @@ def test_primitives_match_numpy():
     x = rng.standard_normal((5, 12, 20))
     w = rng.standard_normal((4, 5, 3, 3)) / 5
     for stride, padding, dilation in ((1, 1, 1), (2, 1, 1), (1, 2, 2), (1, 8, 8)):
-        ours = csnet_model.conv(to_jax(x), jnp.asarray(w.transpose(2, 3, 1, 0), jnp.float32), stride=stride,
-                                padding=padding, dilation=dilation)
+        ours = csnet_model.conv(
+            to_jax(x),
+            jnp.asarray(w.transpose(2, 3, 1, 0), jnp.float32),
+            stride=stride,
+            padding=padding,
+            dilation=dilation,
+        )
         assert_close(to_np(ours), np_conv(x, w, stride, padding, dilation))
     depthwise = rng.standard_normal((5, 1, 3, 3))
     ours = csnet_model.depthwise3x3(to_jax(x), jnp.asarray(depthwise.transpose(2, 3, 1, 0), jnp.float32))
@@ -278,8 +303,9 @@ GOCTAVE_CASES = [  # torch prefix, Flax path, in splits, out splits, kernel, str
 ]
 
 
-@pytest.mark.parametrize("prefix,path,in_splits,out_splits,kernel,stride", GOCTAVE_CASES,
-                         ids=[case[0] for case in GOCTAVE_CASES])
+@pytest.mark.parametrize(
+    "prefix,path,in_splits,out_splits,kernel,stride", GOCTAVE_CASES, ids=[case[0] for case in GOCTAVE_CASES]
+)
 def test_goctave_cbr_matches_numpy(tiny, prefix, path, in_splits, out_splits, kernel, stride):
     _, sd, tree = tiny
     xs = random_branches(in_splits, seed=len(prefix))
@@ -291,8 +317,13 @@ def test_goctave_cbr_matches_numpy(tiny, prefix, path, in_splits, out_splits, ke
         assert_close(to_np(y), r)
 
 
-@pytest.mark.parametrize("prefix,path,splits", [("stage1.0.conv3x3_1", ("stage1_0", "conv3x3_1"), (2, 3)),
-                                                ("stage4.0.conv3x3_2", ("stage4_0", "conv3x3_2"), (6,))])
+@pytest.mark.parametrize(
+    "prefix,path,splits",
+    [
+        ("stage1.0.conv3x3_1", ("stage1_0", "conv3x3_1"), (2, 3)),
+        ("stage4.0.conv3x3_2", ("stage4_0", "conv3x3_2"), (6,)),
+    ],
+)
 def test_depthwise_x100_cbr_matches_numpy(tiny, prefix, path, splits):
     _, sd, tree = tiny
     xs = random_branches(splits, seed=3)
@@ -312,8 +343,7 @@ def test_dilated_x100_multiscale_block_matches_numpy(tiny, branch):
 
 def test_fusion_head_matches_numpy(tiny):
     config, sd, tree = tiny
-    feats = [random_branches((c,), seed=10 + i, height=16 >> i, width=24 >> i)[0]
-             for i, c in enumerate(config.fuse_in)]
+    feats = [random_branches((c,), seed=10 + i, height=16 >> i, width=24 >> i)[0] for i, c in enumerate(config.fuse_in)]
     ours = jax.jit(csnet.CSFHead(config).apply)(variables_at(tree, "oct_fuse"), [to_jax(f) for f in feats])
     assert_close(to_np(ours), np_head(sd, TINY_LAYER_CONFIG, feats))
 
@@ -356,8 +386,9 @@ def test_converter_keeps_torch_values_and_checks_every_key(tiny):
     config, sd, tree = tiny
     kernel = tree["params"]["stage1_0"]["conv3x3_1"]["kernel_1"]
     np.testing.assert_array_equal(kernel, sd["stage1.0.conv3x3_1.convs.1.weight"].transpose(2, 3, 1, 0))  # no x100
-    np.testing.assert_array_equal(tree["batch_stats"]["oct_fuse"]["ms_2"]["bn_0"]["var"],
-                                  sd["oct_fuse.ms.convs.2.bn.running_var"])
+    np.testing.assert_array_equal(
+        tree["batch_stats"]["oct_fuse"]["ms_2"]["bn_0"]["var"], sd["oct_fuse.ms.convs.2.bn.running_var"]
+    )
     missing = {k: v for k, v in sd.items() if k != "oct_fuse.ms.convs.0.msconv.2.weight"}
     with pytest.raises(WeightsError, match=r"src: missing weight 'oct_fuse\.ms\.convs\.0\.msconv\.2\.weight'"):
         csnet.convert_state_dict(missing, config, source="src")
@@ -414,7 +445,7 @@ def copy_model(weights_dir, tmp_path, truncate=None):
     folder.mkdir()
     for name in csnet.FILES:
         data = (weights_dir / "csnet" / name).read_bytes()
-        (folder / name).write_bytes(data[:len(data) // 2] if name == truncate else data)
+        (folder / name).write_bytes(data[: len(data) // 2] if name == truncate else data)
     return folder
 
 
@@ -439,8 +470,11 @@ def test_wrong_tensor_shape_names_file_and_key(weights_dir, real_state_dict, mon
     bad = dict(real_state_dict)
     bad["stage3.2.conv3x3_1.convs.1.weight"] = np.zeros((17, 1, 3, 3), np.float32)
     monkeypatch.setattr(csnet_convert, "state_dict", lambda obj: bad)
-    with pytest.raises(WeightsError, match=r"csnet-L-x1\.pth\.tar: weight 'stage3\.2\.conv3x3_1\.convs\.1\.weight' "
-                                           r"has shape \(17, 1, 3, 3\), expected \(18, 1, 3, 3\)"):
+    with pytest.raises(
+        WeightsError,
+        match=r"csnet-L-x1\.pth\.tar: weight 'stage3\.2\.conv3x3_1\.convs\.1\.weight' "
+        r"has shape \(17, 1, 3, 3\), expected \(18, 1, 3, 3\)",
+    ):
         csnet.read(weights_dir / "csnet")
 
 
@@ -567,8 +601,9 @@ def test_criterion_is_registered_and_scores_under_jit(weights_dir, params, scene
     score = jax.jit(counted)
     nan_image = scenes[0][0].copy()
     nan_image[10, 20, 1] = np.nan
-    batch = np.stack([scenes[0][0], scenes[1][0], scenes[2][0], np.zeros_like(nan_image),
-                      np.ones_like(nan_image), nan_image])
+    batch = np.stack(
+        [scenes[0][0], scenes[1][0], scenes[2][0], np.zeros_like(nan_image), np.ones_like(nan_image), nan_image]
+    )
     # (Batches of 1, 8 and 64, one trace per batch shape and NaN/inf handling for every image criterion,
     # saliency included: test_criteria_all's contract. Here: the real scenes and their maps.)
     first_batch = np.asarray(score(crit.params, batch))

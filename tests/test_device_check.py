@@ -22,8 +22,21 @@ sys.path.insert(0, str(BENCHMARKS))
 import device_check  # noqa: E402  (stdlib only: no JAX in the parent process)
 
 SCRIPT = str(BENCHMARKS / "device_check.py")
-HEADER_KEYS = ("benchmark", "date", "commit", "device", "jax", "jaxlib", "settings", "step", "status", "time_box_s",
-               "seconds", "commands", "result")
+HEADER_KEYS = (
+    "benchmark",
+    "date",
+    "commit",
+    "device",
+    "jax",
+    "jaxlib",
+    "settings",
+    "step",
+    "status",
+    "time_box_s",
+    "seconds",
+    "commands",
+    "result",
+)
 
 
 def check(*args, timeout=600):
@@ -71,8 +84,11 @@ def test_smoke_runs_every_step_and_writes_its_json(smoke):
     assert sorted(p.name for p in (root / "out").iterdir()) == sorted(device_check.OUT_FILES)
     steps = {name: step["result"] for name, step in report["steps"].items()}
     env = steps["environment"]
-    assert env["jax_default_matmul_precision"] == "highest" and "--xla_gpu_deterministic_ops=true" in env[
-        "xla_flags_in_force"] and env["devices"][0]["platform"] == "cpu"
+    assert (
+        env["jax_default_matmul_precision"] == "highest"
+        and "--xla_gpu_deterministic_ops=true" in env["xla_flags_in_force"]
+        and env["devices"][0]["platform"] == "cpu"
+    )
     totals = steps["correctness"]["totals"]
     assert (totals["passed"], totals["failed"], totals["errors"], totals["not_run"]) == (2, 0, 0, 0)
     lines = (root / "out" / "pytest_reports.jsonl").read_text().splitlines()
@@ -118,7 +134,8 @@ def test_pack_copies_the_fox_whole_and_records_its_size(smoke):
     source = data_dir() / "scenes" / "fox"
     copied = root / "data" / "scenes" / "fox"
     assert sorted(p.relative_to(copied) for p in copied.rglob("*") if p.is_file()) == sorted(
-        p.relative_to(source) for p in source.rglob("*") if p.is_file())
+        p.relative_to(source) for p in source.rglob("*") if p.is_file()
+    )
     assert (copied / "transforms.json").read_bytes() == (source / "transforms.json").read_bytes()
     assert (root / "data" / "weights" / "csnet").is_dir()
     sizes = manifest["sizes_mib"]
@@ -140,16 +157,30 @@ def test_pack_leaves_out_optional_data_that_does_not_fit(tmp_path):
     data = data_dir()
     # Room for the working tree and the required data, but not for the optional scenes.
     tree = device_check.working_tree_bytes()
-    required = sum(src.stat().st_size for name in device_check.PACK_REQUIRED
-                   for src, _ in device_check.pack_sources(data, name))
+    required = sum(
+        src.stat().st_size for name in device_check.PACK_REQUIRED for src, _ in device_check.pack_sources(data, name)
+    )
     limit = (tree + required) / 2**20 + 0.5
-    result = check("--pack", tmp_path / "data", "--no-wheels", "--data-from", data, "--limit-mib", f"{limit:.3f}",
-                   "--reserve-mib", "0", timeout=120)
+    result = check(
+        "--pack",
+        tmp_path / "data",
+        "--no-wheels",
+        "--data-from",
+        data,
+        "--limit-mib",
+        f"{limit:.3f}",
+        "--reserve-mib",
+        "0",
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr
     manifest = json.loads((tmp_path / "data" / device_check.MANIFEST).read_text())
     assert set(manifest["items"]) == set(device_check.PACK_REQUIRED)
-    assert all("does not fit" in manifest["left_out"][name] for name in ("scenes/face", "scenes/garden")
-               if name in manifest["left_out"])
+    assert all(
+        "does not fit" in manifest["left_out"][name]
+        for name in ("scenes/face", "scenes/garden")
+        if name in manifest["left_out"]
+    )
     assert manifest["sizes_mib"]["total"] <= limit
 
 
@@ -191,11 +222,21 @@ def _alive(pid: int) -> bool:
 def test_a_command_past_its_time_box_is_killed_with_its_children(tmp_path):
     """The time box kills the command's whole process group (pytest-xdist workers, a CLI's children)."""
     log = open(tmp_path / "log", "ab", buffering=0)
-    ctx = device_check.Context(settings=device_check.SMOKE, smoke=True, data=tmp_path, work=tmp_path, out=tmp_path,
-                               log=log, env=dict(os.environ), header={})
+    ctx = device_check.Context(
+        settings=device_check.SMOKE,
+        smoke=True,
+        data=tmp_path,
+        work=tmp_path,
+        out=tmp_path,
+        log=log,
+        env=dict(os.environ),
+        header={},
+    )
     pid_file = tmp_path / "grandchild.pid"
-    code = ("import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
-            f"open({str(pid_file)!r}, 'w').write(str(p.pid)); print('started', flush=True); time.sleep(60)")
+    code = (
+        "import subprocess, sys, time; p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']);"
+        f"open({str(pid_file)!r}, 'w').write(str(p.pid)); print('started', flush=True); time.sleep(60)"
+    )
     start = time.monotonic()
     entry = ctx.run("sleeper", [sys.executable, "-c", code], 3.0)
     assert time.monotonic() - start < 20
@@ -218,9 +259,24 @@ def test_time_left_by_a_step_goes_to_the_later_ones():
 @pytest.mark.slow
 def test_sigterm_ends_cleanly_and_writes_what_was_done(tmp_path):
     data = data_dir()
-    proc = subprocess.Popen([sys.executable, SCRIPT, "--smoke", "--data", str(data), "--out", str(tmp_path / "out"),
-                             "--work", str(tmp_path / "work"), "--steps", "environment,determinism"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            SCRIPT,
+            "--smoke",
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "out"),
+            "--work",
+            str(tmp_path / "work"),
+            "--steps",
+            "environment,determinism",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     report = tmp_path / "out" / "device_check.json"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # wait until the determinism step's first explore runs

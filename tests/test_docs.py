@@ -43,15 +43,20 @@ def _ci_test_command() -> str:
 def test_readme_is_short():
     lines = README.read_text(encoding="utf-8").splitlines()
     assert len(lines) <= MAX_README_LINES, (
-        f"README.md has {len(lines)} lines (at most {MAX_README_LINES}): move the detail into docs/")
+        f"README.md has {len(lines)} lines (at most {MAX_README_LINES}): move the detail into docs/"
+    )
 
 
 def test_readme_has_no_dates_or_commit_hashes():
     text = README.read_text(encoding="utf-8")
-    found = [f"line {text[:m.start()].count(chr(10)) + 1}: {m.group(0)}"
-             for pattern in (ISO_DATE, COMMIT_HASH) for m in pattern.finditer(text)]
-    assert not found, ("README.md holds dates or commit hashes (the result JSONs record them; cite the JSON): "
-                       + "; ".join(found))
+    found = [
+        f"line {text[: m.start()].count(chr(10)) + 1}: {m.group(0)}"
+        for pattern in (ISO_DATE, COMMIT_HASH)
+        for m in pattern.finditer(text)
+    ]
+    assert not found, (
+        "README.md holds dates or commit hashes (the result JSONs record them; cite the JSON): " + "; ".join(found)
+    )
 
 
 def test_readme_test_command_is_the_one_ci_runs():
@@ -82,7 +87,9 @@ def test_generated_blocks_are_filled():
     marker = re.compile(r"<!-- generated: ([\w-]+) .*?-->\n(.*?)<!-- end generated: \1 -->", re.S)
     for page in _pages():
         for name, body in marker.findall(page.read_text(encoding="utf-8")):
-            assert "|" in body, f"{page.relative_to(ROOT)}: generated block {name!r} is empty: run python docs/make_tables.py"
+            assert "|" in body, (
+                f"{page.relative_to(ROOT)}: generated block {name!r} is empty: run python docs/make_tables.py"
+            )
 
 
 def test_license_and_citation():

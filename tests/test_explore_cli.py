@@ -18,8 +18,7 @@ from waldo_jax.procedural import make_room, waldo_coverage
 from waldo_jax.pipeline.sources import procedural_source, run_source
 from waldo_jax.types import Intrinsics
 
-TINY = ["--resolution", "16", "--views", "8", "--epochs", "2", "--children-per-epoch", "6", "--top-k", "4",
-        "--quiet"]
+TINY = ["--resolution", "16", "--views", "8", "--epochs", "2", "--children-per-epoch", "6", "--top-k", "4", "--quiet"]
 
 
 def explore(out, *extra):
@@ -35,12 +34,28 @@ def egps_run(tmp_path_factory):
 
 def test_results_json_has_what_the_issue_lists(egps_run):
     out, r = egps_run
-    for key in ("method", "criterion", "direction", "seed", "budget", "n_train", "n_generated", "scores_train",
-                "scores_generated", "cvir", "mcvir", "topk", "epochs", "seconds"):
+    for key in (
+        "method",
+        "criterion",
+        "direction",
+        "seed",
+        "budget",
+        "n_train",
+        "n_generated",
+        "scores_train",
+        "scores_generated",
+        "cvir",
+        "mcvir",
+        "topk",
+        "epochs",
+        "seconds",
+    ):
         assert key in r, key
     assert (r["method"], r["criterion"], r["direction"], r["seed"]) == ("egps", "waldo_oracle", "max", 3)
-    assert r["criterion_caption"] == ("waldo_oracle: share of the image showing un-occluded Waldo (exact, procedural "
-                                      "room); higher is better, in [0, 1]")
+    assert r["criterion_caption"] == (
+        "waldo_oracle: share of the image showing un-occluded Waldo (exact, procedural "
+        "room); higher is better, in [0, 1]"
+    )
     assert r["n_train"] == 8 and len(r["scores_train"]) == 8
     assert r["n_generated"] == 12 == len(r["scores_generated"]) and r["generated_epochs"] == [1] * 6 + [2] * 6
     assert len(r["epochs"]) == 3 and r["epochs"][0]["best"] == max(r["scores_train"])
@@ -60,8 +75,9 @@ def test_files_are_written_and_consistent(egps_run):
     assert iio.imread(out / "topk" / "00.png").shape == (16, 16, 3)
     poses = json.loads((out / "poses.json").read_text())
     assert [f["file_path"] for f in poses["frames"]] == [t["image"] for t in r["topk"]]
-    np.testing.assert_allclose([f["transform_matrix"] for f in poses["frames"]], [t["c2w"] for t in r["topk"]],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        [f["transform_matrix"] for f in poses["frames"]], [t["c2w"] for t in r["topk"]], atol=1e-6
+    )
     # The oracle's score of the saved pose is the reported score.
     room = make_room(1)
     intr = Intrinsics.from_fov(16, 16, np.radians(60.0))
@@ -123,7 +139,9 @@ def test_method_flags_become_the_options_of_the_method_that_has_them():
 
     assert config("--method", "grs", "--top-c", "3", "--pibs-fallback", "grs").options == ()
     assert config("--method", "pibs", "--top-c", "3", "--pibs-fallback", "grs").method_options == {
-        "top_c": 3, "fallback": "grs"}
+        "top_c": 3,
+        "fallback": "grs",
+    }
     refined = config("--method", "pibs+refine", "--top-c", "3", "--refine-steps", "2").method_options
     assert set(refined) == {"top_c", "fallback", "refine"} and refined["top_c"] == 3 and refined["refine"].steps == 2
     assert set(config("--method", "egps+refine", "--top-c", "3").method_options) == {"refine"}
@@ -143,10 +161,12 @@ def test_refine_and_evosax_methods_from_the_cli(tmp_path, capsys):
     assert first["scores_generated"] == second["scores_generated"] and first["method"] == "evosax:CMA_ES"
     # Refused before anything is written: a criterion gradient steps cannot follow, an unknown strategy,
     # more refined poses than children.
-    for extra, message in ((["--method", "egps+refine", "--criterion", "brisque"], "'brisque' is not differentiable"),
-                           (["--method", "evosax:CMAES"], "unknown --method 'evosax:CMAES'"),
-                           (["--method", "grs+refine", "--refine-poses", "7"], "refining 7 poses"),
-                           (["--method", "egps+refine", "--gradient-cost", "1"], "--gradient-cost must be")):
+    for extra, message in (
+        (["--method", "egps+refine", "--criterion", "brisque"], "'brisque' is not differentiable"),
+        (["--method", "evosax:CMAES"], "unknown --method 'evosax:CMAES'"),
+        (["--method", "grs+refine", "--refine-poses", "7"], "refining 7 poses"),
+        (["--method", "egps+refine", "--gradient-cost", "1"], "--gradient-cost must be"),
+    ):
         if "brisque" in extra:
             from conftest import require_weights
 
@@ -177,7 +197,10 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     for method in ("GRS", "PIBS", "EGPS"):
         assert f"| {method} |" in report
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["methods"]) == {"grs", "pibs", "egps"} and summary["seeds"] == [DEMO_ROOM_SEED, DEMO_ROOM_SEED + 1]
+    assert set(summary["methods"]) == {"grs", "pibs", "egps"} and summary["seeds"] == [
+        DEMO_ROOM_SEED,
+        DEMO_ROOM_SEED + 1,
+    ]
     assert summary["room_seed"] == DEMO_ROOM_SEED and summary["criterion"] == "waldo_found"
     for method in ("grs", "pibs", "egps"):  # Waldo's visible share and the NeRF's PSNR at each seed's best view
         m = summary["methods"][method]
@@ -194,34 +217,112 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     # The saved NeRF of the room is a SOURCE: it keeps the room, so the oracle applies.
     source = run_source(str(out / "nerf"), resolution=16)
     assert source.room is not None and source.truth_render is not None and source.n_train == 10
-    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "again"), "--resolution", "16",
-                 "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "explore",
+                str(out / "nerf"),
+                "--out",
+                str(tmp_path / "again"),
+                "--resolution",
+                "16",
+                "--epochs",
+                "1",
+                "--children-per-epoch",
+                "4",
+                "--top-k",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     again = json.loads((tmp_path / "again" / "results.json").read_text())
     assert again["source_info"]["procedural_seed"] == DEMO_ROOM_SEED
     assert (tmp_path / "again" / "topk" / "00_truth.png").is_file()
     # Beyond the paper, on the trained run: gradient steps through the NeRF's marched render (reverse
     # mode, `Source.gradient`) with an image criterion, and an evosax strategy.
     tiny_run = ["--resolution", "16", "--epochs", "1", "--children-per-epoch", "4", "--top-k", "2", "--quiet"]
-    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "refined"), *tiny_run,
-                 "--method", "egps+refine", "--criterion", "colorfulness", "--refine-poses", "1",
-                 "--refine-steps", "2"]) == 0
+    assert (
+        main(
+            [
+                "explore",
+                str(out / "nerf"),
+                "--out",
+                str(tmp_path / "refined"),
+                *tiny_run,
+                "--method",
+                "egps+refine",
+                "--criterion",
+                "colorfulness",
+                "--refine-poses",
+                "1",
+                "--refine-steps",
+                "2",
+            ]
+        )
+        == 0
+    )
     refined = json.loads((tmp_path / "refined" / "results.json").read_text())
-    assert refined["cost"] == {"renders": 10 + 4 + 2 * NERF_GRADIENT_COST, "training_views": 10, "children": 4,
-                               "gradient_evaluations": 2, "renders_per_gradient_evaluation": NERF_GRADIENT_COST}
+    assert refined["cost"] == {
+        "renders": 10 + 4 + 2 * NERF_GRADIENT_COST,
+        "training_views": 10,
+        "children": 4,
+        "gradient_evaluations": 2,
+        "renders_per_gradient_evaluation": NERF_GRADIENT_COST,
+    }
     assert refined["refine"]["poses"] == 1 and refined["n_generated"] == 4
-    assert main(["explore", str(out / "nerf"), "--out", str(tmp_path / "cma"), *tiny_run,
-                 "--method", "evosax:CMA_ES"]) == 0
+    assert (
+        main(["explore", str(out / "nerf"), "--out", str(tmp_path / "cma"), *tiny_run, "--method", "evosax:CMA_ES"])
+        == 0
+    )
     assert json.loads((tmp_path / "cma" / "results.json").read_text())["method"] == "evosax:CMA_ES"
     # A camera path through the trained run; its nerfstudio export renders back with the NeRF, and the
     # room's analytic truth is written beside it.
-    assert main(["path", str(out / "nerf"), "--out", str(tmp_path / "path"), "--resolution", "16", "--keyframes", "3",
-                 "--frames", "6", "--epochs", "1", "--initial-paths", "4", "--paths-per-epoch", "3",
-                 "--max-speed", "0.5", "--max-turn", "60"]) == 0
+    assert (
+        main(
+            [
+                "path",
+                str(out / "nerf"),
+                "--out",
+                str(tmp_path / "path"),
+                "--resolution",
+                "16",
+                "--keyframes",
+                "3",
+                "--frames",
+                "6",
+                "--epochs",
+                "1",
+                "--initial-paths",
+                "4",
+                "--paths-per-epoch",
+                "3",
+                "--max-speed",
+                "0.5",
+                "--max-turn",
+                "60",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "path" / "path_truth.mp4").is_file()
-    assert main(["render", str(out / "nerf"), "--poses", str(tmp_path / "path" / "camera_path.json"),
-                 "--out", str(tmp_path / "path_render"), "--resolution", "12"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(out / "nerf"),
+                "--poses",
+                str(tmp_path / "path" / "camera_path.json"),
+                "--out",
+                str(tmp_path / "path_render"),
+                "--resolution",
+                "12",
+            ]
+        )
+        == 0
+    )
     assert len(list((tmp_path / "path_render").glob("*.png"))) == 6
-
 
 
 @pytest.mark.parametrize("criterion", ["saliency", "iqa_cnn", "niqe", "brisque", "composition", "waldo"])
@@ -241,8 +342,23 @@ def test_explore_accepts_each_criterion(tmp_path, criterion):
         iio.imwrite(path, (np.clip(source.train_images[0, 4:12, 4:12], 0, 1) * 255).astype(np.uint8))
         extra, target = ["--target", str(path)], read_image(path)
     out = tmp_path / criterion
-    assert explore(out, "--method", "egps", "--criterion", criterion, "--guard", "opacity:0.5", *extra,
-                   "--resolution", str(size), "--views", str(views)) == 0
+    assert (
+        explore(
+            out,
+            "--method",
+            "egps",
+            "--criterion",
+            criterion,
+            "--guard",
+            "opacity:0.5",
+            *extra,
+            "--resolution",
+            str(size),
+            "--views",
+            str(views),
+        )
+        == 0
+    )
     r = json.loads((out / "results.json").read_text())
     assert r["criterion"] == f"{criterion}|opacity>=0.5"
     assert r["direction"] == CRITERIA[criterion].direction

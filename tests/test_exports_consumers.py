@@ -84,9 +84,14 @@ def _exports(scene, c2w: np.ndarray, dataparser_file: Dict[str, Any]) -> Tuple[D
     """waldo's two exports of frames c2w, as `write_path_outputs` builds them for this scene, through JSON text."""
     info = export_info(scene.format, scene.metadata, scene.aabb, scene.path)
     applied = info["nerfstudio_applied_transform"]
-    ns = nerfstudio_camera_path(c2w, scene.intrinsics, FPS, read_dataparser_transform(dataparser_file),
-                                applied_transform=None if applied is None else np.asarray(applied),
-                                applied_scale=info["nerfstudio_applied_scale"])
+    ns = nerfstudio_camera_path(
+        c2w,
+        scene.intrinsics,
+        FPS,
+        read_dataparser_transform(dataparser_file),
+        applied_transform=None if applied is None else np.asarray(applied),
+        applied_scale=info["nerfstudio_applied_scale"],
+    )
     frame = NgpFrame.create(info["ngp_scale"], info["ngp_offset"], info["ngp_from_mitsuba"])
     ngp = instant_ngp_camera_path(c2w, scene.intrinsics, FPS, frame=frame)
     ns, ngp = json.loads(json.dumps(ns)), json.loads(json.dumps(ngp))
@@ -104,7 +109,7 @@ def _check_nerfstudio(export: Dict[str, Any], parsed: Dict[str, Any], c2w: np.nd
     # Each training view lands on the model's own camera for that image.
     index = {_key(p): i for i, p in enumerate(parsed["file_paths"])}
     own = parsed["poses"][[index[_key(n)] for n in names]]
-    _within(_errors(own, cameras["c2w"][:len(names)], unit=parsed["scale"]), "training view vs the model's camera")
+    _within(_errors(own, cameras["c2w"][: len(names)], unit=parsed["scale"]), "training view vs the model's camera")
     np.testing.assert_allclose(cameras["fy"], float(intrinsics.fy), rtol=1e-6)
     assert (cameras["width"], cameras["height"]) == (intrinsics.width, intrinsics.height)
     assert cameras["video_fps"] == pytest.approx(FPS)
@@ -125,8 +130,14 @@ def _ngp_played(export: Dict[str, Any]) -> list:
     return [cp.ngp_eval_camera_path(path, start) for start, _ in cp.ngp_run_py_frame_times(seconds, fps)]
 
 
-def _check_ngp(export: Dict[str, Any], file_frame: Dict[str, Any], c2w_file: np.ndarray, names,
-               training_ngp: Dict[str, np.ndarray], intrinsics) -> None:
+def _check_ngp(
+    export: Dict[str, Any],
+    file_frame: Dict[str, Any],
+    c2w_file: np.ndarray,
+    names,
+    training_ngp: Dict[str, np.ndarray],
+    intrinsics,
+) -> None:
     """run.py's frames of `export` against waldo's frames as the transforms file writes them (c2w_file)."""
     played = _ngp_played(export)
     assert len(played) == len(c2w_file)
@@ -134,15 +145,18 @@ def _check_ngp(export: Dict[str, Any], file_frame: Dict[str, Any], c2w_file: np.
     back = np.stack([cp.ngp_matrix_to_nerf(m, file_frame) for m in ngp])
     _within(_errors(c2w_file, back), "run.py frame pose")
     own = np.stack([training_ngp[_key(n)] for n in names])
-    _within(_errors(own, ngp[:len(names)], unit=file_frame["scale"]), "training view vs NGP's own camera")
+    _within(_errors(own, ngp[: len(names)], unit=file_frame["scale"]), "training view vs NGP's own camera")
     for k in played:
         assert cp.ngp_fov_focal_length(k["fov"], intrinsics.height) == pytest.approx(float(intrinsics.fy), rel=1e-6)
 
 
 def _ngp_training(folder: Path, jsons, file_frame) -> Dict[str, np.ndarray]:
     """NGP's camera matrix of every training frame of the loaded JSONs, by image path."""
-    return {_key(f["file_path"]): cp.ngp_nerf_matrix_to_ngp(np.asarray(f["transform_matrix"]), file_frame)
-            for meta in jsons for f in meta["frames"]}
+    return {
+        _key(f["file_path"]): cp.ngp_nerf_matrix_to_ngp(np.asarray(f["transform_matrix"]), file_frame)
+        for meta in jsons
+        for f in meta["frames"]
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -166,8 +180,13 @@ def test_face_nerfstudio_scene_with_applied_transform():
     _check_ngp(ngp, frame, c2w, names, _ngp_training(folder, [meta], frame), scene.intrinsics)
     # Control: the dataparser transform used as if it mapped transforms.json's frame (the old export)
     # puts the cameras about 180 degrees and a unit or more away from the model's.
-    old = json.loads(json.dumps(nerfstudio_camera_path(c2w, scene.intrinsics, FPS,
-                                                       read_dataparser_transform(parsed["dataparser_transforms"]))))
+    old = json.loads(
+        json.dumps(
+            nerfstudio_camera_path(
+                c2w, scene.intrinsics, FPS, read_dataparser_transform(parsed["dataparser_transforms"])
+            )
+        )
+    )
     expected = parsed["transform"] @ c2w
     expected[:, :3, 3] *= parsed["scale"]
     position, degrees = _errors(expected, cp.ns_get_path_from_json(old)["c2w"])
@@ -226,12 +245,15 @@ def _tiny_transforms(folder: Path, extra: Dict[str, Any], n: int = 4) -> Dict[st
     return meta
 
 
-@pytest.mark.parametrize("extra", [
-    {"from_mitsuba": True},
-    {"from_mitsuba": True, "scale": 0.2, "offset": [0.4, 0.5, 0.6]},
-    {"scale": 0.25, "offset": 0.3, "aabb_scale": 2},
-    {"aabb": [[-2.0, -1.0, -3.0], [4.0, 1.0, 3.0]]},
-])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        {"from_mitsuba": True},
+        {"from_mitsuba": True, "scale": 0.2, "offset": [0.4, 0.5, 0.6]},
+        {"scale": 0.25, "offset": 0.3, "aabb_scale": 2},
+        {"aabb": [[-2.0, -1.0, -3.0], [4.0, 1.0, 3.0]]},
+    ],
+)
 def test_instant_ngp_keys_as_ngp_reads_them(tmp_path, extra):
     """`scale`, `offset`, `aabb` and `from_mitsuba` give the box and the exports NGP's loader gives."""
     meta = _tiny_transforms(tmp_path, extra)
@@ -288,15 +310,18 @@ def test_a_checkpoint_without_the_applied_transform_reads_it_from_its_scene_or_r
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg reads the MP4 in a subprocess
 def test_waldo_path_on_the_room_round_trips_through_the_consumers(tmp_path, capsys):
     data = tmp_path / "room"  # what NGP and nerfstudio would be trained on
-    assert main(["render", "procedural:1", "--views", "8", "--resolution", "16", "--samples", "16",
-                 "--out", str(data)]) == 0
+    assert (
+        main(["render", "procedural:1", "--views", "8", "--resolution", "16", "--samples", "16", "--out", str(data)])
+        == 0
+    )
     meta = json.loads((data / "transforms.json").read_text())
     frame = cp.ngp_load_nerf_frame([meta])
     assert frame["scale"] == pytest.approx(1 / 8.7, rel=1e-5)  # the room's aabb, not NGP's default 0.33
     # waldo's loader honours `aabb` too: the box is NGP's unit cube mapped back (the room's +-4.35).
     room = load_scene(data)
-    np.testing.assert_allclose(room.aabb, (np.stack([np.zeros(3), np.ones(3)]) - frame["offset"]) / frame["scale"],
-                               rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        room.aabb, (np.stack([np.zeros(3), np.ones(3)]) - frame["offset"]) / frame["scale"], rtol=1e-5, atol=1e-4
+    )
     np.testing.assert_allclose(room.aabb[:, [0, 2]], [[-4.35, -4.35], [4.35, 4.35]], atol=1e-4)
     parsed = cp.ns_nerfstudio_dataparser(data)
     dataparser = tmp_path / "dataparser_transforms.json"
@@ -304,10 +329,41 @@ def test_waldo_path_on_the_room_round_trips_through_the_consumers(tmp_path, caps
 
     out = tmp_path / "path"
     capsys.readouterr()
-    assert main(["path", "procedural:1", "--out", str(out), "--seed", "2", "--resolution", "16",
-                 "--video-resolution", "33", "--views", "8", "--keyframes", "3", "--frames", "8", "--epochs", "2",
-                 "--initial-paths", "5", "--paths-per-epoch", "4", "--max-speed", "0.5", "--max-turn", "60",
-                 "--nerfstudio-transforms", str(dataparser)]) == 0
+    assert (
+        main(
+            [
+                "path",
+                "procedural:1",
+                "--out",
+                str(out),
+                "--seed",
+                "2",
+                "--resolution",
+                "16",
+                "--video-resolution",
+                "33",
+                "--views",
+                "8",
+                "--keyframes",
+                "3",
+                "--frames",
+                "8",
+                "--epochs",
+                "2",
+                "--initial-paths",
+                "5",
+                "--paths-per-epoch",
+                "4",
+                "--max-speed",
+                "0.5",
+                "--max-turn",
+                "60",
+                "--nerfstudio-transforms",
+                str(dataparser),
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert "path.mp4: 33x33 frames padded to 34x34" in err
     video = iio.imread(out / "path.mp4")

@@ -12,8 +12,14 @@ from scipy import stats
 from waldo_jax.cameras import look_at, project_points
 from waldo_jax.criteria import finder
 from waldo_jax.criteria.base import CriterionContext, CriterionError, make_criterion
-from waldo_jax.procedural import (make_room, room_field, room_render_config, waldo_coverage,
-                                  waldo_visibility, waldo_visibility_batch)
+from waldo_jax.procedural import (
+    make_room,
+    room_field,
+    room_render_config,
+    waldo_coverage,
+    waldo_visibility,
+    waldo_visibility_batch,
+)
 from waldo_jax.render import render_views
 from waldo_jax.types import Intrinsics
 
@@ -27,7 +33,7 @@ def brute_ncc(image, template, min_std=finder.MIN_STD):
     out = np.zeros((image.shape[0] - h + 1, image.shape[1] - w + 1))
     for y in range(out.shape[0]):
         for x in range(out.shape[1]):
-            win = image[y:y + h, x:x + w].astype(np.float64)
+            win = image[y : y + h, x : x + w].astype(np.float64)
             win = win - win.mean()
             if win.std() > min_std and t.std() > min_std:
                 out[y, x] = np.sum(win * t) / np.sqrt(np.sum(win * win) * np.sum(t * t))
@@ -36,14 +42,19 @@ def brute_ncc(image, template, min_std=finder.MIN_STD):
 
 def brute_colour(image, template, bins=finder.BINS):
     """Bhattacharyya coefficient of joint colour histograms, window by window."""
+
     def hist(x):
         q = np.clip(np.floor(x * bins), 0, bins - 1).astype(int).reshape(-1, 3)
         return np.bincount((q[:, 0] * bins + q[:, 1]) * bins + q[:, 2], minlength=bins**3) / len(q)
 
     h, w, _ = template.shape
     pt = hist(template)
-    return np.array([[np.sum(np.sqrt(hist(image[y:y + h, x:x + w]) * pt))
-                      for x in range(image.shape[1] - w + 1)] for y in range(image.shape[0] - h + 1)])
+    return np.array(
+        [
+            [np.sum(np.sqrt(hist(image[y : y + h, x : x + w]) * pt)) for x in range(image.shape[1] - w + 1)]
+            for y in range(image.shape[0] - h + 1)
+        ]
+    )
 
 
 def striped_target(h=40, w=16):
@@ -52,7 +63,7 @@ def striped_target(h=40, w=16):
     rows = np.arange(h)
     target[:] = np.where((rows // 3 % 2 == 0)[:, None, None], [0.86, 0.08, 0.08], [0.97, 0.97, 0.97])
     target[: h // 5] = [0.96, 0.78, 0.64]
-    target[-h // 3:] = [0.15, 0.22, 0.62]
+    target[-h // 3 :] = [0.15, 0.22, 0.62]
     return target
 
 
@@ -102,7 +113,7 @@ def test_pasted_target_is_found_at_its_scale_and_position():
     for k, (row, col) in ((3, (40, 10)), (7, (7, 50))):
         h, w = sizes[k]
         pasted = image.copy()
-        pasted[row:row + h, col:col + w] = np.asarray(finder.resample_target(params.target, (h, w)))
+        pasted[row : row + h, col : col + w] = np.asarray(finder.resample_target(params.target, (h, w)))
         match = find(params, pasted)
         assert float(match.score) == pytest.approx(1.0, abs=1e-4)
         assert float(match.ncc) == pytest.approx(1.0, abs=1e-4)
@@ -117,8 +128,10 @@ def test_pasted_target_is_found_at_its_scale_and_position():
 @jax.jit
 def oracles(room, c2w, intrinsics):
     """(waldo_visibility, waldo_coverage) [P] of cameras c2w [P, 4, 4], in one program."""
-    return (jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics),
-            jax.vmap(waldo_coverage, in_axes=(None, 0, None))(room, c2w, intrinsics))
+    return (
+        jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics),
+        jax.vmap(waldo_coverage, in_axes=(None, 0, None))(room, c2w, intrinsics),
+    )
 
 
 def room_views(room, key, n, intrinsics):
@@ -141,18 +154,22 @@ def waldo_crop(room, distance=1.6, height=0.5, resolution=128):
     `distance` around him at `height`, looking at his centre, the one the oracle says sees most of him."""
     angle = jnp.linspace(0.0, 2 * jnp.pi, 120, endpoint=False)
     centre = room.waldo_center
-    origins = jnp.stack([centre[0] + distance * jnp.cos(angle), jnp.full_like(angle, height),
-                         centre[2] + distance * jnp.sin(angle)], -1)
+    origins = jnp.stack(
+        [centre[0] + distance * jnp.cos(angle), jnp.full_like(angle, height), centre[2] + distance * jnp.sin(angle)], -1
+    )
     c2w = jax.vmap(look_at, in_axes=(0, None, None))(origins, centre, UP)
     intrinsics = Intrinsics.from_fov(resolution, resolution, np.radians(60.0))
     visible = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
     best = int(np.argmax(visible))
     assert visible[best] > 0.95, "no camera of the ring sees all of Waldo"
-    image = np.asarray(render_views(room_field, room, c2w[best:best + 1], intrinsics,
-                                    room_render_config(room, num_samples=128)).rgb[0])
+    image = np.asarray(
+        render_views(room_field, room, c2w[best : best + 1], intrinsics, room_render_config(room, num_samples=128)).rgb[
+            0
+        ]
+    )
     uv, _ = project_points(c2w[best], intrinsics, room.waldo_points)
     (x0, y0), (x1, y1) = np.floor(np.min(uv, 0)).astype(int), np.ceil(np.max(uv, 0)).astype(int)
-    return image[max(y0, 0):y1, max(x0, 0):x1]
+    return image[max(y0, 0) : y1, max(x0, 0) : x1]
 
 
 @pytest.mark.slow
@@ -208,12 +225,13 @@ def test_batches_determinism_extremes_and_failures(crit):
     image = noise(7, (40, 40, 3))
     sizes = finder.template_sizes(crit.params.target.shape, image.shape, crit.params.scales)
     h, w = sizes[3]
-    image[10:10 + h, 20:20 + w] = np.asarray(finder.resample_target(crit.params.target, (h, w)))
-    batch = np.stack([image, noise(8, (40, 40, 3)), np.zeros((40, 40, 3), np.float32),
-                      np.ones((40, 40, 3), np.float32)])
+    image[10 : 10 + h, 20 : 20 + w] = np.asarray(finder.resample_target(crit.params.target, (h, w)))
+    batch = np.stack(
+        [image, noise(8, (40, 40, 3)), np.zeros((40, 40, 3), np.float32), np.ones((40, 40, 3), np.float32)]
+    )
     score = jax.jit(lambda c, x: c.score_images(x))
     scores = np.asarray(score(crit, batch))
-    singles = np.array([float(score(crit, batch[i:i + 1])[0]) for i in range(len(batch))])
+    singles = np.array([float(score(crit, batch[i : i + 1])[0]) for i in range(len(batch))])
     np.testing.assert_allclose(scores, singles, atol=1e-6)
     np.testing.assert_array_equal(scores, np.asarray(score(crit, batch)))  # bit-identical
     assert scores[0] == pytest.approx(1.0, abs=1e-4) and scores[1] < 0.5

@@ -80,7 +80,7 @@ def test_paper_default_layout_matches_formula():
     expected = (16, 22, 30, 42, 58, 80, 111, 153, 212, 294, 406, 561, 776, 1072, 1482, 2048)
     assert config.resolutions == expected
     # floor(N_min * b**l) away from the exact-integer end point.
-    assert all(n == math.floor(16 * b**l) for l, n in enumerate(expected[:-1]))
+    assert all(n == math.floor(16 * b**level) for level, n in enumerate(expected[:-1]))
     # (58 + 1)**3 = 205379 fits in 2**19 = 524288; (80 + 1)**3 = 531441 does not.
     assert config.n_dense == 5
     np.testing.assert_array_equal(config.layout.is_dense, [True] * 5 + [False] * 11)

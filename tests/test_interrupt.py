@@ -27,8 +27,10 @@ from waldo_jax.cli import interrupt, main
 
 # A process started in the background by a non-interactive shell inherits SIGINT as ignored, and
 # waldo keeps an inherited "ignore" (as Python does): the child starts from Python's default handler.
-_WALDO = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
-          "runpy.run_module('waldo_jax', run_name='__main__')")
+_WALDO = (
+    "import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "runpy.run_module('waldo_jax', run_name='__main__')"
+)
 
 
 def _tree(folder):
@@ -45,8 +47,9 @@ def _tree(folder):
 def _signal_after(argv, ready, signum, cwd, timeout=300.0):
     """Runs `waldo argv`, sends `signum` once `ready` has appeared in its output (stdout and stderr,
     progress bars included), and returns (exit status, output, seconds from the signal to the exit)."""
-    proc = subprocess.Popen([sys.executable, "-c", _WALDO, *argv], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WALDO, *argv], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
     output, sent, deadline = b"", None, time.monotonic() + timeout
     try:
         while time.monotonic() < deadline:
@@ -84,9 +87,14 @@ def scene_and_earlier_run(tmp_path):
     return tmp_path, _tree(earlier)
 
 
-@pytest.mark.parametrize("signum, ready", [(signal.SIGINT, "/2000"),  # the first bar: the first chunk compiles
-                                           (signal.SIGTERM, "loss=")],  # a chunk trained: training runs
-                         ids=["sigint-while-compiling", "sigterm-while-training"])
+@pytest.mark.parametrize(
+    "signum, ready",
+    [
+        (signal.SIGINT, "/2000"),  # the first bar: the first chunk compiles
+        (signal.SIGTERM, "loss="),
+    ],  # a chunk trained: training runs
+    ids=["sigint-while-compiling", "sigterm-while-training"],
+)
 def test_an_interrupted_training_exits_cleanly_and_leaves_no_run_folder(scene_and_earlier_run, signum, ready):
     tmp, earlier = scene_and_earlier_run
     status, text, seconds = _signal_after(["train", "scene", "--out", "new", "--steps", "2000"], ready, signum, tmp)
@@ -103,8 +111,27 @@ def test_an_interrupted_search_exits_at_once_and_leaves_the_earlier_run_as_it_wa
     epochs run in one jitted call: the exit must not wait for the remaining epochs."""
     tmp, earlier = scene_and_earlier_run
     status, text, seconds = _signal_after(
-        ["explore", "procedural", "--criterion", "colorfulness", "--resolution", "16", "--views", "8", "--epochs", "1000",
-         "--children-per-epoch", "8", "--out", "earlier", "--force"], "epoch 1/1000", signum, tmp)
+        [
+            "explore",
+            "procedural",
+            "--criterion",
+            "colorfulness",
+            "--resolution",
+            "16",
+            "--views",
+            "8",
+            "--epochs",
+            "1000",
+            "--children-per-epoch",
+            "8",
+            "--out",
+            "earlier",
+            "--force",
+        ],
+        "epoch 1/1000",
+        signum,
+        tmp,
+    )
     _assert_clean(status, text, signum)
     assert "epoch 1000/1000" not in text
     assert _tree(tmp / "earlier") == earlier

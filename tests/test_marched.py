@@ -166,7 +166,8 @@ def _march_reference(params, grid, c2w):
     origins, directions, _, _ = view_rays(c2w[:, :3, :4], INTRINSICS, ids)
     t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, RENDER_CONFIG))(origins, directions)
     t, delta, mask = jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, FULL))(
-        origins, directions, t_start, t_end)
+        origins, directions, t_start, t_end
+    )
     points = origins[:, None] + t[..., None] * directions[:, None]
     sigma = jax.vmap(jax.vmap(density, in_axes=(None, 0)), in_axes=(None, 0))(params, points)
     return delta, mask, sigma
@@ -211,14 +212,21 @@ def test_passes_are_few_when_the_budget_is_large():
     grid = grid_for("fog")
     c2w = cameras(3)
     _, counts = as_numpy(reference(field, FOG, grid, c2w, INTRINSICS, RENDER_CONFIG, FULL))
-    one_size = marched.Packing(rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32,
-                               field_chunk=0, pass_levels=1)
+    one_size = marched.Packing(
+        rays_per_block=2**15, slots_per_ray=16, row_length=8, max_rows_per_ray=32, field_chunk=0, pass_levels=1
+    )
     views = marched.render_marched(field, FOG, marched.MarchSetup(grid, RENDER_CONFIG, FULL), c2w, INTRINSICS, one_size)
     slots = 16 * 192  # one block of the 189 rays, rounded up to 192
     assert views.passes.shape == (1,)
     assert int(views.passes[0]) <= math.ceil(counts.sum() / slots) + math.ceil(counts.max() / (8 * 32)) + 2
-    levels = marched.render_marched(field, FOG, marched.MarchSetup(grid, RENDER_CONFIG, FULL), c2w, INTRINSICS,
-                                    dataclasses.replace(one_size, pass_levels=3))
+    levels = marched.render_marched(
+        field,
+        FOG,
+        marched.MarchSetup(grid, RENDER_CONFIG, FULL),
+        c2w,
+        INTRINSICS,
+        dataclasses.replace(one_size, pass_levels=3),
+    )
     np.testing.assert_array_equal(np.asarray(levels.evaluations), np.asarray(views.evaluations))
     assert int(levels.slots[0]) < int(views.slots[0]) and int(levels.slots[0]) < 2 * counts.sum()
 
@@ -267,7 +275,7 @@ def test_layout_rows_and_segment_sums_match_numpy(requests, num_rows):
     owner = np.full(num_rows, -1)
     rank = np.zeros(num_rows, np.int64)
     for ray, (a, n) in enumerate(zip(start, granted)):
-        owner[a:a + n], rank[a:a + n] = ray, np.arange(n)
+        owner[a : a + n], rank[a : a + n] = ray, np.arange(n)
     used = owner >= 0
     np.testing.assert_array_equal(layout.used, used)
     np.testing.assert_array_equal(layout.owner[used], owner[used])
@@ -275,10 +283,11 @@ def test_layout_rows_and_segment_sums_match_numpy(requests, num_rows):
     np.testing.assert_array_equal(layout.last, np.where(granted > 0, start + granted - 1, num_rows))
     values = np.arange(1, num_rows + 1, dtype=np.float32) ** 1.5
     segment_cumsum = jax.jit(packed.segment_cumsum, static_argnums=2)  # one program, not op by op
-    sums = np.asarray(segment_cumsum(jnp.asarray(np.where(used, values, 0.0)), jnp.asarray(layout.rank),
-                                     max(1, int(rows.max()))))
+    sums = np.asarray(
+        segment_cumsum(jnp.asarray(np.where(used, values, 0.0)), jnp.asarray(layout.rank), max(1, int(rows.max())))
+    )
     for ray, (a, n) in enumerate(zip(start, granted)):
-        np.testing.assert_allclose(sums[a:a + n], np.cumsum(values[a:a + n]), rtol=1e-6)
+        np.testing.assert_allclose(sums[a : a + n], np.cumsum(values[a : a + n]), rtol=1e-6)
 
 
 @pytest.mark.parametrize("peak", [1e-6, 1.0, 1e6])
@@ -298,8 +307,15 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
 
     def packed_colour(sigma_rays):
         owner = layout.owner[:, None]
-        sums = packed.composite_rows(sigma_rays[owner, index], rgb_rays[owner, index], t_rays[owner, index],
-                                     jnp.where(valid, 0.1, 0.0), layout, carry, 8)
+        sums = packed.composite_rows(
+            sigma_rays[owner, index],
+            rgb_rays[owner, index],
+            t_rays[owner, index],
+            jnp.where(valid, 0.1, 0.0),
+            layout,
+            carry,
+            8,
+        )
         return sums.rgb, sums.acc, sums.depth, sums.optical_depth
 
     def reference_colour(sigma_rays):
@@ -307,8 +323,7 @@ def test_row_composite_matches_volume_weights_with_finite_gradients(peak):
         delta = jnp.where(mask, 0.1, 0.0)
         sigma = jnp.where(mask, sigma_rays, 0.0)
         w = jax.vmap(volume_weights)(sigma, delta) * jnp.exp(-carry)[:, None]
-        return (jnp.sum(w[..., None] * rgb_rays, 1), jnp.sum(w, 1), jnp.sum(w * t_rays, 1),
-                jnp.sum(sigma * delta, 1))
+        return (jnp.sum(w[..., None] * rgb_rays, 1), jnp.sum(w, 1), jnp.sum(w * t_rays, 1), jnp.sum(sigma * delta, 1))
 
     packed_colour, reference_colour = jax.jit(packed_colour), jax.jit(reference_colour)  # not op by op
     for a, b in zip(packed_colour(sigma_rays), reference_colour(sigma_rays)):
@@ -345,8 +360,9 @@ def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses)
     from waldo_jax.nerf.trained import TrainedField, render_setup
 
     scene, result = trained_lego
-    trained = TrainedField.create(result.params, result.occupancy, result.config, scene.near, scene.far,
-                                  np.ones(3, np.float32), scene.aabb)
+    trained = TrainedField.create(
+        result.params, result.occupancy, result.config, scene.near, scene.far, np.ones(3, np.float32), scene.aabb
+    )
     setup = render_setup(trained)
     grid, render_config, march = setup
     assert 0.01 < float(jnp.mean(grid.bitfield)) < 0.5  # the trained grid skips empty space
@@ -354,8 +370,9 @@ def test_trained_lego_equals_the_per_ray_composite(trained_lego, packing, poses)
     c2w = jnp.asarray(scene.c2w[:poses])
     intrinsics = scene.intrinsics.scaled(20, 20)
     full = march.replace(min_transmittance=jnp.float32(0.0))
-    views = marched.render_marched(field_fn, result.params, marched.MarchSetup(grid, render_config, full), c2w,
-                                   intrinsics, packing)
+    views = marched.render_marched(
+        field_fn, result.params, marched.MarchSetup(grid, render_config, full), c2w, intrinsics, packing
+    )
     expected, counts = as_numpy(reference(field_fn, result.params, grid, c2w, intrinsics, render_config, full))
     out = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + a.shape[3:]), views.output)
     np.testing.assert_allclose(out.rgb, expected.rgb, atol=EXACT)
@@ -378,8 +395,9 @@ def test_a_coarser_march_with_the_finest_marchs_sizes_renders_the_same(trained_l
     from waldo_jax.nerf.trained import TrainedField, render_setup
 
     scene, result = trained_lego
-    trained = TrainedField.create(result.params, result.occupancy, result.config, scene.near, scene.far,
-                                  np.ones(3, np.float32), scene.aabb)
+    trained = TrainedField.create(
+        result.params, result.occupancy, result.config, scene.near, scene.far, np.ones(3, np.float32), scene.aabb
+    )
     field_fn = make_field(result.config.field)
     c2w, intrinsics = jnp.asarray(scene.c2w[:1]), scene.intrinsics.scaled(20, 20)
     views = []

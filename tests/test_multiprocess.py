@@ -74,8 +74,16 @@ def _run_processes(folder, port):
     """Starts the two processes, waits for both (at most TIMEOUT_S), returns [(returncode, output)]."""
     flags = os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={DEVICES_PER_PROCESS}"
     env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
-    procs = [subprocess.Popen([sys.executable, "-c", WORKER, str(port), str(i), str(folder)], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(PROCESSES)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", WORKER, str(port), str(i), str(folder)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in range(PROCESSES)
+    ]
     try:
         outputs = [p.communicate(timeout=TIMEOUT_S)[0] for p in procs]
         return [(p.returncode, output) for p, output in zip(procs, outputs)]
@@ -100,8 +108,9 @@ def test_two_processes_render_what_one_does(tmp_path):
     assert not failed, "\n".join(failed)
 
     room = make_room(0)
-    single = render_views(room_field, room, jnp.asarray(c2w), Intrinsics.from_fov(16, 16, 1.0),
-                          room_render_config(room, num_samples=16))
+    single = render_views(
+        room_field, room, jnp.asarray(c2w), Intrinsics.from_fov(16, 16, 1.0), room_render_config(room, num_samples=16)
+    )
     mine = []
     for i in range(PROCESSES):
         gathered = np.load(tmp_path / f"process{i}.npz")

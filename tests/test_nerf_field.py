@@ -99,7 +99,7 @@ def test_sh_matches_scipy_complex_harmonics():
     d = np.asarray(_directions(1, 32), np.float64)
     theta, phi = np.arccos(np.clip(d[:, 2], -1, 1)), np.arctan2(d[:, 1], d[:, 0])
     expected = []
-    for l in range(4):
+    for l in range(4):  # noqa: E741  (the spherical-harmonics degree, as the formulas write it)
         for m in range(-l, l + 1):
             y = special.sph_harm_y(l, abs(m), theta, phi)  # Condon-Shortley phase included
             expected.append(np.sqrt(2) * y.imag if m < 0 else (y.real if m == 0 else np.sqrt(2) * y.real))

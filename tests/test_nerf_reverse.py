@@ -29,8 +29,11 @@ PACKINGS = [
     marched.Packing.for_backend("cpu"),  # one block, one field call a pass
     marched.Packing(rays_per_block=40, slots_per_ray=8, row_length=4, max_rows_per_ray=4),  # many passes
 ]
-START = Pose(origin=jnp.array([[2.5, 0.4, -1.5], [-2.0, 0.8, 2.2]]), target=jnp.zeros((2, 3)),
-             up=jnp.array([[0.0, 1.0, 0.0]] * 2))
+START = Pose(
+    origin=jnp.array([[2.5, 0.4, -1.5], [-2.0, 0.8, 2.2]]),
+    target=jnp.zeros((2, 3)),
+    up=jnp.array([[0.0, 1.0, 0.0]] * 2),
+)
 
 
 def smooth_field(params, x, d):
@@ -49,17 +52,28 @@ def objective(gradient, march=MARCH, packing=PACKINGS[0], params=PARAMS):
 
     def values(offsets):
         poses = Pose(origin=START.origin + offsets[:, :3], target=START.target + offsets[:, 3:], up=START.up)
-        out = marched.render_marched(smooth_field, params, marched.MarchSetup(GRID, RENDER_CONFIG, march),
-                                     jax.vmap(pose_to_c2w)(poses), INTRINSICS, packing, gradient=gradient).output
-        return (jnp.sum(out.rgb * WEIGHTS, axis=(1, 2, 3)) + 0.3 * jnp.sum(out.acc, axis=(1, 2))
-                + 0.01 * jnp.sum(out.depth, axis=(1, 2)))
+        out = marched.render_marched(
+            smooth_field,
+            params,
+            marched.MarchSetup(GRID, RENDER_CONFIG, march),
+            jax.vmap(pose_to_c2w)(poses),
+            INTRINSICS,
+            packing,
+            gradient=gradient,
+        ).output
+        return (
+            jnp.sum(out.rgb * WEIGHTS, axis=(1, 2, 3))
+            + 0.3 * jnp.sum(out.acc, axis=(1, 2))
+            + 0.01 * jnp.sum(out.depth, axis=(1, 2))
+        )
 
     return values
 
 
 def forward_gradient(values, offsets):
-    _, tangents = jax.vmap(lambda e: jax.jvp(values, (offsets,), (jnp.broadcast_to(e, offsets.shape),)),
-                           out_axes=(None, 0))(jnp.eye(6))
+    _, tangents = jax.vmap(
+        lambda e: jax.jvp(values, (offsets,), (jnp.broadcast_to(e, offsets.shape),)), out_axes=(None, 0)
+    )(jnp.eye(6))
     return np.asarray(tangents).T  # [2, 6]
 
 
@@ -106,8 +120,14 @@ def test_reverse_mode_only_and_refused_names():
     with pytest.raises(TypeError, match="custom_vjp"):
         jax.jvp(objective("reverse"), (offsets,), (offsets,))
     with pytest.raises(ValueError, match="gradient must be one of"):
-        marched.render_marched(smooth_field, PARAMS, marched.MarchSetup(GRID, RENDER_CONFIG, MARCH), jnp.eye(4)[None],
-                               INTRINSICS, gradient="sideways")
+        marched.render_marched(
+            smooth_field,
+            PARAMS,
+            marched.MarchSetup(GRID, RENDER_CONFIG, MARCH),
+            jnp.eye(4)[None],
+            INTRINSICS,
+            gradient="sideways",
+        )
 
 
 def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
@@ -129,12 +149,20 @@ def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
     offsets = jnp.zeros((3, 6), jnp.float32)
     results = {}
     for mode in ("forward", "reverse"):
-        field = TrainedField.create(checkpoint.params, checkpoint.occupancy, checkpoint.config, scene.near, scene.far,
-                                    np.zeros(3, np.float32), scene.aabb)
+        field = TrainedField.create(
+            checkpoint.params,
+            checkpoint.occupancy,
+            checkpoint.config,
+            scene.near,
+            scene.far,
+            np.zeros(3, np.float32),
+            scene.aabb,
+        )
         render = field_renderer(field, intrinsics, gradient=mode)
         score = jax.tree_util.Partial(lambda r, c: criterion.apply(criterion.params, r(c)), render)
         results[mode] = jax.jit(lambda o, s=score, m=mode: values_and_gradients(s, start, jnp.float32(1.0), o, m))(
-            offsets)
+            offsets
+        )
     (v_forward, g_forward), (v_reverse, g_reverse) = results["forward"], results["reverse"]
     np.testing.assert_allclose(np.asarray(v_reverse), np.asarray(v_forward), rtol=1e-6)  # XLA fuses each differently
     g_forward, g_reverse = np.asarray(g_forward), np.asarray(g_reverse)

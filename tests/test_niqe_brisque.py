@@ -60,8 +60,10 @@ def _square(path, side: int = SIDE) -> np.ndarray:
 def _blur(image: np.ndarray, std: float) -> np.ndarray:
     if std == 0:
         return image
-    return np.stack([scipy.ndimage.gaussian_filter(image[..., c].astype(np.float64), std, mode="nearest")
-                     for c in range(3)], axis=-1).astype(np.float32)
+    return np.stack(
+        [scipy.ndimage.gaussian_filter(image[..., c].astype(np.float64), std, mode="nearest") for c in range(3)],
+        axis=-1,
+    ).astype(np.float32)
 
 
 def _noisy(key, image: np.ndarray, std: float) -> np.ndarray:
@@ -76,8 +78,9 @@ def _synthetic(key, height: int, width: int) -> list:
     texture = np.stack([scipy.ndimage.gaussian_filter(field[..., c], 2.0, mode="wrap") for c in range(3)], -1)
     texture = (texture - texture.min()) / (texture.max() - texture.min())
     y, x = np.mgrid[0:height, 0:width]
-    plaid = 0.5 + 0.3 * np.sin(2 * np.pi * x / 17.0)[..., None] * np.cos(2 * np.pi * y / 23.0)[..., None] * \
-        np.array([1.0, 0.7, 0.4])
+    plaid = 0.5 + 0.3 * np.sin(2 * np.pi * x / 17.0)[..., None] * np.cos(2 * np.pi * y / 23.0)[..., None] * np.array(
+        [1.0, 0.7, 0.4]
+    )
     plaid = plaid + 0.03 * np.asarray(jax.random.normal(k_plaid, (height, width, 3)), np.float64)
     colours = np.asarray(jax.random.uniform(k_blocks, (-(-height // 16), -(-width // 16), 3)), np.float64)
     blocks = np.kron(colours, np.ones((16, 16, 1)))[:height, :width]
@@ -102,9 +105,13 @@ def params(weights_dir):
 
 @pytest.fixture(scope="module")
 def reference_models(weights_dir):
-    return {"niqe": ref.load_niqe(os.path.join(weights_dir, "niqe", niqe.PARAMS_FILE)),
-            "brisque": ref.load_brisque(os.path.join(weights_dir, "brisque", brisque.MODEL_FILE),
-                                        os.path.join(weights_dir, "brisque", brisque.RANGE_FILE))}
+    return {
+        "niqe": ref.load_niqe(os.path.join(weights_dir, "niqe", niqe.PARAMS_FILE)),
+        "brisque": ref.load_brisque(
+            os.path.join(weights_dir, "brisque", brisque.MODEL_FILE),
+            os.path.join(weights_dir, "brisque", brisque.RANGE_FILE),
+        ),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -142,8 +149,14 @@ def computed(params, test_set):
             found = niqe.niqe_features(image)
             b_features = brisque.brisque_features(image)
             b_score = brisque.svr_predict(p["brisque"], brisque.scale_features(p["brisque"], b_features))
-            return (b_features, b_score, found.features, found.valid,
-                    niqe.niqe_distance(p["niqe"], found.features, found.valid))
+            return (
+                b_features,
+                b_score,
+                found.features,
+                found.valid,
+                niqe.niqe_distance(p["niqe"], found.features, found.valid),
+            )
+
         return jax.vmap(one)(batch)
 
     out = run(params, jnp.asarray(images))
@@ -171,8 +184,13 @@ def _compare_features(got: np.ndarray, want: np.ndarray, where: str) -> int:
             assert step < 1.001e-3 + 1e-6, f"{where} block {row}: alpha {g[alpha]} vs reference {w[alpha]}"
             flipped = step > 1e-6
             flips += flipped
-            np.testing.assert_allclose(g[cols], w[cols], rtol=2e-2 if flipped else 1e-3, atol=1e-5,
-                                       err_msg=f"{where} block {row} features {cols}")
+            np.testing.assert_allclose(
+                g[cols],
+                w[cols],
+                rtol=2e-2 if flipped else 1e-3,
+                atol=1e-5,
+                err_msg=f"{where} block {row} features {cols}",
+            )
     return flips
 
 
@@ -191,12 +209,18 @@ def test_features_and_scores_match_the_reference(test_set, computed, reference_m
         # A flipped alpha moves NIQE by ~1e-3 (its pristine covariance has directions with variance
         # 7e-6); without one the scores agree to 1e-3 (NIQE in practice to 1e-6).
         rtol = 1e-3 if f == 0 else 5e-3
-        np.testing.assert_allclose(computed["niqe"][i], ref.niqe_score(reference_models["niqe"], image),
-                                   rtol=rtol, err_msg=f"{name} NIQE")
+        np.testing.assert_allclose(
+            computed["niqe"][i], ref.niqe_score(reference_models["niqe"], image), rtol=rtol, err_msg=f"{name} NIQE"
+        )
         # The SVR output is a sum of +-1024-weighted kernels: its error is absolute (a score near 0 has
         # no meaningful relative error), hence atol 0.01 on the 0..100 DMOS scale.
-        np.testing.assert_allclose(computed["brisque"][i], ref.brisque_score(reference_models["brisque"], image),
-                                   rtol=rtol, atol=0.01 if f == 0 else 0.05, err_msg=f"{name} BRISQUE")
+        np.testing.assert_allclose(
+            computed["brisque"][i],
+            ref.brisque_score(reference_models["brisque"], image),
+            rtol=rtol,
+            atol=0.01 if f == 0 else 0.05,
+            err_msg=f"{name} BRISQUE",
+        )
     print(f"{len(names)} images: {flips} of {fits} shape fits on a neighbouring grid value")
     assert flips <= max(1, fits // 100), f"{flips} of {fits} shape fits landed on a neighbouring grid value"
     assert np.all(computed["niqe_valid"]), "every patch of these images has structure"
@@ -325,8 +349,9 @@ def test_criteria_jit_batch_and_failure_scores(criteria):
     fox = _square(require_scene("fox") / "images" / "0001.jpg")
     nan_image = fox.copy()
     nan_image[10, 10, 1] = np.nan
-    several = np.stack([fox, _blur(fox, 1.0), _blur(fox, 2.0), _blur(fox, 4.0),
-                        np.zeros_like(fox), np.ones_like(fox), nan_image])
+    several = np.stack(
+        [fox, _blur(fox, 1.0), _blur(fox, 2.0), _blur(fox, 4.0), np.zeros_like(fox), np.ones_like(fox), nan_image]
+    )
     for name, criterion in criteria.items():
         traces = []
 
@@ -342,8 +367,10 @@ def test_criteria_jit_batch_and_failure_scores(criteria):
         score(criterion.params, jnp.asarray(several[1:2]))  # same shape, new values: no new trace
         assert len(traces) == 2, traces  # one trace per batch shape
         np.testing.assert_allclose(single[0], out[0], rtol=1e-5)
-        print(f"{name} on fox 0001 (256 px): clean {out[0]:.2f}, blurred sigma 1/2/4: {np.round(out[1:4], 2)}, "
-              f"black {out[4]:.2f}, white {out[5]:.2f}, NaN {out[6]:.2f}")
+        print(
+            f"{name} on fox 0001 (256 px): clean {out[0]:.2f}, blurred sigma 1/2/4: {np.round(out[1:4], 2)}, "
+            f"black {out[4]:.2f}, white {out[5]:.2f}, NaN {out[6]:.2f}"
+        )
         assert np.all(out[0] < out[1:4]), f"{name}: the clean fox view must score better (lower) than its blurs"
         assert np.all(np.isfinite(out)) and np.all((out >= 0.0) & (out <= 100.0))
         assert out[6] == 100.0  # the NaN view gets the worst score
@@ -396,7 +423,8 @@ def _write_brisque(folder, model_text=None, range_text=None):
     numbers = lambda values: ",\n          ".join(f"{v:.8e}" for v in values)  # noqa: E731
     if model_text is None:
         model_text = _SMALL_MODEL.replace("{sv0}", numbers(np.linspace(-1, 1, 36))).replace(
-            "{sv1}", numbers(np.linspace(1, -1, 36)))
+            "{sv1}", numbers(np.linspace(1, -1, 36))
+        )
     if range_text is None:
         range_text = _SMALL_RANGE.replace("{data}", numbers(np.r_[np.zeros(36), np.arange(1.0, 37.0)]))
     (folder / brisque.MODEL_FILE).write_text(model_text)
@@ -418,14 +446,17 @@ def test_opencv_yaml_reader_and_its_errors(tmp_path):
 
     good = (tmp_path / "brisque" / brisque.MODEL_FILE).read_text()
     cases = {
-        "truncated": (good[:good.index("- [") + 40], None, "never closed"),
+        "truncated": (good[: good.index("- [") + 40], None, "never closed"),
         "no header": ("opencv_ml_svm:\n  svmType: EPS_SVR\n", None, "no '%YAML' header"),
         "classifier": (good.replace("EPS_SVR", "C_SVC"), None, "expected EPS_SVR"),
         "features": (good.replace("var_count: 36", "var_count: 35"), None, "var_count 35"),
         "sv count": (good.replace("sv_total: 2", "sv_total: 3"), None, "support_vectors"),
         "bad number": (good.replace("-5.5e+02", "-5.5e+02, ]"), None, "malformed"),
-        "range size": (None, _SMALL_RANGE.replace("cols: 36", "cols: 35").replace("{data}", "1, 2"),
-                       "opencv-matrix 2x35 has 2 data values"),
+        "range size": (
+            None,
+            _SMALL_RANGE.replace("cols: 36", "cols: 35").replace("{data}", "1, 2"),
+            "opencv-matrix 2x35 has 2 data values",
+        ),
         "range order": (None, _SMALL_RANGE.replace("{data}", ", ".join(["1"] * 72)), "max <= min"),
     }
     for case, (model_text, range_text, message) in cases.items():

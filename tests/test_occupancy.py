@@ -41,8 +41,7 @@ def make_balls(centers, radii, peaks, profile, num=3) -> dict:
     r = np.full((num,), 0.1, np.float32)
     p = np.zeros((num,), np.float32)
     c[:n], r[:n], p[:n] = np.asarray(centers, np.float32), radii, peaks
-    return {"center": jnp.asarray(c), "radius": jnp.asarray(r), "peak": jnp.asarray(p),
-            "profile": jnp.float32(profile)}
+    return {"center": jnp.asarray(c), "radius": jnp.asarray(r), "peak": jnp.asarray(p), "profile": jnp.float32(profile)}
 
 
 # Times each function below was traced (Python side effects run only while tracing).
@@ -154,8 +153,9 @@ def test_bad_arguments_raise():
 
 def test_scene_grid_uses_the_aabb_scale_of_its_metadata():
     # fox-like: the scene box is NGP's aabb_scale cube, the base box a quarter of it.
-    scene = types.SimpleNamespace(aabb=np.array([[-6.0, -5.0, -4.0], [6.0, 7.0, 8.0]]), metadata={"aabb_scale": 4},
-                                  name="fox")
+    scene = types.SimpleNamespace(
+        aabb=np.array([[-6.0, -5.0, -4.0], [6.0, 7.0, 8.0]]), metadata={"aabb_scale": 4}, name="fox"
+    )
     grid = occ.init_occupancy_for_scene(scene, resolution=8)
     assert grid.cascades == 3
     np.testing.assert_allclose(grid.center, (0.0, 1.0, 2.0))
@@ -165,10 +165,14 @@ def test_scene_grid_uses_the_aabb_scale_of_its_metadata():
 
 def test_ngp_threshold_value():
     unit = occ.init_occupancy([[0, 0, 0], [1, 1, 1]], resolution=4)
-    assert float(occ.OccupancyConfig.create(unit).density_threshold) == pytest.approx(0.01 * 1024 / math.sqrt(3), rel=1e-6)
+    assert float(occ.OccupancyConfig.create(unit).density_threshold) == pytest.approx(
+        0.01 * 1024 / math.sqrt(3), rel=1e-6
+    )
     assert float(occ.OccupancyConfig().density_threshold) == pytest.approx(0.01 * 1024 / math.sqrt(3), rel=1e-6)
     big = occ.init_occupancy(BOX, resolution=4)  # twice the size: half the density for the same opacity
-    assert float(occ.OccupancyConfig.create(big).density_threshold) == pytest.approx(0.01 * 1024 / (2 * math.sqrt(3)), rel=1e-6)
+    assert float(occ.OccupancyConfig.create(big).density_threshold) == pytest.approx(
+        0.01 * 1024 / (2 * math.sqrt(3)), rel=1e-6
+    )
 
 
 def test_grid_cell_matches_numpy_reference_across_cascades():
@@ -492,7 +496,9 @@ def test_march_samples_are_ordered_occupied_and_masked(sparse_grid):
         lo = float(t_start[i]) + k * DT_MIN
         cand = lo + 0.5 * np.minimum(DT_MIN, float(t_end[i]) - lo)
         inside = lo < float(t_end[i])
-        keep = inside & np.asarray(IS_OCCUPIED(sparse_grid, np.asarray(origins[i]) + cand[:, None] * np.asarray(directions[i])))
+        keep = inside & np.asarray(
+            IS_OCCUPIED(sparse_grid, np.asarray(origins[i]) + cand[:, None] * np.asarray(directions[i]))
+        )
         assert keep.sum() == num[i]
         np.testing.assert_allclose(t[i, : num[i]], cand[keep], atol=1e-4)
         skipped += int(num[i] > 0 and keep.sum() < inside.sum())
@@ -519,8 +525,9 @@ def test_march_determinism_and_random_offset(sparse_grid):
     keyed = MARCH_RAYS_KEYED(sparse_grid, origins, directions, t_start, t_end, MARCH, keys)
     again = MARCH_RAYS_KEYED(sparse_grid, origins, directions, t_start, t_end, MARCH, keys)
     np.testing.assert_array_equal(np.asarray(keyed[0]), np.asarray(again[0]))
-    other = MARCH_RAYS_KEYED(sparse_grid, origins, directions, t_start, t_end, MARCH,
-                             jax.random.split(jax.random.key(1), origins.shape[0]))
+    other = MARCH_RAYS_KEYED(
+        sparse_grid, origins, directions, t_start, t_end, MARCH, jax.random.split(jax.random.key(1), origins.shape[0])
+    )
     valid = np.asarray(keyed[2]) & np.asarray(other[2])
     assert valid.any() and not np.allclose(np.asarray(keyed[0])[valid], np.asarray(other[0])[valid])
     # The offset moves samples within their bins only: the same bins, so nearly the same sample count.
@@ -545,7 +552,9 @@ def test_cone_stepping_grows_steps_with_distance():
     grid = occ.init_occupancy(BOX, aabb_scale=4, resolution=G)  # 3 cascades, the outer one [-4, 4]^3
     cone = SHORT.replace(cone_angle=jnp.float32(1 / 8))
     origin, direction = jnp.array([[0.0, 0.0, -3.9]]), jnp.array([[0.0, 0.0, 1.0]])
-    t, delta, mask = (np.asarray(a[0]) for a in MARCH_RAYS(grid, origin, direction, jnp.array([0.0]), jnp.array([7.8]), cone, None))
+    t, delta, mask = (
+        np.asarray(a[0]) for a in MARCH_RAYS(grid, origin, direction, jnp.array([0.0]), jnp.array([7.8]), cone, None)
+    )
     dt_max = 2 * math.sqrt(3) * 4 / G  # the coarsest cascade's cell diagonal
     valid = delta[mask][:-1]  # the last bin is cut at t_end
     assert t[mask].max() > 7.5 and mask.sum() < 64  # constant steps would need 1153
@@ -566,8 +575,9 @@ def test_update_and_render_compile_once(sparse_grid):
     traced = TRACES["density"]
     other = make_balls([[0.0, 0.1, 0.0]], [0.3], [10.0], GAUSS)
     grid = occ.update_occupancy(jax.random.key(1), grid, ball_density, other, 300, config)
-    grid = occ.update_occupancy(jax.random.key(2), grid, ball_density, BALL, jnp.int32(5),
-                                config.replace(decay=jnp.float32(0.9)))
+    grid = occ.update_occupancy(
+        jax.random.key(2), grid, ball_density, BALL, jnp.int32(5), config.replace(decay=jnp.float32(0.9))
+    )
     assert TRACES["density"] == traced
 
     # A render of tiny shapes: traced once, whatever the params, grid and march numbers.

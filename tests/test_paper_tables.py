@@ -45,10 +45,35 @@ def quick(tmp_path_factory):
     scenes = "room,fox" if _fox_available() else "room"
 
     def argv(tmp):
-        return ["--quick", "--scenes", scenes, "--criteria", "colorfulness", "--methods", ",".join(METHODS),
-                "--seeds", str(SEEDS), "--resolution", "24", "--train-steps", "20", "--room-steps", "30",
-                "--room-views", "12", "--room-resolution", "32", "--downscale", "fox=32", "--render-step-scale",
-                "3", "--runs", str(tmp / "runs"), "--out", str(tmp / "paper.json")]
+        return [
+            "--quick",
+            "--scenes",
+            scenes,
+            "--criteria",
+            "colorfulness",
+            "--methods",
+            ",".join(METHODS),
+            "--seeds",
+            str(SEEDS),
+            "--resolution",
+            "24",
+            "--train-steps",
+            "20",
+            "--room-steps",
+            "30",
+            "--room-views",
+            "12",
+            "--room-resolution",
+            "32",
+            "--downscale",
+            "fox=32",
+            "--render-step-scale",
+            "3",
+            "--runs",
+            str(tmp / "runs"),
+            "--out",
+            str(tmp / "paper.json"),
+        ]
 
     def build(folder):  # the JSON's name says whether the machine was loaded: keep the name it chose
         (folder / "out.txt").write_text(paper_tables.main(argv(folder))["out"])
@@ -90,8 +115,9 @@ def test_cvir_and_mcvir_recompute_from_stored_scores(quick):
             for s in cell["per_seed"]:
                 assert 0 < s["n_generated"] <= 5 * 8
                 assert _close(s["cvir"], 100 * sign * (s["best"] - s["best_train"]) / abs(s["best_train"]))
-                assert _close(s["mcvir"], 100 * sign * (s["mean_top_n"] - s["mean_top_n_train"])
-                              / abs(s["mean_top_n_train"]))
+                assert _close(
+                    s["mcvir"], 100 * sign * (s["mean_top_n"] - s["mean_top_n_train"]) / abs(s["mean_top_n_train"])
+                )
                 curve = [sign * v for v in s["best_per_epoch"]]
                 assert len(curve) == 6 and all(b >= a for a, b in zip(curve, curve[1:]))  # never worse
                 assert s["best_per_epoch"][0] == s["best_train"] and s["cvir"] >= 0
@@ -204,21 +230,45 @@ def test_reachable_visibility_is_the_rooms_known_answer():
     pen = paper_tables.reachable_visibility(_room_source(make_room(0)), 4096, 0.9)
     assert 0.5 < pen["best"] < 0.9 and pen["goal_share"] == 0.0
     assert pen == paper_tables.reachable_visibility(_room_source(make_room(0)), 4096, 0.9)  # seeded
-    row = {"goal": 0.9, "seeds": 1, "found_share": 0.0, "best_visibility_mean": 0.8, "best_visibility_max": 0.8,
-           "best_scored_visibility_mean": 0.8, "renders_to_goal_mean": None, "cvir_mean": 50.0,
-           "best_training_visibility": 0.4, "n_train": 12}
+    row = {
+        "goal": 0.9,
+        "seeds": 1,
+        "found_share": 0.0,
+        "best_visibility_mean": 0.8,
+        "best_visibility_max": 0.8,
+        "best_scored_visibility_mean": 0.8,
+        "renders_to_goal_mean": None,
+        "cvir_mean": 50.0,
+        "best_training_visibility": 0.4,
+        "n_train": 12,
+    }
     text = paper_tables.waldo_table({"waldo_visible": {"low": {"grs": row}}}, ["low"], ["grs"], {}, pen)["text"]
     assert "out of reach in this room" in text
-    assert "out of reach" not in paper_tables.waldo_table({"waldo_visible": {"low": {"grs": row}}}, ["low"], ["grs"],
-                                                          {}, bare)["text"]
+    assert (
+        "out of reach"
+        not in paper_tables.waldo_table({"waldo_visible": {"low": {"grs": row}}}, ["low"], ["grs"], {}, bare)["text"]
+    )
 
 
 def test_a_reused_room_nerf_must_be_of_the_asked_room(quick, tmp_path):
     runs = tmp_path / "runs"
     shutil.copytree(quick["tmp"] / "runs" / "room", runs / paper_tables.room_folder(1))  # a seed-0 room's NeRF
     with pytest.raises(SystemExit, match="room seed 0, not --room-seed 1"):
-        paper_tables.main(["--quick", "--scenes", "room", "--room-seed", "1", "--criteria", "none",
-                           "--runs", str(runs), "--out", str(tmp_path / "x.json")])
+        paper_tables.main(
+            [
+                "--quick",
+                "--scenes",
+                "room",
+                "--room-seed",
+                "1",
+                "--criteria",
+                "none",
+                "--runs",
+                str(runs),
+                "--out",
+                str(tmp_path / "x.json"),
+            ]
+        )
     assert paper_tables.room_folder(0) == "room" and paper_tables.room_folder(3) == "room_seed3"
 
 
@@ -281,8 +331,13 @@ def test_paper_rows_are_printed_beside_ours_and_labelled(monkeypatch):
 def test_a_cell_undefined_for_a_zero_training_score_says_why():
     seed = {"cvir": None, "mcvir": None, "best_train": 0.0, "best": 0.0625}
     zero = {"cvir_mean": None, "cvir_std": None, "mcvir_mean": None, "mcvir_std": None, "per_seed": [seed, seed]}
-    fine = {"cvir_mean": 10.0, "cvir_std": 1.0, "mcvir_mean": 5.0, "mcvir_std": 0.5,
-            "per_seed": [{"cvir": 10.0, "mcvir": 5.0, "best_train": 0.5, "best": 0.55}]}
+    fine = {
+        "cvir_mean": 10.0,
+        "cvir_std": 1.0,
+        "mcvir_mean": 5.0,
+        "mcvir_std": 0.5,
+        "per_seed": [{"cvir": 10.0, "mcvir": 5.0, "best_train": 0.5, "best": 0.55}],
+    }
     cells = {"fern": {"low": {"grs": zero}}, "fox": {"low": {"grs": fine}}}
     table = paper_tables.criterion_table("saliency", cells, ["fox", "fern"], ["low"], ["grs"], {}, 2)
     assert "| low | GRS | 10 ± 1 | 5 ± 0 | n/a | n/a |" in table["text"]
@@ -321,22 +376,33 @@ def test_plan_counts_each_cells_renders_and_cuts_parts_of_the_limit():
         assert renders == 3 * (cost["renders"] - 43)
     assert 250 - 43 <= by[("low", "egps")] / 3 <= 300 - 43 and 900 - 43 <= by[("high", "egps")] / 3 <= 1000 - 43
     args.initial = "renders"  # the training poses are rendered once more
-    assert paper_plan._cells("fox", 43, ["saliency"], ["egps"], ["low"], args, {})[0]["renders"] == by[("low", "egps")] + 43
+    assert (
+        paper_plan._cells("fox", 43, ["saliency"], ["egps"], ["low"], args, {})[0]["renders"]
+        == by[("low", "egps")] + 43
+    )
     timed = [dict(c, seconds=s) for c, s in zip(cells, (100.0, 100.0, 400.0, 400.0))]
     parts = paper_plan._parts(timed, limit_s=600.0)
-    assert [(p["budgets"], p["seconds"], p.get("over_limit")) for p in parts] == [("low", 200.0, False),
-                                                                                  ("high", 800.0, True)]
+    assert [(p["budgets"], p["seconds"], p.get("over_limit")) for p in parts] == [
+        ("low", 200.0, False),
+        ("high", 800.0, True),
+    ]
     # A probe's rate is its fastest chunk's; what the other chunks took beyond it is compilation.
-    history = [{"step": 100, "seconds": 30.0, "loss": 1.0}, {"step": 200, "seconds": 40.0, "loss": 1.0},
-               {"step": 200, "seconds": 40.0, "psnr_test": 20.0}, {"step": 300, "seconds": 52.0, "loss": 1.0}]
+    history = [
+        {"step": 100, "seconds": 30.0, "loss": 1.0},
+        {"step": 200, "seconds": 40.0, "loss": 1.0},
+        {"step": 200, "seconds": 40.0, "psnr_test": 20.0},
+        {"step": 300, "seconds": 52.0, "loss": 1.0},
+    ]
     scratch = []
-    probe = paper_plan._train_probe("real", lambda run_dir: {"history": history, "steps": 300, "seconds": 52.0},
-                                    scratch)
+    probe = paper_plan._train_probe(
+        "real", lambda run_dir: {"history": history, "steps": 300, "seconds": 52.0}, scratch
+    )
     assert probe["seconds_per_step"] == pytest.approx(0.1) and probe["compile_s"] == pytest.approx(22.0)
     assert probe["chunks"] == 3 and len(scratch) == 1
     scratch[0].rmdir()
     assert paper_plan._parts(timed, limit_s=1000.0) == [
-        {"scene": "fox", "criterion": "saliency", "budgets": None, "seconds": 1000.0}]
+        {"scene": "fox", "criterion": "saliency", "budgets": None, "seconds": 1000.0}
+    ]
 
 
 def test_methods_beyond_the_papers_are_accepted_and_unknown_ones_named():

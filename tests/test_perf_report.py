@@ -17,13 +17,27 @@ RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
 
 
 def _component(benchmark: str, date: str, **fields) -> dict:
-    return {"benchmark": benchmark, "date": date, "commit": "abc1234def", "loaded": False,
-            "device": {"platform": "cpu", "device_kind": "cpu", "device_count": 1, "host_cpu_count": 2}, **fields}
+    return {
+        "benchmark": benchmark,
+        "date": date,
+        "commit": "abc1234def",
+        "loaded": False,
+        "device": {"platform": "cpu", "device_kind": "cpu", "device_count": 1, "host_cpu_count": 2},
+        **fields,
+    }
 
 
 def test_collect_picks_the_newest_file_of_each_part_and_ignores_other_benchmarks(tmp_path):
-    old = _component("render_population", "2026-01-01T00:00:00", poses=8, resolution=16, samples_per_ray=32,
-                     batched_rays_per_s=1.0, loop_rays_per_s=1.0, speedup_batched_over_loop=1.0)
+    old = _component(
+        "render_population",
+        "2026-01-01T00:00:00",
+        poses=8,
+        resolution=16,
+        samples_per_ray=32,
+        batched_rays_per_s=1.0,
+        loop_rays_per_s=1.0,
+        speedup_batched_over_loop=1.0,
+    )
     new = dict(old, date="2026-02-01T00:00:00", batched_rays_per_s=5.0, speedup_batched_over_loop=2.5)
     other = {"benchmark": "paper_tables", "date": "2026-03-01"}
     files = []

@@ -140,7 +140,10 @@ def test_room_scene_renders_views_where_waldo_shows_red_stripes():
 
     base = np.asarray(room.waldo_base)
     cam = look_at(jnp.asarray(base + np.array([0.25, 1.6, 0.0])), jnp.asarray(base + np.array([0.0, 0.6, 0.0])), UP)
-    image = np.asarray(render_views(room_field, room, cam[None], Intrinsics.from_fov(32, 32, 1.0),
-                                    room_render_config(room, num_samples=96)).rgb[0])
+    image = np.asarray(
+        render_views(
+            room_field, room, cam[None], Intrinsics.from_fov(32, 32, 1.0), room_render_config(room, num_samples=96)
+        ).rgb[0]
+    )
     red = (image[..., 0] > 0.6) & (image[..., 1] < 0.25) & (image[..., 2] < 0.25)
     assert red.sum() >= 5

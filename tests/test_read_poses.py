@@ -34,13 +34,20 @@ def _write(tmp_path, meta, name="poses.json"):
 
 def test_valid_file_gives_poses_intrinsics_and_names(tmp_path):
     a, b = _c2w(0.3, [1.0, 2.0, 3.0]), _c2w(-1.2, [0.0, -1.0, 4.0])
-    path = _write(tmp_path, {
-        "w": 20, "h": 10, "fl_x": 18.0, "cx": 9.0, "k1": 0.01,
-        "frames": [
-            {"file_path": "images/a.png", "transform_matrix": a.tolist()},
-            {"transform_matrix": b[:3].tolist()},  # 3x4: the bottom row is added
-        ],
-    })
+    path = _write(
+        tmp_path,
+        {
+            "w": 20,
+            "h": 10,
+            "fl_x": 18.0,
+            "cx": 9.0,
+            "k1": 0.01,
+            "frames": [
+                {"file_path": "images/a.png", "transform_matrix": a.tolist()},
+                {"transform_matrix": b[:3].tolist()},  # 3x4: the bottom row is added
+            ],
+        },
+    )
     c2w, intrinsics, names = read_poses_file(path, DEFAULT)
     assert c2w.dtype == np.float32 and c2w.shape == (2, 4, 4)
     np.testing.assert_allclose(c2w[0], a, atol=1e-6)
@@ -73,12 +80,15 @@ def test_missing_transform_matrix_names_the_file_and_frame(tmp_path):
     assert info.value.path == str(path)
 
 
-@pytest.mark.parametrize("matrix, problem", [
-    ([[1, 0], [0, 1]], r"frame 0 transform_matrix has shape \[2, 2\], expected 4x4"),
-    ([[1, 0, 0, 0]] * 3, "not a rigid camera-to-world matrix"),
-    ([[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "non-finite"),
-    ([["a", 0, 0, 0]] * 4, "not a matrix of numbers"),
-])
+@pytest.mark.parametrize(
+    "matrix, problem",
+    [
+        ([[1, 0], [0, 1]], r"frame 0 transform_matrix has shape \[2, 2\], expected 4x4"),
+        ([[1, 0, 0, 0]] * 3, "not a rigid camera-to-world matrix"),
+        ([[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "non-finite"),
+        ([["a", 0, 0, 0]] * 4, "not a matrix of numbers"),
+    ],
+)
 def test_bad_matrix_is_refused_naming_the_problem(tmp_path, matrix, problem):
     path = tmp_path / "bad.json"
     path.write_text(json.dumps({"frames": [{"transform_matrix": matrix}]}))
@@ -94,23 +104,38 @@ def test_mirrored_rotation_is_refused(tmp_path):
 
 
 def test_nerfstudio_camera_path_is_refused(tmp_path):
-    path = _write(tmp_path, {"camera_type": "perspective", "render_height": 10, "render_width": 20,
-                             "camera_path": [{"camera_to_world": np.eye(4).reshape(-1).tolist(), "fov": 50}]},
-                  name="render-path.json")
+    path = _write(
+        tmp_path,
+        {
+            "camera_type": "perspective",
+            "render_height": 10,
+            "render_width": 20,
+            "camera_path": [{"camera_to_world": np.eye(4).reshape(-1).tolist(), "fov": 50}],
+        },
+        name="render-path.json",
+    )
     with pytest.raises(SceneFormatError, match=r"render-path\.json: a nerfstudio camera path"):
         read_poses_file(path, DEFAULT)
 
 
-@pytest.mark.parametrize("content, problem", [
-    (None, "no such poses file"),
-    ("{not json", "malformed JSON at line 1"),
-    ("[1, 2]", "expected a JSON object"),
-    ('{"frames": []}', "'frames' is empty"),
-    ('{"cameras": []}', "no 'frames' list"),
-    ('{"fl_x": -3, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "'fl_x' must be a positive number"),
-    ('{"fl_x": true, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
-     "'fl_x' must be a finite number"),
-])
+@pytest.mark.parametrize(
+    "content, problem",
+    [
+        (None, "no such poses file"),
+        ("{not json", "malformed JSON at line 1"),
+        ("[1, 2]", "expected a JSON object"),
+        ('{"frames": []}', "'frames' is empty"),
+        ('{"cameras": []}', "no 'frames' list"),
+        (
+            '{"fl_x": -3, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
+            "'fl_x' must be a positive number",
+        ),
+        (
+            '{"fl_x": true, "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
+            "'fl_x' must be a finite number",
+        ),
+    ],
+)
 def test_unusable_files_are_refused_naming_the_file(tmp_path, content, problem):
     path = tmp_path / "poses.json"
     if content is not None:

@@ -70,8 +70,7 @@ BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 
 def _config(near=0.0, far=10.0, aabb=None, num_samples=16, **kwargs):
-    return RenderConfig.create(near=near, far=far, aabb=aabb, background=BACKGROUND,
-                               num_samples=num_samples, **kwargs)
+    return RenderConfig.create(near=near, far=far, aabb=aabb, background=BACKGROUND, num_samples=num_samples, **kwargs)
 
 
 def _rays(origins, directions):
@@ -255,8 +254,15 @@ def test_grazing_and_missing_rays():
 
 def test_zero_length_interval_gives_background_and_finite_gradients():
     # `create` rejects far <= near; build the config directly to get an empty [near, far].
-    config = RenderConfig(num_samples=8, ray_chunk=8, use_aabb=False, near=jnp.float32(2.0),
-                          far=jnp.float32(2.0), aabb=jnp.float32(BOX), background=jnp.float32(BACKGROUND))
+    config = RenderConfig(
+        num_samples=8,
+        ray_chunk=8,
+        use_aabb=False,
+        near=jnp.float32(2.0),
+        far=jnp.float32(2.0),
+        aabb=jnp.float32(BOX),
+        background=jnp.float32(BACKGROUND),
+    )
     origins, dirs = _rays(_X_ORIGINS, _X_DIRS)
     for sigma in (1.0, 1e6, MAX_DENSITY):
         out = _render_rays(slab_field, _slab(sigma, -1e9, 1e9), origins, dirs, config)
@@ -298,8 +304,9 @@ def test_volume_weights_closed_form_for_constant_density(sigma, delta):
     i = np.arange(num_samples)
     expected = np.exp(-sigma * delta * i) * (1.0 - np.exp(-sigma * delta))
     np.testing.assert_allclose(w, expected, rtol=1e-5, atol=1e-7)
-    np.testing.assert_allclose(np.sum(np.asarray(w, np.float64)), 1 - np.exp(-sigma * delta * num_samples),
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        np.sum(np.asarray(w, np.float64)), 1 - np.exp(-sigma * delta * num_samples), rtol=1e-5, atol=1e-7
+    )
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
@@ -380,7 +387,10 @@ def test_render_views_equals_loop_over_render_view():
 @pytest.mark.slow
 def test_render_views_keys_determinism():
     c2w = _poses(3)
-    render = lambda key=None: render_views(ball_field, _VIEWS_PARAMS, c2w, INTRINSICS, _VIEWS_CONFIG, key)
+
+    def render(key=None):
+        return render_views(ball_field, _VIEWS_PARAMS, c2w, INTRINSICS, _VIEWS_CONFIG, key)
+
     plain = render()
     np.testing.assert_array_equal(render().rgb, plain.rgb)
     np.testing.assert_array_equal(render().depth, plain.depth)
@@ -416,9 +426,16 @@ def test_render_views_second_call_does_not_recompile():
     cache = render_views._cache_size()
     assert first > 0
     # New values for every array argument, same shapes and static settings: no new trace.
-    config = _config(near=0.4, far=5.0, aabb=((-2, -2, -2), (2, 2, 2)), num_samples=8, ray_chunk=4).replace(background=jnp.float32([0.0, 0.0, 0.0]))
-    out = render_views(counting_field, _ball(7.0, rgb=(0.9, 0.1, 0.1)), _poses(3)[::-1].copy(),
-                       INTRINSICS.replace(fx=jnp.float32(3.0)), config)
+    config = _config(near=0.4, far=5.0, aabb=((-2, -2, -2), (2, 2, 2)), num_samples=8, ray_chunk=4).replace(
+        background=jnp.float32([0.0, 0.0, 0.0])
+    )
+    out = render_views(
+        counting_field,
+        _ball(7.0, rgb=(0.9, 0.1, 0.1)),
+        _poses(3)[::-1].copy(),
+        INTRINSICS.replace(fx=jnp.float32(3.0)),
+        config,
+    )
     jax.block_until_ready(out)
     assert len(traces) == first
     assert render_views._cache_size() == cache

@@ -23,9 +23,25 @@ def test_quick_synthetic_json(tmp_path):
     # One population (one compiled render) keeps it short; --quick's own grid is 1 and 4 poses.
     result = render_splats.main(["--quick", "--populations", "4", "--load-threshold", "1000", "--out", str(out)])
     written = json.loads(out.read_text())
-    assert written["benchmark"] == "render_splats" and written["synthetic"] == json.loads(json.dumps(result["synthetic"]))
-    for key in ("date", "commit", "device", "jax", "settings", "synthetic", "views_per_s", "stages", "scenes",
-                "peak_memory", "targets", "definitions", "loaded", "loadavg_start"):
+    assert written["benchmark"] == "render_splats" and written["synthetic"] == json.loads(
+        json.dumps(result["synthetic"])
+    )
+    for key in (
+        "date",
+        "commit",
+        "device",
+        "jax",
+        "settings",
+        "synthetic",
+        "views_per_s",
+        "stages",
+        "scenes",
+        "peak_memory",
+        "targets",
+        "definitions",
+        "loaded",
+        "loadavg_start",
+    ):
         assert key in written, key
     cells = written["synthetic"]
     assert [(c["count"], c["size"], c["population"], c["status"]) for c in cells] == [(2000, 32, 4, "measured")]
@@ -75,10 +91,13 @@ def test_pairs_from_the_command_line_and_train_json(tmp_path):
     assert (given.scene_path, given.downscale) == ("/x", 4.0)
     with pytest.raises(SystemExit, match="no scene path"):
         render_splats.resolve_pair(render_splats.ScenePair("n", str(nerf_run), str(nerf_run)))
-    args = render_splats.argparse.Namespace(pair=["a=s:n"], splat_run=["x/s2"], nerf_run=["x/n2"], scene=["sc"],
-                                            downscale=None)
-    assert render_splats.pairs_from_args(args) == [render_splats.ScenePair("a", "s", "n"),
-                                                   render_splats.ScenePair("s2", "x/s2", "x/n2", "sc", None)]
+    args = render_splats.argparse.Namespace(
+        pair=["a=s:n"], splat_run=["x/s2"], nerf_run=["x/n2"], scene=["sc"], downscale=None
+    )
+    assert render_splats.pairs_from_args(args) == [
+        render_splats.ScenePair("a", "s", "n"),
+        render_splats.ScenePair("s2", "x/s2", "x/n2", "sc", None),
+    ]
 
 
 @pytest.mark.slow
@@ -92,7 +111,7 @@ def test_scene_poses_and_camera_on_lego_tiny():
     n_train, n_test = train.n_images, test.n_images
     poses = render_splats.scene_poses(train.c2w, test.c2w, 256)
     assert poses.shape == (256, 4, 4) and poses.dtype == np.float32 and n_train + n_test + n_train - 1 < 256
-    assert np.array_equal(poses[:n_train], train.c2w) and np.array_equal(poses[n_train:n_train + n_test], test.c2w)
+    assert np.array_equal(poses[:n_train], train.c2w) and np.array_equal(poses[n_train : n_train + n_test], test.c2w)
     # The first interpolated poses are render_trained.py's midpoints; then t = 1/4 between the first two.
     first = 2 * n_train + n_test - 1
     assert np.allclose(poses[:first], timing_poses(train.c2w, test.c2w, first), atol=1e-6)

@@ -85,7 +85,7 @@ def _transforms_scene(folder, n=3, extra=None, frames=None, sizes=None):
     if frames is None:
         frames = [{"file_path": f"images/{i:03d}.png", "transform_matrix": _pose(tx=0.1 * i)} for i in range(n)]
     for i, frame in enumerate(frames):
-        h, w = (sizes[i] if sizes else (8, 8))
+        h, w = sizes[i] if sizes else (8, 8)
         if isinstance(frame.get("file_path"), str):
             _write_image(folder / frame["file_path"], h, w)
     meta = {"fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 4.0, "w": 8, "h": 8, "aabb_scale": 1, "frames": frames}
@@ -215,7 +215,11 @@ def test_lego_edges_are_straight_alpha():
 
 def test_detect_format_of_real_scenes():
     expected = {
-        "fox": "instant-ngp", "face": "nerfstudio", "garden": "nerfstudio", "fern": "llff", "lego_tiny": "blender",
+        "fox": "instant-ngp",
+        "face": "nerfstudio",
+        "garden": "nerfstudio",
+        "fern": "llff",
+        "lego_tiny": "blender",
     }
     for name, fmt in expected.items():
         assert detect_format(require_scene(name)) == fmt
@@ -296,10 +300,12 @@ def test_camera_bounds_outside_box():
 
 def test_nerfstudio_applied_transform_ply_and_intrinsics(tmp_path):
     applied = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
-    frames = [{"file_path": f"images/frame_{i:05d}.png", "transform_matrix": _pose(tx=0.1 * i), "fl_x": 9.0}
-              for i in range(3)]
-    _transforms_scene(tmp_path, frames=frames, extra={"camera_model": "OPENCV", "applied_transform": applied,
-                                                      "k1": 0.1})
+    frames = [
+        {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": _pose(tx=0.1 * i), "fl_x": 9.0} for i in range(3)
+    ]
+    _transforms_scene(
+        tmp_path, frames=frames, extra={"camera_model": "OPENCV", "applied_transform": applied, "k1": 0.1}
+    )
     assert detect_format(tmp_path) == "nerfstudio"
     scene = load_scene(tmp_path)
     np.testing.assert_array_equal(scene.applied_transform, applied)
@@ -308,9 +314,11 @@ def test_nerfstudio_applied_transform_ply_and_intrinsics(tmp_path):
     assert _inside(scene.c2w[:, :3, 3], scene.aabb).all()
     # A binary point cloud sets the box (1st-99th percentiles, padded by 10%).
     points = np.random.default_rng(0).uniform(-1, 1, (500, 3)).astype(np.float32)
-    header = (b"ply\nformat binary_little_endian 1.0\nelement vertex 500\nproperty float x\n"
-              b"property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
-              b"property uchar blue\nend_header\n")
+    header = (
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 500\nproperty float x\n"
+        b"property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+        b"property uchar blue\nend_header\n"
+    )
     rows = np.zeros(500, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
     rows["x"], rows["y"], rows["z"] = points.T
     (tmp_path / "sparse_pc.ply").write_bytes(header + rows.tobytes())
@@ -326,8 +334,10 @@ def test_nerfstudio_applied_transform_ply_and_intrinsics(tmp_path):
 
 
 def test_ascii_ply(tmp_path):
-    text = "ply\nformat ascii 1.0\ncomment hi\nelement vertex 2\nproperty float x\nproperty float y\n" \
-           "property float z\nproperty uchar red\nend_header\n1 2 3 9\n-4 5.5 6 9\n"
+    text = (
+        "ply\nformat ascii 1.0\ncomment hi\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nproperty uchar red\nend_header\n1 2 3 9\n-4 5.5 6 9\n"
+    )
     (tmp_path / "p.ply").write_text(text)
     np.testing.assert_array_equal(read_ply_points(tmp_path / "p.ply"), [[1, 2, 3], [-4, 5.5, 6]])
     (tmp_path / "bad.ply").write_text(text.replace("-4 5.5 6 9\n", ""))

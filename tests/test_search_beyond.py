@@ -109,17 +109,22 @@ def test_refine_budget_is_paid_with_children():
     n_train = 24
     for budget, (low, high) in (("low", (250, 300)), ("high", (900, 1000))):
         plain = ExploreConfig(method="egps", budget=budget).cost(n_train)
-        refined_config = ExploreConfig(method="egps+refine", budget=budget,
-                                       options={"refine": RefineConfig(gradient_cost=12)})
+        refined_config = ExploreConfig(
+            method="egps+refine", budget=budget, options={"refine": RefineConfig(gradient_cost=12)}
+        )
         refined = refined_config.cost(n_train)
         assert low <= refined["renders"] <= plain["renders"] <= high
         assert plain["renders"] - refined["renders"] < 5  # at most epochs - 1 renders apart
-        assert refined["renders"] == (refined["training_views"] + refined["children"]
-                                      + refined["gradient_evaluations"] * refined["renders_per_gradient_evaluation"])
+        assert refined["renders"] == (
+            refined["training_views"]
+            + refined["children"]
+            + refined["gradient_evaluations"] * refined["renders_per_gradient_evaluation"]
+        )
         assert refined["gradient_evaluations"] == 4 * 4 and plain["gradient_evaluations"] == 0
     with pytest.raises(ValueError, match="refinement costs"):
-        ExploreConfig(method="egps+refine",
-                      options={"refine": RefineConfig(poses=20, steps=10, gradient_cost=12)}).resolve(24)
+        ExploreConfig(
+            method="egps+refine", options={"refine": RefineConfig(poses=20, steps=10, gradient_cost=12)}
+        ).resolve(24)
 
 
 def test_refine_epoch_writes_refined_children_of_the_best_poses():
@@ -135,10 +140,10 @@ def test_refine_epoch_writes_refined_children_of_the_best_poses():
     scores = np.asarray(population.score)
     best = np.argsort(-scores[:before], kind="stable")[: REFINE.poses]
     extent = float(scene_box(_population()).extent)
-    refined_origin = np.asarray(population.origin)[last][-REFINE.poses:]
+    refined_origin = np.asarray(population.origin)[last][-REFINE.poses :]
     moved = np.abs(refined_origin - np.asarray(population.origin)[best])
     assert np.all(moved <= REFINE.steps * REFINE.step_size * extent + 1e-5) and np.all(moved.max(-1) > 0)
-    assert np.all(scores[last][-REFINE.poses:] > scores[best])
+    assert np.all(scores[last][-REFINE.poses :] > scores[best])
 
 
 def test_evosax_method_equals_evosax_own_loop():
@@ -155,8 +160,9 @@ def test_evosax_method_equals_evosax_own_loop():
     n = CONFIG.children_per_epoch
     es = SNES(population_size=n, solution=jnp.zeros(9))
     params = es.default_params.replace(std_init=jnp.float32(1.0))
-    population = init_population(training_poses(INITIAL.c2w), INITIAL.scores, 8 + CONFIG.epochs * n,
-                                 train_c2w=INITIAL.c2w)
+    population = init_population(
+        training_poses(INITIAL.c2w), INITIAL.scores, 8 + CONFIG.epochs * n, train_c2w=INITIAL.c2w
+    )
     shift, scale = strategy.pose_scaling(population)
     best = int(np.argmax(np.asarray(INITIAL.scores)))
     mean = (strategy.to_vector(training_poses(INITIAL.c2w))[best] - shift) / scale
@@ -179,8 +185,9 @@ def test_evosax_seeds_vmap_and_nan_scores_are_never_selected():
     keys = jax.vmap(jax.random.key)(jnp.arange(3))
     out = explore_seeds(keys, half_nan, INITIAL, "evosax:SNES", CONFIG)
     single = explore(jax.random.key(1), half_nan, INITIAL, "evosax:SNES", CONFIG)
-    np.testing.assert_allclose(np.asarray(out.results.population.score[1]), np.asarray(single.population.score),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(out.results.population.score[1]), np.asarray(single.population.score), atol=1e-5
+    )
     top = np.asarray(out.results.top_scores)[np.asarray(out.results.top_valid)]
     assert np.all(np.isfinite(top))
 

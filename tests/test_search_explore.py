@@ -120,8 +120,9 @@ def negated_toy_score(c2w):
 def test_min_direction_mirrors_max_direction():
     maximised = explore(jax.random.key(4), toy_score, INITIAL, "egps", CONFIG)
     negated = Initial(c2w=INITIAL.c2w, scores=-INITIAL.scores)
-    minimised = explore(jax.random.key(4), negated_toy_score, negated, "egps",
-                        dataclasses.replace(CONFIG, direction="min"))
+    minimised = explore(
+        jax.random.key(4), negated_toy_score, negated, "egps", dataclasses.replace(CONFIG, direction="min")
+    )
     np.testing.assert_array_equal(np.asarray(minimised.population.origin), np.asarray(maximised.population.origin))
     np.testing.assert_array_equal(np.asarray(minimised.top_indices), np.asarray(maximised.top_indices))
     np.testing.assert_allclose(np.asarray(minimised.metrics.best), -np.asarray(maximised.metrics.best))
@@ -163,12 +164,18 @@ SPOT_TRACES = []
 
 @pytest.mark.slow
 def test_partial_score_fn_takes_traced_arrays_without_retracing():
-    near = explore(jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT)), INITIAL,
-                   "grs", CONFIG)
+    near = explore(
+        jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT)), INITIAL, "grs", CONFIG
+    )
     traces = len(SPOT_TRACES)
     assert traces >= 1
-    far = explore(jax.random.key(0), jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT) + 10.0),
-                  INITIAL, "grs", CONFIG)
+    far = explore(
+        jax.random.key(0),
+        jax.tree_util.Partial(_distance_score, jnp.asarray(SWEET_SPOT) + 10.0),
+        INITIAL,
+        "grs",
+        CONFIG,
+    )
     assert len(SPOT_TRACES) == traces  # the bound array is an argument, not a compile-time constant
     # Same poses (GRS ignores scores), different scores.
     np.testing.assert_array_equal(np.asarray(near.population.origin), np.asarray(far.population.origin))
@@ -199,8 +206,11 @@ def test_method_options_belong_to_their_method():
         METHODS["egps"].make_config(6, 3, fallback="grs")
     with pytest.raises(ConfigError, match=r"'pibs' has no option 'refine' \(its options: top_c, fallback\)"):
         METHODS["pibs"].make_config(6, 3, refine=RefineConfig())
-    with pytest.raises(ConfigError, match=r"'pibs\+refine' has no option 'topc' \(its options: top_c, fallback, "
-                                          r"refine\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"'pibs\+refine' has no option 'topc' \(its options: top_c, fallback, "
+        r"refine\)",
+    ):
         METHODS["pibs+refine"].make_config(6, 3, topc=4)
     with pytest.raises(ConfigError, match=r"'evosax:SNES' has no option 'top_c'"):
         get_method("evosax:SNES").make_config(6, 3, top_c=4)

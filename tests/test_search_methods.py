@@ -36,8 +36,9 @@ def make_population(scores, capacity):
     """A population of len(scores) ring views (max direction) with `capacity` slots."""
     scores = np.asarray(scores, np.float32)
     c2w = ring_c2w(len(scores))
-    return _init(training_poses(c2w), jnp.asarray(scores), capacity=capacity, direction="max",
-                 train_c2w=jnp.asarray(c2w))
+    return _init(
+        training_poses(c2w), jnp.asarray(scores), capacity=capacity, direction="max", train_c2w=jnp.asarray(c2w)
+    )
 
 
 _ask = {
@@ -101,8 +102,11 @@ def find_pair(population, child_origin, child_target, child_up, candidates):
         pose_a = Pose(*(jnp.asarray(x[a])[None] for x in (origin, target, up)))
         pose_b = Pose(*(jnp.asarray(x[b])[None] for x in (origin, target, up)))
         ro, rt, ru = np_pose(_slerp(pose_a, pose_b, jnp.asarray([t], jnp.float32)), 0)
-        if (np.allclose(ro, child_origin, atol=1e-4) and np.allclose(rt, child_target, atol=1e-4)
-                and np.allclose(unit(ru), unit(child_up), atol=1e-4)):
+        if (
+            np.allclose(ro, child_origin, atol=1e-4)
+            and np.allclose(rt, child_target, atol=1e-4)
+            and np.allclose(unit(ru), unit(child_up), atol=1e-4)
+        ):
             return a, b, t
     return None
 
@@ -117,8 +121,7 @@ def test_pibs_interpolates_unexplored_pairs_and_exhausts_them():
 
     used_pairs, masks, ts = [], [], []
     for epoch in range(1, epochs + 1):
-        children, mask, population = _ask["pibs"](jax.random.key(epoch), population, pibs.Params(),
-                                                      PIBS_CONFIG, epoch)
+        children, mask, population = _ask["pibs"](jax.random.key(epoch), population, pibs.Params(), PIBS_CONFIG, epoch)
         mask = np.asarray(mask)
         masks.append(mask)
         pairs, epoch_ts = [], []
@@ -132,8 +135,15 @@ def test_pibs_interpolates_unexplored_pairs_and_exhausts_them():
         used_pairs.append(set(pairs))
         ts.append(sorted(epoch_ts))
         # Children scored below everything: the top_c (and so the pair set) stays the same.
-        population = _write(population, children, _look_at(children.origin, children.target, children.up),
-                            jnp.full(n, -1.0), jnp.asarray(mask), epoch, 6 + (epoch - 1) * n)
+        population = _write(
+            population,
+            children,
+            _look_at(children.origin, children.target, children.up),
+            jnp.full(n, -1.0),
+            jnp.asarray(mask),
+            epoch,
+            6 + (epoch - 1) * n,
+        )
 
     # Epoch 1: 6 pairs for 4 slots, step round(4 / 6) = 1: the first 4 pairs in rank order, t = 1/2.
     assert masks[0].all() and used_pairs[0] == set(candidates[:4])
@@ -183,8 +193,11 @@ def test_pibs_grs_fallback_fills_exhausted_slots():
     # The fallback children are GRS poses: training look-at points and the mean training up.
     train_target = np.asarray(population.target)[:6]
     assert np.all(np.asarray(children.target)[:, None] == train_target[None], axis=-1).any(1).all()
-    np.testing.assert_allclose(np.asarray(children.up), np.broadcast_to(
-        unit(np.asarray(population.up, np.float64)[:6].mean(0)), (4, 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(children.up),
+        np.broadcast_to(unit(np.asarray(population.up, np.float64)[:6].mean(0)), (4, 3)),
+        atol=1e-6,
+    )
     with pytest.raises(ValueError, match="fallback"):
         pibs.Config(4, fallback="random")
 
@@ -275,8 +288,9 @@ def test_egps_rank_biased_parent_selection():
 def test_egps_mutation_frequencies():
     draws = 20_000
     u = jax.random.uniform(jax.random.key(7), (draws, 3))
-    delta = np.asarray(jax.jit(jax.vmap(egps.mutation_delta, in_axes=(0, None, None)))(
-        u, jnp.ones(3), egps.Params().mutation_probs))  # [draws, 3] in {-1, 0, 1}
+    delta = np.asarray(
+        jax.jit(jax.vmap(egps.mutation_delta, in_axes=(0, None, None)))(u, jnp.ones(3), egps.Params().mutation_probs)
+    )  # [draws, 3] in {-1, 0, 1}
     assert set(np.unique(delta)) <= {-1.0, 0.0, 1.0}
     for component in range(3):
         freq = [np.mean(delta[:, component] == v) for v in (-1.0, 0.0, 1.0)]
@@ -285,8 +299,11 @@ def test_egps_mutation_frequencies():
 
 def test_egps_params_are_vmappable():
     population = make_population(np.array([0.2, 0.9, 0.1, 0.7, NAN, NAN, NAN, NAN], np.float32), 8)
-    params = egps.Params(nabla_scale=jnp.asarray([0.0, 0.5]), rank_bias=jnp.asarray([1.0, 1.0]),
-                         mutation_probs=jnp.asarray([[0.05, 0.9, 0.05], [0.5, 0.0, 0.5]]))
+    params = egps.Params(
+        nabla_scale=jnp.asarray([0.0, 0.5]),
+        rank_bias=jnp.asarray([1.0, 1.0]),
+        mutation_probs=jnp.asarray([[0.05, 0.9, 0.05], [0.5, 0.0, 0.5]]),
+    )
     sweep = jax.jit(jax.vmap(egps.ask, in_axes=(None, None, 0, None, None)), static_argnames=("config",))
     children, _, _ = sweep(jax.random.key(0), population, params, egps.Config(500), 1)
     pop_o = np.asarray(population.origin, np.float64)

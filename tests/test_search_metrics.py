@@ -80,14 +80,20 @@ def _hand_population():
     c2w = jax.vmap(look_at, in_axes=(0, None, None))(origins, jnp.zeros(3), up)
     poses = training_poses(c2w, focus=jnp.zeros(3))
     population = init_population(poses, jnp.asarray([1.0, 2.0, NAN, 4.0]), 10, "min", train_c2w=c2w)
-    for epoch, offset, scores, mask in ((1, 4, [0.5, NAN, 3.0], [True, True, True]),
-                                        (2, 7, [0.25, -9.0, 7.0], [True, False, True])):  # -9 is masked
+    for epoch, offset, scores, mask in (
+        (1, 4, [0.5, NAN, 3.0], [True, True, True]),
+        (2, 7, [0.25, -9.0, 7.0], [True, False, True]),
+    ):  # -9 is masked
         child = Pose(origin=jnp.full((3, 3), float(epoch)), target=jnp.zeros((3, 3)), up=jnp.tile(up, (3, 1)))
         child_c2w = jax.vmap(look_at)(child.origin, child.target, child.up)
-        population = write_children(population, child, child_c2w, jnp.asarray(scores), jnp.asarray(mask),
-                                    epoch, offset)
-    return (population, population_cvir(population), population_mcvir(population, 2),
-            epoch_metrics(population, epochs=2, n=2), top_k_indices(population, 8))
+        population = write_children(population, child, child_c2w, jnp.asarray(scores), jnp.asarray(mask), epoch, offset)
+    return (
+        population,
+        population_cvir(population),
+        population_mcvir(population, 2),
+        epoch_metrics(population, epochs=2, n=2),
+        top_k_indices(population, 8),
+    )
 
 
 def test_population_metrics_and_epoch_curves():

@@ -37,8 +37,11 @@ def _release_compilations():
 
 def _keyframes(key, k=4):
     a, b = jax.random.split(key)
-    return Pose(origin=jax.random.normal(a, (k, 3)), target=jax.random.normal(b, (k, 3)) + 5.0,
-                up=jnp.tile(jnp.array([0.0, 1.0, 0.0]), (k, 1)))
+    return Pose(
+        origin=jax.random.normal(a, (k, 3)),
+        target=jax.random.normal(b, (k, 3)) + 5.0,
+        up=jnp.tile(jnp.array([0.0, 1.0, 0.0]), (k, 1)),
+    )
 
 
 def test_catmull_rom_passes_through_its_points_and_frames_are_evenly_spaced():
@@ -47,7 +50,9 @@ def test_catmull_rom_passes_through_its_points_and_frames_are_evenly_spaced():
     frames = sample_path(kf, 40)
     np.testing.assert_allclose(frames.origin[0], kf.origin[0], atol=1e-5)
     np.testing.assert_allclose(frames.origin[-1], kf.origin[-1], atol=1e-5)
-    step = (np.linalg.norm(np.diff(frames.origin, axis=0), axis=1) + np.linalg.norm(np.diff(frames.target, axis=0), axis=1))
+    step = np.linalg.norm(np.diff(frames.origin, axis=0), axis=1) + np.linalg.norm(
+        np.diff(frames.target, axis=0), axis=1
+    )
     assert step.std() / step.mean() < 0.05  # arc-length spacing (a uniform parameter gives ~0.3 here)
 
 
@@ -62,13 +67,19 @@ def test_straight_path_moves_at_constant_speed_on_a_line():
 
 
 def test_limits_are_zero_exactly_when_kept():
-    train = np.stack([np.asarray(look_at(jnp.array([x, 0.0, 0.0]), jnp.array([x, 0.0, -1.0]), jnp.array([0, 1.0, 0])))
-                      for x in (0.0, 1.0)])
+    train = np.stack(
+        [
+            np.asarray(look_at(jnp.array([x, 0.0, 0.0]), jnp.array([x, 0.0, -1.0]), jnp.array([0, 1.0, 0])))
+            for x in (0.0, 1.0)
+        ]
+    )
     limits = path_limits(train, max_speed=0.2, max_turn=5.0, min_opacity=0.5)
+
     def line(x0, x1):
         s = Pose(origin=jnp.array([x0, 0.0, 0.0]), target=jnp.array([x0, 0.0, -1.0]), up=jnp.array([0.0, 1.0, 0.0]))
         e = Pose(origin=jnp.array([x1, 0.0, 0.0]), target=jnp.array([x1, 0.0, -1.0]), up=jnp.array([0.0, 1.0, 0.0]))
         return path_c2w(straight_path(s, e, 3), 11)
+
     opaque = jnp.ones(11)
     assert float(limits.violation(line(0.0, 1.0), opaque)[0]) == 0.0  # 0.1 extent per frame
     assert float(limits.violation(line(0.0, 1.0), opaque.at[3].set(0.2))[0]) > 0.0  # an empty frame
@@ -131,8 +142,15 @@ def test_output_paths_keep_the_limits(room, method):
     if method.startswith("evosax:"):
         # Another program with the same strategy shape (a cached evosax object must hold no tracer),
         # and the soft-minimum aggregate end to end.
-        softmin = search_path(jax.random.key(0), frame_fn, source.train_c2w, scores, source.train_c2w, limits,
-                              dataclasses.replace(config, aggregate="softmin"))
+        softmin = search_path(
+            jax.random.key(0),
+            frame_fn,
+            source.train_c2w,
+            scores,
+            source.train_c2w,
+            limits,
+            dataclasses.replace(config, aggregate="softmin"),
+        )
         assert bool(softmin.found)
 
 
@@ -154,8 +172,13 @@ def test_path_search_beats_the_straight_path_on_the_room_for_most_seeds(room):
     """From the top poses of an EGPS explore run, the path search's best path scores higher (mean
     Waldo oracle over its frames) than the straight path between the two best poses for most seeds."""
     source, frame_fn, scores, limits = room
-    result = explore(jax.random.key(0), lambda c2w: frame_fn(c2w)[0], Initial(c2w=source.train_c2w, scores=scores),
-                     "egps", ExploreConfig(children_per_epoch=20, epochs=3))
+    result = explore(
+        jax.random.key(0),
+        lambda c2w: frame_fn(c2w)[0],
+        Initial(c2w=source.train_c2w, scores=scores),
+        "egps",
+        ExploreConfig(children_per_epoch=20, epochs=3),
+    )
     anchors = np.asarray(result.top_c2w)[np.asarray(result.top_valid)]
     anchor_scores = np.asarray(frame_fn(jnp.asarray(anchors))[0])
     config = PathConfig(keyframes=3, frames=12, epochs=3, initial_paths=8, paths_per_epoch=12)
@@ -200,8 +223,7 @@ def test_nerfstudio_camera_path_has_the_documented_fields_and_reads_back(tmp_pat
 
 def test_instant_ngp_path_round_trips_and_is_ngps_frame(tmp_path):
     c2w, intrinsics = _frames()
-    np.testing.assert_allclose(from_ngp(to_ngp(c2w[3], 0.5, [0.1, 0.2, 0.3]), 0.5, [0.1, 0.2, 0.3]), c2w[3],
-                               atol=1e-6)
+    np.testing.assert_allclose(from_ngp(to_ngp(c2w[3], 0.5, [0.1, 0.2, 0.3]), 0.5, [0.1, 0.2, 0.3]), c2w[3], atol=1e-6)
     # NGP: y and z columns flipped, position scaled and offset, then rows cycled xyz <- yzx.
     ngp = to_ngp(np.eye(4), 0.33, [0.5, 0.5, 0.5])
     np.testing.assert_allclose(ngp, [[0, -1, 0, 0.5], [0, 0, -1, 0.5], [1, 0, 0, 0.5]], atol=1e-12)
@@ -217,8 +239,10 @@ def test_instant_ngp_path_round_trips_and_is_ngps_frame(tmp_path):
 
 def test_camera_paths_of_other_tools_are_refused(tmp_path):
     c2w, intrinsics = _frames()
-    for name, meta in (("ns.json", nerfstudio_camera_path(c2w, intrinsics, 10)),
-                       ("ngp.json", instant_ngp_camera_path(c2w, intrinsics, 10))):
+    for name, meta in (
+        ("ns.json", nerfstudio_camera_path(c2w, intrinsics, 10)),
+        ("ngp.json", instant_ngp_camera_path(c2w, intrinsics, 10)),
+    ):
         del meta["waldo"]
         (tmp_path / name).write_text(json.dumps(meta))
         with pytest.raises(SceneFormatError, match="another tool"):
@@ -228,16 +252,43 @@ def test_camera_paths_of_other_tools_are_refused(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # The command line.
 
-CLI_TINY = ["--resolution", "16", "--views", "8", "--keyframes", "3", "--frames", "8", "--epochs", "2",
-            "--initial-paths", "5", "--paths-per-epoch", "4", "--max-speed", "0.5", "--max-turn", "60"]
+CLI_TINY = [
+    "--resolution",
+    "16",
+    "--views",
+    "8",
+    "--keyframes",
+    "3",
+    "--frames",
+    "8",
+    "--epochs",
+    "2",
+    "--initial-paths",
+    "5",
+    "--paths-per-epoch",
+    "4",
+    "--max-speed",
+    "0.5",
+    "--max-turn",
+    "60",
+]
 
 
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg reads the MP4 in a subprocess
 def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, capsys):
     out = tmp_path / "path"
     assert main(["path", "procedural:1", "--out", str(out), "--seed", "2", *CLI_TINY]) == 0
-    for name in ("camera_path.json", "instant_ngp_path.json", "poses.json", "path.mp4", "path.gif", "path_sheet.png",
-                 "scores.png", "path_plot.png", "results.json"):
+    for name in (
+        "camera_path.json",
+        "instant_ngp_path.json",
+        "poses.json",
+        "path.mp4",
+        "path.gif",
+        "path_sheet.png",
+        "scores.png",
+        "path_plot.png",
+        "results.json",
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     results = json.loads((out / "results.json").read_text())
     assert results["cost"] == {"frames": 8 * (5 + 2 * 4), "paths": 13, "frames_per_path": 8}
@@ -255,8 +306,10 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     # The exports load back through `waldo render --poses` for the procedural room.
     for name in ("camera_path.json", "instant_ngp_path.json"):
         rendered = tmp_path / f"render_{name}"
-        assert main(["render", "procedural:1", "--poses", str(out / name), "--out", str(rendered),
-                     "--resolution", "12"]) == 0
+        assert (
+            main(["render", "procedural:1", "--poses", str(out / name), "--out", str(rendered), "--resolution", "12"])
+            == 0
+        )
         assert len(list(rendered.glob("*.png"))) == 8
     # Same seed, same path; the command refuses to overwrite.
     again = tmp_path / "again"
@@ -267,19 +320,39 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     assert "not empty" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flags, message", [
-    (["--keyframes", "1"], "--keyframes must be between 2"),
-    (["--method", "pibs"], "egps or evosax:NAME"),
-    (["--method", "evosax:Nope"], "unknown evosax strategy"),
-    (["--aggregate", "max"], "unknown --aggregate"),
-    (["--max-speed", "0"], "--max-speed must be a positive"),
-    (["--min-opacity", "2"], "--min-opacity must lie"),
-    (["--budget", "huge"], "unknown --budget"),
-    (["--from-explore", "nowhere"], "no poses.json"),
-    (["--paths-per-epoch", "1"], "--paths-per-epoch must be between 2"),
-    (["--seeds", "1000", "--frames", "2000", "--budget", "high", "--initial-paths", "3", "--paths-per-epoch", "2",
-      "--epochs", "1", "--min-travel", "0"], "do not fit in memory"),
-])
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--keyframes", "1"], "--keyframes must be between 2"),
+        (["--method", "pibs"], "egps or evosax:NAME"),
+        (["--method", "evosax:Nope"], "unknown evosax strategy"),
+        (["--aggregate", "max"], "unknown --aggregate"),
+        (["--max-speed", "0"], "--max-speed must be a positive"),
+        (["--min-opacity", "2"], "--min-opacity must lie"),
+        (["--budget", "huge"], "unknown --budget"),
+        (["--from-explore", "nowhere"], "no poses.json"),
+        (["--paths-per-epoch", "1"], "--paths-per-epoch must be between 2"),
+        (
+            [
+                "--seeds",
+                "1000",
+                "--frames",
+                "2000",
+                "--budget",
+                "high",
+                "--initial-paths",
+                "3",
+                "--paths-per-epoch",
+                "2",
+                "--epochs",
+                "1",
+                "--min-travel",
+                "0",
+            ],
+            "do not fit in memory",
+        ),
+    ],
+)
 def test_waldo_path_refuses_bad_flags_before_writing(tmp_path, capsys, flags, message):
     out = tmp_path / "bad"
     assert main(["path", "procedural", "--out", str(out), *flags]) == 1
@@ -292,8 +365,24 @@ def test_waldo_path_with_a_rendering_criterion_checks_opacity(tmp_path):
     """A criterion that scores images renders every frame of every candidate (with its opacity, which
     --min-opacity limits)."""
     out = tmp_path / "colour"
-    assert main(["path", "procedural:1", "--out", str(out), "--criterion", "colorfulness", "--min-opacity", "0.5",
-                 "--method", "evosax:SNES", *CLI_TINY]) == 0
+    assert (
+        main(
+            [
+                "path",
+                "procedural:1",
+                "--out",
+                str(out),
+                "--criterion",
+                "colorfulness",
+                "--min-opacity",
+                "0.5",
+                "--method",
+                "evosax:SNES",
+                *CLI_TINY,
+            ]
+        )
+        == 0
+    )
     results = json.loads((out / "results.json").read_text())
     assert results["criterion"] == "colorfulness" and results["limits"]["min_opacity"] == pytest.approx(0.5)
     assert results["found"]["kept_limits"] and results["found"]["video_opacity_min"] >= 0.5

@@ -35,8 +35,9 @@ def test_egps_finds_waldo_better_than_every_training_view():
     score_fn = jax.tree_util.Partial(_visibility, room, intrinsics)  # room and intrinsics stay traced
     config = ExploreConfig(method="egps", budget="low")
     assert config.capacity(20) == 275
-    seeds = explore_seeds(jax.random.split(jax.random.key(0), 10), score_fn,
-                          Initial(c2w=c2w, scores=train_scores), config=config)
+    seeds = explore_seeds(
+        jax.random.split(jax.random.key(0), 10), score_fn, Initial(c2w=c2w, scores=train_scores), config=config
+    )
     best = np.asarray(seeds.results.metrics.best)[:, -1]  # [10]
     assert np.sum(best > train_scores.max()) >= 8, (best, train_scores.max())
     # The returned top views are the best ones and their scores are the oracle's.
@@ -62,6 +63,8 @@ def test_egps_beats_grs_on_mcvir_at_the_demo_settings():
     score_fn = jax.tree_util.Partial(lambda crit, intr, m: crit.score_poses(m, intr), oracle, intrinsics)
     initial = Initial(c2w=c2w, scores=np.asarray(oracle.score_poses(jnp.asarray(c2w), intrinsics)))
     keys = seed_keys(0, settings.seeds)
-    mcvir = {m: float(explore_seeds(keys, score_fn, initial, config=ExploreConfig(method=m, budget="low")).mcvir_mean)
-             for m in ("grs", "egps")}
+    mcvir = {
+        m: float(explore_seeds(keys, score_fn, initial, config=ExploreConfig(method=m, budget="low")).mcvir_mean)
+        for m in ("grs", "egps")
+    }
     assert mcvir["egps"] > mcvir["grs"] > 0.0, mcvir

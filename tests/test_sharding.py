@@ -93,7 +93,8 @@ TRAINED_SCRIPT = textwrap.dedent(
 def test_trained_renderer_sharded_equals_single_device():
     """`render_trained` (occupancy marching and dense) splits the poses over 4 devices, the same images."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
-    result = subprocess.run([sys.executable, "-c", TRAINED_SCRIPT], env=env, capture_output=True, text=True,
-                            timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", TRAINED_SCRIPT], env=env, capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().endswith("OK")

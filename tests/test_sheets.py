@@ -16,8 +16,9 @@ from waldo_jax import io
 from waldo_jax.pipeline import figures, path_run
 
 PHOTO = 1.0  # every training image is this grey; a render of training pose i is 0.1 * (i + 1)
-CRITERION = SimpleNamespace(name="saliency", direction="max", value_range=(0.0, 1.0),
-                            description="share of salient pixels")
+CRITERION = SimpleNamespace(
+    name="saliency", direction="max", value_range=(0.0, 1.0), description="share of salient pixels"
+)
 
 
 def _render(c2w):
@@ -27,22 +28,39 @@ def _render(c2w):
 def _run(initial="renders", photos=True, top_indices=(1, 5), truth=False):
     c2w = np.tile(np.eye(4, dtype=np.float32), (3, 1, 1))
     c2w[:, 0, 3] = np.arange(3)
-    source = SimpleNamespace(train_images=np.full((3, 4, 4, 3), PHOTO, np.float32) if photos else None,
-                             train_c2w=c2w, render=_render, n_train=3)
-    result = SimpleNamespace(top_valid=np.array([True, True, False]), top_scores=np.array([0.9, 0.5, np.nan]),
-                             top_indices=np.array(list(top_indices) + [0]))
+    source = SimpleNamespace(
+        train_images=np.full((3, 4, 4, 3), PHOTO, np.float32) if photos else None,
+        train_c2w=c2w,
+        render=_render,
+        n_train=3,
+    )
+    result = SimpleNamespace(
+        top_valid=np.array([True, True, False]),
+        top_scores=np.array([0.9, 0.5, np.nan]),
+        top_indices=np.array(list(top_indices) + [0]),
+    )
     top = np.full((2, 4, 4, 3), 0.5, np.float32)
-    return SimpleNamespace(source=source, initial=initial, scores_train=np.array([0.2, 0.9, 0.4]),
-                           criterion=CRITERION, result=result, top_images=top,
-                           top_truth=top + 0.25 if truth else None, config=SimpleNamespace(method="egps"))
+    return SimpleNamespace(
+        source=source,
+        initial=initial,
+        scores_train=np.array([0.2, 0.9, 0.4]),
+        criterion=CRITERION,
+        result=result,
+        top_images=top,
+        top_truth=top + 0.25 if truth else None,
+        config=SimpleNamespace(method="egps"),
+    )
 
 
-@pytest.mark.parametrize("initial, photos, expected, title", [
-    ("images", True, [PHOTO, PHOTO], "training"),
-    ("poses", True, [PHOTO, PHOTO], "training"),  # the room's training images are its analytic views
-    ("renders", True, [0.2, 0.3], "training (renders)"),
-    ("images", False, [0.2, 0.3], "training (renders)"),  # the photographs are not on this machine
-])
+@pytest.mark.parametrize(
+    "initial, photos, expected, title",
+    [
+        ("images", True, [PHOTO, PHOTO], "training"),
+        ("poses", True, [PHOTO, PHOTO], "training"),  # the room's training images are its analytic views
+        ("renders", True, [0.2, 0.3], "training (renders)"),
+        ("images", False, [0.2, 0.3], "training (renders)"),  # the photographs are not on this machine
+    ],
+)
 def test_training_tiles_show_what_was_scored(initial, photos, expected, title):
     tiles, got_title = figures.training_tiles(_run(initial, photos), [1, 2])
     assert got_title == title and [float(t[0, 0, 0]) for t in tiles] == pytest.approx(expected)
@@ -50,9 +68,13 @@ def test_training_tiles_show_what_was_scored(initial, photos, expected, title):
 
 def test_methods_sheet_rows_labels_and_training_marks(monkeypatch):
     captured = {}
-    monkeypatch.setattr(figures.io, "contact_sheet",
-                        lambda images, columns, labels, row_titles, caption: captured.update(
-                            images=images, labels=labels, titles=row_titles) or np.zeros((1, 1, 3), np.uint8))
+    monkeypatch.setattr(
+        figures.io,
+        "contact_sheet",
+        lambda images, columns, labels, row_titles, caption: (
+            captured.update(images=images, labels=labels, titles=row_titles) or np.zeros((1, 1, 3), np.uint8)
+        ),
+    )
     runs = {"grs": _run(top_indices=(1, 5)), "egps": _run(top_indices=(7, 2), truth=True)}
     figures.methods_sheet(runs, columns=3)
     assert captured["titles"] == ["training (renders)", "GRS", "EGPS (NeRF)", "EGPS (truth)"]
@@ -68,24 +90,42 @@ def test_methods_sheet_rows_labels_and_training_marks(monkeypatch):
 # What the scores are, on every sheet, plot and results file.
 
 
-@pytest.mark.parametrize("criterion, label, caption", [
-    (CRITERION, "saliency (higher is better, in [0, 1])",
-     "saliency: share of salient pixels; higher is better, in [0, 1]"),
-    (SimpleNamespace(name="brisque", direction="min", value_range=(0.0, 100.0), description="BRISQUE"),
-     "brisque (lower is better, in [0, 100])", "brisque: BRISQUE; lower is better, in [0, 100]"),
-    (SimpleNamespace(name="colorfulness", direction="max", value_range=(0.0, np.inf), description=""),
-     "colorfulness (higher is better, >= 0)", "colorfulness (higher is better, >= 0)"),
-    (SimpleNamespace(name="score", direction="min", value_range=(-np.inf, np.inf), description="d"),
-     "score (lower is better)", "score: d; lower is better"),
-])
+@pytest.mark.parametrize(
+    "criterion, label, caption",
+    [
+        (
+            CRITERION,
+            "saliency (higher is better, in [0, 1])",
+            "saliency: share of salient pixels; higher is better, in [0, 1]",
+        ),
+        (
+            SimpleNamespace(name="brisque", direction="min", value_range=(0.0, 100.0), description="BRISQUE"),
+            "brisque (lower is better, in [0, 100])",
+            "brisque: BRISQUE; lower is better, in [0, 100]",
+        ),
+        (
+            SimpleNamespace(name="colorfulness", direction="max", value_range=(0.0, np.inf), description=""),
+            "colorfulness (higher is better, >= 0)",
+            "colorfulness (higher is better, >= 0)",
+        ),
+        (
+            SimpleNamespace(name="score", direction="min", value_range=(-np.inf, np.inf), description="d"),
+            "score (lower is better)",
+            "score: d; lower is better",
+        ),
+    ],
+)
 def test_criterion_label_and_caption_name_direction_and_range(criterion, label, caption):
     assert figures.criterion_label(criterion) == label and figures.criterion_caption(criterion) == caption
 
 
 def test_sheets_are_captioned_with_the_criterion(monkeypatch):
     captions = []
-    monkeypatch.setattr(figures.io, "contact_sheet",
-                        lambda *a, caption=None, **k: captions.append(caption) or np.zeros((1, 1, 3), np.uint8))
+    monkeypatch.setattr(
+        figures.io,
+        "contact_sheet",
+        lambda *a, caption=None, **k: captions.append(caption) or np.zeros((1, 1, 3), np.uint8),
+    )
     figures.contact_sheet(_run())
     figures.methods_sheet({"egps": _run()}, columns=2)
     assert captions == ["Scores on the tiles: saliency: share of salient pixels; higher is better, in [0, 1]"] * 2
@@ -151,10 +191,11 @@ def test_plot_frame_of_any_up_is_a_rotation_taking_it_vertical(up):
 def _cloud(c2w, marker=None, threshold=None):
     epoch = np.array([0] * len(c2w) + [1, 2])
     poses = np.concatenate([c2w, c2w[:2]])
-    poses[len(c2w):, :3, 3] += 0.3
+    poses[len(c2w) :, :3, 3] += 0.3
     scores = np.array([0.1 * i for i in range(len(c2w))] + [0.9, np.nan])
-    style = figures.PoseCloudStyle(threshold=threshold, marker=marker, marker_label="Waldo",
-                                   score_label="saliency (higher is better, in [0, 1])")
+    style = figures.PoseCloudStyle(
+        threshold=threshold, marker=marker, marker_label="Waldo", score_label="saliency (higher is better, in [0, 1])"
+    )
     return figures.pose_cloud(None, poses, scores, epoch, "max", style=style)
 
 
@@ -178,8 +219,14 @@ def test_pose_cloud_legend_names_every_mark():
     assert "saliency (higher is better, in [0, 1])" in [ax.get_ylabel() for ax in fig.axes]  # the colour bar
     fig = _cloud(_ring(2), threshold=0.5)
     texts = [t.get_text() for legend in fig.legends for t in legend.get_texts()]
-    assert texts == ["training view", "generated view", "view direction", "score > 0.5", "other scores",
-                     "failed (no score)"]
+    assert texts == [
+        "training view",
+        "generated view",
+        "view direction",
+        "score > 0.5",
+        "other scores",
+        "failed (no score)",
+    ]
     c2w = _ring(2)  # the training views alone: no legend entry for marks the figure does not draw
     fig = figures.pose_cloud(None, c2w, np.arange(len(c2w), dtype=float), np.zeros(len(c2w), int), "min")
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["training view", "view direction"]
@@ -195,11 +242,15 @@ def _path_run(up_axis=1):
     best = _ring(up_axis, count=8)
     return SimpleNamespace(
         source=SimpleNamespace(train_c2w=train, room=SimpleNamespace(waldo_center=np.zeros(3)), name="room"),
-        criterion=CRITERION, config=SimpleNamespace(method="egps", frames=8),
+        criterion=CRITERION,
+        config=SimpleNamespace(method="egps", frames=8),
         results=[SimpleNamespace(best_c2w=best)],
         found=[{"frame_scores": np.linspace(0, 1, 8)}],
-        references={"straight": {"c2w": best[::-1], "frame_scores": np.zeros(8)},
-                    "training": {"c2w": best[1:], "frame_scores": np.ones(8)}})
+        references={
+            "straight": {"c2w": best[::-1], "frame_scores": np.zeros(8)},
+            "training": {"c2w": best[1:], "frame_scores": np.ones(8)},
+        },
+    )
 
 
 def test_path_plot_marks_start_and_end_from_above():
@@ -214,8 +265,16 @@ def test_path_plot_marks_start_and_end_from_above():
     np.testing.assert_allclose(ends[0], best[-1, [2, 0]])
     assert len(starts) == len(ends) == 3  # the found path and both references
     texts = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert texts == ["training cameras", "found (egps)", "straight", "training trajectory", "view direction (found)",
-                     "Waldo (the target)", "start (frame 0)", "end (frame 7)"]
+    assert texts == [
+        "training cameras",
+        "found (egps)",
+        "straight",
+        "training trajectory",
+        "view direction (found)",
+        "Waldo (the target)",
+        "start (frame 0)",
+        "end (frame 7)",
+    ]
 
 
 def test_score_plot_names_the_criterion():

@@ -35,8 +35,24 @@ def fitted(tmp_path_factory):
     lego = require_scene("lego_tiny")
 
     def build(folder):
-        assert main(["train", str(lego), "--model", "splat", "--steps", "60", "--capacity", "2048",
-                     "--out", str(folder), "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "train",
+                    str(lego),
+                    "--model",
+                    "splat",
+                    "--steps",
+                    "60",
+                    "--capacity",
+                    "2048",
+                    "--out",
+                    str(folder),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
 
     return built_once(tmp_path_factory, "splat_lego_fit", build)
 
@@ -59,8 +75,9 @@ def test_a_fit_writes_the_reference_layout_that_reads_back(fitted):
 @pytest.mark.slow
 def test_explore_a_fitted_run_scores_its_real_images_and_reports_the_renderer(fitted, tmp_path):
     out = tmp_path / "explore"
-    assert main(["explore", str(fitted), "--criterion", "colorfulness", "--method", "grs", "--out", str(out),
-                 *TINY]) == 0
+    assert (
+        main(["explore", str(fitted), "--criterion", "colorfulness", "--method", "grs", "--out", str(out), *TINY]) == 0
+    )
     r = json.loads((out / "results.json").read_text())
     assert r["initial_scores"] == "images" and "train_images" not in r["source_info"]
     assert r["source_info"]["psnr_test"] == json.loads((fitted / "train.json").read_text())["psnr_test"]
@@ -73,8 +90,26 @@ def test_explore_a_fitted_run_scores_its_real_images_and_reports_the_renderer(fi
 def donut_explore(tmp_path_factory):
     donut = require_donut()
     out = tmp_path_factory.mktemp("donut") / "egps"
-    assert main(["explore", str(donut), "--criterion", "colorfulness", "--method", "egps+refine", "--refine-poses",
-                 "2", "--refine-steps", "2", "--out", str(out), *TINY]) == 0
+    assert (
+        main(
+            [
+                "explore",
+                str(donut),
+                "--criterion",
+                "colorfulness",
+                "--method",
+                "egps+refine",
+                "--refine-poses",
+                "2",
+                "--refine-steps",
+                "2",
+                "--out",
+                str(out),
+                *TINY,
+            ]
+        )
+        == 0
+    )
     return out, json.loads((out / "results.json").read_text())
 
 
@@ -122,9 +157,31 @@ def test_render_train_poses_of_the_donut(tmp_path):
 def test_path_on_the_donut(tmp_path):
     donut = require_donut()
     out = tmp_path / "path"
-    assert main(["path", str(donut), "--criterion", "colorfulness", "--out", str(out), "--resolution", "16",
-                 "--epochs", "2", "--initial-paths", "4", "--paths-per-epoch", "4", "--keyframes", "3",
-                 "--frames", "6"]) == 0
+    assert (
+        main(
+            [
+                "path",
+                str(donut),
+                "--criterion",
+                "colorfulness",
+                "--out",
+                str(out),
+                "--resolution",
+                "16",
+                "--epochs",
+                "2",
+                "--initial-paths",
+                "4",
+                "--paths-per-epoch",
+                "4",
+                "--keyframes",
+                "3",
+                "--frames",
+                "6",
+            ]
+        )
+        == 0
+    )
     r = json.loads((out / "results.json").read_text())
     assert r["source_info"]["poses"] == "ring" and len(r["found"]["frame_scores"]) == 6
     assert np.isfinite(r["found"]["score"]) and (out / "path.mp4").stat().st_size > 0
@@ -138,8 +195,9 @@ def test_a_reference_layout_folder_takes_its_cameras_json(tmp_path):
     (model / "point_cloud" / "iteration_30000").mkdir(parents=True)
     shutil.copy(donut, model / "point_cloud" / "iteration_30000" / "point_cloud.ply")
     ring = load_source(str(donut), 24)
-    write_cameras_json(model / "cameras.json", ring.train_c2w[:6], ring.intrinsics.with_max_side(48),
-                       [f"cam{i}" for i in range(6)])
+    write_cameras_json(
+        model / "cameras.json", ring.train_c2w[:6], ring.intrinsics.with_max_side(48), [f"cam{i}" for i in range(6)]
+    )
     source = load_source(str(model))
     assert source.info["poses"] == "cameras.json" and source.info["iteration"] == 30000
     assert source.n_train == 6 and source.train_names == tuple(f"cam{i}" for i in range(6))
@@ -149,16 +207,24 @@ def test_a_reference_layout_folder_takes_its_cameras_json(tmp_path):
 
 def test_splat_errors_are_one_line(tmp_path, capsys):
     cloud = tmp_path / "cloud.ply"
-    cloud.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
-                      b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes())
+    cloud.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes()
+    )
     cases = [
-        (["explore", str(cloud), "--criterion", "colorfulness", "--out", str(tmp_path / "a")],
-         "a point cloud, not a splat scene"),
-        (["explore", "procedural", "--cameras", str(cloud), "--out", str(tmp_path / "b")],
-         "--cameras gives a splat scene its poses"),
+        (
+            ["explore", str(cloud), "--criterion", "colorfulness", "--out", str(tmp_path / "a")],
+            "a point cloud, not a splat scene",
+        ),
+        (
+            ["explore", "procedural", "--cameras", str(cloud), "--out", str(tmp_path / "b")],
+            "--cameras gives a splat scene its poses",
+        ),
         (["render", str(cloud), "--out", str(tmp_path / "c")], "needs --poses"),
-        (["train", "procedural", "--model", "splat", "--preset", "quality", "--out", str(tmp_path / "d")],
-         "for NeRF training only"),
+        (
+            ["train", "procedural", "--model", "splat", "--preset", "quality", "--out", str(tmp_path / "d")],
+            "for NeRF training only",
+        ),
     ]
     for argv, message in cases:
         capsys.readouterr()

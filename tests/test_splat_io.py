@@ -67,8 +67,13 @@ def _header_of(path) -> list:
 def _structured_ply(path, table: np.ndarray, fmt: str = "binary_little_endian", count=None, extra_header=b""):
     """Writes a PLY of one vertex element from a structured array, in its field order and types."""
     types = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int"}
-    lines = [b"ply", f"format {fmt} 1.0".encode(), b"comment hand-built", extra_header,
-             f"element vertex {len(table) if count is None else count}".encode()]
+    lines = [
+        b"ply",
+        f"format {fmt} 1.0".encode(),
+        b"comment hand-built",
+        extra_header,
+        f"element vertex {len(table) if count is None else count}".encode(),
+    ]
     lines += [f"property {types[table.dtype[name].str[1:]]} {name}".encode() for name in table.dtype.names]
     header = b"\n".join(line for line in lines if line) + b"\nend_header\n"
     if fmt == "ascii":
@@ -81,8 +86,11 @@ def _structured_ply(path, table: np.ndarray, fmt: str = "binary_little_endian", 
 
 def _splat_table(n: int = 5, m: int = 0, names=None) -> np.ndarray:
     """A structured table of reference splat properties (plus f_rest_0..m-1), each column distinct."""
-    names = names or (["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(m)]
-                      + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    names = names or (
+        ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(m)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     table = np.zeros(n, [(name, "<f4") for name in names])
     for j, name in enumerate(names):
         table[name] = np.arange(n) + 100.0 * j
@@ -110,15 +118,21 @@ def test_round_trip_keeps_valid_rows_exactly(tmp_path, degree, normals):
 def test_written_header_is_the_reference_layout(tmp_path):
     splats = _random_splats(jax.random.key(0), 4, 3)
     path = write_splat_ply(tmp_path / "s.ply", splats)
-    expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
-    assert _header_of(path) == (["ply", "format binary_little_endian 1.0", "element vertex 4"]
-                                + [f"property float {name}" for name in expected] + ["end_header"])
+    expected = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+    assert _header_of(path) == (
+        ["ply", "format binary_little_endian 1.0", "element vertex 4"]
+        + [f"property float {name}" for name in expected]
+        + ["end_header"]
+    )
     assert splat_ply_properties(3) == expected
     assert path.stat().st_size == len("\n".join(_header_of(path))) + 1 + 4 * len(expected) * 4
     # The rows are the values in that order: channel-major f_rest, normals zero.
     raw = path.read_bytes()
-    rows = np.frombuffer(raw[raw.index(b"end_header\n") + 11:], "<f4").reshape(4, len(expected))
+    rows = np.frombuffer(raw[raw.index(b"end_header\n") + 11 :], "<f4").reshape(4, len(expected))
     sh = np.asarray(splats.sh)
     np.testing.assert_array_equal(rows[:, 3:6], 0.0)
     np.testing.assert_array_equal(rows[:, 9:24], sh[:, 1:, 0])  # f_rest_0..14: red
@@ -128,8 +142,11 @@ def test_written_header_is_the_reference_layout(tmp_path):
 
 def test_hand_built_ply_in_shuffled_order_is_read_by_name_channel_major(tmp_path):
     n, k = 6, 9  # degree 2: 24 f_rest
-    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(3 * (k - 1))] \
+    names = (
+        ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * (k - 1))]
         + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3", "nx", "ny", "nz", "extra"]
+    )
     order = np.asarray(jax.random.permutation(jax.random.key(1), len(names)))
     shuffled = [names[i] for i in order]
     # Mixed float and double properties, in a shuffled order.
@@ -151,8 +168,11 @@ def test_hand_built_ply_in_shuffled_order_is_read_by_name_channel_major(tmp_path
 
 
 def test_nerfstudio_rgb_export_gives_dc_from_colours(tmp_path):
-    names = ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "opacity"] \
-        + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    names = (
+        ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "opacity"]
+        + [f"scale_{i}" for i in range(3)]
+        + [f"rot_{i}" for i in range(4)]
+    )
     table = np.zeros(3, [(name, "u1" if name in ("red", "green", "blue") else "<f4") for name in names])
     table["red"], table["green"], table["blue"], table["rot_0"] = [0, 128, 255], 255, 0, 1.0
     splats = read_splat_ply(_structured_ply(tmp_path / "rgb.ply", table))
@@ -179,11 +199,13 @@ def _not_ply(tmp_path):
 
 def _case(m=0, names=None, edit=None, **ply_arguments):
     """A builder of a broken PLY: `_splat_table(m, names)`, changed by `edit`, written by `_structured_ply`."""
+
     def build(tmp_path):
         table = _splat_table(m=m, names=names)
         if edit is not None:
             edit(table)
         return _structured_ply(tmp_path / "bad.ply", table, **ply_arguments)
+
     return build
 
 
@@ -209,9 +231,11 @@ def _point_cloud(tmp_path):
 def _list_property(tmp_path):
     path = tmp_path / "bad.ply"
     names = _splat_table().dtype.names
-    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
-              + "".join(f"property float {p}\n" for p in names)
-              + "property list uchar int vertex_indices\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+        + "".join(f"property float {p}\n" for p in names)
+        + "property list uchar int vertex_indices\nend_header\n"
+    )
     path.write_bytes(header.encode() + _splat_table(n=1).tobytes() + bytes([0]))
     return path
 
@@ -226,17 +250,55 @@ def _zero_quaternion(table):
         table[f"rot_{i}"][4] = 0.0
 
 
-_REST_NAMES = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "f_rest_0", "f_rest_1", "f_rest_2", "f_rest_4", "opacity",
-               "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+_REST_NAMES = [
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "f_rest_0",
+    "f_rest_1",
+    "f_rest_2",
+    "f_rest_4",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+]
 
 BAD_PLY = {
     "not a PLY": (_not_ply, r"not a PLY file"),
     "ascii": (_case(fmt="ascii"), r"ascii PLY is not supported: convert it to binary_little_endian"),
-    "big-endian": (_case(fmt="binary_big_endian"), r"binary_big_endian PLY is not supported: convert it to "
-                   r"binary_little_endian"),
+    "big-endian": (
+        _case(fmt="binary_big_endian"),
+        r"binary_big_endian PLY is not supported: convert it to "
+        r"binary_little_endian",
+    ),
     "point cloud": (_point_cloud, r"a point cloud, not a splat scene"),
-    "missing": (_case(names=["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "rot_0",
-                             "rot_1", "rot_2"]), r"missing splat properties scale_2, rot_3"),
+    "missing": (
+        _case(
+            names=[
+                "x",
+                "y",
+                "z",
+                "f_dc_0",
+                "f_dc_1",
+                "f_dc_2",
+                "opacity",
+                "scale_0",
+                "scale_1",
+                "rot_0",
+                "rot_1",
+                "rot_2",
+            ]
+        ),
+        r"missing splat properties scale_2, rot_3",
+    ),
     "no degree": (_case(m=10), r"10 f_rest_\* properties are no SH degree 0\.\.3"),
     "degree 4": (_case(m=72), r"72 f_rest_\* properties are no SH degree 0\.\.3"),
     "f_rest gap": (_case(names=_REST_NAMES), r"f_rest_\* properties are not numbered 0\.\.3: missing f_rest_3"),
@@ -324,8 +386,9 @@ def test_cameras_round_trip(tmp_path):
     # Per-camera intrinsics, through a model folder.
     sizes = [Intrinsics.create(64 + 8 * i, 48, 50.0 + i) for i in range(4)]
     back = read_cameras_json(write_cameras_json(tmp_path / "c2.json", c2w, sizes, "abcd"))
-    assert [(i.width, i.height, float(i.fx), float(i.fy), float(i.cx)) for i in back.intrinsics] \
-        == [(64 + 8 * i, 48, 50.0 + i, 50.0 + i, (64 + 8 * i) / 2) for i in range(4)]
+    assert [(i.width, i.height, float(i.fx), float(i.fy), float(i.cx)) for i in back.intrinsics] == [
+        (64 + 8 * i, 48, 50.0 + i, 50.0 + i, (64 + 8 * i) / 2) for i in range(4)
+    ]
     assert back.shared_intrinsics is None
 
 
@@ -343,22 +406,35 @@ def test_cameras_json_is_opencv_camera_to_world(tmp_path):
 
 
 def _camera(**overrides):
-    entry = {"id": 0, "img_name": "im", "width": 64, "height": 48, "position": [0, 0, 1],
-             "rotation": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "fy": 50.0, "fx": 50.0}
+    entry = {
+        "id": 0,
+        "img_name": "im",
+        "width": 64,
+        "height": 48,
+        "position": [0, 0, 1],
+        "rotation": [[1, 0, 0], [0, -1, 0], [0, 0, -1]],
+        "fy": 50.0,
+        "fx": 50.0,
+    }
     entry.update(overrides)
     return {k: v for k, v in entry.items() if v is not None}
 
 
 BAD_CAMERAS = {
     "not a list": ({"frames": []}, r"expected a non-empty JSON list of cameras"),
-    "not rigid": ([_camera(), _camera(rotation=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])],
-                  r"camera 1 \('im'\): pose is not rigid"),
+    "not rigid": (
+        [_camera(), _camera(rotation=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])],
+        r"camera 1 \('im'\): pose is not rigid",
+    ),
     "mirror": ([_camera(rotation=[[-1, 0, 0], [0, -1, 0], [0, 0, -1]])], r"camera 0 \('im'\): pose is not rigid"),
     "zero focal": ([_camera(), _camera(), _camera(fx=0.0)], r"camera 2 \('im'\): fx must be a finite focal length"),
     "tiny focal": ([_camera(fy=1e-50)], r"camera 0 \('im'\): fy must be a finite focal length of at least 0\.001"),
     "huge focal": ([_camera(fy=1e300)], r"camera 0 \('im'\): fy must be a finite focal length"),
-    "small image": ([_camera(width=4)], r"camera 0 \('im'\): width must be a whole number of pixels between 8 and "
-                    r"65536"),
+    "small image": (
+        [_camera(width=4)],
+        r"camera 0 \('im'\): width must be a whole number of pixels between 8 and "
+        r"65536",
+    ),
     "huge image": ([_camera(height=70000)], r"camera 0 \('im'\): height must be a whole number of pixels"),
     "fractional size": ([_camera(height=47.5)], r"camera 0 \('im'\): height must be a whole number"),
     "missing key": ([_camera(fx=None, position=None)], r"camera 0 \('im'\) lacks position, fx"),
@@ -386,8 +462,11 @@ def test_model_folder_takes_the_highest_iteration_numerically(tmp_path):
     for iteration in (7000, 30000, 900):
         splats = _random_splats(jax.random.key(iteration), iteration // 1000 + 1, 1)
         write_splat_model(tmp_path / "model", splats, iteration, cameras=cameras if iteration == 7000 else None)
-    assert sorted(p.name for p in (tmp_path / "model" / "point_cloud").iterdir()) == \
-        ["iteration_30000", "iteration_7000", "iteration_900"]  # so a text sort would pick 900
+    assert sorted(p.name for p in (tmp_path / "model" / "point_cloud").iterdir()) == [
+        "iteration_30000",
+        "iteration_7000",
+        "iteration_900",
+    ]  # so a text sort would pick 900
     model = load_splat_model(tmp_path / "model")
     assert model.iteration == 30000 and model.splats.count == 31
     assert model.ply_path == tmp_path / "model" / "point_cloud" / "iteration_30000" / "point_cloud.ply"
@@ -404,15 +483,21 @@ def test_folder_with_point_cloud_ply_and_bare_ply(tmp_path):
     write_splat_ply(tmp_path / "flat" / "point_cloud.ply", splats, normals=False)
     model = load_splat_model(tmp_path / "flat")
     assert model.cameras is None and model.iteration is None and model.splats.count == 5
-    write_cameras_json(tmp_path / "flat" / "cameras.json", _random_c2w(jax.random.key(1), 3),
-                       Intrinsics.create(16, 16, 10.0), ["a", "b", "c"])
+    write_cameras_json(
+        tmp_path / "flat" / "cameras.json",
+        _random_c2w(jax.random.key(1), 3),
+        Intrinsics.create(16, 16, 10.0),
+        ["a", "b", "c"],
+    )
     assert len(load_splat_model(tmp_path / "flat" / "point_cloud.ply").cameras) == 3
 
 
 def test_folder_without_a_scene_lists_what_was_looked_for(tmp_path):
     (tmp_path / "empty" / "point_cloud" / "iteration_10").mkdir(parents=True)
-    message = (r"empty: no splat scene here: looked for point_cloud/iteration_<N>/point_cloud\.ply .* and "
-               r"point_cloud\.ply; its point_cloud/ holds no")
+    message = (
+        r"empty: no splat scene here: looked for point_cloud/iteration_<N>/point_cloud\.ply .* and "
+        r"point_cloud\.ply; its point_cloud/ holds no"
+    )
     with pytest.raises(SceneFormatError, match=message):
         load_splat_model(tmp_path / "empty")
     with pytest.raises(SceneFormatError, match=r"missing: no such file or folder"):

@@ -68,8 +68,9 @@ def render(splats, c2w, background=BG, config=CONFIG):
 
 
 def _look_at(origin, target, up=UP) -> np.ndarray:
-    return np.asarray(look_at(jnp.asarray(origin, jnp.float32), jnp.asarray(target, jnp.float32),
-                              jnp.asarray(up, jnp.float32)))
+    return np.asarray(
+        look_at(jnp.asarray(origin, jnp.float32), jnp.asarray(target, jnp.float32), jnp.asarray(up, jnp.float32))
+    )
 
 
 def _from_camera(c2w: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -89,19 +90,24 @@ def _scene(means, log_scales, quats, logits, sh, valid=None) -> dict:
     n = len(means)
     k = np.asarray(sh).shape[1]
     pad = N - n
-    out = {"means": np.concatenate([means, np.tile([0.0, 0.0, -100.0], (pad, 1))]),
-           "log_scales": np.concatenate([log_scales, np.full((pad, 3), -3.0)]),
-           "quats": np.concatenate([quats, np.tile([1.0, 0.0, 0.0, 0.0], (pad, 1))]),
-           "logits": np.concatenate([logits, np.zeros(pad)]),
-           "sh": np.concatenate([sh, np.zeros((pad, k, 3))]),
-           "valid": np.concatenate([np.ones(n, bool) if valid is None else valid, np.zeros(pad, bool)])}
-    return {name: np.asarray(a, bool) if name == "valid" else np.asarray(a, np.float32).astype(np.float64)
-            for name, a in out.items()}
+    out = {
+        "means": np.concatenate([means, np.tile([0.0, 0.0, -100.0], (pad, 1))]),
+        "log_scales": np.concatenate([log_scales, np.full((pad, 3), -3.0)]),
+        "quats": np.concatenate([quats, np.tile([1.0, 0.0, 0.0, 0.0], (pad, 1))]),
+        "logits": np.concatenate([logits, np.zeros(pad)]),
+        "sh": np.concatenate([sh, np.zeros((pad, k, 3))]),
+        "valid": np.concatenate([np.ones(n, bool) if valid is None else valid, np.zeros(pad, bool)]),
+    }
+    return {
+        name: np.asarray(a, bool) if name == "valid" else np.asarray(a, np.float32).astype(np.float64)
+        for name, a in out.items()
+    }
 
 
 def _splats(scene: dict):
-    return make_splats(scene["means"], scene["log_scales"], scene["quats"], scene["logits"], scene["sh"],
-                       scene["valid"])
+    return make_splats(
+        scene["means"], scene["log_scales"], scene["quats"], scene["logits"], scene["sh"], scene["valid"]
+    )
 
 
 def _reference(scene: dict, c2w, background=BG, rows=None):
@@ -109,8 +115,16 @@ def _reference(scene: dict, c2w, background=BG, rows=None):
     keep = np.flatnonzero(scene["valid"]) if rows is None else np.asarray(rows, int)
     arrays = [scene[k][keep] for k in ("means", "log_scales", "quats", "logits", "sh")]
     camera = [float(np.float32(x)) for x in (FX, FY, CX, CY)]  # the renderer's float32 intrinsics
-    return ref.render_reference(*arrays, np.asarray(c2w, np.float64), W, H, *camera, near=NEAR,
-                                background=np.asarray(background, np.float32), return_depth=True)
+    return ref.render_reference(
+        *arrays,
+        np.asarray(c2w, np.float64),
+        W,
+        H,
+        *camera,
+        near=NEAR,
+        background=np.asarray(background, np.float32),
+        return_depth=True,
+    )
 
 
 POSE_A = _look_at([0.4, -0.3, 3.0], [0.1, 0.2, 0.0])
@@ -124,27 +138,45 @@ def _random_scene(seed: int, degree: int) -> dict:
     rng = np.random.default_rng(seed)
     groups = []  # (camera-frame points, log-scale range)
     n = 166
-    groups.append((_at_pixels(rng.uniform(-0.3 * W, 1.3 * W, n), rng.uniform(-0.3 * H, 1.3 * H, n),
-                              rng.uniform(0.6, 6.0, n)), (-3.5, -1.0)))
+    groups.append(
+        (
+            _at_pixels(rng.uniform(-0.3 * W, 1.3 * W, n), rng.uniform(-0.3 * H, 1.3 * H, n), rng.uniform(0.6, 6.0, n)),
+            (-3.5, -1.0),
+        )
+    )
     n = 10  # large and opaque on the left third: pixels there stop at transmittance 1e-4
     groups.append((_at_pixels(rng.uniform(0, W / 3, n), rng.uniform(0, H, n), rng.uniform(1.0, 3.0, n)), (-1.5, -0.8)))
     n = 12  # straddling the left/right and the top/bottom border
-    groups.append((_at_pixels(rng.choice([0.0, W], n) + rng.normal(0, 1.5, n), rng.uniform(0, H, n),
-                              rng.uniform(1.0, 4.0, n)), (-3.0, -1.0)))
-    groups.append((_at_pixels(rng.uniform(0, W, n), rng.choice([0.0, H], n) + rng.normal(0, 1.5, n),
-                              rng.uniform(1.0, 4.0, n)), (-3.0, -1.0)))
+    groups.append(
+        (
+            _at_pixels(rng.choice([0.0, W], n) + rng.normal(0, 1.5, n), rng.uniform(0, H, n), rng.uniform(1.0, 4.0, n)),
+            (-3.0, -1.0),
+        )
+    )
+    groups.append(
+        (
+            _at_pixels(rng.uniform(0, W, n), rng.choice([0.0, H], n) + rng.normal(0, 1.5, n), rng.uniform(1.0, 4.0, n)),
+            (-3.0, -1.0),
+        )
+    )
     n = 16  # behind the camera (their mirror images would be on screen)
     groups.append((_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), -rng.uniform(0.02, 4.0, n)), (-2.0, 0.0)))
     n = 4  # between the camera and the near plane: culled
-    groups.append((_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), rng.uniform(0.001, 0.009, n)),
-                   (-6.0, -4.0)))
+    groups.append((_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), rng.uniform(0.001, 0.009, n)), (-6.0, -4.0)))
     n = 12  # just in front of the near plane
-    groups.append((_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), NEAR + rng.uniform(5e-4, 0.03, n)),
-                   (-10.0, -6.5)))
+    groups.append(
+        (_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), NEAR + rng.uniform(5e-4, 0.03, n)), (-10.0, -6.5))
+    )
     n = 16  # far off screen (x/z beyond the clamp), large enough to reach in
     beyond = rng.uniform(0.3, 1.5, n) * W
-    groups.append((_at_pixels(np.where(rng.random(n) < 0.5, -beyond, W + beyond), rng.uniform(-H, 2 * H, n),
-                              rng.uniform(1.0, 4.0, n)), (-1.0, 0.5)))
+    groups.append(
+        (
+            _at_pixels(
+                np.where(rng.random(n) < 0.5, -beyond, W + beyond), rng.uniform(-H, 2 * H, n), rng.uniform(1.0, 4.0, n)
+            ),
+            (-1.0, 0.5),
+        )
+    )
     n = 8  # invalid rows (masked out)
     groups.append((_at_pixels(rng.uniform(0, W, n), rng.uniform(0, H, n), rng.uniform(1.0, 3.0, n)), (-1.0, 0.0)))
     points = np.concatenate([g[0] for g in groups])
@@ -158,8 +190,14 @@ def _random_scene(seed: int, degree: int) -> dict:
     valid[-8:] = False
     logits = rng.normal(0.5, 2.0, count)
     logits[166:176] = rng.uniform(4.0, 6.0, 10)
-    return _scene(_from_camera(POSE_A, points), log_scales,
-                  rng.normal(size=(count, 4)) * rng.uniform(0.3, 3.0, (count, 1)), logits, sh, valid)
+    return _scene(
+        _from_camera(POSE_A, points),
+        log_scales,
+        rng.normal(size=(count, 4)) * rng.uniform(0.3, 3.0, (count, 1)),
+        logits,
+        sh,
+        valid,
+    )
 
 
 def _errors(out, scene, poses, background=BG):
@@ -167,8 +205,14 @@ def _errors(out, scene, poses, background=BG):
     errors = []
     for p, c2w in enumerate(poses):
         rgb, acc, depth = _reference(scene, c2w, background)
-        errors.append((np.mean(np.abs(np.asarray(out.rgb[p]) - rgb)), np.max(np.abs(np.asarray(out.rgb[p]) - rgb)),
-                       np.max(np.abs(np.asarray(out.acc[p]) - acc)), np.max(np.abs(np.asarray(out.depth[p]) - depth))))
+        errors.append(
+            (
+                np.mean(np.abs(np.asarray(out.rgb[p]) - rgb)),
+                np.max(np.abs(np.asarray(out.rgb[p]) - rgb)),
+                np.max(np.abs(np.asarray(out.acc[p]) - acc)),
+                np.max(np.abs(np.asarray(out.depth[p]) - depth)),
+            )
+        )
     return errors
 
 
@@ -254,11 +298,20 @@ def _overflow_scene(seed: int) -> dict:
     """Near splats anywhere, far ones only in the left half: a cut inside the far ones loses left tiles only."""
     rng = np.random.default_rng(seed)
     near, far = 30, 60
-    points = np.concatenate([_at_pixels(rng.uniform(0, W, near), rng.uniform(0, H, near), rng.uniform(1.0, 2.5, near)),
-                             _at_pixels(rng.uniform(0, 10, far), rng.uniform(0, H, far), rng.uniform(4.0, 6.0, far))])
+    points = np.concatenate(
+        [
+            _at_pixels(rng.uniform(0, W, near), rng.uniform(0, H, near), rng.uniform(1.0, 2.5, near)),
+            _at_pixels(rng.uniform(0, 10, far), rng.uniform(0, H, far), rng.uniform(4.0, 6.0, far)),
+        ]
+    )
     n = near + far
-    return _scene(_from_camera(POSE_A, points), rng.uniform(-3.2, -2.2, (n, 3)),
-                  rng.normal(size=(n, 4)), rng.normal(0.0, 1.0, n), rng.normal(0.0, 1.0, (n, 1, 3)))
+    return _scene(
+        _from_camera(POSE_A, points),
+        rng.uniform(-3.2, -2.2, (n, 3)),
+        rng.normal(size=(n, 4)),
+        rng.normal(0.0, 1.0, n),
+        rng.normal(0.0, 1.0, (n, 1, 3)),
+    )
 
 
 def test_overflow_counted_and_farthest_dropped():
@@ -306,8 +359,13 @@ def _wall_scene() -> dict:
     n = 40
     means = np.zeros((n, 3))
     means[:, 2] = -np.linspace(1.0, 3.0, n)
-    return _scene(means, np.full((n, 3), np.log(5.0)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, np.log(0.95 / 0.05)),
-                  rng.normal(size=(n, 1, 3)))
+    return _scene(
+        means,
+        np.full((n, 3), np.log(5.0)),
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        np.full(n, np.log(0.95 / 0.05)),
+        rng.normal(size=(n, 1, 3)),
+    )
 
 
 WALL_POSE = np.eye(4, dtype=np.float32)  # at the origin, looking along -z
@@ -343,8 +401,9 @@ def test_early_stop_at_min_transmittance():
     rng = np.random.default_rng(11)
     dc = rng.uniform(-1.5, 1.5, (n, 1, 3))
     means = _from_camera(WALL_POSE, _at_pixels(u + 0.5, v + 0.5, z))
-    scene = _scene(means, np.full((n, 3), np.log(0.003)), np.tile([1.0, 0, 0, 0], (n, 1)),
-                   np.log(opacity / (1 - opacity)), dc)
+    scene = _scene(
+        means, np.full((n, 3), np.log(0.003)), np.tile([1.0, 0, 0, 0], (n, 1)), np.log(opacity / (1 - opacity)), dc
+    )
     out = render(_splats(scene), np.stack([WALL_POSE, WALL_POSE]))
     rgb, acc, depth = np.asarray(out.rgb[0]), np.asarray(out.acc[0]), np.asarray(out.depth[0])
     transmittance = np.concatenate([[1.0], np.cumprod(1 - opacity)])  # before each splat
@@ -386,8 +445,9 @@ def test_batched_equals_one_by_one_and_deterministic():
         rgb, depth, acc, stats = _render_view(splats, jnp.asarray(poses[p]), INTR, CONFIG, jnp.asarray(BG))
         for name, value in (("rgb", rgb), ("depth", depth), ("acc", acc)):
             for out in (batched, looped):
-                np.testing.assert_allclose(np.asarray(getattr(out, name)[p]), np.asarray(value), rtol=1e-6,
-                                           atol=1e-6, err_msg=name)
+                np.testing.assert_allclose(
+                    np.asarray(getattr(out, name)[p]), np.asarray(value), rtol=1e-6, atol=1e-6, err_msg=name
+                )
         for field in dataclasses.fields(stats):
             assert int(getattr(batched.stats, field.name)[p]) == int(getattr(stats, field.name)), field.name
             assert int(getattr(looped.stats, field.name)[p]) == int(getattr(stats, field.name)), field.name
@@ -437,8 +497,9 @@ SHARDED_SCRIPT = textwrap.dedent(
 @pytest.mark.slow
 def test_sharded_equals_single_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
-    result = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT], env=env, capture_output=True, text=True,
-                            timeout=600, check=False)
+    result = subprocess.run(
+        [sys.executable, "-c", SHARDED_SCRIPT], env=env, capture_output=True, text=True, timeout=600, check=False
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().endswith("OK")
 
@@ -448,8 +509,14 @@ def test_sharded_equals_single_device():
 
 FIELDS = ("means", "log_scales", "quats", "logits", "sh")
 _Y, _X = np.mgrid[0:H, 0:W] + 0.5
-WEIGHTS = np.stack([1.0 + 0.5 * np.sin(_X / 5.0) * np.cos(_Y / 4.0), 0.5 - 0.4 * np.cos(_X / 7.0 + _Y / 6.0),
-                    -0.8 + 0.3 * np.sin(_Y / 3.0)], -1).astype(np.float32)  # smooth, fixed
+WEIGHTS = np.stack(
+    [
+        1.0 + 0.5 * np.sin(_X / 5.0) * np.cos(_Y / 4.0),
+        0.5 - 0.4 * np.cos(_X / 7.0 + _Y / 6.0),
+        -0.8 + 0.3 * np.sin(_Y / 3.0),
+    ],
+    -1,
+).astype(np.float32)  # smooth, fixed
 
 
 def _loss(params, splats, config=CONFIG):
@@ -488,8 +555,13 @@ def _smooth_scene() -> dict:
     n = 30
     pose = _look_at(GRAD_ORIGIN, GRAD_TARGET)
     points = _at_pixels(rng.uniform(3, W - 3, n), rng.uniform(3, H - 3, n), rng.permutation(2.5 + 0.05 * np.arange(n)))
-    return _scene(_from_camera(pose, points), rng.uniform(-1.6, -0.9, (n, 3)), rng.normal(size=(n, 4)),
-                  rng.uniform(-1.0, 0.0, n), rng.normal(0.0, 0.3, (n, 4, 3)))
+    return _scene(
+        _from_camera(pose, points),
+        rng.uniform(-1.6, -0.9, (n, 3)),
+        rng.normal(size=(n, 4)),
+        rng.uniform(-1.0, 0.0, n),
+        rng.normal(0.0, 0.3, (n, 4, 3)),
+    )
 
 
 @pytest.mark.slow
@@ -512,8 +584,7 @@ def test_gradients_match_finite_differences():
     _, reference = _value_and_grad_autodiff(params, splats)
     for k in params:
         scale = float(np.max(np.abs(np.asarray(reference[k])))) + 1e-12
-        np.testing.assert_allclose(np.asarray(grads[k]), np.asarray(reference[k]), rtol=0, atol=1e-4 * scale,
-                                   err_msg=k)
+        np.testing.assert_allclose(np.asarray(grads[k]), np.asarray(reference[k]), rtol=0, atol=1e-4 * scale, err_msg=k)
 
     # The camera: central differences with h = 0.01 (0.1 px of image motion), both poses in one call
     # of the shared forward program. Observed relative errors 1.1 %, 2.1 % and 3.4 %.
@@ -531,8 +602,10 @@ def test_gradients_match_finite_differences():
     d = g_means / np.linalg.norm(g_means)
     h = 3e-3
     pose = np.stack([_look_at(GRAD_ORIGIN, GRAD_TARGET)] * 2)
-    fd = (_numpy_loss(render(_splats(dict(scene, means=scene["means"] + h * d)), pose), 0)
-          - _numpy_loss(render(_splats(dict(scene, means=scene["means"] - h * d)), pose), 0)) / (2 * h)
+    fd = (
+        _numpy_loss(render(_splats(dict(scene, means=scene["means"] + h * d)), pose), 0)
+        - _numpy_loss(render(_splats(dict(scene, means=scene["means"] - h * d)), pose), 0)
+    ) / (2 * h)
     analytic = float(np.linalg.norm(g_means))
     assert abs(fd - analytic) <= 0.05 * analytic and analytic > 5.0, (fd, analytic)
 
@@ -582,15 +655,15 @@ def test_sh_basis_order_and_signs():
     for k in range(1, 16):
         # The directions tell basis function k from every other one and from its negation.
         others = np.delete(basis, k, axis=1)
-        assert np.min(np.max(np.abs(others - basis[:, k:k + 1]), axis=0)) * 0.2 > 5e-3
+        assert np.min(np.max(np.abs(others - basis[:, k : k + 1]), axis=0)) * 0.2 > 5e-3
         assert np.max(np.abs(basis[:, k])) > 0.1
         sh = np.zeros((16, 3))
         sh[k] = value
         splats = _splats(_one_big_splat(sh))
         for first in (0, 2):
-            pair = SH_DIRECTIONS[first:first + 2]
+            pair = SH_DIRECTIONS[first : first + 2]
             got = _centre_colour(splats, pair)
-            expected = 0.99 * (0.5 + basis[first:first + 2, k:k + 1] * value) + 0.01 * BG
+            expected = 0.99 * (0.5 + basis[first : first + 2, k : k + 1] * value) + 0.01 * BG
             np.testing.assert_allclose(got, expected, rtol=0, atol=1e-5, err_msg=f"coefficient {k}")
 
 
@@ -600,10 +673,17 @@ def test_degree3_ply_written_by_hand(tmp_path):
     rng = np.random.default_rng(4)
     intended = rng.uniform(-0.1, 0.1, (16, 3))  # [k, channel]
     intended[0] = [0.6, -0.4, 0.2]
-    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
-    row = ([0.0] * 6 + list(intended[0]) + [intended[1 + i, c] for c in range(3) for i in range(15)]
-           + [10.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0])  # opaque, unit scale, unnormalised identity
+    names = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+    row = (
+        [0.0] * 6
+        + list(intended[0])
+        + [intended[1 + i, c] for c in range(3) for i in range(15)]
+        + [10.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0]
+    )  # opaque, unit scale, unnormalised identity
     header = "ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
     header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
     path = tmp_path / "degree3.ply"
@@ -624,8 +704,14 @@ DONUT = "splats/donut/point_cloud.ply"
 DONUT_SIZE = 48
 DONUT_DISTANCE = 0.4
 # name: (camera offset from the donut's centre, up)
-DONUT_VIEWS = {"top": ([0, 0, 1], [0, 1, 0]), "bottom": ([0, 0, -1], [0, 1, 0]), "+x": ([1, 0, 0], [0, 0, 1]),
-               "-x": ([-1, 0, 0], [0, 0, 1]), "+y": ([0, 1, 0], [0, 0, 1]), "-y": ([0, -1, 0], [0, 0, 1])}
+DONUT_VIEWS = {
+    "top": ([0, 0, 1], [0, 1, 0]),
+    "bottom": ([0, 0, -1], [0, 1, 0]),
+    "+x": ([1, 0, 0], [0, 0, 1]),
+    "-x": ([-1, 0, 0], [0, 0, 1]),
+    "+y": ([0, 1, 0], [0, 0, 1]),
+    "-y": ([0, -1, 0], [0, 0, 1]),
+}
 
 
 @pytest.fixture(scope="module")
@@ -705,8 +791,9 @@ def _donut_checks(rgb, acc, splats, c2w, intrinsics, centre) -> dict:
     checks["icing on the upper half"] = bool(icing_up)
     # (c) Mirror views are mirror images (as silhouettes) ...
     pairs = (("+x", "-x"), ("+y", "-y"), ("top", "bottom"))
-    checks["mirror pairs"] = all(_iou(silhouettes[views[a]], silhouettes[views[b]][:, ::-1]) > 0.9
-                                 for a, b in pairs)  # observed IoU 0.95 to 0.97
+    checks["mirror pairs"] = all(
+        _iou(silhouettes[views[a]], silhouettes[views[b]][:, ::-1]) > 0.9 for a, b in pairs
+    )  # observed IoU 0.95 to 0.97
     # ... and each render matches an independent projection of the means better than its mirror images do.
     margins = []
     for v in range(len(views)):
@@ -715,8 +802,10 @@ def _donut_checks(rgb, acc, splats, c2w, intrinsics, centre) -> dict:
         if sel.sum() < 50:
             margins.append(-1.0)
             continue
-        corr = [np.corrcoef(image[sel].ravel(), points[sel].ravel())[0, 1]
-                for image in (rgb[v], rgb[v][:, ::-1], rgb[v][::-1])]
+        corr = [
+            np.corrcoef(image[sel].ravel(), points[sel].ravel())[0, 1]
+            for image in (rgb[v], rgb[v][:, ::-1], rgb[v][::-1])
+        ]
         margins.append(corr[0] - max(corr[1:]))
     checks["oriented"] = bool(min(margins) > 0.0 and np.mean(margins) > 0.05)  # observed min 0.02, mean 0.1
     return checks
@@ -729,14 +818,21 @@ def test_real_donut_conventions(donut):
     means = np.asarray(donut.means, np.float64)
     centre = 0.5 * (np.quantile(means, 0.02, axis=0) + np.quantile(means, 0.98, axis=0))
     intrinsics = Intrinsics.from_fov(DONUT_SIZE, DONUT_SIZE, np.deg2rad(40.0))
-    c2w = np.stack([_look_at(centre + DONUT_DISTANCE * np.array(offset, float), centre, np.array(up, np.float32))
-                    for offset, up in DONUT_VIEWS.values()])
+    c2w = np.stack(
+        [
+            _look_at(centre + DONUT_DISTANCE * np.array(offset, float), centre, np.array(up, np.float32))
+            for offset, up in DONUT_VIEWS.values()
+        ]
+    )
     # Deliberately wrong conventions: quaternions read x, y, z, w; an OpenCV c2w taken for OpenGL (y and
     # z negated: the camera looks away); the image upside down (y negated); mirrored (x negated); the
     # camera's rotation not inverted (transposed).
     swapped = donut.replace(quats=jnp.roll(donut.quats, -1, axis=1))
-    flipped = {"y and z negated": np.array([1.0, -1.0, -1.0]), "y negated": np.array([1.0, -1.0, 1.0]),
-               "x negated": np.array([-1.0, 1.0, 1.0])}
+    flipped = {
+        "y and z negated": np.array([1.0, -1.0, -1.0]),
+        "y negated": np.array([1.0, -1.0, 1.0]),
+        "x negated": np.array([-1.0, 1.0, 1.0]),
+    }
     base = SplatRenderConfig(tile_size=8, chunk=32)
     max_pairs = max(calibrate_max_pairs(s, c2w, intrinsics, base, margin=1.0) for s in (donut, swapped))
     config = dataclasses.replace(base, max_pairs=max_pairs)
@@ -758,9 +854,13 @@ def test_real_donut_conventions(donut):
     poses[:, :3, :3] = np.swapaxes(c2w[:, :3, :3], 1, 2)
     wrong["camera rotation transposed"] = checks(donut, poses)
     # Each wrong convention fails the checks meant to catch it.
-    expect_failing = {"quaternions x, y, z, w": ("hole", "crisp"), "camera y and z negated": ("not empty", "ring"),
-                      "camera y negated": ("icing on the upper half", "oriented"), "camera x negated": ("oriented",),
-                      "camera rotation transposed": ("mirror pairs",)}
+    expect_failing = {
+        "quaternions x, y, z, w": ("hole", "crisp"),
+        "camera y and z negated": ("not empty", "ring"),
+        "camera y negated": ("icing on the upper half", "oriented"),
+        "camera x negated": ("oriented",),
+        "camera rotation transposed": ("mirror pairs",),
+    }
     for name, failing in expect_failing.items():
         assert not any(wrong[name][check] for check in failing), (name, wrong[name])
 
@@ -807,8 +907,12 @@ def _assert_finite_everything(scene):
     assert np.all(np.asarray(out.acc) <= 1.0)
     params = _params(splats, ORIGIN0, TARGET0)
     value, grads = _value_and_grad(params, splats)
-    bad = {k: np.flatnonzero(~np.all(np.isfinite(np.asarray(g)).reshape(N, -1), -1)).tolist() if k in FIELDS
-           else bool(~np.all(np.isfinite(np.asarray(g)))) for k, g in grads.items()}
+    bad = {
+        k: np.flatnonzero(~np.all(np.isfinite(np.asarray(g)).reshape(N, -1), -1)).tolist()
+        if k in FIELDS
+        else bool(~np.all(np.isfinite(np.asarray(g))))
+        for k, g in grads.items()
+    }
     assert np.isfinite(float(value)) and not any(bad.values()), bad
     tangent = jax.tree_util.tree_map(lambda g: jnp.ones_like(g) * 1e-3, params)
     _, jvp = _jvp(params, splats, tangent)
@@ -829,11 +933,13 @@ def test_finite_at_extremes():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["valid row at the camera centre", "invalid row at the camera centre",
-                                  "zero quaternion"])
+@pytest.mark.parametrize(
+    "case", ["valid row at the camera centre", "invalid row at the camera centre", "zero quaternion"]
+)
 def test_finite_gradients_at_singular_rows(case):
-    scene = _extreme_scene(at_camera={"valid row at the camera centre": True,
-                                      "invalid row at the camera centre": False}.get(case))
+    scene = _extreme_scene(
+        at_camera={"valid row at the camera centre": True, "invalid row at the camera centre": False}.get(case)
+    )
     if case == "zero quaternion":
         scene["quats"][0] = 0.0
     _assert_finite_everything(scene)
@@ -842,8 +948,13 @@ def test_finite_gradients_at_singular_rows(case):
 def test_needle_splat_matches_reference():
     """One splat of scales (1e-8, 100, 1e-8) seen from 2.5 units: alpha as in the float64 reference
     (observed max |acc error| 0.034 at length 100, 2e-4 at length 10)."""
-    scene = _scene(np.array([[-0.3, 0.1, -2.5]]), np.log([[1e-8, 100.0, 1e-8]]), np.array([[0.9, 0.3, -0.5, 0.2]]),
-                   np.array([1.0]), np.array([[[0.5, -0.2, 0.1]]]))
+    scene = _scene(
+        np.array([[-0.3, 0.1, -2.5]]),
+        np.log([[1e-8, 100.0, 1e-8]]),
+        np.array([[0.9, 0.3, -0.5, 0.2]]),
+        np.array([1.0]),
+        np.array([[[0.5, -0.2, 0.1]]]),
+    )
     out = render(_splats(scene), np.stack([WALL_POSE, WALL_POSE]))
     _, acc, _ = _reference(scene, WALL_POSE)
     assert acc.max() > 0.5  # the needle is on screen

@@ -34,8 +34,9 @@ from waldo_jax.nerf.step import (
 from waldo_jax.scenes import load_scene
 
 # A tiny field for the mechanics tests (not for quality).
-TINY_FIELD = dict(hashgrid=HashGridConfig(L=4, T=2**12, F=2, N_min=8, N_max=64),
-                  density_hidden=(16,), color_hidden=(16,))
+TINY_FIELD = dict(
+    hashgrid=HashGridConfig(L=4, T=2**12, F=2, N_min=8, N_max=64), density_hidden=(16,), color_hidden=(16,)
+)
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +47,20 @@ def lego_small():
 
 def _tiny_config(scene, sampler: str, **overrides) -> TrainConfig:
     field = NGPFieldConfig(aabb=scene.aabb, **TINY_FIELD)
-    values = dict(field=field, steps=5, chunk=3, rays_per_batch=128, num_samples=16, samples_per_batch=1024,
-                  eval_samples=16, occupancy_resolution=16, occupancy_update_every=2, occupancy_warmup=2,
-                  steps_per_diagonal=64.0, sampler=sampler)
+    values = dict(
+        field=field,
+        steps=5,
+        chunk=3,
+        rays_per_batch=128,
+        num_samples=16,
+        samples_per_batch=1024,
+        eval_samples=16,
+        occupancy_resolution=16,
+        occupancy_update_every=2,
+        occupancy_warmup=2,
+        steps_per_diagonal=64.0,
+        sampler=sampler,
+    )
     values.update(overrides)
     return TrainConfig(**values)
 
@@ -71,8 +83,10 @@ def test_fast_preset_reaches_20db_on_lego_tiny(trained_lego_fast):
     _, result = trained_lego_fast
     assert result["steps"] == 250
     assert result["n_train"] == 90 and result["n_test"] == 10
-    assert result["psnr_test"] is not None and result["psnr_test"] >= 20.0, (result["psnr_test"],
-                                                                             result["history"][-3:])
+    assert result["psnr_test"] is not None and result["psnr_test"] >= 20.0, (
+        result["psnr_test"],
+        result["history"][-3:],
+    )
     assert result["history"][-1]["psnr_test"] == result["psnr_test"]
     losses = [h["loss"] for h in result["history"] if "loss" in h]
     assert losses[-1] < 0.5 * losses[0]
@@ -87,8 +101,10 @@ def test_fast_preset_reaches_20db_on_lego_tiny(trained_lego_fast):
     assert all(a > b for a, b in zip(evaluations, evaluations[1:]))  # coarser steps, fewer evaluations
     assert result["history"][-1]["render_step_scale"] == chosen
     assert result["rays_per_second"] > 0 and np.isfinite(result["rays_per_second"])
-    print(f"lego_tiny fast/test preset: {result['psnr_test']:.2f} dB in {result['seconds']:.1f} s "
-          f"({result['rays_per_second']:.0f} rays/s, sampler {result['sampler']})")
+    print(
+        f"lego_tiny fast/test preset: {result['psnr_test']:.2f} dB in {result['seconds']:.1f} s "
+        f"({result['rays_per_second']:.0f} rays/s, sampler {result['sampler']})"
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -135,7 +151,9 @@ def test_scan_chunks_equal_step_loop(lego_small, sampler):
     # The same operations compiled in two programs: XLA fuses a step inside a scan differently from a
     # step alone (on the CPU too), so they agree to float32 rounding, not bit for bit (a rerun of the
     # same program is bit-identical: see the determinism test above).
-    for a, b in zip(jax.tree.leaves((result.params, result.occupancy)), jax.tree.leaves((state.params, state.sampler_state))):
+    for a, b in zip(
+        jax.tree.leaves((result.params, result.occupancy)), jax.tree.leaves((state.params, state.sampler_state))
+    ):
         a, b = np.asarray(a), np.asarray(b)
         if a.dtype == bool:
             assert (a != b).mean() < 1e-3  # a cell whose density sits at the threshold may flip

@@ -80,8 +80,9 @@ def test_jit_vmap_and_smooth_stand_in(criterion, ring):
     np.testing.assert_allclose(exact[:3], criterion.score_poses(population[:3], INTRINSICS), atol=1e-6)
     smooth = np.asarray(criterion.smooth().score_poses(population, INTRINSICS))
     assert np.mean(np.abs(smooth - exact)) < 0.08, np.mean(np.abs(smooth - exact))
-    grad = jax.jit(jax.grad(lambda o: criterion.smooth_apply(criterion.params, look_at(o, jnp.zeros(3), UP)[None],
-                                                             INTRINSICS)[0]))(origins[3])
+    grad = jax.jit(
+        jax.grad(lambda o: criterion.smooth_apply(criterion.params, look_at(o, jnp.zeros(3), UP)[None], INTRINSICS)[0])
+    )(origins[3])
     assert np.all(np.isfinite(np.asarray(grad)))
     # the parameters are leaves: a sweep vmaps over them (a tighter angle never trusts more)
     angles = jnp.radians(jnp.array([5.0, 15.0, 30.0, 60.0]))
@@ -97,8 +98,9 @@ def test_guards_pose_and_view_criteria(ring):
     guarded = build_criterion("waldo_found", context, ["trust:0.5"])
     assert guarded.name == "waldo_found|trust>=0.5" and guarded.inputs == "poses" and guarded.differentiable
     poses = np.stack([ring[0], ring[5], _camera((30.0, 1.2, 0.0)), _camera(ring[0, :3, 3], 2 * ring[0, :3, 3])])
-    np.testing.assert_allclose(guarded.score_poses(poses, INTRINSICS)[:2], found.score_poses(poses[:2], INTRINSICS),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        guarded.score_poses(poses, INTRINSICS)[:2], found.score_poses(poses[:2], INTRINSICS), atol=1e-6
+    )
     np.testing.assert_allclose(guarded.score_poses(poses, INTRINSICS)[2:], 0.0)  # waldo_found's worst score
     posed = build_criterion("opacity", context, ["trust:0.5"])
     assert posed.inputs == "posed"

@@ -24,9 +24,14 @@ def bare_room():
 
 def _with_box(room: WaldoRoom, center, half) -> WaldoRoom:
     """`room` with one more box (boxes come first in the flat arrays)."""
-    row = dict(kind=jnp.array([KIND_BOX], jnp.int32), center=jnp.asarray([center], jnp.float32),
-               size=jnp.asarray([half], jnp.float32), color=jnp.full((1, 3), 0.5, jnp.float32),
-               pattern=jnp.zeros((1,), jnp.int32), is_waldo=jnp.zeros((1,), bool))
+    row = dict(
+        kind=jnp.array([KIND_BOX], jnp.int32),
+        center=jnp.asarray([center], jnp.float32),
+        size=jnp.asarray([half], jnp.float32),
+        color=jnp.full((1, 3), 0.5, jnp.float32),
+        pattern=jnp.zeros((1,), jnp.int32),
+        is_waldo=jnp.zeros((1,), bool),
+    )
     joined = {k: jnp.concatenate([v, getattr(room, k)]) for k, v in row.items()}
     return room.replace(num_boxes=room.num_boxes + 1, **joined)
 

@@ -16,8 +16,15 @@ import pytest
 import waldo_jax  # noqa: F401  (before jax: XLA flags)
 from waldo_jax.cli import main
 from waldo_jax.errors import DataNotFoundError
-from waldo_jax.weights import (TorchPickleError, WeightsError, check_shapes, load_native, read_torch_file,
-                               save_native, state_dict)
+from waldo_jax.weights import (
+    TorchPickleError,
+    WeightsError,
+    check_shapes,
+    load_native,
+    read_torch_file,
+    save_native,
+    state_dict,
+)
 from waldo_jax.weights.store import convert_all
 
 from conftest import require_weights
@@ -28,6 +35,7 @@ from conftest import require_weights
 # requires_grad, hooks)), its storage as a persistent id ("storage", torch.FloatStorage, key,
 # location, numel). The pure-Python pickler lets us emit those globals by name.
 
+
 class _Global:
     def __init__(self, module, name):
         self.module, self.name = module, name
@@ -37,8 +45,12 @@ class _Global:
 
 
 _REBUILD = _Global("torch._utils", "_rebuild_tensor_v2")
-_STORAGE_NAMES = {np.dtype(np.float32): "FloatStorage", np.dtype(np.int64): "LongStorage",
-                  np.dtype(np.float64): "DoubleStorage", np.dtype(np.float16): "HalfStorage"}
+_STORAGE_NAMES = {
+    np.dtype(np.float32): "FloatStorage",
+    np.dtype(np.int64): "LongStorage",
+    np.dtype(np.float64): "DoubleStorage",
+    np.dtype(np.float16): "HalfStorage",
+}
 
 
 class _FakeStorage:
@@ -90,9 +102,13 @@ def _dumps(obj):
 def write_legacy(path, arrays, wrap=True):
     storages, tensors = _tensors(arrays)
     obj = {"epoch": 3, "state_dict": tensors} if wrap else tensors
-    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
-             pickle.dumps({"protocol_version": 1001, "little_endian": True}, protocol=2), _dumps(obj),
-             pickle.dumps([s.key for s in storages], protocol=2)]
+    parts = [
+        pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2),
+        pickle.dumps(1001, protocol=2),
+        pickle.dumps({"protocol_version": 1001, "little_endian": True}, protocol=2),
+        _dumps(obj),
+        pickle.dumps([s.key for s in storages], protocol=2),
+    ]
     for s in storages:
         parts.append(struct.pack("<q", s.array.size) + s.array.astype(s.array.dtype.newbyteorder("<")).tobytes())
     path.write_bytes(b"".join(parts))
@@ -132,11 +148,17 @@ def test_reader_honours_offsets_and_strides(tmp_path):
     storage = _FakeStorage("0", base)
     obj = collections.OrderedDict(
         t=_FakeTensor(storage, 2, (4, 3), (1, 4)),  # columns of a 3x4 block starting at element 2
-        tail=_FakeTensor(storage, 20, (10,), (1,)))
+        tail=_FakeTensor(storage, 20, (10,), (1,)),
+    )
     path = tmp_path / "views.pth"
-    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
-             pickle.dumps({"little_endian": True}, protocol=2), _dumps(obj), pickle.dumps(["0"], protocol=2),
-             struct.pack("<q", base.size) + base.tobytes()]
+    parts = [
+        pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2),
+        pickle.dumps(1001, protocol=2),
+        pickle.dumps({"little_endian": True}, protocol=2),
+        _dumps(obj),
+        pickle.dumps(["0"], protocol=2),
+        struct.pack("<q", base.size) + base.tobytes(),
+    ]
     path.write_bytes(b"".join(parts))
     got = read_torch_file(path)
     np.testing.assert_array_equal(got["t"], base[2:14].reshape(3, 4).T)
@@ -145,8 +167,12 @@ def test_reader_honours_offsets_and_strides(tmp_path):
 
 def test_reader_refuses_code_and_reports_corruption(tmp_path):
     evil = tmp_path / "evil.pth"
-    parts = [pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2), pickle.dumps(1001, protocol=2),
-             pickle.dumps({"little_endian": True}, protocol=2), b"cos\nsystem\n(S'true'\ntR."]
+    parts = [
+        pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2),
+        pickle.dumps(1001, protocol=2),
+        pickle.dumps({"little_endian": True}, protocol=2),
+        b"cos\nsystem\n(S'true'\ntR.",
+    ]
     evil.write_bytes(b"".join(parts))
     with pytest.raises(TorchPickleError, match="refusing to unpickle os.system"):
         read_torch_file(evil)
@@ -173,8 +199,15 @@ def test_reader_reads_the_real_checkpoints():
     assert counted == 97_921  # the count ../shared/README.md gives (weights + BN statistics)
     cnniqa = state_dict(read_torch_file(require_weights("cnniqa/CNNIQA-LIVE")))
     assert {k: v.shape for k, v in cnniqa.items()} == {
-        "conv1.weight": (50, 1, 7, 7), "conv1.bias": (50,), "fc1.weight": (800, 100), "fc1.bias": (800,),
-        "fc2.weight": (800, 800), "fc2.bias": (800,), "fc3.weight": (1, 800), "fc3.bias": (1,)}
+        "conv1.weight": (50, 1, 7, 7),
+        "conv1.bias": (50,),
+        "fc1.weight": (800, 100),
+        "fc1.bias": (800,),
+        "fc2.weight": (800, 800),
+        "fc2.bias": (800,),
+        "fc3.weight": (1, 800),
+        "fc3.bias": (1,),
+    }
     assert all(np.all(np.isfinite(v)) for v in cnniqa.values())
 
 
@@ -190,8 +223,10 @@ def test_check_shapes_names_the_first_mismatch():
 
 
 def test_native_store_round_trip_and_errors(tmp_path):
-    tree = {"layer": {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.ones(3, np.float32)},
-            "gamma": np.float32(0.05)}
+    tree = {
+        "layer": {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.ones(3, np.float32)},
+        "gamma": np.float32(0.05),
+    }
     path = save_native(tmp_path / "m" / "m.npz", "m", tree, {"splits": [[1, 2], [3]]})
     got, meta = load_native(path, "m")
     assert meta == {"splits": [[1, 2], [3]]}

@@ -40,8 +40,13 @@ def _flags_after_import(env_changes: dict) -> str:
     """XLA_FLAGS as a fresh process sees it after `import waldo_jax`, with `env_changes` applied."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "WALDO_DETERMINISTIC", "WALDO_FAST_COMPILE")}
     env.update(env_changes)
-    result = subprocess.run([sys.executable, "-c", "import os, waldo_jax; print(os.environ.get('XLA_FLAGS', ''))"],
-                            env=env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-c", "import os, waldo_jax; print(os.environ.get('XLA_FLAGS', ''))"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     return result.stdout.strip()
 
@@ -91,8 +96,27 @@ def test_fast_cpu_compiles_only_when_asked():
     assert own.count(f"{flag}=true") == 1 and f"{flag}=false" not in own
 
 
-EXPLORE = ["explore", "procedural:1", "--resolution", "16", "--views", "8", "--epochs", "2", "--children-per-epoch",
-           "6", "--top-k", "4", "--criterion", "colorfulness", "--method", "egps", "--seed", "5", "--quiet"]
+EXPLORE = [
+    "explore",
+    "procedural:1",
+    "--resolution",
+    "16",
+    "--views",
+    "8",
+    "--epochs",
+    "2",
+    "--children-per-epoch",
+    "6",
+    "--top-k",
+    "4",
+    "--criterion",
+    "colorfulness",
+    "--method",
+    "egps",
+    "--seed",
+    "5",
+    "--quiet",
+]
 
 # Run with XLA's default CPU emitters: the miscompilation guard, then `waldo explore`.
 _DEFAULT_EMITTERS = """
@@ -114,8 +138,13 @@ def test_the_suites_fast_compiles_give_the_answers_of_xlas_default_compiles(tmp_
     if os.environ.get("WALDO_FAST_COMPILE") != "1" or jax.default_backend() != "cpu":
         pytest.skip("compares WALDO_FAST_COMPILE=1 with XLA's default, on a CPU (the suite's default there)")
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "WALDO_FAST_COMPILE")}
-    result = subprocess.run([sys.executable, "-c", _DEFAULT_EMITTERS, os.path.dirname(__file__), str(tmp_path / "default")],
-                            env=env, capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", _DEFAULT_EMITTERS, os.path.dirname(__file__), str(tmp_path / "default")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert float(result.stdout.split()[0]) < 1e-5
     assert main(EXPLORE + ["--out", str(tmp_path / "fast")]) == 0

@@ -122,18 +122,22 @@ def rotation_to_quaternion(rotation: Array) -> Array:
     m00, m01, m02 = m[0, 0], m[0, 1], m[0, 2]
     m10, m11, m12 = m[1, 0], m[1, 1], m[1, 2]
     m20, m21, m22 = m[2, 0], m[2, 1], m[2, 2]
-    pivots = jnp.stack([
-        1.0 + m00 + m11 + m22,
-        1.0 + m00 - m11 - m22,
-        1.0 - m00 + m11 - m22,
-        1.0 - m00 - m11 + m22,
-    ])
-    candidates = jnp.stack([
-        jnp.stack([pivots[0], m21 - m12, m02 - m20, m10 - m01]),
-        jnp.stack([m21 - m12, pivots[1], m01 + m10, m02 + m20]),
-        jnp.stack([m02 - m20, m01 + m10, pivots[2], m12 + m21]),
-        jnp.stack([m10 - m01, m02 + m20, m12 + m21, pivots[3]]),
-    ])  # [4, 4]
+    pivots = jnp.stack(
+        [
+            1.0 + m00 + m11 + m22,
+            1.0 + m00 - m11 - m22,
+            1.0 - m00 + m11 - m22,
+            1.0 - m00 - m11 + m22,
+        ]
+    )
+    candidates = jnp.stack(
+        [
+            jnp.stack([pivots[0], m21 - m12, m02 - m20, m10 - m01]),
+            jnp.stack([m21 - m12, pivots[1], m01 + m10, m02 + m20]),
+            jnp.stack([m02 - m20, m01 + m10, pivots[2], m12 + m21]),
+            jnp.stack([m10 - m01, m02 + m20, m12 + m21, pivots[3]]),
+        ]
+    )  # [4, 4]
     best = jnp.argmax(pivots)
     q = candidates[best] / (2.0 * jnp.sqrt(jnp.maximum(pivots[best], _EPS)))
     q = q / jnp.linalg.norm(q)
@@ -144,11 +148,13 @@ def quaternion_to_rotation(q: Array) -> Array:
     """Rotation matrix [3, 3] of a quaternion (w, x, y, z) [4] (normalised first)."""
     q = q / jnp.sqrt(jnp.maximum(jnp.sum(q * q), _EPS))
     w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def quaternion_slerp(q0: Array, q1: Array, t: Array | float) -> Array:

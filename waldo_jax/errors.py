@@ -20,9 +20,22 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["WaldoError", "SceneFormatError", "DataNotFoundError", "NumberError", "ConfigError", "MAX_SEED", "MAX_INT32",
-           "check_seed", "MIN_RESOLUTION", "MAX_RESOLUTION", "check_resolution", "check_input_file", "check_float32",
-           "check_int"]
+__all__ = [
+    "WaldoError",
+    "SceneFormatError",
+    "DataNotFoundError",
+    "NumberError",
+    "ConfigError",
+    "MAX_SEED",
+    "MAX_INT32",
+    "check_seed",
+    "MIN_RESOLUTION",
+    "MAX_RESOLUTION",
+    "check_resolution",
+    "check_input_file",
+    "check_float32",
+    "check_int",
+]
 
 # The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
 # the integer type of JAX keys and of the JSON readers of results.
@@ -65,8 +78,9 @@ class NumberError(WaldoError, ValueError):
     int32 cannot hold (the message names it and its limits)."""
 
 
-def check_float32(value, what: str, positive: bool = False, minimum: float | None = None,
-                  maximum: float | None = None) -> float:
+def check_float32(
+    value, what: str, positive: bool = False, minimum: float | None = None, maximum: float | None = None
+) -> float:
     """`value` as a Python float if it is a real number (not a bool) that stays finite in float32 and
     lies in [minimum, maximum]; with `positive`, one that is > 0 in float32 as well (1e-300 rounds to 0
     there, 1e39 to infinity). Else a `NumberError` naming `what`."""
@@ -80,11 +94,18 @@ def check_float32(value, what: str, positive: bool = False, minimum: float | Non
     if positive and not number > 0:
         raise NumberError(f"{what} must be a positive number, got {shown}")
     if positive and not np.float32(number) > 0:
-        raise NumberError(f"{what} must be a positive number that float32 holds (>= {_FLOAT32_TINY:.3g}), got "
-                          f"{shown}, which rounds to 0")
+        raise NumberError(
+            f"{what} must be a positive number that float32 holds (>= {_FLOAT32_TINY:.3g}), got "
+            f"{shown}, which rounds to 0"
+        )
     if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
-        span = (f"between {minimum:g} and {maximum:g}" if minimum is not None and maximum is not None
-                else f">= {minimum:g}" if minimum is not None else f"<= {maximum:g}")
+        span = (
+            f"between {minimum:g} and {maximum:g}"
+            if minimum is not None and maximum is not None
+            else f">= {minimum:g}"
+            if minimum is not None
+            else f"<= {maximum:g}"
+        )
         raise NumberError(f"{what} must be {span}, got {shown}")
     return number
 
@@ -119,8 +140,9 @@ def check_resolution(value, what: str = "--resolution") -> int:
     """`value` as an int if it lies in [MIN_RESOLUTION, MAX_RESOLUTION]; else a `WaldoError` naming
     `what` and the limits."""
     if isinstance(value, bool) or not isinstance(value, int) or not MIN_RESOLUTION <= value <= MAX_RESOLUTION:
-        raise WaldoError(f"{what} must be an integer between {MIN_RESOLUTION} and {MAX_RESOLUTION} pixels, "
-                         f"got {value!r}")
+        raise WaldoError(
+            f"{what} must be an integer between {MIN_RESOLUTION} and {MAX_RESOLUTION} pixels, got {value!r}"
+        )
     return value
 
 

@@ -28,9 +28,21 @@ from PIL import Image, ImageDraw, ImageFont
 from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file
 
 __all__ = [
-    "atomic_file", "write_bytes", "write_text", "to_uint8", "png_bytes", "save_png", "contact_sheet",
-    "check_output_dir", "prepare_output_dir", "created_output_dirs", "discard_unfinished", "stale_files", "write_json",
-    "write_transforms", "read_image",
+    "atomic_file",
+    "write_bytes",
+    "write_text",
+    "to_uint8",
+    "png_bytes",
+    "save_png",
+    "contact_sheet",
+    "check_output_dir",
+    "prepare_output_dir",
+    "created_output_dirs",
+    "discard_unfinished",
+    "stale_files",
+    "write_json",
+    "write_transforms",
+    "read_image",
 ]
 
 
@@ -244,8 +256,10 @@ def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bo
     name_max = _name_max(existing)
     for part in path.parts:
         if len(os.fsencode(part)) > name_max:
-            raise WaldoError(f"{part[:24]}...: a name of {len(os.fsencode(part))} bytes in --out; this file system "
-                             f"allows at most {name_max}")
+            raise WaldoError(
+                f"{part[:24]}...: a name of {len(os.fsencode(part))} bytes in --out; this file system "
+                f"allows at most {name_max}"
+            )
     if path.exists() and not path.is_dir():
         raise WaldoError(f"{path}: exists and is not a directory")
     if not existing.is_dir():
@@ -271,7 +285,9 @@ def stale_files(folder: str | os.PathLike, pattern: str, keep: Sequence[str]) ->
     an earlier run wrote that a new run into the same folder (`--force`) will not overwrite. The
     caller removes them once its own files are written, so the folder holds one run, not two."""
     keep = set(keep)
-    return sorted(p for p in Path(folder).iterdir() if p.is_file() and re.fullmatch(pattern, p.name) and p.name not in keep)
+    return sorted(
+        p for p in Path(folder).iterdir() if p.is_file() and re.fullmatch(pattern, p.name) and p.name not in keep
+    )
 
 
 def _json_ready(obj: Any) -> Any:
@@ -294,8 +310,9 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
     write_text(path, json.dumps(_json_ready(obj), indent=2, allow_nan=False) + "\n")
 
 
-def write_transforms(path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_names: Sequence[str],
-                     extra: Optional[dict] = None) -> None:
+def write_transforms(
+    path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_names: Sequence[str], extra: Optional[dict] = None
+) -> None:
     """Writes cameras as an instant-ngp/nerfstudio-style `transforms.json` (OpenGL c2w).
 
     Args:
@@ -307,8 +324,16 @@ def write_transforms(path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_
     """
     d = intrinsics.to_dict()
     meta = {
-        "w": d["width"], "h": d["height"], "fl_x": d["fx"], "fl_y": d["fy"], "cx": d["cx"], "cy": d["cy"],
-        "k1": d["k1"], "k2": d["k2"], "p1": d["p1"], "p2": d["p2"],
+        "w": d["width"],
+        "h": d["height"],
+        "fl_x": d["fx"],
+        "fl_y": d["fy"],
+        "cx": d["cx"],
+        "cy": d["cy"],
+        "k1": d["k1"],
+        "k2": d["k2"],
+        "p1": d["p1"],
+        "p2": d["p2"],
         "camera_angle_x": float(2 * np.arctan(0.5 * d["width"] / d["fx"])),
         "camera_angle_y": float(2 * np.arctan(0.5 * d["height"] / d["fy"])),
     }
@@ -324,8 +349,9 @@ def write_transforms(path: str | os.PathLike, c2w: np.ndarray, intrinsics, file_
 # Reading images.
 
 
-def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "image file",
-               min_side: int = MIN_RESOLUTION) -> np.ndarray:
+def read_image(
+    path: str | os.PathLike, keep_alpha: bool = False, what: str = "image file", min_side: int = MIN_RESOLUTION
+) -> np.ndarray:
     """An image file as float32 [H, W, 3] in [0, 1] ([H, W, 4] with its alpha if `keep_alpha` and it has one).
 
     Sides must lie in [min_side, MAX_RESOLUTION] (read from the header, before any decoding; a scored
@@ -367,9 +393,11 @@ def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "i
     low, high = float(image.min()), float(image.max())
     if low < 0.0 or high > 1.0:  # an HDR or unnormalised float image (or signed integers): not clipped silently
         values = f"[{low * scale:g}, {high * scale:g}]"
-        raise WaldoError(f"{path}: a {stored.name} image with values in {values}, outside the [0, "
-                         f"{'1' if scale == 1.0 else f'{scale:g}'}] waldo reads; rescale it to [0, 1] (or save it as "
-                         "8- or 16-bit)")
+        raise WaldoError(
+            f"{path}: a {stored.name} image with values in {values}, outside the [0, "
+            f"{'1' if scale == 1.0 else f'{scale:g}'}] waldo reads; rescale it to [0, 1] (or save it as "
+            "8- or 16-bit)"
+        )
     if image.shape[-1] == 4 and not keep_alpha:
         image = image[..., :3]
     return image
@@ -377,5 +405,6 @@ def read_image(path: str | os.PathLike, keep_alpha: bool = False, what: str = "i
 
 def _check_image_size(path: Path, width: int, height: int, min_side: int) -> None:
     if not (min_side <= min(width, height) and max(width, height) <= MAX_RESOLUTION):
-        raise WaldoError(f"{path}: the image is {width}x{height}; sides must lie between {min_side} and "
-                         f"{MAX_RESOLUTION} pixels")
+        raise WaldoError(
+            f"{path}: the image is {width}x{height}; sides must lie between {min_side} and {MAX_RESOLUTION} pixels"
+        )

@@ -168,7 +168,12 @@ class Intrinsics:
     def from_dict(cls, d: dict) -> "Intrinsics":
         """Inverse of `to_dict`."""
         return cls.create(
-            d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"],
+            d["width"],
+            d["height"],
+            d["fx"],
+            d["fy"],
+            d["cx"],
+            d["cy"],
             [d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0)],
         )
 

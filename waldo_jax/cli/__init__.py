@@ -40,8 +40,12 @@ __all__ = ["main", "build_parser", "check_jax_platforms"]
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser of the `waldo` command."""
     parser = Parser(prog="waldo", description="Explore NeRF scene spaces in JAX (Finding Waldo, MMSys'24).")
-    parser.add_argument("--version", action="version", version=f"waldo {package_version()}",
-                        help="print the version (waldo X.Y.Z) and exit")
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"waldo {package_version()}",
+        help="print the version (waldo X.Y.Z) and exit",
+    )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
     for command in (scene, train, explore, path, score, weights, demo, render):
@@ -99,6 +103,7 @@ def check_jax_platforms() -> None:
     except RuntimeError as e:
         reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
         reason = reason.split(" (set JAX_PLATFORMS")[0]
-        raise WaldoError(f"JAX_PLATFORMS={wanted}: this machine cannot start that backend ({reason[:200]}); "
-                         "unset JAX_PLATFORMS to run on what it has") from None
-
+        raise WaldoError(
+            f"JAX_PLATFORMS={wanted}: this machine cannot start that backend ({reason[:200]}); "
+            "unset JAX_PLATFORMS to run on what it has"
+        ) from None

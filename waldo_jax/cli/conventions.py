@@ -53,8 +53,9 @@ class Parser(argparse.ArgumentParser):
         # argparse's own hook for `choices`; the project's wording names the flag, the value and the choices.
         if action.choices is not None and value not in action.choices:
             flag = max(action.option_strings, key=len) if action.option_strings else (action.metavar or action.dest)
-            raise argparse.ArgumentError(None, f"unknown {flag} {value!r}: expected one of "
-                                               f"{', '.join(map(str, action.choices))}")
+            raise argparse.ArgumentError(
+                None, f"unknown {flag} {value!r}: expected one of {', '.join(map(str, action.choices))}"
+            )
 
 
 def add_quiet(parser: argparse.ArgumentParser, what: str = "progress bars nor progress lines") -> None:
@@ -82,8 +83,16 @@ class Progress:
     def phase(self, name: str, total: Optional[int] = None, unit: str = "it") -> None:
         """Starts phase `name` (e.g. "compiling and searching"); `total` steps counted by `advance`."""
         self.close()
-        self._bar = tqdm(total=total, desc=name, unit=unit, disable=True if self.quiet else None, file=self.stream,
-                         leave=False, dynamic_ncols=True, bar_format=None if total else "{desc} ... {elapsed}")
+        self._bar = tqdm(
+            total=total,
+            desc=name,
+            unit=unit,
+            disable=True if self.quiet else None,
+            file=self.stream,
+            leave=False,
+            dynamic_ncols=True,
+            bar_format=None if total else "{desc} ... {elapsed}",
+        )
 
     def advance(self, steps: int = 1) -> None:
         """Counts `steps` done in the current phase."""

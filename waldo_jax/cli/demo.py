@@ -13,15 +13,21 @@ __all__ = ["add_command", "cmd_demo"]
 def add_command(subparsers) -> None:
     """Registers `demo` on an argparse subparsers object (function as `handler`)."""
     demo = subparsers.add_parser(
-        "demo", help="the procedural Waldo room end to end: train a NeRF, run GRS/PIBS/EGPS, write a report",
+        "demo",
+        help="the procedural Waldo room end to end: train a NeRF, run GRS/PIBS/EGPS, write a report",
         description="Build the procedural Waldo room, train the hash-grid NeRF on its views, run GRS, PIBS and "
-                    "EGPS at the low budget with the waldo_found criterion (Waldo whole, then as large as possible; several "
-                    "seeds each), and write report.md with CVIR/mCVIR per method, Waldo's visible share and the "
-                    "NeRF's PSNR at the best views, contact sheets and pose clouds into a new folder.")
+        "EGPS at the low budget with the waldo_found criterion (Waldo whole, then as large as possible; several "
+        "seeds each), and write report.md with CVIR/mCVIR per method, Waldo's visible share and the "
+        "NeRF's PSNR at the best views, contact sheets and pose clouds into a new folder.",
+    )
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-<timestamp>; never overwritten)")
     demo.add_argument("--quick", action="store_true", help="smaller settings (under 2 minutes on 2 CPU cores)")
-    demo.add_argument("--seed", type=int, default=None,
-                      help="room seed and first search seed (default: 1, the first room where Waldo can be seen whole)")
+    demo.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="room seed and first search seed (default: 1, the first room where Waldo can be seen whole)",
+    )
     add_quiet(demo)
     demo.set_defaults(handler=cmd_demo)
 

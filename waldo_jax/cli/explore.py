@@ -29,45 +29,78 @@ __all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
 def add_command(subparsers) -> None:
     """Registers `explore` on an argparse subparsers object (function as `handler`)."""
     p = subparsers.add_parser(
-        "explore", help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS)",
+        "explore",
+        help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS)",
         description="Run one of the paper's searches (Algorithm 1) on SOURCE: start from the scored training "
-                    "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
-                    "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.")
-    p.add_argument("source", metavar="SOURCE",
-                   help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)")
-    p.add_argument("--cameras", default=None, metavar="FILE",
-                   help="splat scenes: a transforms.json-like file of training poses (default: the model's "
-                        "cameras.json, else a ring of 24 views around the splats)")
+        "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
+        "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.",
+    )
+    p.add_argument(
+        "source",
+        metavar="SOURCE",
+        help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)",
+    )
+    p.add_argument(
+        "--cameras",
+        default=None,
+        metavar="FILE",
+        help="splat scenes: a transforms.json-like file of training poses (default: the model's "
+        "cameras.json, else a ring of 24 views around the splats)",
+    )
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help=f"one of {method_names()}")
-    p.add_argument("--budget", default="low", choices=tuple(BUDGETS),
-                   help="low (250-300 images in total) or high (900-1000)")
+    p.add_argument(
+        "--budget", default="low", choices=tuple(BUDGETS), help="low (250-300 images in total) or high (900-1000)"
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds (seed, seed+1, ...) in one vmapped call")
-    p.add_argument("--resolution", type=int, default=None,
-                   help="longer image side of the renders (default: procedural 64, runs: the training size)")
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        help="longer image side of the renders (default: procedural 64, runs: the training size)",
+    )
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     p.add_argument("--epochs", type=int, default=5, help="epochs (default: 5, as the paper)")
-    p.add_argument("--children-per-epoch", type=int, default=None,
-                   help="poses per epoch (default: derived from the budget and the number of training views)")
+    p.add_argument(
+        "--children-per-epoch",
+        type=int,
+        default=None,
+        help="poses per epoch (default: derived from the budget and the number of training views)",
+    )
     p.add_argument("--top-k", type=int, default=10, help="views returned")
     p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired")
     p.add_argument("--pibs-fallback", default="none", choices=("none", "grs"), help="PIBS once its pairs run out")
-    p.add_argument("--initial", default="images", choices=INITIAL_MODES,
-                   help="score the initial population on the real training 'images' (as the paper) "
-                        "or on 'renders' at the training poses")
-    p.add_argument("--views", type=int, default=None,
-                   help="procedural only: number of training views, at most 1000 (default: 24)")
+    p.add_argument(
+        "--initial",
+        default="images",
+        choices=INITIAL_MODES,
+        help="score the initial population on the real training 'images' (as the paper) "
+        "or on 'renders' at the training poses",
+    )
+    p.add_argument(
+        "--views", type=int, default=None, help="procedural only: number of training views, at most 1000 (default: 24)"
+    )
     defaults = RefineConfig()
-    p.add_argument("--refine-poses", type=int, default=defaults.poses,
-                   help="+refine: best poses refined in the last epoch")
-    p.add_argument("--refine-steps", type=int, default=defaults.steps,
-                   help="+refine: gradient evaluations per refined pose")
-    p.add_argument("--refine-step-size", type=float, default=defaults.step_size,
-                   help="+refine: largest step per coordinate, as a fraction of the scene extent")
-    p.add_argument("--gradient-cost", type=int, default=None,
-                   help="+refine: renders one gradient evaluation counts as in the budget, >= 2 (default: "
-                        "measured, 2 for a pose oracle, 12 through a render; README 'Which method when')")
+    p.add_argument(
+        "--refine-poses", type=int, default=defaults.poses, help="+refine: best poses refined in the last epoch"
+    )
+    p.add_argument(
+        "--refine-steps", type=int, default=defaults.steps, help="+refine: gradient evaluations per refined pose"
+    )
+    p.add_argument(
+        "--refine-step-size",
+        type=float,
+        default=defaults.step_size,
+        help="+refine: largest step per coordinate, as a fraction of the scene extent",
+    )
+    p.add_argument(
+        "--gradient-cost",
+        type=int,
+        default=None,
+        help="+refine: renders one gradient evaluation counts as in the budget, >= 2 (default: "
+        "measured, 2 for a pose oracle, 12 through a render; README 'Which method when')",
+    )
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     add_quiet(p, "per-epoch progress lines nor progress bars")
     p.set_defaults(handler=cmd_explore)
@@ -82,22 +115,36 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
         raise WaldoError(f"unknown --method {method!r}: expected one of {method_names()}") from None
     if args.budget not in BUDGETS:
         raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(BUDGETS)}")
-    for flag, value, minimum in (("--epochs", args.epochs, 1), ("--top-k", args.top_k, 1), ("--top-c", args.top_c, 2),
-                                 ("--seeds", args.seeds, 1), ("--children-per-epoch", args.children_per_epoch, 1),
-                                 ("--refine-poses", args.refine_poses, 1), ("--refine-steps", args.refine_steps, 1),
-                                 ("--gradient-cost", args.gradient_cost, 2)):
+    for flag, value, minimum in (
+        ("--epochs", args.epochs, 1),
+        ("--top-k", args.top_k, 1),
+        ("--top-c", args.top_c, 2),
+        ("--seeds", args.seeds, 1),
+        ("--children-per-epoch", args.children_per_epoch, 1),
+        ("--refine-poses", args.refine_poses, 1),
+        ("--refine-steps", args.refine_steps, 1),
+        ("--gradient-cost", args.gradient_cost, 2),
+    ):
         if value is not None:
             check_int(value, flag, minimum)  # counts are int32 under jit
     check_float32(args.refine_step_size, "--refine-step-size", positive=True)  # 1e-300: 0 in float32
     if args.pibs_fallback not in ("none", "grs"):
         raise WaldoError(f"unknown --pibs-fallback {args.pibs_fallback!r}: expected none or grs")
     try:
-        refine = RefineConfig(poses=args.refine_poses, steps=args.refine_steps, step_size=args.refine_step_size,
-                              **({} if args.gradient_cost is None else {"gradient_cost": args.gradient_cost}))
+        refine = RefineConfig(
+            poses=args.refine_poses,
+            steps=args.refine_steps,
+            step_size=args.refine_step_size,
+            **({} if args.gradient_cost is None else {"gradient_cost": args.gradient_cost}),
+        )
     except ValueError as e:
         message = str(e)
-        for field, flag in (("poses", "--refine-poses"), ("steps", "--refine-steps"),
-                            ("step_size", "--refine-step-size"), ("gradient_cost", "--gradient-cost")):
+        for field, flag in (
+            ("poses", "--refine-poses"),
+            ("steps", "--refine-steps"),
+            ("step_size", "--refine-step-size"),
+            ("gradient_cost", "--gradient-cost"),
+        ):
             message = message.replace(f"RefineConfig.{field}", flag)
         raise WaldoError(message) from None
     # The method's own options from the flags it has (--top-c and --pibs-fallback are PIBS's, the
@@ -105,8 +152,14 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     flags = {"top_c": args.top_c, "fallback": args.pibs_fallback, "refine": refine}
     options = {name: value for name, value in flags.items() if name in search_method.options}
     try:
-        return ExploreConfig(method=method, epochs=args.epochs, children_per_epoch=args.children_per_epoch,
-                             budget=args.budget, top_k=args.top_k, options=options)
+        return ExploreConfig(
+            method=method,
+            epochs=args.epochs,
+            children_per_epoch=args.children_per_epoch,
+            budget=args.budget,
+            top_k=args.top_k,
+            options=options,
+        )
     except ValueError as e:
         raise WaldoError(str(e)) from None
 
@@ -126,20 +179,28 @@ def cmd_explore(args: argparse.Namespace) -> int:
         progress.phase(f"loading {args.source}")
         source = load_source(args.source, args.resolution, args.views, args.cameras)
     if criterion is None:  # a poses criterion: the room's oracles need the source
-        criterion = criterion_from_args(args, room=source.room, source=source.spec,
-                                        train_c2w=source.train_c2w)
+        criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
     if method.differentiable:
         criterion.smooth()  # refuses a criterion gradient steps cannot follow, before any work
-        config = config.with_options(refine=refine_for_source(config.refine_config(), source, criterion,
-                                                              args.gradient_cost is None))
+        config = config.with_options(
+            refine=refine_for_source(config.refine_config(), source, criterion, args.gradient_cost is None)
+        )
     try:
         config.resolve(source.n_train).method_config(method)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
     # run_explore checks the batched epoch fits in memory before it scores or renders anything.
     setup = time.perf_counter() - start
-    run = run_explore(source, criterion, config, seed=args.seed, seeds=args.seeds, initial=args.initial,
-                      setup_seconds=setup, progress=not args.quiet)
+    run = run_explore(
+        source,
+        criterion,
+        config,
+        seed=args.seed,
+        seeds=args.seeds,
+        initial=args.initial,
+        setup_seconds=setup,
+        progress=not args.quiet,
+    )
     out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
     with Progress(args.quiet) as progress:
         progress.phase("rendering the top views and writing the results")
@@ -151,10 +212,16 @@ def cmd_explore(args: argparse.Namespace) -> int:
             return "n/a"
         return f"{value:.1f} %" if spread is None else f"{value:.1f} +/- {spread:.1f} %"
 
-    spread = (f" (mean over {args.seeds} seeds: CVIR {percent(results['cvir_mean'], results['cvir_std'])}, "
-              f"mCVIR {percent(results['mcvir_mean'], results['mcvir_std'])})" if args.seeds > 1 else "")
-    print(f"{run.config.method.upper()} on {source.name} with {criterion.name}: {results['n_train']} training + "
-          f"{results['n_generated']} generated views; best {'n/a' if best is None else format(best, '.4g')}; "
-          f"CVIR {percent(results['cvir'])}, mCVIR {percent(results['mcvir'])}{spread}; "
-          f"{run.seconds['total']:.1f} s; wrote {out}")
+    spread = (
+        f" (mean over {args.seeds} seeds: CVIR {percent(results['cvir_mean'], results['cvir_std'])}, "
+        f"mCVIR {percent(results['mcvir_mean'], results['mcvir_std'])})"
+        if args.seeds > 1
+        else ""
+    )
+    print(
+        f"{run.config.method.upper()} on {source.name} with {criterion.name}: {results['n_train']} training + "
+        f"{results['n_generated']} generated views; best {'n/a' if best is None else format(best, '.4g')}; "
+        f"CVIR {percent(results['cvir'])}, mCVIR {percent(results['mcvir'])}{spread}; "
+        f"{run.seconds['total']:.1f} s; wrote {out}"
+    )
     return 0

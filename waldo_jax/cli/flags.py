@@ -21,16 +21,25 @@ __all__ = ["add_criterion_arguments", "criterion_before_source", "criterion_from
 def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[str] = None) -> None:
     """`--criterion`, `--guard`, `--weights` and `--target` on `parser`."""
     names = ", ".join(sorted(CRITERIA))
-    parser.add_argument("--criterion", required=default is None, default=default,
-                        help=f"one of {names}, or weighted:NAME=W,NAME=W")
-    parser.add_argument("--guard", action="append", default=[], metavar="NAME:THRESHOLD",
-                        help="a view failing this criterion's threshold gets the worst score, e.g. opacity:0.9 "
-                             "(repeatable)")
-    parser.add_argument("--weights", default=None, metavar="DIR",
-                        help="weights folder in the ../shared/weights layout (default: WALDO_WEIGHTS, else "
-                             "$WALDO_DATA/weights)")
-    parser.add_argument("--target", default=None, metavar="FILE",
-                        help="reference image of the object to find (criterion waldo)")
+    parser.add_argument(
+        "--criterion", required=default is None, default=default, help=f"one of {names}, or weighted:NAME=W,NAME=W"
+    )
+    parser.add_argument(
+        "--guard",
+        action="append",
+        default=[],
+        metavar="NAME:THRESHOLD",
+        help="a view failing this criterion's threshold gets the worst score, e.g. opacity:0.9 (repeatable)",
+    )
+    parser.add_argument(
+        "--weights",
+        default=None,
+        metavar="DIR",
+        help="weights folder in the ../shared/weights layout (default: WALDO_WEIGHTS, else $WALDO_DATA/weights)",
+    )
+    parser.add_argument(
+        "--target", default=None, metavar="FILE", help="reference image of the object to find (criterion waldo)"
+    )
 
 
 def criterion_from_args(args: argparse.Namespace, room=None, source: str = "", train_c2w=None) -> Criterion:
@@ -38,8 +47,9 @@ def criterion_from_args(args: argparse.Namespace, room=None, source: str = "", t
     target = None
     if getattr(args, "target", None):
         target = read_image(args.target, what="--target image", min_side=2)
-    context = CriterionContext(room=room, weights_dir=getattr(args, "weights", None), target=target, source=source,
-                               train_c2w=train_c2w)
+    context = CriterionContext(
+        room=room, weights_dir=getattr(args, "weights", None), target=target, source=source, train_c2w=train_c2w
+    )
     return build_criterion(args.criterion, context, getattr(args, "guard", []) or [])
 
 

@@ -67,7 +67,7 @@ class Guard:
                     signal.signal(other, signal.SIG_IGN)
         status = EXIT_STATUS.get(signum, 128 + int(signum))
         _close_progress_bars()
-        removed = io.discard_unfinished(io.created_output_dirs()[self._created_before:])
+        removed = io.discard_unfinished(io.created_output_dirs()[self._created_before :])
         what = "" if signum == signal.SIGINT else f" by {signal.Signals(signum).name}"
         note = f" (removed the unfinished output folder {', '.join(map(str, removed))})" if removed else ""
         with contextlib.suppress(Exception):
@@ -130,8 +130,9 @@ def handled(exit_process: bool) -> Iterator[Guard]:
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
     previous_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
-    watcher = threading.Thread(target=_watch, args=(read_fd, guard, list(previous)), name="waldo-interrupt",
-                               daemon=True)
+    watcher = threading.Thread(
+        target=_watch, args=(read_fd, guard, list(previous)), name="waldo-interrupt", daemon=True
+    )
     watcher.start()
     stderr = sys.stderr = _Stderr(sys.stderr)
     try:
@@ -160,4 +161,3 @@ def _watch(read_fd: int, guard: Guard, signals: List[int]) -> None:
                 return
     finally:
         os.close(read_fd)
-

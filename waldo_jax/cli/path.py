@@ -23,8 +23,13 @@ from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
-from waldo_jax.pipeline.path_run import (PathRunOptions, check_nerfstudio_export, read_explore_anchors, run_path,
-                                         write_path_outputs)
+from waldo_jax.pipeline.path_run import (
+    PathRunOptions,
+    check_nerfstudio_export,
+    read_explore_anchors,
+    run_path,
+    write_path_outputs,
+)
 
 __all__ = ["add_command", "cmd_path", "MAX_FRAMES", "MAX_KEYFRAMES"]
 
@@ -35,53 +40,102 @@ MAX_KEYFRAMES = 64
 def add_command(subparsers) -> None:
     """Registers `path` on an argparse subparsers object (function as `handler`)."""
     p = subparsers.add_parser(
-        "path", help="search a camera path whose frames satisfy a criterion; export it (nerfstudio, Instant-NGP, MP4)",
+        "path",
+        help="search a camera path whose frames satisfy a criterion; export it (nerfstudio, Instant-NGP, MP4)",
         description="Search the K keyframes of a smooth camera path (Catmull-Rom positions and look-at points, "
-                    "SLERP up vectors, F frames evenly spaced) whose frames maximise an aggregate of the "
-                    "criterion under speed, turn, scene-box and opacity limits; write camera_path.json "
-                    "(nerfstudio), instant_ngp_path.json, poses.json, path.mp4, path.gif, scores.png, "
-                    "path_plot.png and results.json.")
-    p.add_argument("source", metavar="SOURCE",
-                   help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)")
-    p.add_argument("--cameras", default=None, metavar="FILE",
-                   help="splat scenes: a transforms.json-like file of training poses (default: the model's "
-                        "cameras.json, else a ring of 24 views around the splats)")
+        "SLERP up vectors, F frames evenly spaced) whose frames maximise an aggregate of the "
+        "criterion under speed, turn, scene-box and opacity limits; write camera_path.json "
+        "(nerfstudio), instant_ngp_path.json, poses.json, path.mp4, path.gif, scores.png, "
+        "path_plot.png and results.json.",
+    )
+    p.add_argument(
+        "source",
+        metavar="SOURCE",
+        help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)",
+    )
+    p.add_argument(
+        "--cameras",
+        default=None,
+        metavar="FILE",
+        help="splat scenes: a transforms.json-like file of training poses (default: the model's "
+        "cameras.json, else a ring of 24 views around the splats)",
+    )
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help="egps or evosax:NAME (e.g. evosax:CMA_ES)")
     p.add_argument("--keyframes", type=int, default=4, help="keyframes K of the path")
     p.add_argument("--frames", type=int, default=24, help="frames F of the path")
-    p.add_argument("--budget", default="low", choices=tuple(PATH_BUDGETS),
-                   help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']}")
+    p.add_argument(
+        "--budget",
+        default="low",
+        choices=tuple(PATH_BUDGETS),
+        help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']}",
+    )
     p.add_argument("--epochs", type=int, default=5, help="epochs")
     p.add_argument("--initial-paths", type=int, default=16, help="starting paths")
-    p.add_argument("--paths-per-epoch", type=int, default=None,
-                   help="paths per epoch (default: derived from the budget, the frames and the starting paths)")
+    p.add_argument(
+        "--paths-per-epoch",
+        type=int,
+        default=None,
+        help="paths per epoch (default: derived from the budget, the frames and the starting paths)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds in one vmapped call (files show the first)")
-    p.add_argument("--from-explore", default=None, metavar="DIR",
-                   help="build the starting paths from the top poses of a `waldo explore` --out folder "
-                        "(default: from the training views)")
+    p.add_argument(
+        "--from-explore",
+        default=None,
+        metavar="DIR",
+        help="build the starting paths from the top poses of a `waldo explore` --out folder "
+        "(default: from the training views)",
+    )
     p.add_argument("--aggregate", default="mean", choices=AGGREGATES, help="a path's score from its frames")
-    p.add_argument("--temperature", type=float, default=0.05,
-                   help="softmin temperature in score units (default: 0.05, for scores in [0, 1])")
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=0.05,
+        help="softmin temperature in score units (default: 0.05, for scores in [0, 1])",
+    )
     p.add_argument("--max-speed", type=float, default=0.05, help="largest camera move per frame, in scene extents")
     p.add_argument("--max-turn", type=float, default=5.0, help="largest rotation per frame in degrees")
-    p.add_argument("--min-opacity", type=float, default=0.0,
-                   help="smallest mean opacity of a frame, 0 to 1 (default: 0, off; a pose criterion renders "
-                        "nothing during the search, so the limit is checked only on rendering criteria)")
-    p.add_argument("--min-travel", type=float, default=0.0,
-                   help="shortest camera travel over the whole path, in scene extents (default: 0, off; e.g. 0.5 "
-                        "for a move, since a path that stays at the best view scores best)")
-    p.add_argument("--resolution", type=int, default=None,
-                   help="longer image side of the search's renders (default: procedural 64, runs: training size)")
-    p.add_argument("--video-resolution", type=int, default=None,
-                   help="longer image side of the video frames (default: --resolution)")
+    p.add_argument(
+        "--min-opacity",
+        type=float,
+        default=0.0,
+        help="smallest mean opacity of a frame, 0 to 1 (default: 0, off; a pose criterion renders "
+        "nothing during the search, so the limit is checked only on rendering criteria)",
+    )
+    p.add_argument(
+        "--min-travel",
+        type=float,
+        default=0.0,
+        help="shortest camera travel over the whole path, in scene extents (default: 0, off; e.g. 0.5 "
+        "for a move, since a path that stays at the best view scores best)",
+    )
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        help="longer image side of the search's renders (default: procedural 64, runs: training size)",
+    )
+    p.add_argument(
+        "--video-resolution",
+        type=int,
+        default=None,
+        help="longer image side of the video frames (default: --resolution)",
+    )
     p.add_argument("--fps", type=float, default=12.0, help="frames per second of the video and the exports")
-    p.add_argument("--initial", default="images", choices=INITIAL_MODES,
-                   help="score the training-view anchors on the real 'images' or on 'renders'")
+    p.add_argument(
+        "--initial",
+        default="images",
+        choices=INITIAL_MODES,
+        help="score the training-view anchors on the real 'images' or on 'renders'",
+    )
     p.add_argument("--views", type=int, default=None, help="procedural only: number of training views (default: 24)")
-    p.add_argument("--nerfstudio-transforms", default=None, metavar="FILE",
-                   help="a nerfstudio model's dataparser_transforms.json: write camera_path.json in its world")
+    p.add_argument(
+        "--nerfstudio-transforms",
+        default=None,
+        metavar="FILE",
+        help="a nerfstudio model's dataparser_transforms.json: write camera_path.json in its world",
+    )
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     add_quiet(p)
@@ -95,16 +149,24 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
         raise WaldoError(f"--method: {e}") from None
     if args.budget not in PATH_BUDGETS:
         raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(PATH_BUDGETS)}")
-    for flag, value, low, high in (("--keyframes", args.keyframes, 2, MAX_KEYFRAMES),
-                                   ("--frames", args.frames, 4, MAX_FRAMES), ("--epochs", args.epochs, 1, 100),
-                                   ("--initial-paths", args.initial_paths, 3, 10000), ("--seeds", args.seeds, 1, 1000),
-                                   ("--paths-per-epoch", args.paths_per_epoch, 2, 10000)):
+    for flag, value, low, high in (
+        ("--keyframes", args.keyframes, 2, MAX_KEYFRAMES),
+        ("--frames", args.frames, 4, MAX_FRAMES),
+        ("--epochs", args.epochs, 1, 100),
+        ("--initial-paths", args.initial_paths, 3, 10000),
+        ("--seeds", args.seeds, 1, 1000),
+        ("--paths-per-epoch", args.paths_per_epoch, 2, 10000),
+    ):
         if value is not None and not low <= value <= high:
             raise WaldoError(f"{flag} must be between {low} and {high}, got {value}")
     if args.aggregate not in AGGREGATES:
         raise WaldoError(f"unknown --aggregate {args.aggregate!r}: expected one of {', '.join(AGGREGATES)}")
-    for flag, value in (("--temperature", args.temperature), ("--fps", args.fps), ("--max-speed", args.max_speed),
-                        ("--max-turn", args.max_turn)):
+    for flag, value in (
+        ("--temperature", args.temperature),
+        ("--fps", args.fps),
+        ("--max-speed", args.max_speed),
+        ("--max-turn", args.max_turn),
+    ):
         if not (value > 0 and math.isfinite(value)):
             raise WaldoError(f"{flag} must be a positive number, got {value}")
         check_float32(value, flag, positive=True)  # 1e-300 > 0 is 0 in float32 (and in a video's frame rate)
@@ -112,18 +174,27 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
     if not 0 <= args.min_opacity <= 1:
         raise WaldoError(f"--min-opacity must lie between 0 and 1, got {args.min_opacity}")
     if not (0 <= args.min_travel <= args.frames * args.max_speed):
-        raise WaldoError(f"--min-travel must lie between 0 and --frames x --max-speed = "
-                         f"{args.frames * args.max_speed:g} extents, got {args.min_travel}")
+        raise WaldoError(
+            f"--min-travel must lie between 0 and --frames x --max-speed = "
+            f"{args.frames * args.max_speed:g} extents, got {args.min_travel}"
+        )
     if args.initial not in INITIAL_MODES:
         raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")
     for flag, value in (("--resolution", args.resolution), ("--video-resolution", args.video_resolution)):
         if value is not None:
             check_resolution(value, flag)
     try:
-        return PathConfig(keyframes=args.keyframes, frames=args.frames, method=args.method, epochs=args.epochs,
-                          budget=args.budget, initial_paths=args.initial_paths, paths_per_epoch=args.paths_per_epoch,
-                          aggregate=args.aggregate,
-                          temperature=args.temperature).resolve()
+        return PathConfig(
+            keyframes=args.keyframes,
+            frames=args.frames,
+            method=args.method,
+            epochs=args.epochs,
+            budget=args.budget,
+            initial_paths=args.initial_paths,
+            paths_per_epoch=args.paths_per_epoch,
+            aggregate=args.aggregate,
+            temperature=args.temperature,
+        ).resolve()
     except ValueError as e:
         raise WaldoError(str(e).replace("PathConfig.", "--").replace("_", "-")) from None
 
@@ -148,23 +219,36 @@ def cmd_path(args: argparse.Namespace) -> int:
         progress.phase(f"loading {args.source}")
         source = load_source(args.source, args.resolution, args.views, args.cameras)
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
-        video = source if args.video_resolution is None else load_source(args.source, args.video_resolution,
-                                                                         args.views, args.cameras)
+        video = (
+            source
+            if args.video_resolution is None
+            else load_source(args.source, args.video_resolution, args.views, args.cameras)
+        )
         if criterion is None:  # a poses criterion: the room's oracles need the source
-            criterion = criterion_from_args(args, room=source.room, source=source.spec,
-                                            train_c2w=source.train_c2w)
+            criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
         limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
-        options = PathRunOptions(anchor_c2w=anchor_c2w, initial=args.initial, video_source=video,
-                                 anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
-                                 setup_seconds=time.perf_counter() - start, on_phase=progress.phase)
+        options = PathRunOptions(
+            anchor_c2w=anchor_c2w,
+            initial=args.initial,
+            video_source=video,
+            anchors="training views" if anchor_c2w is None else f"explore run {args.from_explore}",
+            setup_seconds=time.perf_counter() - start,
+            on_phase=progress.phase,
+        )
         run = run_path(source, criterion, config, limits, seed=args.seed, seeds=args.seeds, options=options)
         progress.phase("writing the exports, the video and the plots")
         out = io.prepare_output_dir(args.out, force=args.force)  # created only once everything is valid
         results = write_path_outputs(run, out, fps=args.fps, dataparser=dataparser)
     found, straight, training = results["found"], results["references"]["straight"], results["references"]["training"]
-    kept = "keeps every limit" if found["kept_limits"] else "NO path kept the limits (relax --max-speed, --max-turn, --min-travel or --min-opacity)"
-    print(f"{config.method.upper()} path on {source.name} with {criterion.name}: {config.keyframes} keyframes, "
-          f"{config.frames} frames, {results['cost']['frames']} frames rendered; {args.aggregate} {found['score']:.4g} "
-          f"(worst frame {found['worst']:.4g}) vs straight {straight['score']:.4g}, training trajectory "
-          f"{training['score']:.4g}; {kept}; {run.seconds['total']:.1f} s; wrote {out}")
+    kept = (
+        "keeps every limit"
+        if found["kept_limits"]
+        else "NO path kept the limits (relax --max-speed, --max-turn, --min-travel or --min-opacity)"
+    )
+    print(
+        f"{config.method.upper()} path on {source.name} with {criterion.name}: {config.keyframes} keyframes, "
+        f"{config.frames} frames, {results['cost']['frames']} frames rendered; {args.aggregate} {found['score']:.4g} "
+        f"(worst frame {found['worst']:.4g}) vs straight {straight['score']:.4g}, training trajectory "
+        f"{training['score']:.4g}; {kept}; {run.seconds['total']:.1f} s; wrote {out}"
+    )
     return 0

@@ -23,8 +23,9 @@ def add_command(subparsers) -> None:
     info.add_argument("path", help="scene folder or its transforms.json / poses_bounds.npy")
     info.add_argument("--json", action="store_true", help="print exactly one JSON object")
     info.add_argument("--downscale", type=float, default=None, help="load images downscaled by this factor")
-    info.add_argument("--split", default=None, choices=SPLITS,
-                      help="which images (default: the dataset's training set)")
+    info.add_argument(
+        "--split", default=None, choices=SPLITS, help="which images (default: the dataset's training set)"
+    )
     add_quiet(info, "progress (the loading phase's bar)")
     info.set_defaults(handler=cmd_scene_info)
 
@@ -46,10 +47,17 @@ def cmd_scene_info(args: argparse.Namespace) -> int:
         f"scene      {summary['path'] or summary['name']}",
         f"format     {summary['format']} (split: {summary['split']})",
         f"images     {summary['n_images']} at {summary['width']}x{summary['height']}"
-        + (f", {summary['skipped_missing']} listed frames without an image skipped" if summary["skipped_missing"] else ""),
+        + (
+            f", {summary['skipped_missing']} listed frames without an image skipped"
+            if summary["skipped_missing"]
+            else ""
+        ),
         f"intrinsics fx={intr['fx']:.2f} fy={intr['fy']:.2f} cx={intr['cx']:.2f} cy={intr['cy']:.2f}"
-        + (f" k1={intr['k1']:.4g} k2={intr['k2']:.4g} p1={intr['p1']:.4g} p2={intr['p2']:.4g}"
-           if any(intr[k] for k in ("k1", "k2", "p1", "p2")) else ""),
+        + (
+            f" k1={intr['k1']:.4g} k2={intr['k2']:.4g} p1={intr['p1']:.4g} p2={intr['p2']:.4g}"
+            if any(intr[k] for k in ("k1", "k2", "p1", "p2"))
+            else ""
+        ),
         f"near/far   {summary['near']:.4g} / {summary['far']:.4g}",
         f"aabb       {summary['aabb'][0]} .. {summary['aabb'][1]}",
         f"cameras    origins in {summary['camera_origin_min']} .. {summary['camera_origin_max']}",

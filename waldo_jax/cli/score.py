@@ -31,14 +31,24 @@ __all__ = ["add_command", "cmd_score"]
 def add_command(subparsers) -> None:
     """Registers `score` on an argparse subparsers object."""
     p = subparsers.add_parser(
-        "score", help="score image files with a criterion",
+        "score",
+        help="score image files with a criterion",
         description="Score image files with a criterion of the registry (each at its own size). Prints "
-                    "'score  file' lines, or with --json one object {criterion, direction, scores} in input order.")
+        "'score  file' lines, or with --json one object {criterion, direction, scores} in input order.",
+    )
     p.add_argument("images", nargs="*", metavar="IMAGE", help="image files (PNG, JPEG, ...)")
-    p.add_argument("--source", default=None, metavar="SOURCE",
-                   help="score renders of SOURCE (procedural[:SEED], a RUN_DIR, a splat scene) instead of files")
-    p.add_argument("--poses", default="train", metavar="FILE|train",
-                   help="with --source: a transforms.json-like poses file, or 'train' for its training poses")
+    p.add_argument(
+        "--source",
+        default=None,
+        metavar="SOURCE",
+        help="score renders of SOURCE (procedural[:SEED], a RUN_DIR, a splat scene) instead of files",
+    )
+    p.add_argument(
+        "--poses",
+        default="train",
+        metavar="FILE|train",
+        help="with --source: a transforms.json-like poses file, or 'train' for its training poses",
+    )
     p.add_argument("--resolution", type=int, default=None, help="with --source: longer side of the renders")
     add_criterion_arguments(p)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
@@ -62,8 +72,9 @@ def cmd_score(args: argparse.Namespace) -> int:
     for i, image in enumerate(images):
         by_shape.setdefault(image.shape, []).append(i)
     with Progress(args.quiet) as progress:
-        progress.phase(f"scoring with {criterion.name} (compiling once per image size)", total=len(images),
-                       unit="image")
+        progress.phase(
+            f"scoring with {criterion.name} (compiling once per image size)", total=len(images), unit="image"
+        )
         for shape, indices in by_shape.items():  # one batched call per image size
             batch = np.stack([images[i] for i in indices])
             scores[indices] = np.asarray(score(batch), np.float64)
@@ -73,8 +84,11 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 def _print(args: argparse.Namespace, criterion, scores, labels) -> int:
     if args.json:
-        print(json.dumps({"criterion": criterion.name, "direction": criterion.direction,
-                          "scores": [float(s) for s in scores]}))
+        print(
+            json.dumps(
+                {"criterion": criterion.name, "direction": criterion.direction, "scores": [float(s) for s in scores]}
+            )
+        )
         return 0
     better = "higher" if criterion.direction == "max" else "lower"
     print(f"# {criterion.name} ({better} is better): {criterion.description}")
@@ -96,17 +110,18 @@ def _score_source(args: argparse.Namespace) -> int:
         progress.phase(f"loading {args.source}")
         source = load_source(args.source, args.resolution)
     if criterion is None:  # a poses criterion: the room's oracles need the source
-        criterion = criterion_from_args(args, room=source.room, source=source.spec,
-                                        train_c2w=source.train_c2w)
+        criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
     if args.poses == "train":
         c2w, labels = source.train_c2w, list(source.train_names)
     else:
         c2w, intrinsics, files = read_poses_file(Path(args.poses), source.intrinsics)
         if (intrinsics.width, intrinsics.height) != (source.intrinsics.width, source.intrinsics.height):
             side = max(source.intrinsics.width, source.intrinsics.height)
-            raise WaldoError(f"{args.poses}: its cameras are {intrinsics.width}x{intrinsics.height}, SOURCE renders "
-                             f"{source.intrinsics.width}x{source.intrinsics.height} (--resolution {side}): "
-                             "pass the --resolution of the file's longer side")
+            raise WaldoError(
+                f"{args.poses}: its cameras are {intrinsics.width}x{intrinsics.height}, SOURCE renders "
+                f"{source.intrinsics.width}x{source.intrinsics.height} (--resolution {side}): "
+                "pass the --resolution of the file's longer side"
+            )
         labels = [f or f"pose {i}" for i, f in enumerate(files)]
     with progress:
         progress.phase(f"rendering and scoring {len(c2w)} views (compiling first)")

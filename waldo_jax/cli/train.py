@@ -29,24 +29,35 @@ __all__ = ["add_command", "cmd_train"]
 def add_command(subparsers) -> None:
     """Registers `train` on an argparse subparsers object (function as `handler`)."""
     p = subparsers.add_parser(
-        "train", help="train an Instant-NGP field on a scene",
+        "train",
+        help="train an Instant-NGP field on a scene",
         description="Train an Instant-NGP field on a scene's training split and report the held-out PSNR "
-                    "on its test split (Blender: transforms_test.json; other formats: every 8th image).")
+        "on its test split (Blender: transforms_test.json; other formats: every 8th image).",
+    )
     p.add_argument("scene_path", metavar="SCENE_PATH", help="scene folder or scene file")
-    p.add_argument("--model", default="nerf", choices=MODELS,
-                   help="nerf (Instant-NGP) or splat (3D Gaussian splats, the reference 3DGS layout)")
-    p.add_argument("--capacity", type=int, default=None,
-                   help="splat: the most splats the fit may hold (default: 32768)")
+    p.add_argument(
+        "--model",
+        default="nerf",
+        choices=MODELS,
+        help="nerf (Instant-NGP) or splat (3D Gaussian splats, the reference 3DGS layout)",
+    )
+    p.add_argument(
+        "--capacity", type=int, default=None, help="splat: the most splats the fit may hold (default: 32768)"
+    )
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory to write")
-    p.add_argument("--steps", type=int, default=None,
-                   help="training steps (default: the preset's; splat: 3000)")
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's; splat: 3000)")
     p.add_argument("--downscale", type=float, default=None, help="load images downscaled K times")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--preset", default="fast", choices=PRESETS, help="training settings")
     p.add_argument("--sampler", default="auto", choices=SAMPLER_CHOICES, help="auto (= occupancy), dense or occupancy")
-    p.add_argument("--render-step-scale", type=float, default=None, metavar="X",
-                   help="march renders X times coarser than training (default: measured after training on the "
-                        "held-out views, the largest of 2, 3, 4 within 0.05 dB of X = 1)")
+    p.add_argument(
+        "--render-step-scale",
+        type=float,
+        default=None,
+        metavar="X",
+        help="march renders X times coarser than training (default: measured after training on the "
+        "held-out views, the largest of 2, 3, 4 within 0.05 dB of X = 1)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
     add_quiet(p, "progress bar")
     p.set_defaults(handler=cmd_train)
@@ -62,14 +73,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         return _fit_splats(args)
     if args.capacity is not None:
         raise WaldoError("--capacity is for --model splat")
-    result, _, out = train_scene_run(args.scene_path, args.out, preset=args.preset, steps=args.steps,
-                                     sampler=args.sampler, render_step_scale=args.render_step_scale,
-                                     options=_run_options(args))
+    result, _, out = train_scene_run(
+        args.scene_path,
+        args.out,
+        preset=args.preset,
+        steps=args.steps,
+        sampler=args.sampler,
+        render_step_scale=args.render_step_scale,
+        options=_run_options(args),
+    )
     psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
     scale = result.config.render_step_scale
     step = "" if scale is None else f" (renders march x{scale:g} the training step)"
-    print(f"trained {result.steps} steps in {result.seconds:.1f} s ({result.rays_per_second:,.0f} rays/s, "
-          f"{result.device}); held-out PSNR {psnr}{step}; wrote {out / CHECKPOINT_NAME}")
+    print(
+        f"trained {result.steps} steps in {result.seconds:.1f} s ({result.rays_per_second:,.0f} rays/s, "
+        f"{result.device}); held-out PSNR {psnr}{step}; wrote {out / CHECKPOINT_NAME}"
+    )
     return 0
 
 
@@ -77,14 +96,23 @@ def _fit_splats(args: argparse.Namespace) -> int:
     """`waldo train --model splat`: fits splats, writes the reference layout and train.json."""
     from waldo_jax.splats.runs import fit_scene_run
 
-    nerf_only = [flag for flag, value, default in (("--preset", args.preset, "fast"), ("--sampler", args.sampler, "auto"),
-                                                   ("--render-step-scale", args.render_step_scale, None))
-                 if value != default]
+    nerf_only = [
+        flag
+        for flag, value, default in (
+            ("--preset", args.preset, "fast"),
+            ("--sampler", args.sampler, "auto"),
+            ("--render-step-scale", args.render_step_scale, None),
+        )
+        if value != default
+    ]
     if nerf_only:
         raise WaldoError(f"{', '.join(nerf_only)}: for NeRF training only, not --model splat")
-    result, stats, out = fit_scene_run(args.scene_path, args.out, steps=args.steps, capacity=args.capacity,
-                                       options=_run_options(args))
+    result, stats, out = fit_scene_run(
+        args.scene_path, args.out, steps=args.steps, capacity=args.capacity, options=_run_options(args)
+    )
     psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
-    print(f"fitted {stats['splats']} splats in {result.steps} steps, {result.seconds:.1f} s ({stats['device']}); "
-          f"held-out PSNR {psnr}; wrote {out / stats['point_cloud']}")
+    print(
+        f"fitted {stats['splats']} splats in {result.steps} steps, {result.seconds:.1f} s ({stats['device']}); "
+        f"held-out PSNR {psnr}; wrote {out / stats['point_cloud']}"
+    )
     return 0

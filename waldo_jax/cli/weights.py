@@ -23,10 +23,12 @@ def add_command(subparsers) -> None:
     cmds = p.add_subparsers(dest="weights_command", metavar="COMMAND")
     cmds.required = True
     c = cmds.add_parser(
-        "convert", help="convert a weights folder to native .npz files",
+        "convert",
+        help="convert a weights folder to native .npz files",
         description="Read the original weights files of SRC (torch pickles, OpenCV YAML, MATLAB .mat, in the "
-                    "../shared/weights layout) and write DST/<model>/<model>.npz for each model, checking every "
-                    "shape. Criteria load DST faster with --weights DST (or WALDO_WEIGHTS=DST).")
+        "../shared/weights layout) and write DST/<model>/<model>.npz for each model, checking every "
+        "shape. Criteria load DST faster with --weights DST (or WALDO_WEIGHTS=DST).",
+    )
     c.add_argument("src", metavar="SRC", help="weights folder in the ../shared/weights layout")
     c.add_argument("dst", metavar="DST", help="output folder")
     c.add_argument("--model", action="append", default=None, help="convert only this model (repeatable)")
@@ -55,8 +57,9 @@ def cmd_weights_convert(args: argparse.Namespace) -> int:
         seconds = time.perf_counter() - t0
         count = sum(int(np.size(leaf)) for leaf in _leaves(tree))
         if not args.quiet:
-            print(f"{model:8s} {count:9d} values -> {path} ({path.stat().st_size / 1e6:.2f} MB, loads in "
-                  f"{seconds:.3f} s)")
+            print(
+                f"{model:8s} {count:9d} values -> {path} ({path.stat().st_size / 1e6:.2f} MB, loads in {seconds:.3f} s)"
+            )
     print(f"converted {len(written)} model(s) in {time.perf_counter() - start:.1f} s")
     return 0
 

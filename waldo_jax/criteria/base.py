@@ -92,7 +92,8 @@ class Criterion:
             usable = ", ".join(sorted(name for name, spec in CRITERIA.items() if spec.smooth))
             raise CriterionError(
                 f"criterion {self.name!r} is not differentiable and has no smooth stand-in, so gradient "
-                f"refinement (the +refine methods) cannot follow it; use a method without +refine, or one of: {usable}")
+                f"refinement (the +refine methods) cannot follow it; use a method without +refine, or one of: {usable}"
+            )
         return self.replace(apply=self.smooth_apply, name=self.name + ":smooth")
 
     def score_images(self, images: Array) -> Array:
@@ -104,12 +105,15 @@ class Criterion:
         if self.inputs == "poses":
             raise CriterionError(f"criterion {self.name!r} scores camera poses, not images")
         if self.inputs == "posed":
-            raise CriterionError(f"criterion {self.name!r} scores renders together with their camera poses, "
-                                 "not images alone (`score_posed`)")
+            raise CriterionError(
+                f"criterion {self.name!r} scores renders together with their camera poses, "
+                "not images alone (`score_posed`)"
+            )
         images = jnp.asarray(images, jnp.float32)
         if images.ndim != 4 or images.shape[-1] not in (3, 4):
-            raise CriterionError(f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), "
-                                 f"got shape {images.shape}")
+            raise CriterionError(
+                f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), got shape {images.shape}"
+            )
         if self.inputs == "images":
             return jnp.asarray(_compiled(self.apply, self.params, images[..., :3]), jnp.float32)
         return jnp.asarray(_compiled(self.apply, self.params, with_opacity(images)), jnp.float32)
@@ -241,7 +245,10 @@ def make_criterion(name: str, context: Optional[CriterionContext] = None) -> Cri
     """
     check_registered(name)
     criterion = CRITERIA[name].build(context or CriterionContext())
-    if (criterion.name != name or criterion.direction != CRITERIA[name].direction
-            or criterion.differentiable != CRITERIA[name].smooth):
+    if (
+        criterion.name != name
+        or criterion.direction != CRITERIA[name].direction
+        or criterion.differentiable != CRITERIA[name].smooth
+    ):
         raise AssertionError(f"criterion {name!r} built with a mismatching name or direction")  # a registry bug
     return criterion

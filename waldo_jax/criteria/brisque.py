@@ -88,8 +88,10 @@ def _read(model_dir: Path) -> Tuple[Dict[str, Any], Dict[str, Any]]:
         raise WeightsError(f"{model_path}: var_count {var_count}, expected {NUM_FEATURES}")
     functions = _field(svm, "decision_functions", model_path)
     if not isinstance(functions, list) or len(functions) != 1:
-        raise WeightsError(f"{model_path}: an SVR has one decision function, found "
-                           f"{len(functions) if isinstance(functions, list) else 'none'}")
+        raise WeightsError(
+            f"{model_path}: an SVR has one decision function, found "
+            f"{len(functions) if isinstance(functions, list) else 'none'}"
+        )
     try:
         tree = {
             "support_vectors": np.asarray(_field(svm, "support_vectors", model_path), np.float32),
@@ -101,8 +103,10 @@ def _read(model_dir: Path) -> Tuple[Dict[str, Any], Dict[str, Any]]:
         raise WeightsError(f"{model_path}: support vectors or coefficients are not numeric arrays ({exc})") from None
     ranges = _field(read_opencv_storage(range_path), "range", range_path)
     if not isinstance(ranges, np.ndarray) or ranges.shape != (2, NUM_FEATURES):
-        raise WeightsError(f"{range_path}: 'range' must be an opencv-matrix 2 x {NUM_FEATURES}, got "
-                           f"{getattr(ranges, 'shape', type(ranges).__name__)}")
+        raise WeightsError(
+            f"{range_path}: 'range' must be an opencv-matrix 2 x {NUM_FEATURES}, got "
+            f"{getattr(ranges, 'shape', type(ranges).__name__)}"
+        )
     tree["feature_min"] = np.asarray(ranges[0], np.float64)
     tree["feature_max"] = np.asarray(ranges[1], np.float64)
     _check_model(tree, f"{model_path} / {range_path.name}", sv_total)
@@ -114,8 +118,18 @@ register_converter(Converter(MODEL, (MODEL_FILE, RANGE_FILE), _read))
 
 def _check_model(tree: Dict[str, Any], source: str, sv_total: Optional[int] = None) -> None:
     total = int(np.shape(tree.get("support_vectors", np.zeros((0, 0))))[0]) if sv_total is None else int(sv_total)
-    check_shapes({"support_vectors": (total, NUM_FEATURES), "dual_coef": (total,), "rho": (), "gamma": (),
-                  "feature_min": (NUM_FEATURES,), "feature_max": (NUM_FEATURES,)}, tree, source)
+    check_shapes(
+        {
+            "support_vectors": (total, NUM_FEATURES),
+            "dual_coef": (total,),
+            "rho": (),
+            "gamma": (),
+            "feature_min": (NUM_FEATURES,),
+            "feature_max": (NUM_FEATURES,),
+        },
+        tree,
+        source,
+    )
     if not all(np.all(np.isfinite(np.asarray(v, np.float64))) for v in tree.values()):
         raise WeightsError(f"{source}: NaN or inf in the model")
     if not np.all(np.asarray(tree["feature_max"]) > np.asarray(tree["feature_min"])):
@@ -161,11 +175,14 @@ def _cubic_matrix(length: int, out_length: int) -> np.ndarray:
     f = (np.arange(out_length) + 0.5) * scale - 0.5
     s = np.floor(f)
     t = f - s
-    weights = np.stack([
-        ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a,
-        ((a + 2) * t - (a + 3)) * t * t + 1,
-        ((a + 2) * (1 - t) - (a + 3)) * (1 - t) * (1 - t) + 1,
-    ], axis=1)
+    weights = np.stack(
+        [
+            ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a,
+            ((a + 2) * t - (a + 3)) * t * t + 1,
+            ((a + 2) * (1 - t) - (a + 3)) * (1 - t) * (1 - t) + 1,
+        ],
+        axis=1,
+    )
     weights = np.concatenate([weights, 1.0 - weights.sum(axis=1, keepdims=True)], axis=1)  # [out, 4]
     index = np.clip(s[:, None].astype(int) - 1 + np.arange(4)[None, :], 0, length - 1)
     matrix = np.zeros((out_length, length))
@@ -244,10 +261,19 @@ def brisque(context: CriterionContext) -> Criterion:
     Raises:
       DataNotFoundError / WeightsError: from `load_params(context.weights_dir)`.
     """
-    return Criterion(params=load_params(context.weights_dir), name="brisque", direction="min",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION)
+    return Criterion(
+        params=load_params(context.weights_dir),
+        name="brisque",
+        direction="min",
+        value_range=VALUE_RANGE,
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+    )
 
 
-_DESCRIPTION = ("BRISQUE (Mittal et al. 2012): SVR from natural-scene statistics to LIVE DMOS (OpenCV model), "
-                "no-reference, lower is better, in [0, 100]")
+_DESCRIPTION = (
+    "BRISQUE (Mittal et al. 2012): SVR from natural-scene statistics to LIVE DMOS (OpenCV model), "
+    "no-reference, lower is better, in [0, 100]"
+)
 register(CriterionSpec("brisque", "min", "images", _DESCRIPTION, brisque))

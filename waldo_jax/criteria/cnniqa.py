@@ -23,8 +23,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
-                                     sanitize_images, worst_score)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionSpec,
+    finite_or_worst,
+    register,
+    sanitize_images,
+    worst_score,
+)
 from waldo_jax.types import Array
 from waldo_jax.weights.store import Converter, check_shapes, load_model, register_converter
 from waldo_jax.weights.torch_pickle import read_torch_file, state_dict
@@ -120,12 +127,14 @@ def convert_state_dict(tensors: Dict[str, np.ndarray], source: str = "CNNIQA sta
     """
     check_shapes(TORCH_SHAPES, tensors, source)
     t = {k: np.asarray(v, np.float32) for k, v in tensors.items()}
-    return {"params": {
-        "conv1": {"kernel": t["conv1.weight"].transpose(2, 3, 1, 0), "bias": t["conv1.bias"]},  # OIHW -> HWIO
-        "fc1": {"kernel": t["fc1.weight"].T, "bias": t["fc1.bias"]},
-        "fc2": {"kernel": t["fc2.weight"].T, "bias": t["fc2.bias"]},
-        "fc3": {"kernel": t["fc3.weight"].T, "bias": t["fc3.bias"]},
-    }}
+    return {
+        "params": {
+            "conv1": {"kernel": t["conv1.weight"].transpose(2, 3, 1, 0), "bias": t["conv1.bias"]},  # OIHW -> HWIO
+            "fc1": {"kernel": t["fc1.weight"].T, "bias": t["fc1.bias"]},
+            "fc2": {"kernel": t["fc2.weight"].T, "bias": t["fc2.bias"]},
+            "fc3": {"kernel": t["fc3.weight"].T, "bias": t["fc3.bias"]},
+        }
+    }
 
 
 def _read(model_dir: Path) -> Tuple[Dict[str, Any], Dict[str, Any]]:
@@ -178,7 +187,7 @@ def _box3_symmetric(x: Array) -> Array:
     """3x3 box mean of x [h, w] with symmetric borders (the edge row/column repeated), same size."""
     p = jnp.pad(x, 1, mode="symmetric")
     h, w = x.shape
-    return sum(p[i:i + h, j:j + w] for i in range(3) for j in range(3)) / 9.0
+    return sum(p[i : i + h, j : j + w] for i in range(3) for j in range(3)) / 9.0
 
 
 def local_normalise(patch: Array) -> Array:
@@ -206,7 +215,7 @@ def image_patches(image: Array) -> Array:
         g = jax.image.resize(g, (max(height, PATCH), max(width, PATCH)), "linear")
         height, width = g.shape
     rows, cols = patch_grid(height), patch_grid(width)
-    g = g[:rows * PATCH, :cols * PATCH]
+    g = g[: rows * PATCH, : cols * PATCH]
     patches = g.reshape(rows, PATCH, cols, PATCH).transpose(0, 2, 1, 3).reshape(rows * cols, PATCH, PATCH)
     return jax.vmap(local_normalise)(patches)[..., None]
 
@@ -245,9 +254,16 @@ def iqa_cnn(context: CriterionContext) -> Criterion:
     Raises:
       DataNotFoundError / WeightsError / TorchPickleError: from `load_params(context.weights_dir)`.
     """
-    return Criterion(params=load_params(context.weights_dir), name="iqa_cnn", direction="max",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION,
-                     smooth_apply=_apply)
+    return Criterion(
+        params=load_params(context.weights_dir),
+        name="iqa_cnn",
+        direction="max",
+        value_range=VALUE_RANGE,
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+        smooth_apply=_apply,
+    )
 
 
 _DESCRIPTION = "100 - predicted LIVE DMOS of CNNIQA (Kang et al. 2014), no-reference quality, higher is better"

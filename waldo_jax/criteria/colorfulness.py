@@ -12,8 +12,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
-                                     sanitize_images)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionSpec,
+    finite_or_worst,
+    register,
+    sanitize_images,
+)
 from waldo_jax.types import Array
 
 __all__ = ["colorfulness_image", "colorfulness"]
@@ -38,8 +44,16 @@ def _apply(params, images: Array) -> Array:
 def colorfulness(context: CriterionContext) -> Criterion:
     """The `colorfulness` criterion (Hasler-Suesstrunk M, direction max, >= 0)."""
     del context
-    return Criterion(params=(), name="colorfulness", direction="max", value_range=(0.0, float("inf")),
-                     inputs="images", apply=_apply, description=_DESCRIPTION, smooth_apply=_apply)
+    return Criterion(
+        params=(),
+        name="colorfulness",
+        direction="max",
+        value_range=(0.0, float("inf")),
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+        smooth_apply=_apply,
+    )
 
 
 _DESCRIPTION = "Hasler-Suesstrunk colourfulness M of the image (classic, no weights)"

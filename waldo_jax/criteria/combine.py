@@ -25,8 +25,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, check_registered,
-                                     finite_or_worst, make_criterion, register, worst_score)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionError,
+    CriterionSpec,
+    check_registered,
+    finite_or_worst,
+    make_criterion,
+    register,
+    worst_score,
+)
 from waldo_jax.types import Array
 
 __all__ = ["opacity", "mean_opacity", "constrained", "weighted", "build_criterion", "parse_guard", "spec_names"]
@@ -50,8 +59,16 @@ _OPACITY_DESCRIPTION = "mean accumulated opacity of the render (empty views scor
 def opacity(context: Optional[CriterionContext] = None) -> Criterion:
     """The `opacity` criterion: mean accumulated opacity of the render, direction max, in [0, 1]."""
     del context
-    return Criterion(params=(), name="opacity", direction="max", value_range=(0.0, 1.0), inputs="renders",
-                     apply=_opacity_apply, description=_OPACITY_DESCRIPTION, smooth_apply=_opacity_apply)
+    return Criterion(
+        params=(),
+        name="opacity",
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs="renders",
+        apply=_opacity_apply,
+        description=_OPACITY_DESCRIPTION,
+        smooth_apply=_opacity_apply,
+    )
 
 
 register(CriterionSpec("opacity", "max", "renders", _OPACITY_DESCRIPTION, opacity, smooth=True))
@@ -69,8 +86,9 @@ class _Part:
 
     @classmethod
     def of(cls, criterion: Criterion) -> "_Part":
-        return cls(criterion.apply, criterion.smooth_apply, criterion.inputs, criterion.direction,
-                   tuple(criterion.value_range))
+        return cls(
+            criterion.apply, criterion.smooth_apply, criterion.inputs, criterion.direction, tuple(criterion.value_range)
+        )
 
     def scores(self, params, views: "_Views", smooth: bool = False) -> Array:
         apply = self.smooth_apply if smooth else self.apply
@@ -162,8 +180,10 @@ def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Crite
     try:
         worst = worst_score(primary.direction, primary.value_range)
     except ValueError:
-        raise CriterionError(f"criterion {primary.name!r} has no finite worst score to give a view that fails "
-                             f"the guard (value range {primary.value_range})") from None
+        raise CriterionError(
+            f"criterion {primary.name!r} has no finite worst score to give a view that fails "
+            f"the guard (value range {primary.value_range})"
+        ) from None
     relation = ">=" if guard.direction == "max" else "<="
     low, high = guard.value_range
     # A threshold at or past the guard's good end fails every view; at or past its bad end it passes all.
@@ -172,14 +192,21 @@ def constrained(primary: Criterion, guard: Criterion, threshold: float) -> Crite
     if fails_all or passes_all:
         raise CriterionError(
             f"--guard {guard.name}:{threshold:g}: {guard.name} lies in [{low:g}, {high:g}], so the threshold "
-            f"{'fails' if fails_all else 'passes'} every view; choose one inside that range")
+            f"{'fails' if fails_all else 'passes'} every view; choose one inside that range"
+        )
     name = f"{primary.name}|{guard.name}{relation}{threshold:g}"
     params = (primary.params, guard.params, jnp.float32(threshold))
     apply = _ConstrainedApply(parts[0], parts[1], worst, _inputs(parts))
-    return Criterion(params=params, name=name, direction=primary.direction, value_range=primary.value_range,
-                     inputs=_inputs(parts), apply=apply, smooth_apply=_smooth_apply(apply, parts),
-                     description=f"{primary.description}; the worst score where {guard.name} {relation} "
-                                 f"{threshold:g} fails")
+    return Criterion(
+        params=params,
+        name=name,
+        direction=primary.direction,
+        value_range=primary.value_range,
+        inputs=_inputs(parts),
+        apply=apply,
+        smooth_apply=_smooth_apply(apply, parts),
+        description=f"{primary.description}; the worst score where {guard.name} {relation} {threshold:g} fails",
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,23 +233,32 @@ def weighted(criteria: Sequence[Criterion], weights: Sequence[float]) -> Criteri
         whose value range is not finite at both ends (it cannot be normalised).
     """
     if not criteria or len(criteria) != len(weights):
-        raise CriterionError(f"weighted needs one weight per criterion, got {len(criteria)} criteria and "
-                             f"{len(weights)} weights")
+        raise CriterionError(
+            f"weighted needs one weight per criterion, got {len(criteria)} criteria and {len(weights)} weights"
+        )
     w = np.asarray(weights, np.float64)
     if np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
         raise CriterionError(f"weighted: weights must be finite, >= 0 and not all 0, got {list(weights)}")
     for c in criteria:
         low, high = c.value_range
         if not (np.isfinite(low) and np.isfinite(high) and high > low):
-            raise CriterionError(f"criterion {c.name!r} cannot be weighted: its value range {c.value_range} is "
-                                 "not finite at both ends")
+            raise CriterionError(
+                f"criterion {c.name!r} cannot be weighted: its value range {c.value_range} is not finite at both ends"
+            )
     parts = tuple(_Part.of(c) for c in criteria)
     name = "weighted:" + ",".join(f"{c.name}={x:g}" for c, x in zip(criteria, weights))
     params = (tuple(c.params for c in criteria), jnp.asarray(w / w.sum(), jnp.float32))
     apply = _WeightedApply(parts, _inputs(parts))
-    return Criterion(params=params, name=name, direction="max", value_range=(0.0, 1.0), inputs=_inputs(parts),
-                     apply=apply, smooth_apply=_smooth_apply(apply, parts),
-                     description="weighted mean of " + ", ".join(c.name for c in criteria) + " normalised to [0, 1]")
+    return Criterion(
+        params=params,
+        name=name,
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs=_inputs(parts),
+        apply=apply,
+        smooth_apply=_smooth_apply(apply, parts),
+        description="weighted mean of " + ", ".join(c.name for c in criteria) + " normalised to [0, 1]",
+    )
 
 
 def parse_guard(spec: str) -> Tuple[str, float]:
@@ -240,21 +276,24 @@ def parse_guard(spec: str) -> Tuple[str, float]:
 def _weighted_items(spec: str) -> Tuple[Tuple[str, float], ...]:
     """`weighted:NAME=W,...` -> ((name, weight), ...), with a clear error for a malformed spec."""
     items = []
-    for item in filter(None, spec[len("weighted:"):].split(",")):
+    for item in filter(None, spec[len("weighted:") :].split(",")):
         name, _, value = item.partition("=")
         name = name.strip()
         try:
             weight = float(value)
         except ValueError:
-            raise CriterionError(f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT "
-                                 "for every criterion") from None
+            raise CriterionError(
+                f"bad weight {value!r} for {name!r} in {spec!r}: expected NAME=WEIGHT for every criterion"
+            ) from None
         if name in (n for n, _ in items):
             raise CriterionError(f"{spec!r} names {name!r} twice: give each criterion once, with its weight")
         check_registered(name)
         items.append((name, weight))
     if len(items) < 2:
-        raise CriterionError(f"bad criterion {spec!r}: weighted needs at least two criteria, "
-                             "weighted:NAME=WEIGHT,NAME=WEIGHT (for one, name it alone)")
+        raise CriterionError(
+            f"bad criterion {spec!r}: weighted needs at least two criteria, "
+            "weighted:NAME=WEIGHT,NAME=WEIGHT (for one, name it alone)"
+        )
     return tuple(items)
 
 
@@ -299,4 +338,3 @@ def build_criterion(spec: str, context: Optional[CriterionContext] = None, guard
         name, threshold = parse_guard(guard_spec)
         criterion = constrained(criterion, make_criterion(name, context), threshold)
     return criterion
-

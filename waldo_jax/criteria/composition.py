@@ -17,8 +17,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
-                                     sanitize_images)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionSpec,
+    finite_or_worst,
+    register,
+    sanitize_images,
+)
 from waldo_jax.criteria.csnet import SOFTNESS, load_params, saliency_maps
 from waldo_jax.types import Array
 
@@ -84,9 +90,16 @@ _DESCRIPTION = "photo composition in [1, 5] from the CSNet saliency map: thirds,
 
 def composition(context: CriterionContext) -> Criterion:
     """The `composition` criterion (direction max, [1, 5]); loads CSNet from `context.weights_dir`."""
-    return Criterion(params=load_params(context.weights_dir), name="composition", direction="max",
-                     value_range=(1.0, 5.0), inputs="images", apply=_apply, description=_DESCRIPTION,
-                     smooth_apply=_smooth_apply)
+    return Criterion(
+        params=load_params(context.weights_dir),
+        name="composition",
+        direction="max",
+        value_range=(1.0, 5.0),
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+        smooth_apply=_smooth_apply,
+    )
 
 
 register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition, smooth=True))

@@ -22,8 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionError, CriterionSpec, finite_or_worst,
-                                     register, sanitize_images, worst_score)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionError,
+    CriterionSpec,
+    finite_or_worst,
+    register,
+    sanitize_images,
+    worst_score,
+)
 from waldo_jax.types import Array
 
 __all__ = [
@@ -116,8 +124,9 @@ def make_finder_params(target, scales: Sequence[float] = DEFAULT_SCALES, min_std
     return FinderParams(target=jnp.asarray(np.clip(target, 0.0, 1.0)), scales=scales, min_std=float(min_std))
 
 
-def template_sizes(target_shape: Tuple[int, ...], image_shape: Tuple[int, ...],
-                   scales: Sequence[float] = DEFAULT_SCALES) -> Tuple[Tuple[int, int], ...]:
+def template_sizes(
+    target_shape: Tuple[int, ...], image_shape: Tuple[int, ...], scales: Sequence[float] = DEFAULT_SCALES
+) -> Tuple[Tuple[int, int], ...]:
     """The (height, width) of the template at each usable scale (static, plain Python).
 
     Scale s gives height round(s * H) and width round(height * w / h); sizes with a side below
@@ -168,7 +177,7 @@ def _resample_compiled(target: Array, size: Tuple[int, int]) -> Array:
 
 def _groups(sizes: Sequence[Tuple[int, int]]) -> Tuple[Tuple[Tuple[int, int], ...], ...]:
     """Consecutive runs of at most `SCALES_PER_GROUP` sizes (static)."""
-    return tuple(tuple(sizes[i:i + SCALES_PER_GROUP]) for i in range(0, len(sizes), SCALES_PER_GROUP))
+    return tuple(tuple(sizes[i : i + SCALES_PER_GROUP]) for i in range(0, len(sizes), SCALES_PER_GROUP))
 
 
 def _cumsum(x: Array, axis: int) -> Array:
@@ -189,9 +198,9 @@ def _window_sums(column_sums: Array, h: Array, w: Array, shape: Tuple[int, int])
     W - w read clamped rows and columns: garbage, masked by the caller.
     """
     height, width = column_sums.shape[0] - 1, column_sums.shape[1]
-    rows = jnp.take(column_sums, jnp.minimum(jnp.arange(shape[0]) + h, height), axis=0) - column_sums[:shape[0]]
+    rows = jnp.take(column_sums, jnp.minimum(jnp.arange(shape[0]) + h, height), axis=0) - column_sums[: shape[0]]
     across = _cumsum(jnp.pad(rows, ((0, 0), (1, 0), (0, 0))), axis=1)  # [shape[0], W + 1, C]
-    return jnp.take(across, jnp.minimum(jnp.arange(shape[1]) + w, width), axis=1) - across[:, :shape[1]]
+    return jnp.take(across, jnp.minimum(jnp.arange(shape[1]) + w, width), axis=1) - across[:, : shape[1]]
 
 
 def _bins(x: Array) -> Array:
@@ -220,8 +229,9 @@ def _view(image: Array, pad: Tuple[int, int]) -> _View:
     return _View(jnp.fft.rfft2(centred, axes=(0, 1)), _column_sums(moments), counts)
 
 
-def _maps(view: _View, template: Array, mask: Array, h: Array, w: Array, shape: Tuple[int, int],
-          min_std: float) -> Tuple[Array, Array, Array]:
+def _maps(
+    view: _View, template: Array, mask: Array, h: Array, w: Array, shape: Tuple[int, int], min_std: float
+) -> Tuple[Array, Array, Array]:
     """NCC and BC maps [*shape] of one template over a prepared view, and the mask of valid corners.
 
     Args:
@@ -243,7 +253,7 @@ def _maps(view: _View, template: Array, mask: Array, h: Array, w: Array, shape: 
     t_norm2 = jnp.sum(t * t)
     t_spectrum = jnp.fft.rfft2(t, s=(height, width), axes=(0, 1))
     correlation = jnp.fft.irfft2(jnp.sum(view.spectrum * jnp.conj(t_spectrum), axis=-1), s=(height, width))
-    numerator = correlation[:shape[0], :shape[1]]
+    numerator = correlation[: shape[0], : shape[1]]
     sums = _window_sums(view.moments, h, w, shape)  # [*shape, 2]
     deviation = jnp.maximum(sums[..., 1] - sums[..., 0] ** 2 / n, 0.0)  # sum of squared deviations
     floor = n * min_std * min_std
@@ -255,8 +265,9 @@ def _maps(view: _View, template: Array, mask: Array, h: Array, w: Array, shape: 
     size = (*shape, view.counts.shape[-1])
     zero = jnp.zeros_like(h)
     corner = functools.partial(jax.lax.dynamic_slice, view.counts, slice_sizes=size)
-    counts = (corner((h, w, zero)) - corner((zero, w, zero)) - corner((h, zero, zero))
-              + view.counts[:shape[0], :shape[1]])  # [*shape, BINS**3]
+    counts = (
+        corner((h, w, zero)) - corner((zero, w, zero)) - corner((h, zero, zero)) + view.counts[: shape[0], : shape[1]]
+    )  # [*shape, BINS**3]
     # BC = sum_b sqrt(count_b / area * p_b), one fused reduction over the bins; counts are exact.
     colour = jnp.sum(jnp.sqrt(counts.astype(jnp.float32)) * jnp.sqrt(p_template / area), axis=-1)
     return ncc, jnp.where(valid, jnp.clip(colour, 0.0, 1.0), 0.0), valid
@@ -266,8 +277,9 @@ def _static_maps(image: Array, template: Array, min_std: float = MIN_STD) -> Tup
     image, template = jnp.asarray(image, jnp.float32), jnp.asarray(template, jnp.float32)
     h, w = template.shape[:2]
     shape = (image.shape[0] - h + 1, image.shape[1] - w + 1)
-    ncc, colour, _ = _maps(_view(image, (0, 0)), template, jnp.ones((h, w), bool), jnp.int32(h), jnp.int32(w),
-                           shape, min_std)
+    ncc, colour, _ = _maps(
+        _view(image, (0, 0)), template, jnp.ones((h, w), bool), jnp.int32(h), jnp.int32(w), shape, min_std
+    )
     return ncc, colour
 
 
@@ -356,11 +368,20 @@ def waldo(context: CriterionContext, scales: Sequence[float] = DEFAULT_SCALES) -
       CriterionError: no target image in the context (pass `--target FILE`), or a malformed one.
     """
     if context.target is None:
-        raise CriterionError("criterion 'waldo' needs a reference image of the object to find: "
-                             "pass --target FILE (an image of the object, cropped)")
-    return Criterion(params=make_finder_params(context.target, scales), name="waldo", direction="max",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION,
-                     smooth_apply=_apply)
+        raise CriterionError(
+            "criterion 'waldo' needs a reference image of the object to find: "
+            "pass --target FILE (an image of the object, cropped)"
+        )
+    return Criterion(
+        params=make_finder_params(context.target, scales),
+        name="waldo",
+        direction="max",
+        value_range=VALUE_RANGE,
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+        smooth_apply=_apply,
+    )
 
 
 _DESCRIPTION = "best normalised cross-correlation x colour-histogram similarity of the --target image"

@@ -155,8 +155,9 @@ def rgb_to_grey(image: Array) -> Array:
 def _cubic(x: np.ndarray) -> np.ndarray:
     """MATLAB imresize's bicubic kernel (a = -0.5)."""
     ax = np.abs(x)
-    return ((1.5 * ax ** 3 - 2.5 * ax ** 2 + 1.0) * (ax <= 1)
-            + (-0.5 * ax ** 3 + 2.5 * ax ** 2 - 4.0 * ax + 2.0) * ((ax > 1) & (ax <= 2)))
+    return (1.5 * ax**3 - 2.5 * ax**2 + 1.0) * (ax <= 1) + (-0.5 * ax**3 + 2.5 * ax**2 - 4.0 * ax + 2.0) * (
+        (ax > 1) & (ax <= 2)
+    )
 
 
 @functools.lru_cache(maxsize=None)
@@ -224,9 +225,11 @@ def niqe_features(image: Array) -> NiqeFeatures:
     """
     height, width = image.shape[0], image.shape[1]
     if height < PATCH or width < PATCH:
-        raise CriterionError(f"NIQE needs images of at least {PATCH}x{PATCH} pixels (its patch size), got "
-                             f"{height}x{width}: render at --resolution {PATCH} or more")
-    grey = rgb_to_grey(image)[:PATCH * (height // PATCH), :PATCH * (width // PATCH)]
+        raise CriterionError(
+            f"NIQE needs images of at least {PATCH}x{PATCH} pixels (its patch size), got "
+            f"{height}x{width}: render at --resolution {PATCH} or more"
+        )
+    grey = rgb_to_grey(image)[: PATCH * (height // PATCH), : PATCH * (width // PATCH)]
     per_scale = []
     for side, scaled in ((PATCH, grey), (PATCH // 2, imresize_half(grey))):
         coefficients, _ = nss.mscn(scaled)
@@ -275,10 +278,19 @@ def niqe(context: CriterionContext) -> Criterion:
     Raises:
       DataNotFoundError / WeightsError: from `load_params(context.weights_dir)`.
     """
-    return Criterion(params=load_params(context.weights_dir), name="niqe", direction="min",
-                     value_range=VALUE_RANGE, inputs="images", apply=_apply, description=_DESCRIPTION)
+    return Criterion(
+        params=load_params(context.weights_dir),
+        name="niqe",
+        direction="min",
+        value_range=VALUE_RANGE,
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+    )
 
 
-_DESCRIPTION = ("NIQE (Mittal et al. 2013): distance of the image's patch statistics from pristine photographs' "
-                "(LIVE model), no-reference, lower is better; images >= 96x96")
+_DESCRIPTION = (
+    "NIQE (Mittal et al. 2013): distance of the image's patch statistics from pristine photographs' "
+    "(LIVE model), no-reference, lower is better; images >= 96x96"
+)
 register(CriterionSpec("niqe", "min", "images", _DESCRIPTION, niqe))

@@ -95,7 +95,7 @@ def mscn(grey: Array, c: float = MSCN_C) -> Tuple[Array, Array]:
     second = jnp.zeros_like(grey)  # sum_k w_k (I_{x+k} - I_x)^2
     for i in range(len(g)):
         for j in range(len(g)):
-            delta = padded[i:i + height, j:j + width] - grey  # exact for grey levels: no cancellation
+            delta = padded[i : i + height, j : j + width] - grey  # exact for grey levels: no cancellation
             weight = np.float32(g[i] * g[j])
             first = first + weight * delta
             second = second + weight * delta * delta
@@ -140,8 +140,18 @@ def aggd_fit(x: Array) -> AGGDFit:
     neg, pos = x < 0, x > 0
     zero = jnp.zeros_like(x)
     # One stacked reduction for the six moments (compiles far faster than six separate ones).
-    sums = _sums(jnp.stack([neg.astype(jnp.float32), pos.astype(jnp.float32), jnp.where(neg, square, zero),
-                            jnp.where(pos, square, zero), jnp.abs(x), square]))  # [6]
+    sums = _sums(
+        jnp.stack(
+            [
+                neg.astype(jnp.float32),
+                pos.astype(jnp.float32),
+                jnp.where(neg, square, zero),
+                jnp.where(pos, square, zero),
+                jnp.abs(x),
+                square,
+            ]
+        )
+    )  # [6]
     count_l, count_r = sums[0], sums[1]
     sigma_l = jnp.sqrt(sums[2] / jnp.maximum(count_l, 1.0))
     sigma_r = jnp.sqrt(sums[3] / jnp.maximum(count_r, 1.0))
@@ -149,8 +159,8 @@ def aggd_fit(x: Array) -> AGGDFit:
     r_hat = jnp.where(mean_square > 0, mean_abs * mean_abs / jnp.where(mean_square > 0, mean_square, 1.0), 0.0)
     # (g^3 + 1)(g + 1) / (g^2 + 1)^2 with g = sigma_l / sigma_r, written homogeneously so that an empty
     # side (g = 0 or inf) needs no special case; 1 (symmetric) when both sides are empty.
-    num = (sigma_l ** 3 + sigma_r ** 3) * (sigma_l + sigma_r)
-    den = (sigma_l ** 2 + sigma_r ** 2) ** 2
+    num = (sigma_l**3 + sigma_r**3) * (sigma_l + sigma_r)
+    den = (sigma_l**2 + sigma_r**2) ** 2
     r_hat_norm = r_hat * jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
     index = _nearest_on_grid(_R_AGGD, r_hat_norm)
     scale = jnp.asarray(_SCALE_FACTOR, jnp.float32)[index]
@@ -188,7 +198,7 @@ def pairwise_products(x: Array, border: str) -> Array:
         return jnp.stack([x * jnp.roll(x, (-di, -dj), axis=(0, 1)) for di, dj in PAIR_SHIFTS])
     if border == "zero":
         padded = jnp.pad(x, 1)
-        return jnp.stack([x * padded[1 + di:1 + di + height, 1 + dj:1 + dj + width] for di, dj in PAIR_SHIFTS])
+        return jnp.stack([x * padded[1 + di : 1 + di + height, 1 + dj : 1 + dj + width] for di, dj in PAIR_SHIFTS])
     raise ValueError(f"border must be 'circular' or 'zero', got {border!r}")
 
 
@@ -207,8 +217,9 @@ def map_images(score: Callable[[Array], Array], images: Array, chunk: int) -> Ar
     return jax.lax.map(jax.vmap(score), chunks).reshape(-1)[:count]
 
 
-def quality_scores(score: Callable[[Array], Array], images: Array, chunk: int,
-                   value_range: Tuple[float, float]) -> Array:
+def quality_scores(
+    score: Callable[[Array], Array], images: Array, chunk: int, value_range: Tuple[float, float]
+) -> Array:
     """Criterion scores [P] of a lower-is-better quality model (BRISQUE, NIQE) over images [P, H, W, 3].
 
     The images are sanitised (`sanitize_images`), scored with `map_images` and clipped to

@@ -75,22 +75,37 @@ def _need_room(name: str, context: CriterionContext):
         where = f" (source: {context.source})" if context.source else ""
         raise CriterionError(
             f"criterion {name!r} needs the procedural Waldo room{where}: use SOURCE procedural[:SEED] "
-            "or a run trained on it")
+            "or a run trained on it"
+        )
     return context.room
 
 
 def waldo_oracle(context: CriterionContext) -> Criterion:
     """The `waldo_oracle` criterion (visible-Waldo share of the image, direction max, in [0, 1])."""
-    return Criterion(params=_need_room("waldo_oracle", context), name="waldo_oracle", direction="max",
-                     value_range=(0.0, 1.0), inputs="poses", apply=_coverage, description=_ORACLE,
-                     smooth_apply=_smooth_coverage)
+    return Criterion(
+        params=_need_room("waldo_oracle", context),
+        name="waldo_oracle",
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs="poses",
+        apply=_coverage,
+        description=_ORACLE,
+        smooth_apply=_smooth_coverage,
+    )
 
 
 def waldo_visible(context: CriterionContext) -> Criterion:
     """The `waldo_visible` criterion (visible fraction of Waldo, direction max, in [0, 1])."""
-    return Criterion(params=_need_room("waldo_visible", context), name="waldo_visible", direction="max",
-                     value_range=(0.0, 1.0), inputs="poses", apply=_visible, description=_VISIBLE,
-                     smooth_apply=_smooth_visible)
+    return Criterion(
+        params=_need_room("waldo_visible", context),
+        name="waldo_visible",
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs="poses",
+        apply=_visible,
+        description=_VISIBLE,
+        smooth_apply=_smooth_visible,
+    )
 
 
 def waldo_found(context: CriterionContext) -> Criterion:
@@ -100,15 +115,24 @@ def waldo_found(context: CriterionContext) -> Criterion:
     `FOUND_VISIBILITY` of him is in frame and unoccluded, else that visible fraction. Its smooth
     stand-in softens the frame's borders (`SOFTNESS`) and the step at the bar (`FOUND_SOFTNESS`).
     """
-    return Criterion(params=_need_room("waldo_found", context), name="waldo_found", direction="max",
-                     value_range=(0.0, 2.0), inputs="poses", apply=_found, description=_FOUND,
-                     smooth_apply=_smooth_found)
+    return Criterion(
+        params=_need_room("waldo_found", context),
+        name="waldo_found",
+        direction="max",
+        value_range=(0.0, 2.0),
+        inputs="poses",
+        apply=_found,
+        description=_FOUND,
+        smooth_apply=_smooth_found,
+    )
 
 
 _ORACLE = "share of the image showing un-occluded Waldo (exact, procedural room)"
 _VISIBLE = "fraction of Waldo in frame and not occluded (exact, procedural room)"
-_FOUND = ("Waldo found: 1 + the share of the image showing him where >= 90 % of him is visible, else that "
-          "visible fraction (exact, procedural room)")
+_FOUND = (
+    "Waldo found: 1 + the share of the image showing him where >= 90 % of him is visible, else that "
+    "visible fraction (exact, procedural room)"
+)
 register(CriterionSpec("waldo_found", "max", "poses", _FOUND, waldo_found, smooth=True))
 register(CriterionSpec("waldo_oracle", "max", "poses", _ORACLE, waldo_oracle, smooth=True))
 register(CriterionSpec("waldo_visible", "max", "poses", _VISIBLE, waldo_visible, smooth=True))

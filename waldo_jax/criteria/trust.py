@@ -102,8 +102,13 @@ def trust_params(train_c2w: np.ndarray, max_ratio: float = MAX_RATIO, max_angle:
     train_c2w = np.asarray(train_c2w, np.float64)
     focus = camera_focus(train_c2w)
     floor = _MIN_DEPTH * float(np.median(np.linalg.norm(train_c2w[:, :3, 3] - focus, axis=-1)))
-    return (jnp.asarray(train_c2w, jnp.float32), jnp.asarray(focus, jnp.float32), jnp.float32(max(floor, 1e-6)),
-            jnp.float32(math.log(max_ratio)), jnp.float32(max_angle))
+    return (
+        jnp.asarray(train_c2w, jnp.float32),
+        jnp.asarray(focus, jnp.float32),
+        jnp.float32(max(floor, 1e-6)),
+        jnp.float32(math.log(max_ratio)),
+        jnp.float32(max_angle),
+    )
 
 
 def trust(context: CriterionContext) -> Criterion:
@@ -112,12 +117,24 @@ def trust(context: CriterionContext) -> Criterion:
     train_c2w = context.train_c2w
     if train_c2w is None or np.asarray(train_c2w).ndim != 3 or len(train_c2w) == 0:
         where = f" (source: {context.source})" if context.source else ""
-        raise CriterionError(f"criterion 'trust' needs the source's training camera poses{where}: use a SOURCE "
-                             "with training cameras (procedural:SEED, a NeRF run, splats)")
-    return Criterion(params=trust_params(train_c2w), name="trust", direction="max", value_range=(0.0, 1.0),
-                     inputs="poses", apply=_exact, description=_TRUST, smooth_apply=_smooth)
+        raise CriterionError(
+            f"criterion 'trust' needs the source's training camera poses{where}: use a SOURCE "
+            "with training cameras (procedural:SEED, a NeRF run, splats)"
+        )
+    return Criterion(
+        params=trust_params(train_c2w),
+        name="trust",
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs="poses",
+        apply=_exact,
+        description=_TRUST,
+        smooth_apply=_smooth,
+    )
 
 
-_TRUST = ("share of the view's 4 x 4 probe points a training camera saw from a similar distance (x1.5) and "
-          "direction (30 degrees); from poses alone, a guard for NeRF sources")
+_TRUST = (
+    "share of the view's 4 x 4 probe points a training camera saw from a similar distance (x1.5) and "
+    "direction (30 degrees); from poses alone, a guard for NeRF sources"
+)
 register(CriterionSpec("trust", "max", "poses", _TRUST, trust, smooth=True))

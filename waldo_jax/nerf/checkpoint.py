@@ -3,7 +3,8 @@
 `save_checkpoint` writes it atomically; `load_checkpoint` checks magic, header, version, size,
 SHA-256 digest and every array's dtype and shape against the stored config, then the contents as a
 whole (finite field parameters, a usable camera, box and near < far, finite rigid training poses, a
-background in [0, 1]; the occupancy grid's densities may hold NaN: its update sanitises them), raising `CheckpointError` naming the file. A round trip
+background in [0, 1]; the occupancy grid's densities may hold NaN: its update sanitises them), raising
+`CheckpointError` naming the file. A round trip
 is bit-exact. The file layout: docs/design.md, "Checkpoints".
 """
 
@@ -173,8 +174,14 @@ def _host_array(name: str, leaf: Any) -> np.ndarray:
 # Writing.
 
 
-def save_checkpoint(path: str | os.PathLike, params: Any, config: TrainConfig, scene: Scene | SceneRecord,
-                    occupancy: Any = None, info: Optional[Dict[str, Any]] = None) -> Path:
+def save_checkpoint(
+    path: str | os.PathLike,
+    params: Any,
+    config: TrainConfig,
+    scene: Scene | SceneRecord,
+    occupancy: Any = None,
+    info: Optional[Dict[str, Any]] = None,
+) -> Path:
     """Writes a checkpoint atomically (temporary file in the same folder, then `os.replace`).
 
     Args:
@@ -199,8 +206,9 @@ def save_checkpoint(path: str | os.PathLike, params: Any, config: TrainConfig, s
     for name, leaf in arrays:
         data = _host_array(name, leaf)
         raw = data.tobytes()
-        table.append({"name": name, "dtype": data.dtype.name, "shape": list(data.shape),
-                      "offset": offset, "nbytes": len(raw)})
+        table.append(
+            {"name": name, "dtype": data.dtype.name, "shape": list(data.shape), "offset": offset, "nbytes": len(raw)}
+        )
         chunks.append(raw)
         offset += len(raw)
     header = {
@@ -258,9 +266,10 @@ def _read_header(path: Path, raw: bytes) -> Tuple[Dict[str, Any], int]:
         raise CheckpointError(path, f"corrupt checkpoint (implausible header length {header_length})")
     if len(raw) < start + header_length:
         raise CheckpointError(
-            path, f"truncated checkpoint ({len(raw)} bytes, the header alone needs {start + header_length})")
+            path, f"truncated checkpoint ({len(raw)} bytes, the header alone needs {start + header_length})"
+        )
     try:
-        header = json.loads(raw[start: start + header_length].decode("utf-8"))
+        header = json.loads(raw[start : start + header_length].decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise CheckpointError(path, f"corrupt checkpoint (unreadable header: {e})") from None
     if not isinstance(header, dict):
@@ -272,8 +281,10 @@ def _check_version(path: Path, header: Dict[str, Any]) -> None:
     version = header.get("format_version")
     if version != FORMAT_VERSION:
         raise CheckpointError(
-            path, f"incompatible checkpoint format_version {version!r}: this waldo_jax reads version "
-                  f"{FORMAT_VERSION} (re-train, or use the waldo_jax version that wrote it)")
+            path,
+            f"incompatible checkpoint format_version {version!r}: this waldo_jax reads version "
+            f"{FORMAT_VERSION} (re-train, or use the waldo_jax version that wrote it)",
+        )
 
 
 def _array_table(path: Path, header: Dict[str, Any], payload_start: int, file_size: int) -> Dict[str, Dict]:
@@ -298,8 +309,7 @@ def _array_table(path: Path, header: Dict[str, Any], payload_start: int, file_si
         raise CheckpointError(path, f"corrupt checkpoint ({file_size} bytes, expected {expected}: trailing data)")
     for name, e in entries.items():
         count = int(np.prod(e["shape"], dtype=np.int64))
-        if e["nbytes"] != count * e["dtype"].itemsize or e["offset"] < 0 or \
-                e["offset"] + e["nbytes"] > payload_bytes:
+        if e["nbytes"] != count * e["dtype"].itemsize or e["offset"] < 0 or e["offset"] + e["nbytes"] > payload_bytes:
             raise CheckpointError(path, f"corrupt checkpoint (array {name}: inconsistent size or offset)")
     return entries
 
@@ -311,21 +321,28 @@ def _restore(path: Path, prefix: str, template: Any, entries: Dict[str, Dict], p
     stored = {name for name in entries if name.startswith(prefix + "/")}
     missing = sorted(expected - stored)
     if missing:
-        raise CheckpointError(path, f"incompatible checkpoint: array {missing[0]} is missing "
-                                    f"({len(missing)} missing in all)")
+        raise CheckpointError(
+            path, f"incompatible checkpoint: array {missing[0]} is missing ({len(missing)} missing in all)"
+        )
     unexpected = sorted(stored - expected)
     if unexpected:
-        raise CheckpointError(path, f"incompatible checkpoint: unexpected array {unexpected[0]} "
-                                    "(does not match the stored config)")
+        raise CheckpointError(
+            path, f"incompatible checkpoint: unexpected array {unexpected[0]} (does not match the stored config)"
+        )
     leaves = []
     for name, spec in named:
         e = entries[name]
         if e["shape"] != tuple(spec.shape) or e["dtype"] != jnp.dtype(spec.dtype):
             raise CheckpointError(
-                path, f"incompatible checkpoint: array {name} is {e['dtype'].name}{list(e['shape'])}, the "
-                      f"config implies {jnp.dtype(spec.dtype).name}{list(spec.shape)}")
-        data = np.frombuffer(payload, dtype=e["dtype"], count=int(np.prod(e["shape"], dtype=np.int64)),
-                             offset=e["offset"]).reshape(e["shape"]).copy()
+                path,
+                f"incompatible checkpoint: array {name} is {e['dtype'].name}{list(e['shape'])}, the "
+                f"config implies {jnp.dtype(spec.dtype).name}{list(spec.shape)}",
+            )
+        data = (
+            np.frombuffer(payload, dtype=e["dtype"], count=int(np.prod(e["shape"], dtype=np.int64)), offset=e["offset"])
+            .reshape(e["shape"])
+            .copy()
+        )
         leaves.append(data)
     return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), leaves)
 
@@ -421,7 +438,7 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     _check_version(path, header)
     entries = _array_table(path, header, payload_start, len(raw))
     body = memoryview(raw)[: len(raw) - _DIGEST_BYTES]
-    if hashlib.sha256(body).digest() != raw[len(raw) - _DIGEST_BYTES:]:
+    if hashlib.sha256(body).digest() != raw[len(raw) - _DIGEST_BYTES :]:
         raise CheckpointError(path, "corrupt checkpoint (SHA-256 digest mismatch: the file was altered or damaged)")
     try:
         config = TrainConfig.from_dict(header["config"])
@@ -433,19 +450,34 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     occupancy = None
     if occupancy_template is not None:
         occupancy = _restore(path, "occupancy", occupancy_template, entries, payload)
-    bad = [name for name, leaf in jax.tree_util.tree_leaves_with_path(params)
-           if np.issubdtype(np.asarray(leaf).dtype, np.floating) and not np.all(np.isfinite(leaf))]
+    bad = [
+        name
+        for name, leaf in jax.tree_util.tree_leaves_with_path(params)
+        if np.issubdtype(np.asarray(leaf).dtype, np.floating) and not np.all(np.isfinite(leaf))
+    ]
     if bad:
-        raise CheckpointError(path, f"the field's parameters hold NaN or infinity ({len(bad)} arrays, e.g. "
-                              f"{jax.tree_util.keystr(bad[0])}): the training diverged; train again")
+        raise CheckpointError(
+            path,
+            f"the field's parameters hold NaN or infinity ({len(bad)} arrays, e.g. "
+            f"{jax.tree_util.keystr(bad[0])}): the training diverged; train again",
+        )
     if "scene/c2w" not in entries:
         raise CheckpointError(path, "incompatible checkpoint: array scene/c2w is missing")
     e = entries["scene/c2w"]
     if len(e["shape"]) != 3 or e["shape"][1:] != (4, 4):
-        raise CheckpointError(path, f"incompatible checkpoint: scene/c2w has shape {list(e['shape'])}, expected [N, 4, 4]")
+        raise CheckpointError(
+            path, f"incompatible checkpoint: scene/c2w has shape {list(e['shape'])}, expected [N, 4, 4]"
+        )
     c2w = np.frombuffer(payload, dtype=e["dtype"], count=int(np.prod(e["shape"])), offset=e["offset"])
     c2w = c2w.reshape(e["shape"]).astype(np.float32)
     scene = _scene_record(path, header.get("scene", {}), c2w)
     _check_scene_record(path, scene)
-    return Checkpoint(params=params, occupancy=occupancy, config=config, scene=scene,
-                      info=dict(header.get("info", {})), path=str(path), format_version=FORMAT_VERSION)
+    return Checkpoint(
+        params=params,
+        occupancy=occupancy,
+        config=config,
+        scene=scene,
+        info=dict(header.get("info", {})),
+        path=str(path),
+        format_version=FORMAT_VERSION,
+    )

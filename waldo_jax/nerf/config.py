@@ -122,8 +122,16 @@ class TrainConfig:
     preset_name: str = "custom"
 
     def __post_init__(self):
-        for name in ("steps", "rays_per_batch", "num_samples", "samples_per_batch", "eval_samples", "chunk",
-                     "occupancy_resolution", "occupancy_update_every"):
+        for name in (
+            "steps",
+            "rays_per_batch",
+            "num_samples",
+            "samples_per_batch",
+            "eval_samples",
+            "chunk",
+            "occupancy_resolution",
+            "occupancy_update_every",
+        ):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
         for name in ("eval_every", "occupancy_warmup"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name), minimum=0))
@@ -131,8 +139,7 @@ class TrainConfig:
         object.__setattr__(self, "steps_per_diagonal", _positive_float("steps_per_diagonal", self.steps_per_diagonal))
         object.__setattr__(self, "cone_angle", _positive_float("cone_angle", self.cone_angle, allow_zero=True))
         if self.render_step_scale is not None:
-            object.__setattr__(self, "render_step_scale",
-                               _positive_float("render_step_scale", self.render_step_scale))
+            object.__setattr__(self, "render_step_scale", _positive_float("render_step_scale", self.render_step_scale))
         object.__setattr__(self, "occupancy_decay", _positive_float("occupancy_decay", self.occupancy_decay))
         if self.occupancy_decay > 1.0:
             raise TrainConfigError(f"TrainConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")
@@ -141,8 +148,7 @@ class TrainConfig:
         if self.loss not in LOSSES:
             raise TrainConfigError(f"TrainConfig.loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if self.sampler not in SAMPLERS:
-            raise TrainConfigError(
-                f"TrainConfig.sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
+            raise TrainConfigError(f"TrainConfig.sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
         if not isinstance(self.field, NGPFieldConfig):
             raise TrainConfigError(f"TrainConfig.field must be an NGPFieldConfig, got {type(self.field).__name__}")
 
@@ -188,8 +194,9 @@ class TrainConfig:
         sampler = "occupancy"
         synthetic = scene.format in ("blender", "procedural")
         base_diagonal = float(np.linalg.norm(aabb[1] - aabb[0])) / aabb_scale
-        values: Dict[str, Any] = dict(aabb_scale=aabb_scale, sampler=sampler, preset_name=name,
-                                      cone_angle=0.0 if synthetic else 1.0 / 256.0)
+        values: Dict[str, Any] = dict(
+            aabb_scale=aabb_scale, sampler=sampler, preset_name=name, cone_angle=0.0 if synthetic else 1.0 / 256.0
+        )
         if name == "quality":
             hashgrid = HashGridConfig(L=16, T=2**19, F=2, N_min=16, N_max=paper_n_max)
             values.update(steps=20000, chunk=100, occupancy_resolution=128, steps_per_diagonal=1024.0)
@@ -201,8 +208,14 @@ class TrainConfig:
             footprint = _pixel_footprint(scene)
             n_max = int(min(paper_n_max, max(64, math.ceil(2.0 * float(np.max(aabb[1] - aabb[0])) / footprint))))
             hashgrid = HashGridConfig(L=16, T=2**16, F=2, N_min=16, N_max=n_max)
-            values.update(steps=1000, chunk=50, occupancy_resolution=64, occupancy_warmup=64, occupancy_decay=0.8,
-                          steps_per_diagonal=float(min(1024.0, max(64.0, 1.5 * base_diagonal / footprint))))
+            values.update(
+                steps=1000,
+                chunk=50,
+                occupancy_resolution=64,
+                occupancy_warmup=64,
+                occupancy_decay=0.8,
+                steps_per_diagonal=float(min(1024.0, max(64.0, 1.5 * base_diagonal / footprint))),
+            )
             if sampler == "occupancy":
                 values.update(rays_per_batch=4096, num_samples=1024, samples_per_batch=2**15, eval_samples=1024)
             else:
@@ -319,4 +332,5 @@ def check_scene(scene: Scene, what: str) -> None:
     if (scene.intrinsics.height, scene.intrinsics.width) != (scene.height, scene.width):
         raise TrainConfigError(
             f"{what}: intrinsics are {scene.intrinsics.width}x{scene.intrinsics.height} but the images "
-            f"are {scene.width}x{scene.height}")
+            f"are {scene.width}x{scene.height}"
+        )

@@ -28,8 +28,9 @@ TRAIN_JSON = "train.json"
 SAMPLER_CHOICES = ("auto",) + SAMPLERS  # auto = occupancy
 
 
-def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,
-                scene_path: Optional[str] = None) -> Dict[str, Any]:
+def train_stats(
+    result: TrainResult, scene: Scene, preset: str, seed: int, scene_path: Optional[str] = None
+) -> Dict[str, Any]:
     """The contents of train.json: the run's quality, cost, settings and loss history (JSON-able).
 
     `scene_path` is the path the user gave (a folder or a scene file), recorded resolved; default:
@@ -66,9 +67,16 @@ def train_stats(result: TrainResult, scene: Scene, preset: str, seed: int,
     }
 
 
-def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional[Scene], out: Path,
-              preset: str, progress: bool = True,
-              scene_path: Optional[str] = None) -> Tuple[TrainResult, Dict[str, Any]]:
+def train_run(
+    seed: int,
+    scene: Scene,
+    config: TrainConfig,
+    test_scene: Optional[Scene],
+    out: Path,
+    preset: str,
+    progress: bool = True,
+    scene_path: Optional[str] = None,
+) -> Tuple[TrainResult, Dict[str, Any]]:
     """Trains on `scene` (held-out PSNR on `test_scene`) and writes OUT/checkpoint.ckpt and OUT/train.json.
 
     Args:
@@ -91,8 +99,14 @@ def train_run(seed: int, scene: Scene, config: TrainConfig, test_scene: Optional
         raise WaldoError(f"{out}: not an existing writable folder to save the run in")
     result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
     stats = train_stats(result, scene, preset, seed, scene_path)
-    save_checkpoint(out / CHECKPOINT_NAME, result.params, result.config, scene, result.occupancy,
-                    info={k: v for k, v in stats.items() if k != "history"})
+    save_checkpoint(
+        out / CHECKPOINT_NAME,
+        result.params,
+        result.config,
+        scene,
+        result.occupancy,
+        info={k: v for k, v in stats.items() if k != "history"},
+    )
     io.write_json(out / TRAIN_JSON, stats)
     return result, stats
 
@@ -103,9 +117,15 @@ def _positive(flag: str, value: Optional[float]) -> None:
         check_float32(value, flag, positive=True)
 
 
-def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", steps: Optional[int] = None,
-                    sampler: str = "auto", render_step_scale: Optional[float] = None,
-                    options: RunOptions = RunOptions()) -> Tuple[TrainResult, Dict[str, Any], Path]:
+def train_scene_run(
+    scene_path: str,
+    out: str | Path,
+    preset: str = "fast",
+    steps: Optional[int] = None,
+    sampler: str = "auto",
+    render_step_scale: Optional[float] = None,
+    options: RunOptions = RunOptions(),
+) -> Tuple[TrainResult, Dict[str, Any], Path]:
     """`waldo train` as a function: the scene on disk -> a run directory `out`.
 
     Every value is checked, and `out` too (empty, writable, a valid name), before the scene is loaded:
@@ -135,6 +155,5 @@ def train_scene_run(scene_path: str, out: str | Path, preset: str = "fast", step
     if render_step_scale is not None:
         overrides["render_step_scale"] = render_step_scale
     config = TrainConfig.preset(preset, train_scene, **overrides)
-    result, stats = train_run(options.seed, train_scene, config, test_scene, out, preset, options.progress,
-                              scene_path)
+    result, stats = train_run(options.seed, train_scene, config, test_scene, out, preset, options.progress, scene_path)
     return result, stats, out

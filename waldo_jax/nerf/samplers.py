@@ -61,8 +61,16 @@ class _DenseSampler:
         """No state to update."""
         return state
 
-    def render_rays(self, key: PRNGKey, params, state, origins: Array, directions: Array,
-                    background: Array, render_config: RenderConfig) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
+    def render_rays(
+        self,
+        key: PRNGKey,
+        params,
+        state,
+        origins: Array,
+        directions: Array,
+        background: Array,
+        render_config: RenderConfig,
+    ) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
         """Renders R training rays [R, 3] on per-ray backgrounds [R, 3]; every ray is included."""
         keys = jax.random.split(key, origins.shape[0])
 
@@ -104,33 +112,43 @@ class _OccupancySampler:
         self.base_aabb = np.stack([center - half, center + half])
         self.geometry = occupancy.init_occupancy(self.base_aabb, config.aabb_scale, resolution=1)
         self.march = marching.MarchConfig.for_grid(
-            self.geometry.replace(resolution=config.occupancy_resolution), config.steps_per_diagonal,
-            config.cone_angle, max_samples=config.num_samples)
+            self.geometry.replace(resolution=config.occupancy_resolution),
+            config.steps_per_diagonal,
+            config.cone_angle,
+            max_samples=config.num_samples,
+        )
         self.row_length = TRAIN_ROW_LENGTH
         self.rows = config.samples_per_batch // self.row_length
         self.max_rows_per_ray = -(-self.march.max_samples // self.row_length)
         if self.rows < self.max_rows_per_ray:
             raise TrainConfigError(
                 f"TrainConfig.samples_per_batch ({config.samples_per_batch}) must hold the samples one ray may "
-                f"keep, min(num_samples, K) = {self.march.max_samples} (in rows of {self.row_length})")
+                f"keep, min(num_samples, K) = {self.march.max_samples} (in rows of {self.row_length})"
+            )
 
     def init(self, key: PRNGKey, params):
         """All cells occupied, zero densities (nothing is skipped before the first update)."""
-        return occupancy.init_occupancy(self.base_aabb, self.config.aabb_scale,
-                                        resolution=self.config.occupancy_resolution)
+        return occupancy.init_occupancy(
+            self.base_aabb, self.config.aabb_scale, resolution=self.config.occupancy_resolution
+        )
 
     def _occupancy_config(self, grid):
         return occupancy.OccupancyConfig.create(
-            grid, steps_per_diagonal=self.config.steps_per_diagonal, warmup_steps=self.config.occupancy_warmup,
-            decay=self.config.occupancy_decay)
+            grid,
+            steps_per_diagonal=self.config.steps_per_diagonal,
+            warmup_steps=self.config.occupancy_warmup,
+            decay=self.config.occupancy_decay,
+        )
 
     def update(self, key: PRNGKey, grid, params, warmup: bool):
         """Instant-NGP's decay / sample / threshold update of the grid (`warmup`: every cell)."""
-        return occupancy.update_occupancy_phase(key, grid, self.density, jax.lax.stop_gradient(params),
-                                                self._occupancy_config(grid), warmup)
+        return occupancy.update_occupancy_phase(
+            key, grid, self.density, jax.lax.stop_gradient(params), self._occupancy_config(grid), warmup
+        )
 
-    def _march(self, grid, origins: Array, directions: Array, render_config: RenderConfig,
-               key: Optional[PRNGKey]) -> Tuple[Array, Array, Array]:
+    def _march(
+        self, grid, origins: Array, directions: Array, render_config: RenderConfig, key: Optional[PRNGKey]
+    ) -> Tuple[Array, Array, Array]:
         """t, delta [R, S] and mask bool [R, S] of R rays (random offsets with a key)."""
 
         def one(o, d, k):
@@ -140,8 +158,16 @@ class _OccupancySampler:
         keys = None if key is None else jax.random.split(key, origins.shape[0])
         return jax.vmap(one, in_axes=(0, 0, None if keys is None else 0))(origins, directions, keys)
 
-    def render_rays(self, key: PRNGKey, params, grid, origins: Array, directions: Array, background: Array,
-                    render_config: RenderConfig) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
+    def render_rays(
+        self,
+        key: PRNGKey,
+        params,
+        grid,
+        origins: Array,
+        directions: Array,
+        background: Array,
+        render_config: RenderConfig,
+    ) -> Tuple[RenderOutput, Array, Dict[str, Array]]:
         """Renders training rays [R, 3]; the leading rays whose rows fit the budget are `included`.
 
         Stats: "samples", the samples of the included rays (field evaluations that count), and "rows",
@@ -162,8 +188,15 @@ class _OccupancySampler:
         ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (self.rows, s, 3))  # [M, s, 3]
         points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
         sigma, rgb = jax.vmap(self.field, in_axes=(None, 0, 0))(params, points.reshape(-1, 3), ray_dirs.reshape(-1, 3))
-        sums = packed.composite_rows(sigma.reshape(self.rows, s), rgb.reshape(self.rows, s, 3), t_rows, delta_rows,
-                                     layout, jnp.zeros((num_rays,), jnp.float32), self.max_rows_per_ray)
+        sums = packed.composite_rows(
+            sigma.reshape(self.rows, s),
+            rgb.reshape(self.rows, s, 3),
+            t_rows,
+            delta_rows,
+            layout,
+            jnp.zeros((num_rays,), jnp.float32),
+            self.max_rows_per_ray,
+        )
         out = RenderOutput(rgb=sums.rgb + (1.0 - sums.acc)[:, None] * background, depth=sums.depth, acc=sums.acc)
         stats = {"samples": jnp.sum(jnp.where(included, count, 0)), "rows": jnp.sum(rows)}
         return out, included, stats
@@ -175,8 +208,11 @@ class _OccupancySampler:
     def view_march(self, scale: float) -> marching.MarchConfig:
         """The training march with steps `scale` times longer (NGP's dt_min and cone angle both scaled)."""
         return marching.MarchConfig.for_grid(
-            self.geometry.replace(resolution=self.config.occupancy_resolution), self.config.steps_per_diagonal / scale,
-            self.config.cone_angle * scale, max_samples=self.config.eval_samples)
+            self.geometry.replace(resolution=self.config.occupancy_resolution),
+            self.config.steps_per_diagonal / scale,
+            self.config.cone_angle * scale,
+            max_samples=self.config.eval_samples,
+        )
 
 
 @functools.lru_cache(maxsize=None)

@@ -98,6 +98,7 @@ class TrainData:
             background=jnp.asarray(background),
         )
 
+
 # ----------------------------------------------------------------------------------------------
 # The training step.
 
@@ -133,8 +134,9 @@ def init_train_state(key: PRNGKey, config: TrainConfig, hparams: Optional[TrainH
     return TrainState(params=params, opt_state=opt_state, sampler_state=sampler_state, step=jnp.int32(0))
 
 
-def _sample_batch(key: PRNGKey, data: TrainData, config: TrainConfig,
-                  num_rays: Optional[int] = None) -> Tuple[Array, Array, Array, Array]:
+def _sample_batch(
+    key: PRNGKey, data: TrainData, config: TrainConfig, num_rays: Optional[int] = None
+) -> Tuple[Array, Array, Array, Array]:
     """R = `num_rays` (default `config.rays_per_batch`) rays uniform over all training pixels, with their
     targets and backgrounds.
 
@@ -148,7 +150,8 @@ def _sample_batch(key: PRNGKey, data: TrainData, config: TrainConfig,
     image, rest = flat // (h * w), flat % (h * w)
     row, col = rest // w, rest % w
     dirs_cam = jax.vmap(lambda u, v: pixel_directions(data.intrinsics, u, v))(
-        col.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5)  # [R, 3]
+        col.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5
+    )  # [R, 3]
     c2w = data.c2w[image]  # [R, 3, 4]
     directions = jnp.einsum("rij,rj->ri", c2w[:, :, :3], dirs_cam)  # [R, 3]
     directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
@@ -201,15 +204,17 @@ def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -
     sampler = make_sampler(config)
     num_rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
 
-    def step(state: TrainState, train_key: PRNGKey, data: TrainData, hparams: TrainHParams,
-             render_config: RenderConfig):
+    def step(
+        state: TrainState, train_key: PRNGKey, data: TrainData, hparams: TrainHParams, render_config: RenderConfig
+    ):
         key = jax.random.fold_in(train_key, state.step)
         key_batch, key_render, _ = jax.random.split(key, 3)  # the third key is the occupancy update's
         origins, directions, target, background = _sample_batch(key_batch, data, config, num_rays)
 
         def loss_fn(params):
-            out, included, stats = sampler.render_rays(key_render, params, state.sampler_state, origins,
-                                                       directions, background, render_config)
+            out, included, stats = sampler.render_rays(
+                key_render, params, state.sampler_state, origins, directions, background, render_config
+            )
             loss, mse = _loss(out.rgb - target, included, config, hparams)
             return loss, (mse, jnp.sum(included, dtype=jnp.int32), stats)
 
@@ -217,8 +222,13 @@ def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -
         updates, opt_state = make_optimizer(hparams).update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
-        return new_state, {"loss": loss, "psnr": _psnr(mse), "rays": rays, "samples": stats["samples"],
-                           "rows": stats["rows"]}
+        return new_state, {
+            "loss": loss,
+            "psnr": _psnr(mse),
+            "rays": rays,
+            "samples": stats["samples"],
+            "rows": stats["rows"],
+        }
 
     return step
 
@@ -270,8 +280,13 @@ def chunk_fn(config: TrainConfig, rays_per_batch: int, warmup: bool) -> Callable
     update = make_occupancy_update(config, warmup)
 
     def chunk(state, train_key, data, hparams, render_config, total_steps):
-        skipped = {"loss": jnp.float32(jnp.nan), "psnr": jnp.float32(jnp.nan), "rays": jnp.int32(0),
-                   "samples": jnp.int32(0), "rows": jnp.int32(0)}
+        skipped = {
+            "loss": jnp.float32(jnp.nan),
+            "psnr": jnp.float32(jnp.nan),
+            "rays": jnp.int32(0),
+            "samples": jnp.int32(0),
+            "rows": jnp.int32(0),
+        }
 
         def one_step(state, _):
             new_state, metrics = step(state, train_key, data, hparams, render_config)
@@ -306,8 +321,13 @@ class TrainInputs(NamedTuple):
     render_config: RenderConfig
 
 
-def run_chunk(inputs: TrainInputs, config: TrainConfig, total_steps: int, rays_per_batch: Optional[int] = None,
-              warmup: bool = False) -> Tuple[TrainState, Dict]:
+def run_chunk(
+    inputs: TrainInputs,
+    config: TrainConfig,
+    total_steps: int,
+    rays_per_batch: Optional[int] = None,
+    warmup: bool = False,
+) -> Tuple[TrainState, Dict]:
     """Runs one chunk of whole periods (those steps with step >= total_steps are discarded) in one jitted scan.
 
     The input state (`inputs.state`) must start a period (`state.step` a multiple of
@@ -318,8 +338,14 @@ def run_chunk(inputs: TrainInputs, config: TrainConfig, total_steps: int, rays_p
       {"rays", "samples", "rows"} int32 [steps] (0 for discarded steps).
     """
     rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
-    return chunk_fn(config, rays, bool(warmup))(inputs.state, inputs.train_key, inputs.data, inputs.hparams.as_arrays(),
-                                                 inputs.render_config, jnp.int32(total_steps))
+    return chunk_fn(config, rays, bool(warmup))(
+        inputs.state,
+        inputs.train_key,
+        inputs.data,
+        inputs.hparams.as_arrays(),
+        inputs.render_config,
+        jnp.int32(total_steps),
+    )
 
 
 def rays_ladder(config: TrainConfig) -> Tuple[int, ...]:
@@ -360,9 +386,8 @@ def next_rays(config: TrainConfig, metrics: Dict[str, np.ndarray], rays: int) ->
     """
     if config.sampler != "occupancy":
         return rays
-    taken = np.flatnonzero(np.isfinite(metrics["loss"]))[-config.occupancy_update_every:]
+    taken = np.flatnonzero(np.isfinite(metrics["loss"]))[-config.occupancy_update_every :]
     if taken.size == 0:
         return rays
     rows_per_ray = float(np.sum(np.asarray(metrics["rows"], np.float64)[taken])) / (rays * taken.size)
     return _fit_rays(config, rows_per_ray)
-

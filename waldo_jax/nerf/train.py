@@ -34,8 +34,9 @@ from waldo_jax.types import PRNGKey, Scene
 __all__ = ["TrainInputs", "TrainResult", "train", "training_inputs"]
 
 
-def training_inputs(key: PRNGKey, train_scene: Scene, config: TrainConfig,
-                    hparams: Optional[TrainHParams] = None) -> TrainInputs:
+def training_inputs(
+    key: PRNGKey, train_scene: Scene, config: TrainConfig, hparams: Optional[TrainHParams] = None
+) -> TrainInputs:
     """Initial state, training key stream, device data and render config of a run.
 
     `key` is split into the initialisation key and the training stream, exactly as `train` does,
@@ -47,10 +48,14 @@ def training_inputs(key: PRNGKey, train_scene: Scene, config: TrainConfig,
     key_init, key_train = jax.random.split(key)
     state = init_train_state(key_init, config, hparams)
     data = TrainData.from_scene(train_scene)
-    render_config = RenderConfig.create(near=train_scene.near, far=train_scene.far,
-                                        aabb=np.asarray(train_scene.aabb, np.float32).reshape(2, 3),
-                                        background=eval_background(train_scene), num_samples=config.num_samples,
-                                        ray_chunk=1)
+    render_config = RenderConfig.create(
+        near=train_scene.near,
+        far=train_scene.far,
+        aabb=np.asarray(train_scene.aabb, np.float32).reshape(2, 3),
+        background=eval_background(train_scene),
+        num_samples=config.num_samples,
+        ray_chunk=1,
+    )
     return TrainInputs(state, key_train, data, hparams.as_arrays(), render_config)
 
 
@@ -143,20 +148,31 @@ def _timed_chunk(program, inputs: TrainInputs, total, timing: _Timing):
     return state, metrics
 
 
-def _chunk_entry(metrics: Dict[str, Any], done: int, taken: int, rays: int, warmup: bool,
-                 seconds: float) -> Dict[str, Any]:
+def _chunk_entry(
+    metrics: Dict[str, Any], done: int, taken: int, rays: int, warmup: bool, seconds: float
+) -> Dict[str, Any]:
     """A chunk's history entry: means over its `taken` steps (see `TrainResult.history`)."""
     rays_trained = int(np.sum(metrics["rays"]))
-    return {"step": done, "loss": float(np.nanmean(metrics["loss"])), "psnr": float(np.nanmean(metrics["psnr"])),
-            "rays": rays_trained / max(taken, 1), "samples": float(np.sum(metrics["samples"])) / max(taken, 1),
-            "rays_marched": rays, "warmup": warmup, "seconds": seconds}
+    return {
+        "step": done,
+        "loss": float(np.nanmean(metrics["loss"])),
+        "psnr": float(np.nanmean(metrics["psnr"])),
+        "rays": rays_trained / max(taken, 1),
+        "samples": float(np.sum(metrics["samples"])) / max(taken, 1),
+        "rays_marched": rays,
+        "warmup": warmup,
+        "seconds": seconds,
+    }
 
 
 def _evaluates_after(config: TrainConfig, done: int, taken: int) -> bool:
     """Whether the chunk that took the run from `done - taken` to `done` steps crossed an `eval_every` mark
     (the last chunk excepted: the run is evaluated at its end anyway)."""
-    return bool(config.eval_every) and done < config.steps and (
-        done // config.eval_every) > ((done - taken) // config.eval_every)
+    return (
+        bool(config.eval_every)
+        and done < config.steps
+        and (done // config.eval_every) > ((done - taken) // config.eval_every)
+    )
 
 
 class _Chunks(NamedTuple):
@@ -168,8 +184,13 @@ class _Chunks(NamedTuple):
     stopped: bool
 
 
-def _train_chunks(inputs: TrainInputs, config: TrainConfig, test_scene: Optional[Scene], progress: bool,
-                  on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]]) -> _Chunks:
+def _train_chunks(
+    inputs: TrainInputs,
+    config: TrainConfig,
+    test_scene: Optional[Scene],
+    progress: bool,
+    on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]],
+) -> _Chunks:
     """The training loop: chunks of steps until `config.steps` (or `on_chunk` stops it), with progress,
     history and the `eval_every` held-out evaluations."""
     from tqdm.auto import tqdm
@@ -225,14 +246,25 @@ def _held_out(state: TrainState, config: TrainConfig, test_scene: Optional[Scene
         config = config.replace(render_step_scale=scale)
     final = evaluate(state.params, state.sampler_state, config, test_scene)
     psnr_test = final["psnr"]
-    entry = {"step": int(state.step), "seconds": seconds, "psnr_test": psnr_test, "render_step_scale": scale,
-             "evaluations_per_ray": final["evaluations_per_ray"]}
+    entry = {
+        "step": int(state.step),
+        "seconds": seconds,
+        "psnr_test": psnr_test,
+        "render_step_scale": scale,
+        "evaluations_per_ray": final["evaluations_per_ray"],
+    }
     return _HeldOut(config, psnr_test, psnr_test if scale == 1.0 else None, curve, entry)
 
 
-def train(key: PRNGKey, train_scene: Scene, config: TrainConfig, test_scene: Optional[Scene] = None,
-          progress: bool = True, hparams: Optional[TrainHParams] = None,
-          on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None) -> TrainResult:
+def train(
+    key: PRNGKey,
+    train_scene: Scene,
+    config: TrainConfig,
+    test_scene: Optional[Scene] = None,
+    progress: bool = True,
+    hparams: Optional[TrainHParams] = None,
+    on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None,
+) -> TrainResult:
     """Trains an Instant-NGP field on a scene.
 
     After training, with a `test_scene` and `config.render_step_scale` None, the run's rendering step

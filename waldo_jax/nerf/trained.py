@@ -70,12 +70,20 @@ class TrainedField:
     aabb: Any = None
 
     @classmethod
-    def create(cls, params, occupancy, config: TrainConfig, near: float, far: float, background=(1.0, 1.0, 1.0),
-               aabb=None) -> "TrainedField":
+    def create(
+        cls, params, occupancy, config: TrainConfig, near: float, far: float, background=(1.0, 1.0, 1.0), aabb=None
+    ) -> "TrainedField":
         """A trained field with float32 settings; `aabb=None` samples the field's own box (`config.field.aabb`)."""
         aabb = config.field.aabb if aabb is None else aabb
-        return cls(params=params, occupancy=occupancy, config=config, near=np.float32(near), far=np.float32(far),
-                   background=np.asarray(background, np.float32), aabb=np.asarray(aabb, np.float32).reshape(2, 3))
+        return cls(
+            params=params,
+            occupancy=occupancy,
+            config=config,
+            near=np.float32(near),
+            far=np.float32(far),
+            background=np.asarray(background, np.float32),
+            aabb=np.asarray(aabb, np.float32).reshape(2, 3),
+        )
 
     @classmethod
     def for_scene(cls, params, occupancy, config: TrainConfig, scene) -> "TrainedField":
@@ -94,8 +102,9 @@ class TrainedField:
         return cls.for_scene(checkpoint.params, checkpoint.occupancy, checkpoint.config, checkpoint.scene)
 
 
-def render_setup(field: TrainedField, step_scale: Optional[float] = None,
-                 sizes_of: Optional[float] = None) -> marched.MarchSetup:
+def render_setup(
+    field: TrainedField, step_scale: Optional[float] = None, sizes_of: Optional[float] = None
+) -> marched.MarchSetup:
     """What `render.marched` needs to render a trained field: `MarchSetup(grid, render config, march config)`.
 
     Args:
@@ -111,9 +120,13 @@ def render_setup(field: TrainedField, step_scale: Optional[float] = None,
     scale = float(scale)
     if not (math.isfinite(scale) and scale > 0):
         raise TrainConfigError(f"the render step scale must be a positive number, got {step_scale!r}")
-    render_config = RenderConfig.create(near=field.near, far=field.far,
-                                        aabb=np.asarray(field.aabb, np.float32).reshape(2, 3),
-                                        background=field.background, ray_chunk=1)
+    render_config = RenderConfig.create(
+        near=field.near,
+        far=field.far,
+        aabb=np.asarray(field.aabb, np.float32).reshape(2, 3),
+        background=field.background,
+        ray_chunk=1,
+    )
     march = sampler.view_march(scale)
     if sizes_of is not None:
         if not 0 < float(sizes_of) <= scale:
@@ -123,8 +136,15 @@ def render_setup(field: TrainedField, step_scale: Optional[float] = None,
     return marched.MarchSetup(sampler.view_grid(field.occupancy), render_config, march)
 
 
-def _render_counted(field: TrainedField, c2w, intrinsics: Intrinsics, mesh, step_scale: Optional[float],
-                    packing: Optional[marched.Packing], sizes_of: Optional[float] = None):
+def _render_counted(
+    field: TrainedField,
+    c2w,
+    intrinsics: Intrinsics,
+    mesh,
+    step_scale: Optional[float],
+    packing: Optional[marched.Packing],
+    sizes_of: Optional[float] = None,
+):
     """(RenderOutput [P, H, W], evaluations int32 [P, H, W]) on one device, or sharded over several."""
     setup = render_setup(field, step_scale, sizes_of)
     field_fn = make_field(field.config.field)
@@ -135,16 +155,35 @@ def _render_counted(field: TrainedField, c2w, intrinsics: Intrinsics, mesh, step
     return marched.render_marched_sharded(field_fn, field.params, setup, c2w, intrinsics, packing, mesh)
 
 
-def render_trained_counted(field: TrainedField, c2w, intrinsics: Intrinsics, *, step_scale: Optional[float] = None,
-                           packing: Optional[marched.Packing] = None) -> marched.MarchedViews:
+def render_trained_counted(
+    field: TrainedField,
+    c2w,
+    intrinsics: Intrinsics,
+    *,
+    step_scale: Optional[float] = None,
+    packing: Optional[marched.Packing] = None,
+) -> marched.MarchedViews:
     """`render_trained` on one device, with what it cost (`render.marched.MarchedViews`: evaluations per
     pixel, passes per block)."""
-    return marched.render_marched(make_field(field.config.field), field.params, render_setup(field, step_scale),
-                                  jnp.asarray(np.asarray(c2w, np.float32)), intrinsics, packing)
+    return marched.render_marched(
+        make_field(field.config.field),
+        field.params,
+        render_setup(field, step_scale),
+        jnp.asarray(np.asarray(c2w, np.float32)),
+        intrinsics,
+        packing,
+    )
 
 
-def render_trained(field: TrainedField, c2w, intrinsics: Intrinsics, *, mesh=None, step_scale: Optional[float] = None,
-                   packing: Optional[marched.Packing] = None) -> RenderOutput:
+def render_trained(
+    field: TrainedField,
+    c2w,
+    intrinsics: Intrinsics,
+    *,
+    mesh=None,
+    step_scale: Optional[float] = None,
+    packing: Optional[marched.Packing] = None,
+) -> RenderOutput:
     """Renders P views of a trained field in one call with the marched renderer (`render.marched`).
 
     With more than one local device (or a `mesh`), the poses are split over the devices
@@ -170,8 +209,15 @@ def eval_background(scene: Scene) -> np.ndarray:
     return np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
 
 
-def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scale: Optional[float] = None,
-             views: Optional[Sequence[int]] = None, sizes_of: Optional[float] = None) -> Dict[str, Any]:
+def evaluate(
+    params,
+    sampler_state,
+    config: TrainConfig,
+    scene: Scene,
+    step_scale: Optional[float] = None,
+    views: Optional[Sequence[int]] = None,
+    sizes_of: Optional[float] = None,
+) -> Dict[str, Any]:
     """Held-out PSNR: renders the views of `scene` (all, or the indices `views`) and compares with its images.
 
     RGBA scenes are compared on the background their images were composited on (`scene.background`);
@@ -192,15 +238,25 @@ def evaluate(params, sampler_state, config: TrainConfig, scene: Scene, step_scal
     mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))
     psnr = -10.0 * np.log10(np.maximum(mse, 1e-12))
     scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
-    return {"psnr": float(np.mean(psnr)), "psnr_per_image": psnr.tolist(), "mse": float(np.mean(mse)),
-            "evaluations_per_ray": float(np.mean(np.asarray(evaluations, np.float64))), "step_scale": float(scale),
-            "images": rendered}
+    return {
+        "psnr": float(np.mean(psnr)),
+        "psnr_per_image": psnr.tolist(),
+        "mse": float(np.mean(mse)),
+        "evaluations_per_ray": float(np.mean(np.asarray(evaluations, np.float64))),
+        "step_scale": float(scale),
+        "images": rendered,
+    }
 
 
-def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Scene,
-                          reference: Optional[Dict[str, Any]] = None,
-                          candidates: Sequence[float] = RENDER_STEP_CANDIDATES,
-                          tolerance_db: float = RENDER_STEP_TOLERANCE_DB) -> Tuple[float, List[Dict[str, Any]]]:
+def calibrate_render_step(
+    params,
+    sampler_state,
+    config: TrainConfig,
+    scene: Scene,
+    reference: Optional[Dict[str, Any]] = None,
+    candidates: Sequence[float] = RENDER_STEP_CANDIDATES,
+    tolerance_db: float = RENDER_STEP_TOLERANCE_DB,
+) -> Tuple[float, List[Dict[str, Any]]]:
     """The marching step to render a trained run with, from its own quality/speed curve.
 
     Renders up to `_CALIBRATION_VIEWS` held-out views (spread over the split) with the march `scale`
@@ -229,14 +285,26 @@ def calibrate_render_step(params, sampler_state, config: TrainConfig, scene: Sce
         base = reference["psnr"]
     else:
         base = float(np.mean(np.asarray(reference["psnr_per_image"])[views]))
-    curve = [{"step_scale": 1.0, "psnr_views": base, "delta_db": 0.0,
-              "evaluations_per_ray": reference["evaluations_per_ray"]}]
+    curve = [
+        {
+            "step_scale": 1.0,
+            "psnr_views": base,
+            "delta_db": 0.0,
+            "evaluations_per_ray": reference["evaluations_per_ray"],
+        }
+    ]
     chosen = 1.0
     for scale in candidates:
         result = evaluate(params, sampler_state, config, scene, step_scale=scale, views=views, sizes_of=finest)
         delta = result["psnr"] - base
-        curve.append({"step_scale": float(scale), "psnr_views": result["psnr"], "delta_db": delta,
-                      "evaluations_per_ray": result["evaluations_per_ray"]})
+        curve.append(
+            {
+                "step_scale": float(scale),
+                "psnr_views": result["psnr"],
+                "delta_db": delta,
+                "evaluations_per_ray": result["evaluations_per_ray"],
+            }
+        )
         if delta < -tolerance_db:
             break
         chosen = float(scale)

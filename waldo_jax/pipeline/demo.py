@@ -37,13 +37,22 @@ from waldo_jax.pipeline.experiment import run_explore
 from waldo_jax.pipeline.figures import criterion_caption, methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import NERF_GRADIENT, Source, field_renderer, room_renderer
-from waldo_jax.procedural import (FOUND_VISIBILITY, RoomCameraConfig, held_out_scene, room_scene,
-                                  waldo_visibility_batch)
+from waldo_jax.procedural import FOUND_VISIBILITY, RoomCameraConfig, held_out_scene, room_scene, waldo_visibility_batch
 from waldo_jax.search import ExploreConfig
 from waldo_jax.types import Scene
 
-__all__ = ["DEMO_ROOM_SEED", "DemoSettings", "SETTINGS", "run_demo", "default_demo_dir", "render_psnr",
-           "render_in", "room_scenes", "nerf_source", "train_room_nerf"]
+__all__ = [
+    "DEMO_ROOM_SEED",
+    "DemoSettings",
+    "SETTINGS",
+    "run_demo",
+    "default_demo_dir",
+    "render_psnr",
+    "render_in",
+    "room_scenes",
+    "nerf_source",
+    "train_room_nerf",
+]
 
 METHOD_ORDER = ("grs", "pibs", "egps")
 # The demo's room: the first seed whose search space holds views of Waldo whole (room 0's does not).
@@ -108,12 +117,11 @@ def render_in(render, c2w, count: int) -> np.ndarray:
     c2w = np.asarray(c2w, np.float32)
     total = c2w.shape[0]
     padded = np.concatenate([c2w, np.repeat(c2w[-1:], (-total) % count, axis=0)])
-    parts = [np.asarray(render(jnp.asarray(padded[i:i + count]))) for i in range(0, len(padded), count)]
+    parts = [np.asarray(render(jnp.asarray(padded[i : i + count]))) for i in range(0, len(padded), count)]
     return np.concatenate(parts)[:total]
 
 
-def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path,
-                    progress: bool):
+def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path, progress: bool):
     """The room's NeRF (fast preset, `settings.train_steps`) trained into the existing folder `run_dir`.
 
     Returns:
@@ -124,7 +132,9 @@ def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, see
     if settings.finest_resolution_scale != 1.0:
         hashgrid = config.field.hashgrid
         n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))
-        config = config.replace(field=dataclasses.replace(config.field, hashgrid=dataclasses.replace(hashgrid, N_max=n_max)))
+        config = config.replace(
+            field=dataclasses.replace(config.field, hashgrid=dataclasses.replace(hashgrid, N_max=n_max))
+        )
     return train_run(seed, scene, config, test_scene, run_dir, "fast", progress)
 
 
@@ -132,68 +142,77 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
     rows, seed_rows = [], []
     for method in METHOD_ORDER:
         m = summary["methods"][method]
-        rows.append(f"| {method.upper()} | {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} | "
-                    f"{m['mcvir_mean']:.0f} ± {m['mcvir_std']:.0f} | {m['best_mean']:.4f} | "
-                    f"{m['best_visible_mean']:.0%} ({m['found_seeds']}/{len(m['best_visible_per_seed'])}) | "
-                    f"{m['best_psnr_mean']:.1f} | {m['top_psnr_mean']:.1f} | {m['seconds']:.1f} |")
+        rows.append(
+            f"| {method.upper()} | {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} | "
+            f"{m['mcvir_mean']:.0f} ± {m['mcvir_std']:.0f} | {m['best_mean']:.4f} | "
+            f"{m['best_visible_mean']:.0%} ({m['found_seeds']}/{len(m['best_visible_per_seed'])}) | "
+            f"{m['best_psnr_mean']:.1f} | {m['top_psnr_mean']:.1f} | {m['seconds']:.1f} |"
+        )
         cells = [f"{v:.0%}, {p:.1f} dB" for v, p in zip(m["best_visible_per_seed"], m["best_psnr_per_seed"])]
         seed_rows.append(f"| {method.upper()} | " + " | ".join(cells) + " |")
     nerf = summary["nerf"]
     winner = max(METHOD_ORDER, key=lambda k: summary["methods"][k]["mcvir_mean"])
     s = summary["settings"]
     seeds = summary["seeds"]
-    return "\n".join([
-        "# waldo demo: finding Waldo in the procedural room",
-        "",
-        f"Room `procedural:{summary['room_seed']}`, {s['views']} training views at {s['resolution']}x{s['resolution']} "
-        f"(each sees at most half of Waldo). Criterion `{summary['criterion']}`: Waldo found (at least "
-        f"{FOUND_VISIBILITY:.0%} of him in frame and unoccluded) and as large as possible: 1 + his share of the "
-        "image when found, else his visible fraction (exact, from the room's geometry; direction max). Budget `low`: "
-        f"{summary['n_train']} training + 5 x {summary['children_per_epoch']} generated views; top-k = 10. "
-        f"{s['seeds']} seeds per method (seeds {seeds[0]}..{seeds[-1]}), one vmapped call each.",
-        "",
-        f"Scores in every table and figure: {summary['criterion_caption']}.",
-        "",
-        "| method | CVIR % (mean ± std) | mCVIR % (mean ± std) | best score (mean) | Waldo visible in best view "
-        "(mean; seeds >= 90 %) | NeRF render PSNR at best view (dB, mean) | PSNR over seed "
-        f"{seeds[0]}'s top 10 (dB) | search s |",
-        "|---|---|---|---|---|---|---|---|",
-        *rows,
-        "",
-        "Each seed's best view: Waldo's visible share (exact) and the PSNR of the NeRF's render against the "
-        "analytic truth at the demo's resolution:",
-        "",
-        "| method | " + " | ".join(f"seed {k}" for k in seeds) + " |",
-        "|---|" + "---|" * len(seeds),
-        *seed_rows,
-        "",
-        f"Best training view: score {summary['best_train_score']:.4f}, Waldo {summary['best_train_visible']:.0%} visible. "
-        f"Highest mCVIR: **{winner.upper()}**.",
-        "",
-        f"NeRF (hash grid, fast preset, {nerf['steps']} steps, {nerf['seconds']:.0f} s on {nerf['device']}): "
-        f"held-out PSNR {nerf['psnr_test']:.2f} dB on {nerf['n_test']} unseen views like the training views. It "
-        "renders the views shown below; the criterion itself is exact and does not look at the renders.",
-        "",
-        "![best views](contact_sheet.png)",
-        "",
-        "Rows: the best training views, then for each method the best views it found (seed "
-        f"{seeds[0]}) as the NeRF renders them and as the analytic room renders them (the truth).",
-        "",
-        "![EGPS pose cloud](egps/pose_cloud.png)",
-        "",
-        "Per method: `grs/`, `pibs/`, `egps/` hold results.json, topk/*.png, contact_sheet.png, poses.json and "
-        f"pose_cloud.png; `nerf/` is the trained run (`waldo explore nerf --criterion {summary['criterion']} ...`).",
-        "",
-        f"Total {summary['seconds']['total']:.0f} s on {summary['device']}. Command: `{summary['command']}`.",
-        "",
-    ])
+    return "\n".join(
+        [
+            "# waldo demo: finding Waldo in the procedural room",
+            "",
+            f"Room `procedural:{summary['room_seed']}`, {s['views']} training views at "
+            f"{s['resolution']}x{s['resolution']} "
+            f"(each sees at most half of Waldo). Criterion `{summary['criterion']}`: Waldo found (at least "
+            f"{FOUND_VISIBILITY:.0%} of him in frame and unoccluded) and as large as possible: 1 + his share of the "
+            "image when found, else his visible fraction (exact, from the room's geometry; direction max). Budget "
+            "`low`: "
+            f"{summary['n_train']} training + 5 x {summary['children_per_epoch']} generated views; top-k = 10. "
+            f"{s['seeds']} seeds per method (seeds {seeds[0]}..{seeds[-1]}), one vmapped call each.",
+            "",
+            f"Scores in every table and figure: {summary['criterion_caption']}.",
+            "",
+            "| method | CVIR % (mean ± std) | mCVIR % (mean ± std) | best score (mean) | Waldo visible in best view "
+            "(mean; seeds >= 90 %) | NeRF render PSNR at best view (dB, mean) | PSNR over seed "
+            f"{seeds[0]}'s top 10 (dB) | search s |",
+            "|---|---|---|---|---|---|---|---|",
+            *rows,
+            "",
+            "Each seed's best view: Waldo's visible share (exact) and the PSNR of the NeRF's render against the "
+            "analytic truth at the demo's resolution:",
+            "",
+            "| method | " + " | ".join(f"seed {k}" for k in seeds) + " |",
+            "|---|" + "---|" * len(seeds),
+            *seed_rows,
+            "",
+            f"Best training view: score {summary['best_train_score']:.4f}, Waldo {summary['best_train_visible']:.0%} "
+            f"visible. "
+            f"Highest mCVIR: **{winner.upper()}**.",
+            "",
+            f"NeRF (hash grid, fast preset, {nerf['steps']} steps, {nerf['seconds']:.0f} s on {nerf['device']}): "
+            f"held-out PSNR {nerf['psnr_test']:.2f} dB on {nerf['n_test']} unseen views like the training views. It "
+            "renders the views shown below; the criterion itself is exact and does not look at the renders.",
+            "",
+            "![best views](contact_sheet.png)",
+            "",
+            "Rows: the best training views, then for each method the best views it found (seed "
+            f"{seeds[0]}) as the NeRF renders them and as the analytic room renders them (the truth).",
+            "",
+            "![EGPS pose cloud](egps/pose_cloud.png)",
+            "",
+            "Per method: `grs/`, `pibs/`, `egps/` hold results.json, topk/*.png, contact_sheet.png, poses.json and "
+            f"pose_cloud.png; `nerf/` is the trained run (`waldo explore nerf --criterion {summary['criterion']} "
+            f"...`).",
+            "",
+            f"Total {summary['seconds']['total']:.0f} s on {summary['device']}. Command: `{summary['command']}`.",
+            "",
+        ]
+    )
 
 
 def room_scenes(seed: int, settings: DemoSettings):
     """The room of `seed`, its training scene and its held-out views: (scene, room, test_scene)."""
     try:
-        scene, room = room_scene(seed, num_views=settings.views, resolution=settings.resolution,
-                                 camera_config=settings.camera)
+        scene, room = room_scene(
+            seed, num_views=settings.views, resolution=settings.resolution, camera_config=settings.camera
+        )
         test_scene = held_out_scene(room, seed, settings.test_views, scene, settings.camera)
     except ValueError as e:
         raise WaldoError(str(e)) from None
@@ -205,11 +224,21 @@ def nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedFiel
     render = field_renderer(field, scene.intrinsics, gradient=NERF_GRADIENT)
     render_rgba = field_renderer(field, scene.intrinsics, rgba=True, gradient=NERF_GRADIENT)
     truth = room_renderer(room, scene.intrinsics)
-    return Source(spec=str(run_dir), kind="run", name=f"NeRF of procedural:{seed}",
-                  train_c2w=scene.c2w, intrinsics=scene.intrinsics, render=render, render_rgba=render_rgba,
-                  train_images=scene.images, train_names=scene.file_names, room=room, truth_render=truth,
-                  info={"procedural_seed": seed, "run_dir": str(run_dir), "psnr_test": psnr_test},
-                  gradient=NERF_GRADIENT)
+    return Source(
+        spec=str(run_dir),
+        kind="run",
+        name=f"NeRF of procedural:{seed}",
+        train_c2w=scene.c2w,
+        intrinsics=scene.intrinsics,
+        render=render,
+        render_rgba=render_rgba,
+        train_images=scene.images,
+        train_names=scene.file_names,
+        room=room,
+        truth_render=truth,
+        info={"procedural_seed": seed, "run_dir": str(run_dir), "psnr_test": psnr_test},
+        gradient=NERF_GRADIENT,
+    )
 
 
 def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any]:
@@ -218,18 +247,23 @@ def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any
     best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
-    best_psnr = render_psnr(render_in(source.render, best_c2w, views),
-                            render_in(source.truth_render, best_c2w, views))
+    best_psnr = render_psnr(render_in(source.render, best_c2w, views), render_in(source.truth_render, best_c2w, views))
     top_psnr = render_psnr(run.top_images, run.top_truth)
     return {
-        "cvir_mean": results.get("cvir_mean", results["cvir"]), "cvir_std": results.get("cvir_std", 0.0),
-        "mcvir_mean": results.get("mcvir_mean", results["mcvir"]), "mcvir_std": results.get("mcvir_std", 0.0),
+        "cvir_mean": results.get("cvir_mean", results["cvir"]),
+        "cvir_std": results.get("cvir_std", 0.0),
+        "mcvir_mean": results.get("mcvir_mean", results["mcvir"]),
+        "mcvir_std": results.get("mcvir_std", 0.0),
         "best_mean": float(np.mean([float(r.metrics.best[-1]) for r in run.results])),
-        "best_visible_mean": float(np.mean(visible)), "best_visible_per_seed": visible.tolist(),
+        "best_visible_mean": float(np.mean(visible)),
+        "best_visible_per_seed": visible.tolist(),
         "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)),
-        "best_psnr_mean": float(np.mean(best_psnr)), "best_psnr_per_seed": best_psnr.tolist(),
-        "top_psnr_mean": float(np.mean(top_psnr)), "top_psnr": top_psnr.tolist(),
-        "seconds": run.seconds["search"], "per_seed": results.get("per_seed"),
+        "best_psnr_mean": float(np.mean(best_psnr)),
+        "best_psnr_per_seed": best_psnr.tolist(),
+        "top_psnr_mean": float(np.mean(top_psnr)),
+        "top_psnr": top_psnr.tolist(),
+        "seconds": run.seconds["search"],
+        "per_seed": results.get("per_seed"),
     }
 
 
@@ -245,14 +279,22 @@ def _run_methods(out: Path, source: Source, criterion, settings: DemoSettings, s
         results = write_outputs(run, out / method, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")
         methods[method] = m = _method_stats(run, results, source)
         runs[method] = run
-        say(f"[demo] {method.upper()}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, mCVIR {m['mcvir_mean']:.0f} "
+        say(
+            f"[demo] {method.upper()}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, mCVIR {m['mcvir_mean']:.0f} "
             f"± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible in the best views "
-            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there", flush=True)
+            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there",
+            flush=True,
+        )
     return runs, methods
 
 
-def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Optional[int] = None,
-             progress: bool = True, settings: Optional[DemoSettings] = None) -> Path:
+def run_demo(
+    out: Optional[str | Path] = None,
+    quick: bool = False,
+    seed: Optional[int] = None,
+    progress: bool = True,
+    settings: Optional[DemoSettings] = None,
+) -> Path:
     """Runs the demo and returns its output directory (see the module docstring).
 
     Args:
@@ -276,8 +318,7 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
     stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
     t_train = time.perf_counter()
 
-    source = nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene),
-                          stats["psnr_test"])
+    source = nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene), stats["psnr_test"])
     context = CriterionContext(room=room, source=source.spec, train_c2w=source.train_c2w)
     criterion = make_criterion(settings.criterion, context)
     runs, methods = _run_methods(out, source, criterion, settings, seed, say)
@@ -302,8 +343,12 @@ def run_demo(out: Optional[str | Path] = None, quick: bool = False, seed: Option
         "nerf": stats,
         "methods": methods,
         "egps_ahead_of_grs_on_mcvir": bool(methods["egps"]["mcvir_mean"] > methods["grs"]["mcvir_mean"]),
-        "seconds": {"scene": round(t_scene - t0, 2), "train": round(t_train - t_scene, 2),
-                    "search_and_files": round(time.perf_counter() - t_train, 2), "total": round(total, 2)},
+        "seconds": {
+            "scene": round(t_scene - t0, 2),
+            "train": round(t_train - t_scene, 2),
+            "search_and_files": round(time.perf_counter() - t_train, 2),
+            "total": round(total, 2),
+        },
         "device": stats["device"],
         "command": "waldo demo" + (" --quick" if quick else "") + ("" if seed == DEMO_ROOM_SEED else f" --seed {seed}"),
     }

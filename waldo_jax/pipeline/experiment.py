@@ -26,9 +26,22 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.search import ExploreConfig, Initial, RefineConfig, Result, explore, explore_seeds, get_method
 from waldo_jax.pipeline.sources import Source
 
-__all__ = ["ExploreRun", "INITIAL_MODES", "GRADIENT_COSTS", "gradient_cost_for", "refine_for_source", "score_function",
-           "objective_function", "initial_scores", "run_explore", "seed_keys",
-           "generated_slots", "check_epoch_memory", "memory_bytes", "EPOCH_BYTES_PER_PIXEL"]
+__all__ = [
+    "ExploreRun",
+    "INITIAL_MODES",
+    "GRADIENT_COSTS",
+    "gradient_cost_for",
+    "refine_for_source",
+    "score_function",
+    "objective_function",
+    "initial_scores",
+    "run_explore",
+    "seed_keys",
+    "generated_slots",
+    "check_epoch_memory",
+    "memory_bytes",
+    "EPOCH_BYTES_PER_PIXEL",
+]
 
 INITIAL_MODES = ("images", "renders")
 # Working memory of one epoch per rendered pixel (renders, criterion activations, the search's own
@@ -63,7 +76,8 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
             f"--seeds {seeds}: one epoch renders {seeds} x {config.children_per_epoch} views of "
             f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
             f"more than the {available / 2**30:.1f} GiB at hand; at most --seeds {max(available // per_seed, 0)} "
-            "here (or a lower --resolution)")
+            "here (or a lower --resolution)"
+        )
 
 
 # Renders one refinement gradient evaluation counts as, by what the criterion scores (>= 2): the
@@ -84,8 +98,9 @@ def gradient_cost_for(criterion: Criterion, source: Optional[Source] = None) -> 
     return GRADIENT_COSTS[criterion.inputs]
 
 
-def refine_for_source(refine: RefineConfig, source: Source, criterion: Criterion,
-                      default_cost: bool = True) -> RefineConfig:
+def refine_for_source(
+    refine: RefineConfig, source: Source, criterion: Criterion, default_cost: bool = True
+) -> RefineConfig:
     """`refine` with the source's way of differentiating (`Source.gradient`) and, when `default_cost`,
     the gradient cost for this source and criterion (`gradient_cost_for`)."""
     mode = source.gradient if criterion.inputs != "poses" else refine.gradient
@@ -129,7 +144,9 @@ def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
     if criterion.inputs not in ("renders", "posed"):
         return source.render
     if source.render_rgba is None:
-        raise WaldoError(f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give")
+        raise WaldoError(
+            f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give"
+        )
     return source.render_rgba
 
 
@@ -149,8 +166,10 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
         return np.asarray(_jit_score_poses(criterion, train_c2w, source.intrinsics), np.float32), "poses"
     if initial == "images":
         if source.train_images is None:
-            raise WaldoError(f"cannot score the real training images of {source.spec}: {source.train_images_note}; "
-                             "use --initial renders to score renders at the training poses instead")
+            raise WaldoError(
+                f"cannot score the real training images of {source.spec}: {source.train_images_note}; "
+                "use --initial renders to score renders at the training poses instead"
+            )
         images = jnp.asarray(source.train_images)
     else:
         images = _renderer(source, criterion)(train_c2w)
@@ -199,8 +218,16 @@ class ExploreRun:
         return self.results[0]
 
 
-def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, seed: int = 0, seeds: int = 1,
-                initial: str = "images", setup_seconds: float = 0.0, progress: bool = False) -> ExploreRun:
+def run_explore(
+    source: Source,
+    criterion: Criterion,
+    config: ExploreConfig,
+    seed: int = 0,
+    seeds: int = 1,
+    initial: str = "images",
+    setup_seconds: float = 0.0,
+    progress: bool = False,
+) -> ExploreRun:
     """Runs one search (or `seeds` searches in one vmapped call) and renders the top-k views.
 
     Args:
@@ -218,8 +245,9 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     start = time.perf_counter()
     if get_method(config.method).differentiable:  # the source's renderer sets the gradient mode it allows
-        config = config.with_options(refine=refine_for_source(config.refine_config(), source, criterion,
-                                                              default_cost=False))
+        config = config.with_options(
+            refine=refine_for_source(config.refine_config(), source, criterion, default_cost=False)
+        )
     config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
     check_epoch_memory(source, config, seeds)
     objective = objective_function(source, criterion) if get_method(config.method).differentiable else None
@@ -227,16 +255,32 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     start_init = Initial(c2w=source.train_c2w, scores=scores)
     score_fn = score_function(source, criterion)
     if seeds == 1:
-        results = [jax.device_get(explore(jax.random.key(seed), score_fn, start_init, config=config,
-                                          objective_fn=objective, progress=progress))]
-        stats = {"cvir_mean": float(results[0].cvir), "cvir_std": 0.0,
-                 "mcvir_mean": float(results[0].mcvir), "mcvir_std": 0.0}
+        results = [
+            jax.device_get(
+                explore(
+                    jax.random.key(seed), score_fn, start_init, config=config, objective_fn=objective, progress=progress
+                )
+            )
+        ]
+        stats = {
+            "cvir_mean": float(results[0].cvir),
+            "cvir_std": 0.0,
+            "mcvir_mean": float(results[0].mcvir),
+            "mcvir_std": 0.0,
+        }
     else:
-        out = jax.device_get(explore_seeds(seed_keys(seed, seeds), score_fn, start_init, config=config,
-                                           objective_fn=objective, progress=progress))
+        out = jax.device_get(
+            explore_seeds(
+                seed_keys(seed, seeds), score_fn, start_init, config=config, objective_fn=objective, progress=progress
+            )
+        )
         results = [jax.tree.map(lambda a, i=i: a[i], out.results) for i in range(seeds)]
-        stats = {"cvir_mean": float(out.cvir_mean), "cvir_std": float(out.cvir_std),
-                 "mcvir_mean": float(out.mcvir_mean), "mcvir_std": float(out.mcvir_std)}
+        stats = {
+            "cvir_mean": float(out.cvir_mean),
+            "cvir_std": float(out.cvir_std),
+            "mcvir_mean": float(out.mcvir_mean),
+            "mcvir_std": float(out.mcvir_std),
+        }
     searched = time.perf_counter()
 
     top = results[0]
@@ -245,11 +289,25 @@ def run_explore(source: Source, criterion: Criterion, config: ExploreConfig, see
     top_images = np.asarray(source.render(top_c2w), np.float32)
     top_truth = None if source.truth_render is None else np.asarray(source.truth_render(top_c2w), np.float32)
     done = time.perf_counter()
-    seconds = {"setup": round(setup_seconds, 3), "search": round(searched - start, 3),
-               "render_topk": round(done - searched, 3), "total": round(setup_seconds + done - start, 3)}
-    return ExploreRun(source=source, criterion=criterion, config=config, seeds=list(range(seed, seed + seeds)),
-                      results=results, scores_train=scores, initial=initial_used, top_images=top_images,
-                      top_truth=top_truth, seconds=seconds, stats=stats)
+    seconds = {
+        "setup": round(setup_seconds, 3),
+        "search": round(searched - start, 3),
+        "render_topk": round(done - searched, 3),
+        "total": round(setup_seconds + done - start, 3),
+    }
+    return ExploreRun(
+        source=source,
+        criterion=criterion,
+        config=config,
+        seeds=list(range(seed, seed + seeds)),
+        results=results,
+        scores_train=scores,
+        initial=initial_used,
+        top_images=top_images,
+        top_truth=top_truth,
+        seconds=seconds,
+        stats=stats,
+    )
 
 
 def generated_slots(result: Result, n_train: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:

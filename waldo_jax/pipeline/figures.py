@@ -22,8 +22,20 @@ from waldo_jax.io import atomic_file
 from waldo_jax.pipeline.experiment import ExploreRun
 from waldo_jax.pipeline.sources import resize_images
 
-__all__ = ["pose_cloud", "PoseCloudStyle", "STAGES", "contact_sheet", "methods_sheet", "training_tiles",
-           "criterion_label", "criterion_caption", "scene_up", "plot_frame", "PlotFrame", "UP_SNAP_DEGREES"]
+__all__ = [
+    "pose_cloud",
+    "PoseCloudStyle",
+    "STAGES",
+    "contact_sheet",
+    "methods_sheet",
+    "training_tiles",
+    "criterion_label",
+    "criterion_caption",
+    "scene_up",
+    "plot_frame",
+    "PlotFrame",
+    "UP_SNAP_DEGREES",
+]
 
 STAGES = ("start", "epoch 1", "final")
 # A mean of a few cameras' up vectors leans a few degrees off the scene's up (lego_tiny's: 5.6 degrees
@@ -64,8 +76,9 @@ def criterion_caption(criterion) -> str:
     """One sentence on what a criterion's scores are, for captions and reports: name, description,
     direction and range. E.g. "brisque: BRISQUE (Mittal et al. 2012) ...; lower is better, in [0, 100]"."""
     description = getattr(criterion, "description", "")
-    return f"{criterion.name}: {description}; {_direction_text(criterion)}" if description \
-        else criterion_label(criterion)
+    return (
+        f"{criterion.name}: {description}; {_direction_text(criterion)}" if description else criterion_label(criterion)
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,16 +145,22 @@ def plot_frame(up: np.ndarray, snap_degrees: float = UP_SNAP_DEGREES) -> PlotFra
         first, second = ((k + 1) % 3, (k + 2) % 3) if sign > 0 else ((k + 2) % 3, (k + 1) % 3)
         name = "-" if sign < 0 else ""
         axis_up = f"{name}{'xyz'[k]}"
-        return PlotFrame(rotation=np.stack([eye[first], eye[second], sign * eye[k]]),
-                         labels=("xyz"[first], "xyz"[second], f"{axis_up} (up)"), up=sign * eye[k],
-                         up_text=axis_up if sign < 0 else f"+{axis_up}")
+        return PlotFrame(
+            rotation=np.stack([eye[first], eye[second], sign * eye[k]]),
+            labels=("xyz"[first], "xyz"[second], f"{axis_up} (up)"),
+            up=sign * eye[k],
+            up_text=axis_up if sign < 0 else f"+{axis_up}",
+        )
     across = eye[int(np.argmin(np.abs(up)))]  # the world axis least aligned with up
     first = across - np.dot(across, up) * up
     first /= np.linalg.norm(first)
     second = np.cross(up, first)
-    return PlotFrame(rotation=np.stack([first, second, up]),
-                     labels=(f"along {_vector_text(first)}", f"along {_vector_text(second)}",
-                             f"up {_vector_text(up)}"), up=up, up_text=_vector_text(up))
+    return PlotFrame(
+        rotation=np.stack([first, second, up]),
+        labels=(f"along {_vector_text(first)}", f"along {_vector_text(second)}", f"up {_vector_text(up)}"),
+        up=up,
+        up_text=_vector_text(up),
+    )
 
 
 def _camera_axes(c2w: np.ndarray):
@@ -153,14 +172,16 @@ def _camera_axes(c2w: np.ndarray):
 _GOOD, _BAD, _FAILED = (0.1, 0.65, 0.2, 1.0), (0.85, 0.15, 0.15, 1.0), (0.6, 0.6, 0.6, 1.0)
 
 
-def _legend_handles(epoch: np.ndarray, threshold: Optional[float], direction: str, failed: bool,
-                    marker_label: Optional[str]):
+def _legend_handles(
+    epoch: np.ndarray, threshold: Optional[float], direction: str, failed: bool, marker_label: Optional[str]
+):
     """Proxy artists naming every kind of mark `pose_cloud` draws (training and generated views where present)."""
     from matplotlib.lines import Line2D
 
     def point(mark, label, face="0.75", edge="k", size=7):
-        return Line2D([], [], ls="none", marker=mark, markersize=size, markerfacecolor=face, markeredgecolor=edge,
-                      label=label)
+        return Line2D(
+            [], [], ls="none", marker=mark, markersize=size, markerfacecolor=face, markeredgecolor=edge, label=label
+        )
 
     handles = [point("^", "training view")] if np.any(epoch == 0) else []
     if np.any(epoch > 0):
@@ -168,8 +189,10 @@ def _legend_handles(epoch: np.ndarray, threshold: Optional[float], direction: st
     handles.append(Line2D([], [], color="0.4", lw=0.8, label="view direction"))
     if threshold is not None:
         better = ">" if direction == "max" else "<"
-        handles += [point("s", f"score {better} {threshold:g}", face=_GOOD, edge="none"),
-                    point("s", "other scores", face=_BAD, edge="none")]
+        handles += [
+            point("s", f"score {better} {threshold:g}", face=_GOOD, edge="none"),
+            point("s", "other scores", face=_BAD, edge="none"),
+        ]
     if failed:
         handles.append(point("s", "failed (no score)", face=_FAILED, edge="none"))
     if marker_label:
@@ -217,8 +240,9 @@ class _Cloud:
     arrow: float  # length of the view-direction lines
 
 
-def _score_colours(scores: np.ndarray, direction: str, threshold: Optional[float], cmap, lo: float,
-                   hi: float) -> np.ndarray:
+def _score_colours(
+    scores: np.ndarray, direction: str, threshold: Optional[float], cmap, lo: float, hi: float
+) -> np.ndarray:
     """RGBA [C, 4] of each score: green / red about `threshold`, else `cmap` over [lo, hi]; failed ones grey."""
     if threshold is not None:
         good = (scores > threshold) if direction == "max" else (scores < threshold)
@@ -239,8 +263,9 @@ def _plot_cloud(c2w: np.ndarray, epoch: np.ndarray, colours: np.ndarray, style: 
     star = None if style.marker is None else frame(np.asarray(style.marker, np.float64).reshape(3))
     points = centres if star is None else np.concatenate([centres, star[None]])
     bounds = (points.min(0), points.max(0)) if len(points) else (np.zeros(3), np.ones(3))
-    return _Cloud(frame=frame, centres=centres, views=views, colours=colours, epoch=epoch, star=star,
-                  bounds=bounds, arrow=arrow)
+    return _Cloud(
+        frame=frame, centres=centres, views=views, colours=colours, epoch=epoch, star=star, bounds=bounds, arrow=arrow
+    )
 
 
 def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
@@ -252,8 +277,17 @@ def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
         if not sel.any():
             continue
         centres, colours = cloud.centres[sel], cloud.colours[sel]
-        ax.scatter(centres[:, 0], centres[:, 1], centres[:, 2], c=colours, marker=mark, s=size,
-                   depthshade=False, edgecolors="k" if is_train else "none", linewidths=0.4)
+        ax.scatter(
+            centres[:, 0],
+            centres[:, 1],
+            centres[:, 2],
+            c=colours,
+            marker=mark,
+            s=size,
+            depthshade=False,
+            edgecolors="k" if is_train else "none",
+            linewidths=0.4,
+        )
         tips = centres + cloud.arrow * cloud.views[sel]
         for a, b, col in zip(centres, tips, colours):
             ax.plot([a[0], b[0]], [a[1], b[1]], [a[2], b[2]], color=col, linewidth=0.6)
@@ -273,20 +307,35 @@ def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
     ax.view_init(elev=28, azim=-60)
 
 
-def _legend_and_caption(fig, cloud: _Cloud, direction: str, failed: bool, score_label: str,
-                        style: PoseCloudStyle) -> None:
+def _legend_and_caption(
+    fig, cloud: _Cloud, direction: str, failed: bool, score_label: str, style: PoseCloudStyle
+) -> None:
     """The legend naming every mark below the panels, and the caption: the vertical and what the colours are."""
-    handles = _legend_handles(cloud.epoch, style.threshold, direction, failed,
-                              None if cloud.star is None else style.marker_label)
-    fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.45, 0.06), ncol=len(handles), fontsize=8,
-               frameon=False)
+    handles = _legend_handles(
+        cloud.epoch, style.threshold, direction, failed, None if cloud.star is None else style.marker_label
+    )
+    fig.legend(
+        handles=handles, loc="upper center", bbox_to_anchor=(0.45, 0.06), ncol=len(handles), fontsize=8, frameon=False
+    )
     colour = f"Colour: {score_label}." if style.threshold is None else f"Scores: {score_label}."
-    fig.text(0.45, -0.02, f"Vertical: the scene's up, {cloud.frame.up_text} (the mean of the training cameras' up "
-             f"vectors). {colour}", ha="center", va="top", fontsize=8)
+    fig.text(
+        0.45,
+        -0.02,
+        f"Vertical: the scene's up, {cloud.frame.up_text} (the mean of the training cameras' up vectors). {colour}",
+        ha="center",
+        va="top",
+        fontsize=8,
+    )
 
 
-def pose_cloud(path: Optional[str | os.PathLike], c2w: np.ndarray, scores: np.ndarray, epoch: np.ndarray,
-               direction: str, style: PoseCloudStyle = PoseCloudStyle()):
+def pose_cloud(
+    path: Optional[str | os.PathLike],
+    c2w: np.ndarray,
+    scores: np.ndarray,
+    epoch: np.ndarray,
+    direction: str,
+    style: PoseCloudStyle = PoseCloudStyle(),
+):
     """Writes a figure with one 3D panel per stage: the poses that exist at that stage, coloured by score.
 
     Stage e shows the training views (epoch 0) and every child born in epochs 1..e (-1: all epochs).
@@ -387,8 +436,9 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
         images += list(run.top_truth) + [None] * (columns - k)
         labels += [None] * columns
         titles.append("analytic truth")
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles,
-                            caption=_sheet_caption(run.criterion))
+    return io.contact_sheet(
+        images, columns=columns, labels=labels, row_titles=titles, caption=_sheet_caption(run.criterion)
+    )
 
 
 def _sheet_caption(criterion) -> str:
@@ -418,8 +468,10 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
         valid = np.asarray(run.result.top_valid)
         scores = np.asarray(run.result.top_scores)[valid]
         trained = np.asarray(run.result.top_indices)[valid] < run.source.n_train
-        found = row(run.top_images, [f"#{r + 1} {_format_score(s)}" + (" train" if t else "")
-                                     for r, (s, t) in enumerate(zip(scores, trained))])
+        found = row(
+            run.top_images,
+            [f"#{r + 1} {_format_score(s)}" + (" train" if t else "") for r, (s, t) in enumerate(zip(scores, trained))],
+        )
         images, labels = images + found[0], labels + found[1]
         if run.top_truth is None:
             titles.append(method.upper())
@@ -427,5 +479,6 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
             truth = row(run.top_truth, [])
             images, labels = images + truth[0], labels + truth[1]
             titles += [f"{method.upper()} (NeRF)", f"{method.upper()} (truth)"]
-    return io.contact_sheet(images, columns=columns, labels=labels, row_titles=titles,
-                            caption=_sheet_caption(first.criterion))
+    return io.contact_sheet(
+        images, columns=columns, labels=labels, row_titles=titles, caption=_sheet_caption(first.criterion)
+    )

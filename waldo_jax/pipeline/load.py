@@ -17,8 +17,9 @@ from waldo_jax.pipeline.splat_sources import is_splat_spec, splat_source
 __all__ = ["load_source"]
 
 
-def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int] = None,
-                cameras: Optional[str] = None) -> Source:
+def load_source(
+    spec: str, resolution: Optional[int] = None, views: Optional[int] = None, cameras: Optional[str] = None
+) -> Source:
     """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
     (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
 
@@ -37,8 +38,7 @@ def load_source(spec: str, resolution: Optional[int] = None, views: Optional[int
     if seed is not None:
         return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
     if views is not None:
-        raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was "
-                          "trained on")
+        raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was trained on")
     if splat:
         return splat_source(spec, resolution, cameras)
     return run_source(spec, resolution)

@@ -1,16 +1,16 @@
 """The files of an experiment (what `waldo explore` promises), written by `write_outputs`:
 
-  results.json      the run: method, criterion (its description, and criterion_caption: what the scores
-                    are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
-                    scores_train, scores_generated (generation order), cvir, mcvir, topk
-                    [{score, c2w, image, ...}], epochs (per-epoch best and mean-top-N), seconds;
-                    with several seeds also per_seed and the mean / std of CVIR and mCVIR
-  topk/NN.png       the top-k views, best first (the first seed's)
-  contact_sheet.png best training views in the first row, best found views below, scores on them, the
-                    criterion named above
-  poses.json        the top-k poses in transforms.json form (instant-ngp / nerfstudio can render them)
-  pose_cloud.png    every pose coloured by score at the start, after epoch 1 and at the end, the scene's
-                    up vertical, with a legend
+results.json      the run: method, criterion (its description, and criterion_caption: what the scores
+                  are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
+                  scores_train, scores_generated (generation order), cvir, mcvir, topk
+                  [{score, c2w, image, ...}], epochs (per-epoch best and mean-top-N), seconds;
+                  with several seeds also per_seed and the mean / std of CVIR and mCVIR
+topk/NN.png       the top-k views, best first (the first seed's)
+contact_sheet.png best training views in the first row, best found views below, scores on them, the
+                  criterion named above
+poses.json        the top-k poses in transforms.json form (instant-ngp / nerfstudio can render them)
+pose_cloud.png    every pose coloured by score at the start, after epoch 1 and at the end, the scene's
+                  up vertical, with a legend
 """
 
 from __future__ import annotations
@@ -44,8 +44,16 @@ def _float(value) -> Optional[float]:
 
 def _epoch_rows(result: Result) -> List[Dict[str, Any]]:
     m = result.metrics
-    return [{"epoch": e, "best": _float(m.best[e]), "mean_top_n": _float(m.mean_top_n[e]),
-             "scored": int(m.num_scored[e]), "failed": int(m.num_failed[e])} for e in range(len(m.best))]
+    return [
+        {
+            "epoch": e,
+            "best": _float(m.best[e]),
+            "mean_top_n": _float(m.mean_top_n[e]),
+            "scored": int(m.num_scored[e]),
+            "failed": int(m.num_failed[e]),
+        }
+        for e in range(len(m.best))
+    ]
 
 
 def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
@@ -57,11 +65,17 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
     indices = np.asarray(result.top_indices)[valid]
     topk = []
     for rank, (slot, name) in enumerate(zip(indices, image_names)):
-        entry = {"rank": rank, "score": _float(population.score[slot]),
-                 "c2w": np.round(np.asarray(population.c2w[slot], np.float64), 8).tolist(), "image": name,
-                 "epoch": int(population.epoch[slot]), "training_view": bool(slot < source.n_train),
-                 "origin": _floats(population.origin[slot]), "look_at": _floats(population.target[slot]),
-                 "up": _floats(population.up[slot])}
+        entry = {
+            "rank": rank,
+            "score": _float(population.score[slot]),
+            "c2w": np.round(np.asarray(population.c2w[slot], np.float64), 8).tolist(),
+            "image": name,
+            "epoch": int(population.epoch[slot]),
+            "training_view": bool(slot < source.n_train),
+            "origin": _floats(population.origin[slot]),
+            "look_at": _floats(population.target[slot]),
+            "up": _floats(population.up[slot]),
+        }
         if slot < source.n_train:
             entry["training_image"] = source.train_names[slot]
         topk.append(entry)
@@ -93,8 +107,8 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "topk": topk,
         "epochs": _epoch_rows(result),
         "seconds": run.seconds,
-        "device": jax.devices()[0].platform + (f":{jax.devices()[0].device_kind}"
-                                               if getattr(jax.devices()[0], "device_kind", "") else ""),
+        "device": jax.devices()[0].platform
+        + (f":{jax.devices()[0].device_kind}" if getattr(jax.devices()[0], "device_kind", "") else ""),
     }
     if source.renderer_report is not None:  # what the renderer dropped over every view the run rendered
         out["renderer"] = source.renderer_report(np.asarray(population.c2w)[np.asarray(population.valid)])
@@ -106,9 +120,16 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         out["refine"] = dataclasses.asdict(config.refine_config())
     if len(run.seeds) > 1:
         out["seeds"] = run.seeds
-        out["per_seed"] = [{"seed": s, "cvir": _float(r.cvir), "mcvir": _float(r.mcvir),
-                            "best": _float(r.metrics.best[-1]), "mean_top_n": _float(r.metrics.mean_top_n[-1])}
-                           for s, r in zip(run.seeds, run.results)]
+        out["per_seed"] = [
+            {
+                "seed": s,
+                "cvir": _float(r.cvir),
+                "mcvir": _float(r.mcvir),
+                "best": _float(r.metrics.best[-1]),
+                "mean_top_n": _float(r.metrics.mean_top_n[-1]),
+            }
+            for s, r in zip(run.seeds, run.results)
+        ]
         out.update({k: _float(v) for k, v in run.stats.items()})
     return out
 
@@ -135,17 +156,38 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     result = run.result
     valid_top = np.asarray(result.top_valid)
     top_scores = np.asarray(result.top_scores)[valid_top]
-    io.write_transforms(out / "poses.json", np.asarray(result.top_c2w)[valid_top], run.source.intrinsics, names,
-                        extra={"waldo_explore": {"criterion": run.criterion.name, "method": run.config.method,
-                                                 "scores": _floats(top_scores), "source": run.source.spec}})
+    io.write_transforms(
+        out / "poses.json",
+        np.asarray(result.top_c2w)[valid_top],
+        run.source.intrinsics,
+        names,
+        extra={
+            "waldo_explore": {
+                "criterion": run.criterion.name,
+                "method": run.config.method,
+                "scores": _floats(top_scores),
+                "source": run.source.spec,
+            }
+        },
+    )
 
     population = result.population
     filled = np.asarray(population.valid)
     marker = None if run.source.room is None else np.asarray(run.source.room.waldo_center)
-    style = PoseCloudStyle(title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
-                           marker=marker, marker_label="Waldo (the target)", score_label=criterion_label(run.criterion))
-    pose_cloud(out / "pose_cloud.png", np.asarray(population.c2w)[filled], np.asarray(population.score)[filled],
-               np.asarray(population.epoch)[filled], run.criterion.direction, style=style)
+    style = PoseCloudStyle(
+        title=title or f"{run.config.method.upper()} on {run.source.name}, {run.criterion.name}",
+        marker=marker,
+        marker_label="Waldo (the target)",
+        score_label=criterion_label(run.criterion),
+    )
+    pose_cloud(
+        out / "pose_cloud.png",
+        np.asarray(population.c2w)[filled],
+        np.asarray(population.score)[filled],
+        np.asarray(population.epoch)[filled],
+        run.criterion.direction,
+        style=style,
+    )
     results = results_dict(run, names)
     io.write_json(out / RESULTS_JSON, results)
     return results

@@ -37,8 +37,18 @@ from waldo_jax.pipeline.sources import Source
 from waldo_jax.search.population import training_poses
 from waldo_jax.cameras import camera_focus
 
-__all__ = ["PathRun", "PathRunOptions", "frame_function", "read_explore_anchors", "run_path", "write_path_outputs",
-           "paths_per_call", "evaluate_path", "check_nerfstudio_export", "gif_frame_ms"]
+__all__ = [
+    "PathRun",
+    "PathRunOptions",
+    "frame_function",
+    "read_explore_anchors",
+    "run_path",
+    "write_path_outputs",
+    "paths_per_call",
+    "evaluate_path",
+    "check_nerfstudio_export",
+    "gif_frame_ms",
+]
 
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
 
@@ -92,15 +102,24 @@ def evaluate_path(frame_fn, c2w: np.ndarray, limits: PathLimits, config: PathCon
     scores, opacity = _evaluate_jit(frame_fn, jnp.asarray(c2w))  # compiled: a network is ~10x slower eagerly
     scores = np.asarray(scores, np.float32)
     violation, motion = limits.violation(jnp.asarray(c2w), jnp.asarray(opacity, jnp.float32))
-    return {"score": float(aggregate_scores(jnp.asarray(scores), config)), "frame_scores": scores,
-            "mean": float(np.mean(scores)), "worst": float(np.min(scores) if config.direction == "max" else np.max(scores)),
-            "violation": float(violation), "opacity": np.asarray(opacity, np.float32), **_motion_figures(motion)}
+    return {
+        "score": float(aggregate_scores(jnp.asarray(scores), config)),
+        "frame_scores": scores,
+        "mean": float(np.mean(scores)),
+        "worst": float(np.min(scores) if config.direction == "max" else np.max(scores)),
+        "violation": float(violation),
+        "opacity": np.asarray(opacity, np.float32),
+        **_motion_figures(motion),
+    }
 
 
 def _motion_figures(motion) -> Dict[str, float]:
-    return {"travel": float(jnp.sum(motion.speed)), "max_speed": float(jnp.max(motion.speed)),
-            "max_turn_degrees": float(jnp.max(motion.turn)),
-            "max_jerk": float(jnp.max(motion.jerk))}
+    return {
+        "travel": float(jnp.sum(motion.speed)),
+        "max_speed": float(jnp.max(motion.speed)),
+        "max_turn_degrees": float(jnp.max(motion.turn)),
+        "max_jerk": float(jnp.max(motion.jerk)),
+    }
 
 
 _evaluate_jit = jax.jit(lambda frame_fn, c2w: frame_fn(c2w))
@@ -142,9 +161,9 @@ def _render_frames(render, c2w: np.ndarray, pixels: int) -> np.ndarray:
     group = max(1, min(len(c2w), VIDEO_GROUP_PIXELS // pixels))
     parts = []
     for first in range(0, len(c2w), group):
-        part = c2w[first:first + group]
+        part = c2w[first : first + group]
         padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
-        parts.append(np.asarray(render(jnp.asarray(padded)), np.float32)[:len(part)])
+        parts.append(np.asarray(render(jnp.asarray(padded)), np.float32)[: len(part)])
     return np.concatenate(parts)
 
 
@@ -176,8 +195,15 @@ class PathRunOptions:
     on_phase: Optional[Callable[[str], None]] = None
 
 
-def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: PathLimits, seed: int = 0,
-             seeds: int = 1, options: PathRunOptions = PathRunOptions()) -> PathRun:
+def run_path(
+    source: Source,
+    criterion: Criterion,
+    config: PathConfig,
+    limits: PathLimits,
+    seed: int = 0,
+    seeds: int = 1,
+    options: PathRunOptions = PathRunOptions(),
+) -> PathRun:
     """Runs the path search (`seeds` seeds in one vmapped call) and renders the first seed's best path.
 
     Args:
@@ -196,11 +222,14 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     if config.paths_per_call is None:
         fits = paths_per_call(source, config)  # paths of all seeds at once: the seeds are vmapped
         if fits < seeds:
-            raise WaldoError(f"--seeds {seeds}: one path's {config.frames} frames of {source.intrinsics.width}x"
-                             f"{source.intrinsics.height} for every seed at once do not fit in memory here; at most "
-                             f"--seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)")
-        config = dataclasses.replace(config, paths_per_call=min(fits // seeds,
-                                                                max(config.paths_per_epoch, config.initial_paths)))
+            raise WaldoError(
+                f"--seeds {seeds}: one path's {config.frames} frames of {source.intrinsics.width}x"
+                f"{source.intrinsics.height} for every seed at once do not fit in memory here; at most "
+                f"--seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)"
+            )
+        config = dataclasses.replace(
+            config, paths_per_call=min(fits // seeds, max(config.paths_per_epoch, config.initial_paths))
+        )
     frame_fn = frame_function(source, criterion)
     phase("scoring the anchors")
     if anchor_c2w is None:
@@ -213,25 +242,37 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     phase(f"compiling and searching ({plural(config.epochs, 'epoch')}, {plural(seeds, 'seed')})")
     try:
         if seeds == 1:
-            results = [jax.device_get(search_path(jax.random.key(seed), frame_fn, anchor_c2w, anchor_scores,
-                                                  source.train_c2w, limits, config))]
+            results = [
+                jax.device_get(
+                    search_path(
+                        jax.random.key(seed), frame_fn, anchor_c2w, anchor_scores, source.train_c2w, limits, config
+                    )
+                )
+            ]
         else:
-            out = jax.device_get(search_path_seeds(seed_keys(seed, seeds), frame_fn, anchor_c2w, anchor_scores,
-                                                   source.train_c2w, limits, config))
+            out = jax.device_get(
+                search_path_seeds(
+                    seed_keys(seed, seeds), frame_fn, anchor_c2w, anchor_scores, source.train_c2w, limits, config
+                )
+            )
             results = [jax.tree.map(lambda a, i=i: a[i], out) for i in range(seeds)]
     except ValueError as e:
         raise WaldoError(str(e)) from None
     searched = time.perf_counter()
     phase("scoring the paths found and the reference paths")
     found = [evaluate_path(frame_fn, np.asarray(r.best_c2w), limits, config) for r in results]
-    order = np.argsort(-np.where(np.isfinite(anchor_scores), (1 if config.direction == "max" else -1) * anchor_scores,
-                                 -np.inf), kind="stable")
+    order = np.argsort(
+        -np.where(np.isfinite(anchor_scores), (1 if config.direction == "max" else -1) * anchor_scores, -np.inf),
+        kind="stable",
+    )
     anchor_poses = training_poses(anchor_c2w, camera_focus(source.train_c2w))
     pick = lambda i: jax.tree.map(lambda x: x[int(i)], anchor_poses)  # noqa: E731
     straight = np.asarray(path_c2w(straight_path(pick(order[0]), pick(order[1]), config.keyframes), config.frames))
     trajectory = _training_trajectory(source.train_c2w, config.frames)
-    references = {"straight": {**evaluate_path(frame_fn, straight, limits, config), "c2w": straight},
-                  "training": {**evaluate_path(frame_fn, trajectory, limits, config), "c2w": trajectory}}
+    references = {
+        "straight": {**evaluate_path(frame_fn, straight, limits, config), "c2w": straight},
+        "training": {**evaluate_path(frame_fn, trajectory, limits, config), "c2w": trajectory},
+    }
     video = options.video_source or source
     phase(f"rendering the {config.frames} video frames")
     best = np.asarray(results[0].best_c2w)
@@ -240,13 +281,30 @@ def run_path(source: Source, criterion: Criterion, config: PathConfig, limits: P
     frames = rgba[..., :3]
     truth = None if video.truth_render is None else _render_frames(video.truth_render, best, pixels)
     done = time.perf_counter()
-    seconds = {"setup": round(options.setup_seconds, 3), "search": round(searched - start, 3),
-               "render": round(done - searched, 3), "total": round(options.setup_seconds + done - start, 3)}
+    seconds = {
+        "setup": round(options.setup_seconds, 3),
+        "search": round(searched - start, 3),
+        "render": round(done - searched, 3),
+        "total": round(options.setup_seconds + done - start, 3),
+    }
     found[0]["video_opacity"] = rgba[..., 3].mean(axis=(1, 2)) if rgba.shape[-1] == 4 else None
-    return PathRun(source=source, criterion=criterion, config=config, limits=limits,
-                   seeds=list(range(seed, seed + seeds)), results=results, anchors=anchors, anchor_c2w=anchor_c2w,
-                   anchor_scores=anchor_scores, found=found, references=references, frames=frames, truth=truth,
-                   seconds=seconds, video_source=video)
+    return PathRun(
+        source=source,
+        criterion=criterion,
+        config=config,
+        limits=limits,
+        seeds=list(range(seed, seed + seeds)),
+        results=results,
+        anchors=anchors,
+        anchor_c2w=anchor_c2w,
+        anchor_scores=anchor_scores,
+        found=found,
+        references=references,
+        frames=frames,
+        truth=truth,
+        seconds=seconds,
+        video_source=video,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,8 +326,11 @@ def _video(path: Path, frames: np.ndarray, fps: float) -> Tuple[int, int]:
     height, width = data.shape[1:3]
     if path.suffix.lower() == ".mp4" and (height % 2 or width % 2):
         data = np.pad(data, ((0, 0), (0, height % 2), (0, width % 2), (0, 0)), mode="edge")
-        warnings.warn(f"{path.name}: {width}x{height} frames padded to {data.shape[2]}x{data.shape[1]} (H.264 needs "
-                      "even sides; the last row / column repeated)", stacklevel=2)
+        warnings.warn(
+            f"{path.name}: {width}x{height} frames padded to {data.shape[2]}x{data.shape[1]} (H.264 needs "
+            "even sides; the last row / column repeated)",
+            stacklevel=2,
+        )
     tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
     try:
         with warnings.catch_warnings():
@@ -277,8 +338,9 @@ def _video(path: Path, frames: np.ndarray, fps: float) -> Tuple[int, int]:
             warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
             _write_video(imageio, tmp, list(data), fps)
         if not tmp.is_file() or tmp.stat().st_size == 0:  # ffmpeg reports encoder failures only on its stderr
-            raise WaldoError(f"{path}: the video encoder wrote nothing for {len(data)} frames of "
-                             f"{data.shape[2]}x{data.shape[1]}")
+            raise WaldoError(
+                f"{path}: the video encoder wrote nothing for {len(data)} frames of {data.shape[2]}x{data.shape[1]}"
+            )
         tmp.replace(path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -310,14 +372,19 @@ def check_nerfstudio_export(source: Source, dataparser: Optional[Tuple[np.ndarra
     dataparser_transforms.json folds that transform in, so the export cannot undo it.
     """
     if dataparser is not None and source.info.get("nerfstudio_applied_source") == "unknown":
-        raise WaldoError(f"--nerfstudio-transforms: {source.spec} does not record its scene's applied_transform and "
-                         f"its scene file {source.info.get('scene_path') or '(unnamed)'} is not here to read it from")
+        raise WaldoError(
+            f"--nerfstudio-transforms: {source.spec} does not record its scene's applied_transform and "
+            f"its scene file {source.info.get('scene_path') or '(unnamed)'} is not here to read it from"
+        )
 
 
 def _ngp_frame(source: Source) -> NgpFrame:
     info = source.info
-    return NgpFrame.create(info.get("ngp_scale", NgpFrame.scale), info.get("ngp_offset", NgpFrame.offset),
-                           bool(info.get("ngp_from_mitsuba", False)))
+    return NgpFrame.create(
+        info.get("ngp_scale", NgpFrame.scale),
+        info.get("ngp_offset", NgpFrame.offset),
+        bool(info.get("ngp_from_mitsuba", False)),
+    )
 
 
 def _score_figure(run: PathRun):
@@ -332,8 +399,7 @@ def _score_figure(run: PathRun):
     ax.plot(x, run.references["training"]["frame_scores"], label="training trajectory", ls=":")
     ax.set_xlabel("frame (0: start)")
     ax.set_ylabel(criterion_label(run.criterion), fontsize=8)
-    ax.set_title(textwrap.fill(f"{criterion_caption(run.criterion)}; per frame on {run.source.name}", 90),
-                 fontsize=8)
+    ax.set_title(textwrap.fill(f"{criterion_caption(run.criterion)}; per frame on {run.source.name}", 90), fontsize=8)
     ax.legend(fontsize=7)
     return fig
 
@@ -355,17 +421,31 @@ def _path_figure(run: PathRun):
     ax = fig.add_subplot()
     ax.scatter(train[:, 0], train[:, 1], s=10, c="0.6", label="training cameras")
     best = np.asarray(run.results[0].best_c2w)
-    for colour, (name, c2w, style) in enumerate((
-            (f"found ({run.config.method})", best, "-"), ("straight", run.references["straight"]["c2w"], "--"),
-            ("training trajectory", run.references["training"]["c2w"], ":"))):
+    for colour, (name, c2w, style) in enumerate(
+        (
+            (f"found ({run.config.method})", best, "-"),
+            ("straight", run.references["straight"]["c2w"], "--"),
+            ("training trajectory", run.references["training"]["c2w"], ":"),
+        )
+    ):
         o = frame(np.asarray(c2w)[:, :3, 3])
         ax.plot(o[:, 0], o[:, 1], style, color=f"C{colour}", label=name)
         ax.scatter(o[:1, 0], o[:1, 1], marker="o", s=36, color=f"C{colour}", edgecolors="k", zorder=3, gid="start")
         ax.scatter(o[-1:, 0], o[-1:, 1], marker="s", s=36, color=f"C{colour}", edgecolors="k", zorder=3, gid="end")
     o, d = frame(best[:, :3, 3]), frame(-best[:, :3, 2])
     scale = 0.06 * max(float(np.ptp(train[:, :2], axis=0).max()), 1e-6)
-    ax.quiver(o[::2, 0], o[::2, 1], d[::2, 0], d[::2, 1], angles="xy", scale_units="xy", scale=1.0 / scale,
-              width=0.004, color="C0", label="view direction (found)")
+    ax.quiver(
+        o[::2, 0],
+        o[::2, 1],
+        d[::2, 0],
+        d[::2, 1],
+        angles="xy",
+        scale_units="xy",
+        scale=1.0 / scale,
+        width=0.004,
+        color="C0",
+        label="view direction (found)",
+    )
     if run.source.room is not None:
         w = frame(np.asarray(run.source.room.waldo_center))
         ax.scatter([w[0]], [w[1]], marker="*", s=160, c="red", label="Waldo (the target)")
@@ -373,12 +453,16 @@ def _path_figure(run: PathRun):
     ax.set_xlabel(frame.labels[0])
     ax.set_ylabel(frame.labels[1])
     handles, _ = ax.get_legend_handles_labels()
-    handles += [Line2D([], [], ls="none", marker="o", color="0.8", markeredgecolor="k", label="start (frame 0)"),
-                Line2D([], [], ls="none", marker="s", color="0.8", markeredgecolor="k",
-                       label=f"end (frame {len(best) - 1})")]
+    handles += [
+        Line2D([], [], ls="none", marker="o", color="0.8", markeredgecolor="k", label="start (frame 0)"),
+        Line2D([], [], ls="none", marker="s", color="0.8", markeredgecolor="k", label=f"end (frame {len(best) - 1})"),
+    ]
     ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, frameon=False)
-    ax.set_title(f"{run.config.method} path on {run.source.name}, top view\n(looking down the scene's up, "
-                 f"{frame.up_text}: the mean of the training cameras' up vectors)", fontsize=8)
+    ax.set_title(
+        f"{run.config.method} path on {run.source.name}, top view\n(looking down the scene's up, "
+        f"{frame.up_text}: the mean of the training cameras' up vectors)",
+        fontsize=8,
+    )
     return fig
 
 
@@ -394,8 +478,9 @@ def _summary(evaluation: Dict[str, Any]) -> Dict[str, Any]:
     return out
 
 
-def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
-                       dataparser: Optional[Tuple[np.ndarray, float]] = None) -> Dict[str, Any]:
+def write_path_outputs(
+    run: PathRun, out: Path, fps: float = 12.0, dataparser: Optional[Tuple[np.ndarray, float]] = None
+) -> Dict[str, Any]:
     """Writes the path's files into `out` (which must exist); returns the results dictionary."""
     out = Path(out)
     best = np.asarray(run.results[0].best_c2w)
@@ -403,12 +488,22 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
     info = {"criterion": run.criterion.name, "method": run.config.method, "source": run.source.spec}
     check_nerfstudio_export(run.source, dataparser)
     applied = run.source.info.get("nerfstudio_applied_transform")
-    io.write_json(out / "camera_path.json", nerfstudio_camera_path(
-        best, video.intrinsics, fps, dataparser, info,
-        applied_transform=None if applied is None else np.asarray(applied, np.float64),
-        applied_scale=float(run.source.info.get("nerfstudio_applied_scale", 1.0))))
-    io.write_json(out / "instant_ngp_path.json", instant_ngp_camera_path(
-        best, video.intrinsics, fps, extra=info, frame=_ngp_frame(run.source)))
+    io.write_json(
+        out / "camera_path.json",
+        nerfstudio_camera_path(
+            best,
+            video.intrinsics,
+            fps,
+            dataparser,
+            info,
+            applied_transform=None if applied is None else np.asarray(applied, np.float64),
+            applied_scale=float(run.source.info.get("nerfstudio_applied_scale", 1.0)),
+        ),
+    )
+    io.write_json(
+        out / "instant_ngp_path.json",
+        instant_ngp_camera_path(best, video.intrinsics, fps, extra=info, frame=_ngp_frame(run.source)),
+    )
     names = [f"frame_{i:04d}" for i in range(len(best))]
     io.write_transforms(out / "poses.json", best, video.intrinsics, names, extra={"waldo_path": info})
     mp4_size = _video(out / "path.mp4", run.frames, fps)
@@ -418,41 +513,76 @@ def write_path_outputs(run: PathRun, out: Path, fps: float = 12.0,
     step = max(1, len(best) // 12)
     picks = list(range(0, len(best), step))
     scores = run.found[0]["frame_scores"]
-    io.save_png(out / "path_sheet.png", io.contact_sheet(
-        [run.frames[i] for i in picks], labels=[f"{i}: {scores[i]:.3g}" for i in picks],
-        caption=f"Frame: score. Scores: {criterion_caption(run.criterion)}"))
+    io.save_png(
+        out / "path_sheet.png",
+        io.contact_sheet(
+            [run.frames[i] for i in picks],
+            labels=[f"{i}: {scores[i]:.3g}" for i in picks],
+            caption=f"Frame: score. Scores: {criterion_caption(run.criterion)}",
+        ),
+    )
     _plot_scores(out / "scores.png", run)
     _plot_path(out / "path_plot.png", run)
 
     limits = run.limits
     results = {
-        "source": run.source.spec, "source_info": run.source.info, "criterion": run.criterion.name,
-        "criterion_description": run.criterion.description, "criterion_caption": criterion_caption(run.criterion),
-        "direction": run.criterion.direction, "method": run.config.method, "seeds": run.seeds,
+        "source": run.source.spec,
+        "source_info": run.source.info,
+        "criterion": run.criterion.name,
+        "criterion_description": run.criterion.description,
+        "criterion_caption": criterion_caption(run.criterion),
+        "direction": run.criterion.direction,
+        "method": run.config.method,
+        "seeds": run.seeds,
         "config": {k: v for k, v in dataclasses.asdict(run.config).items()},
         "cost": run.config.cost(),
-        "limits": {"max_speed_extent_per_frame": float(limits.max_speed), "max_turn_degrees_per_frame":
-                   float(limits.max_turn), "min_opacity": float(limits.min_opacity),
-                   "min_travel_extent": float(limits.min_travel),
-                   "box_low": np.asarray(limits.low), "box_high": np.asarray(limits.high),
-                   "extent": float(limits.extent)},
-        "anchors": run.anchors, "anchor_scores": run.anchor_scores,
-        "found": {**_summary(run.found[0]), "keyframes": {
-            "origin": np.asarray(run.results[0].best_keyframes.origin),
-            "target": np.asarray(run.results[0].best_keyframes.target),
-            "up": np.asarray(run.results[0].best_keyframes.up)},
-            "kept_limits": bool(run.results[0].found), "curve": np.asarray(run.results[0].curve),
-            "video_opacity_min": (None if run.found[0].get("video_opacity") is None
-                                  else float(np.min(run.found[0]["video_opacity"])))},
+        "limits": {
+            "max_speed_extent_per_frame": float(limits.max_speed),
+            "max_turn_degrees_per_frame": float(limits.max_turn),
+            "min_opacity": float(limits.min_opacity),
+            "min_travel_extent": float(limits.min_travel),
+            "box_low": np.asarray(limits.low),
+            "box_high": np.asarray(limits.high),
+            "extent": float(limits.extent),
+        },
+        "anchors": run.anchors,
+        "anchor_scores": run.anchor_scores,
+        "found": {
+            **_summary(run.found[0]),
+            "keyframes": {
+                "origin": np.asarray(run.results[0].best_keyframes.origin),
+                "target": np.asarray(run.results[0].best_keyframes.target),
+                "up": np.asarray(run.results[0].best_keyframes.up),
+            },
+            "kept_limits": bool(run.results[0].found),
+            "curve": np.asarray(run.results[0].curve),
+            "video_opacity_min": (
+                None if run.found[0].get("video_opacity") is None else float(np.min(run.found[0]["video_opacity"]))
+            ),
+        },
         "references": {k: _summary(v) for k, v in run.references.items()},
-        "per_seed": [{"seed": s, **{k: v for k, v in _summary(f).items() if k != "frame_scores"},
-                      "kept_limits": bool(r.found)} for s, r, f in zip(run.seeds, run.results, run.found)],
+        "per_seed": [
+            {"seed": s, **{k: v for k, v in _summary(f).items() if k != "frame_scores"}, "kept_limits": bool(r.found)}
+            for s, r, f in zip(run.seeds, run.results, run.found)
+        ],
         "seconds": run.seconds,
-        "video": {"frame_size": [int(run.frames.shape[2]), int(run.frames.shape[1])], "mp4_size": list(mp4_size),
-                  "fps": float(fps), "gif_frame_ms": gif_frame_ms(fps)},
-        "files": ["camera_path.json", "instant_ngp_path.json", "poses.json", "path.mp4", "path.gif",
-                  "path_sheet.png", "scores.png", "path_plot.png"] + (["path_truth.mp4"] if run.truth is not None
-                                                                      else []),
+        "video": {
+            "frame_size": [int(run.frames.shape[2]), int(run.frames.shape[1])],
+            "mp4_size": list(mp4_size),
+            "fps": float(fps),
+            "gif_frame_ms": gif_frame_ms(fps),
+        },
+        "files": [
+            "camera_path.json",
+            "instant_ngp_path.json",
+            "poses.json",
+            "path.mp4",
+            "path.gif",
+            "path_sheet.png",
+            "scores.png",
+            "path_plot.png",
+        ]
+        + (["path_truth.mp4"] if run.truth is not None else []),
     }
     io.write_json(out / "results.json", results)
     return results

@@ -38,10 +38,23 @@ from waldo_jax.scenes.tool_frames import NgpFrame, nerfstudio_applied, ngp_frame
 from waldo_jax.scenes.common import read_json
 from waldo_jax.types import Array, Intrinsics, Scene
 
-__all__ = ["Source", "SourceError", "procedural_source", "run_source", "resize_images",
-           "parse_procedural", "room_renderer", "field_renderer", "DEFAULT_PROCEDURAL_RESOLUTION",
-           "DEFAULT_PROCEDURAL_VIEWS", "MAX_PROCEDURAL_VIEWS", "NERF_GRADIENT", "NERF_GRADIENT_COST", "check_views",
-           "export_info"]
+__all__ = [
+    "Source",
+    "SourceError",
+    "procedural_source",
+    "run_source",
+    "resize_images",
+    "parse_procedural",
+    "room_renderer",
+    "field_renderer",
+    "DEFAULT_PROCEDURAL_RESOLUTION",
+    "DEFAULT_PROCEDURAL_VIEWS",
+    "MAX_PROCEDURAL_VIEWS",
+    "NERF_GRADIENT",
+    "NERF_GRADIENT_COST",
+    "check_views",
+    "export_info",
+]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
 DEFAULT_PROCEDURAL_VIEWS = 24
@@ -112,8 +125,9 @@ def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:
     images = np.asarray(images, np.float32)
     if images.shape[1:3] == (height, width):
         return images
-    out = jax.image.resize(jnp.asarray(images), (images.shape[0], height, width, images.shape[3]), "linear",
-                           antialias=True)
+    out = jax.image.resize(
+        jnp.asarray(images), (images.shape[0], height, width, images.shape[3]), "linear", antialias=True
+    )
     return np.clip(np.asarray(out), 0.0, 1.0)
 
 
@@ -133,15 +147,20 @@ def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgb
 _render_room_rgba = functools.partial(_render_room, rgba=True)
 
 
-def _render_field(params, setup, intrinsics: Intrinsics, c2w: Array, *, field, rgba: bool = False,
-                  gradient: str = "forward") -> Array:
+def _render_field(
+    params, setup, intrinsics: Intrinsics, c2w: Array, *, field, rgba: bool = False, gradient: str = "forward"
+) -> Array:
     return _output(render_marched(field, params, setup, c2w, intrinsics, gradient=gradient).output, rgba)
 
 
 def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
     """The procedural room's analytic renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4])."""
-    return jax.tree_util.Partial(_render_room_rgba if rgba else _render_room, room, intrinsics,
-                                 room_render_config(room, num_samples=_ROOM_SAMPLES))
+    return jax.tree_util.Partial(
+        _render_room_rgba if rgba else _render_room,
+        room,
+        intrinsics,
+        room_render_config(room, num_samples=_ROOM_SAMPLES),
+    )
 
 
 @functools.lru_cache(maxsize=None)
@@ -162,8 +181,9 @@ NERF_GRADIENT = "reverse"
 NERF_GRADIENT_COST = 4
 
 
-def field_renderer(field: TrainedField, intrinsics: Intrinsics, rgba: bool = False,
-                   gradient: str = "forward") -> jax.tree_util.Partial:
+def field_renderer(
+    field: TrainedField, intrinsics: Intrinsics, rgba: bool = False, gradient: str = "forward"
+) -> jax.tree_util.Partial:
     """The renderer of a trained field (`waldo_jax.render.marched`, as `waldo render`) as a Partial c2w -> rgb.
 
     `field`: the trained field and its near, far, background and box (`nerf.trained.TrainedField`).
@@ -181,6 +201,7 @@ def with_gradient(source: "Source", gradient: str) -> "Source":
     """`source` with its trained-field renderers differentiating in `gradient` mode ("forward" or
     "reverse"; the images are the same), e.g. to compare the two, with the gradient cost of that mode.
     Other sources are returned as they are."""
+
     def rebuilt(partial):
         if partial is None or getattr(partial.func, "func", None) is not _render_field:
             return partial
@@ -189,8 +210,13 @@ def with_gradient(source: "Source", gradient: str) -> "Source":
     if source.kind != "run":
         return source
     cost = NERF_GRADIENT_COST if gradient == NERF_GRADIENT else None  # None: the default, `GRADIENT_COSTS`
-    return dataclasses.replace(source, render=rebuilt(source.render), render_rgba=rebuilt(source.render_rgba),
-                               gradient=gradient, gradient_cost=cost)
+    return dataclasses.replace(
+        source,
+        render=rebuilt(source.render),
+        render_rgba=rebuilt(source.render_rgba),
+        gradient=gradient,
+        gradient_cost=cost,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,8 +243,13 @@ def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
     return 0 if seed is None else seed
 
 
-def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: int = DEFAULT_PROCEDURAL_VIEWS,
-                      scene: Optional[Scene] = None, room=None) -> Source:
+def procedural_source(
+    seed: int = 0,
+    resolution: Optional[int] = None,
+    views: int = DEFAULT_PROCEDURAL_VIEWS,
+    scene: Optional[Scene] = None,
+    room=None,
+) -> Source:
     """The procedural room `seed` with `views` training views at resolution x resolution.
 
     `scene` and `room` (from `waldo_jax.procedural.room_scene`) skip building them again.
@@ -236,13 +267,19 @@ def procedural_source(seed: int = 0, resolution: Optional[int] = None, views: in
     if (scene.width, scene.height) != (resolution, resolution):
         intrinsics = scene.intrinsics.with_max_side(resolution)
         images = resize_images(images, intrinsics.width, intrinsics.height)
-    return Source(spec=f"procedural:{seed}", kind="procedural", name=f"procedural:{seed}",
-                  train_c2w=np.asarray(scene.c2w, np.float32), intrinsics=intrinsics,
-                  render=room_renderer(room, intrinsics), render_rgba=room_renderer(room, intrinsics, rgba=True),
-                  train_images=np.asarray(images, np.float32),
-                  train_names=tuple(scene.file_names), room=room,
-                  info={"procedural_seed": int(seed), "views": int(views),
-                        **export_info("procedural", {}, scene.aabb, "")})
+    return Source(
+        spec=f"procedural:{seed}",
+        kind="procedural",
+        name=f"procedural:{seed}",
+        train_c2w=np.asarray(scene.c2w, np.float32),
+        intrinsics=intrinsics,
+        render=room_renderer(room, intrinsics),
+        render_rgba=room_renderer(room, intrinsics, rgba=True),
+        train_images=np.asarray(images, np.float32),
+        train_names=tuple(scene.file_names),
+        room=room,
+        info={"procedural_seed": int(seed), "views": int(views), **export_info("procedural", {}, scene.aabb, "")},
+    )
 
 
 def export_info(fmt: str, metadata: Dict[str, Any], aabb, folder: str) -> Dict[str, Any]:
@@ -257,7 +294,8 @@ def export_info(fmt: str, metadata: Dict[str, Any], aabb, folder: str) -> Dict[s
     scene_file = Path(folder) / str(metadata.get("scene_file", "transforms.json")) if folder else None
     meta = None
     needs_file = fmt in ("instant-ngp", "nerfstudio") and (
-        "nerfstudio_applied" not in metadata or (fmt == "instant-ngp" and "from_mitsuba" not in metadata))
+        "nerfstudio_applied" not in metadata or (fmt == "instant-ngp" and "from_mitsuba" not in metadata)
+    )
     if needs_file and scene_file is not None and scene_file.is_file():
         try:
             meta = read_json(scene_file)
@@ -273,8 +311,11 @@ def export_info(fmt: str, metadata: Dict[str, Any], aabb, folder: str) -> Dict[s
             pass
     elif fmt == "instant-ngp" and "scale" in metadata and "offset" in metadata:
         ngp = NgpFrame.create(float(metadata["scale"]), metadata["offset"], bool(metadata.get("from_mitsuba", False)))
-    info: Dict[str, Any] = {"ngp_scale": ngp.scale, "ngp_offset": list(ngp.offset),
-                            "ngp_from_mitsuba": ngp.from_mitsuba}
+    info: Dict[str, Any] = {
+        "ngp_scale": ngp.scale,
+        "ngp_offset": list(ngp.offset),
+        "ngp_from_mitsuba": ngp.from_mitsuba,
+    }
     applied, scale, source = None, 1.0, "none"
     if "nerfstudio_applied" in metadata:
         recorded = metadata["nerfstudio_applied"]
@@ -287,8 +328,7 @@ def export_info(fmt: str, metadata: Dict[str, Any], aabb, folder: str) -> Dict[s
                 applied = None if found is None else found.tolist()
             except ValueError:
                 source = "unknown"
-    info.update(nerfstudio_applied_transform=applied, nerfstudio_applied_scale=scale,
-                nerfstudio_applied_source=source)
+    info.update(nerfstudio_applied_transform=applied, nerfstudio_applied_scale=scale, nerfstudio_applied_source=source)
     return info
 
 
@@ -319,8 +359,10 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     """
     run = Path(run_dir)
     if not run.is_dir():
-        raise SourceError(f"SOURCE {run_dir!r} is neither procedural[:SEED], an existing run directory nor a splat "
-                          "scene (a .ply or a 3DGS model folder)")
+        raise SourceError(
+            f"SOURCE {run_dir!r} is neither procedural[:SEED], an existing run directory nor a splat "
+            "scene (a .ply or a 3DGS model folder)"
+        )
     checkpoint = load_checkpoint(run)
     record = checkpoint.scene
     intrinsics = record.intrinsics
@@ -330,8 +372,13 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     field = TrainedField.from_checkpoint(checkpoint)
     render = field_renderer(field, intrinsics, gradient=NERF_GRADIENT)
     render_rgba = field_renderer(field, intrinsics, rgba=True, gradient=NERF_GRADIENT)
-    info = {"run_dir": str(run.resolve()), "scene_path": record.path, "scene_format": record.format,
-            "psnr_test": checkpoint.info.get("psnr_test"), "train_steps": checkpoint.info.get("steps")}
+    info = {
+        "run_dir": str(run.resolve()),
+        "scene_path": record.path,
+        "scene_format": record.format,
+        "psnr_test": checkpoint.info.get("psnr_test"),
+        "train_steps": checkpoint.info.get("steps"),
+    }
     info.update(export_info(record.format, record.metadata, record.aabb, record.path))
     room, truth = None, None
     if record.format == "procedural":
@@ -344,11 +391,23 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
         note = ""
     else:
         images, note = _run_train_images(record, intrinsics)
-    return Source(spec=str(run_dir), kind="run", name=run.resolve().name, train_c2w=np.asarray(record.c2w, np.float32),
-                  intrinsics=intrinsics, render=render, render_rgba=render_rgba, train_images=images,
-                  train_names=tuple(record.file_names),
-                  room=room, truth_render=truth, info=info, train_images_note=note, gradient=NERF_GRADIENT,
-                  gradient_cost=NERF_GRADIENT_COST)
+    return Source(
+        spec=str(run_dir),
+        kind="run",
+        name=run.resolve().name,
+        train_c2w=np.asarray(record.c2w, np.float32),
+        intrinsics=intrinsics,
+        render=render,
+        render_rgba=render_rgba,
+        train_images=images,
+        train_names=tuple(record.file_names),
+        room=room,
+        truth_render=truth,
+        info=info,
+        train_images_note=note,
+        gradient=NERF_GRADIENT,
+        gradient_cost=NERF_GRADIENT_COST,
+    )
 
 
 def check_views(views) -> int:

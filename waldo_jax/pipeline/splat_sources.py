@@ -40,8 +40,17 @@ from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splat
 from waldo_jax.splats.runs import TRAIN_JSON
 from waldo_jax.types import Array, Intrinsics
 
-__all__ = ["is_splat_spec", "splat_source", "ring_cameras", "calibrate_max_pairs", "splat_renderer",
-           "SPLAT_RESOLUTION", "RING_VIEWS", "SPLAT_GRADIENT_COST", "TRAIN_JSON"]
+__all__ = [
+    "is_splat_spec",
+    "splat_source",
+    "ring_cameras",
+    "calibrate_max_pairs",
+    "splat_renderer",
+    "SPLAT_RESOLUTION",
+    "RING_VIEWS",
+    "SPLAT_GRADIENT_COST",
+    "TRAIN_JSON",
+]
 
 SPLAT_RESOLUTION = 256  # default longer side of a splat source's renders (the cameras' own size when smaller)
 RING_VIEWS = 24
@@ -74,8 +83,14 @@ def robust_bounds(means: np.ndarray, valid: np.ndarray, quantile: float = 0.02) 
     return np.quantile(points, quantile, axis=0), np.quantile(points, 1.0 - quantile, axis=0)
 
 
-def ring_cameras(means: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics, count: int = RING_VIEWS,
-                 up: Optional[np.ndarray] = None, elevation_deg: float = RING_ELEVATION_DEG) -> Tuple[np.ndarray, dict]:
+def ring_cameras(
+    means: np.ndarray,
+    valid: np.ndarray,
+    intrinsics: Intrinsics,
+    count: int = RING_VIEWS,
+    up: Optional[np.ndarray] = None,
+    elevation_deg: float = RING_ELEVATION_DEG,
+) -> Tuple[np.ndarray, dict]:
     """`count` cameras on a ring around the splats' robust bounds, looking at their centre.
 
     The ring's axis is `up`, or, without it, the direction in which the splats' means vary least
@@ -96,30 +111,43 @@ def ring_cameras(means: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics, c
         up = vectors[:, 0]
         up = up * np.sign(up[np.argmax(np.abs(up))])
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    half_fov = 0.5 * min(2 * math.atan(0.5 * intrinsics.width / float(intrinsics.fx)),
-                         2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)))
+    half_fov = 0.5 * min(
+        2 * math.atan(0.5 * intrinsics.width / float(intrinsics.fx)),
+        2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)),
+    )
     distance = 1.1 * radius / math.sin(half_fov)
     side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
     forward = np.cross(up, side)
     angles = 2 * np.pi * np.arange(count) / count
     elevation = math.radians(elevation_deg)
-    directions = (math.cos(elevation) * (np.cos(angles)[:, None] * side + np.sin(angles)[:, None] * forward)
-                  + math.sin(elevation) * up)
+    directions = (
+        math.cos(elevation) * (np.cos(angles)[:, None] * side + np.sin(angles)[:, None] * forward)
+        + math.sin(elevation) * up
+    )
     origins = centre + distance * directions
-    c2w = jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins, jnp.float32),
-                                                     jnp.asarray(centre, jnp.float32), jnp.asarray(up, jnp.float32))
-    info = {"poses": "ring", "views": int(count), "centre": centre.tolist(), "up": up.tolist(),
-            "distance": distance, "elevation_deg": elevation_deg, "bounds_quantiles": [0.02, 0.98],
-            "bounds": [low.tolist(), high.tolist()]}
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(
+        jnp.asarray(origins, jnp.float32), jnp.asarray(centre, jnp.float32), jnp.asarray(up, jnp.float32)
+    )
+    info = {
+        "poses": "ring",
+        "views": int(count),
+        "centre": centre.tolist(),
+        "up": up.tolist(),
+        "distance": distance,
+        "elevation_deg": elevation_deg,
+        "bounds_quantiles": [0.02, 0.98],
+        "bounds": [low.tolist(), high.tolist()],
+    }
     return np.asarray(c2w, np.float32), info
 
 
 _count_pairs = jax.jit(count_pairs, static_argnames=("config",))
 
 
-def calibrate_max_pairs(splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig,
-                        margin: float = _PAIRS_MARGIN) -> int:
+def calibrate_max_pairs(
+    splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig, margin: float = _PAIRS_MARGIN
+) -> int:
     """`max_pairs` for views like `c2w`: `margin` x the most pairs one of them needs, rounded up to a
     multiple of `_PAIRS_QUANTUM` (the renderer's work grows with it; a view that needs more is
     counted, never silently cut). With margin 1 the views `c2w` themselves drop nothing."""
@@ -131,8 +159,15 @@ def calibrate_max_pairs(splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics,
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
 
-def _render(splats: Splats, intrinsics: Intrinsics, background: Array, c2w: Array, *, config: SplatRenderConfig,
-            rgba: bool = False) -> Array:
+def _render(
+    splats: Splats,
+    intrinsics: Intrinsics,
+    background: Array,
+    c2w: Array,
+    *,
+    config: SplatRenderConfig,
+    rgba: bool = False,
+) -> Array:
     out = render_splats(splats, c2w, intrinsics, config, background)
     return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1) if rgba else out.rgb
 
@@ -143,8 +178,9 @@ def _render_fn(config: SplatRenderConfig, rgba: bool):
     return functools.partial(_render, config=config, rgba=rgba)
 
 
-def splat_renderer(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, background=None,
-                   rgba: bool = False) -> jax.tree_util.Partial:
+def splat_renderer(
+    splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, background=None, rgba: bool = False
+) -> jax.tree_util.Partial:
     """The splat renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4], alpha the
     accumulated opacity); the splats are traced arguments, so it compiles once per image size."""
     bg = jnp.asarray(config.background if background is None else background, jnp.float32)
@@ -154,15 +190,25 @@ def splat_renderer(splats: Splats, intrinsics: Intrinsics, config: SplatRenderCo
 def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c2w: np.ndarray) -> Dict[str, Any]:
     """What the renderer dropped over the views `c2w` of a run (for results.json)."""
     c2w = np.asarray(c2w, np.float32).reshape(-1, 4, 4)
-    needed = (np.asarray(_count_pairs(splats, jnp.asarray(c2w), intrinsics, config=config)) if len(c2w)
-              else np.zeros(0, np.int64))
+    needed = (
+        np.asarray(_count_pairs(splats, jnp.asarray(c2w), intrinsics, config=config))
+        if len(c2w)
+        else np.zeros(0, np.int64)
+    )
     over = needed > config.max_pairs
-    return {"renderer": "splats", "max_pairs": config.max_pairs, "views": int(len(c2w)),
-            "views_over_max_pairs": int(np.sum(over)), "most_pairs_needed": int(needed.max(initial=0)),
-            "pairs_dropped": int(np.sum(np.maximum(needed - config.max_pairs, 0))),
-            "tile_size": config.tile_size, "chunk": config.chunk, "near": config.near,
-            "note": "a view over max_pairs drops its farthest splats' pairs (counted here; "
-                    "the renderer's SplatStats count the pixels that could change)"}
+    return {
+        "renderer": "splats",
+        "max_pairs": config.max_pairs,
+        "views": int(len(c2w)),
+        "views_over_max_pairs": int(np.sum(over)),
+        "most_pairs_needed": int(needed.max(initial=0)),
+        "pairs_dropped": int(np.sum(np.maximum(needed - config.max_pairs, 0))),
+        "tile_size": config.tile_size,
+        "chunk": config.chunk,
+        "near": config.near,
+        "note": "a view over max_pairs drops its farthest splats' pairs (counted here; "
+        "the renderer's SplatStats count the pixels that could change)",
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -185,8 +231,12 @@ def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[n
     if not scene_path or not Path(scene_path).exists():
         return None, f"the training scene {scene_path or '(unnamed)'} is not on this machine"
     try:
-        scene = load_scene(scene_path, downscale=record.get("downscale"), split=record.get("split") or None,
-                           background=record.get("background", (1.0, 1.0, 1.0)))
+        scene = load_scene(
+            scene_path,
+            downscale=record.get("downscale"),
+            split=record.get("split") or None,
+            background=record.get("background", (1.0, 1.0, 1.0)),
+        )
     except WaldoError as e:
         return None, f"cannot read the training scene again ({e})"
     by_name = {name: i for i, name in enumerate(scene.file_names)}
@@ -197,8 +247,13 @@ def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[n
     return resize_images(images, intrinsics.width, intrinsics.height), ""
 
 
-def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[str] = None,
-                 config: Optional[SplatRenderConfig] = None, images: bool = True):
+def splat_source(
+    spec: str,
+    resolution: Optional[int] = None,
+    cameras: Optional[str] = None,
+    config: Optional[SplatRenderConfig] = None,
+    images: bool = True,
+):
     """A splat scene (`.ply`, reference-layout folder or splat run) as a `Source`.
 
     Args:
@@ -220,9 +275,13 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
     folder = model.ply_path.parent if model.iteration is None else model.ply_path.parent.parent.parent
     record = _read_train_json(folder) if path.is_dir() else None
     means, valid = np.asarray(splats.means), np.asarray(splats.valid)
-    info: Dict[str, Any] = {"splat_file": str(model.ply_path.resolve()), "splats": int(valid.sum()),
-                            "sh_degree": splats.sh_degree, "iteration": model.iteration,
-                            "model": model.source}
+    info: Dict[str, Any] = {
+        "splat_file": str(model.ply_path.resolve()),
+        "splats": int(valid.sum()),
+        "sh_degree": splats.sh_degree,
+        "iteration": model.iteration,
+        "model": model.source,
+    }
     names: Tuple[str, ...]
     if resolution is not None:
         check_resolution(resolution)
@@ -234,8 +293,9 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
     elif model.cameras is not None:
         c2w, names = model.cameras.c2w, model.cameras.names
         intrinsics = model.cameras.shared_intrinsics or model.cameras.intrinsics[0]
-        info["poses"] = "cameras.json" + ("" if model.cameras.shared_intrinsics else
-                                          " (cameras of several sizes: the first camera's intrinsics)")
+        info["poses"] = "cameras.json" + (
+            "" if model.cameras.shared_intrinsics else " (cameras of several sizes: the first camera's intrinsics)"
+        )
     else:
         intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
         c2w, ring = ring_cameras(means, valid, intrinsics)
@@ -248,15 +308,26 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
     config = SplatRenderConfig(**{**config.__dict__, "background": tuple(float(v) for v in background)})
     max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config)
     config = SplatRenderConfig(**{**config.__dict__, "max_pairs": max_pairs})
-    info["renderer"] = {"max_pairs": max_pairs, "calibrated_on": f"the training views (x{_PAIRS_MARGIN:g})",
-                        "tile_size": config.tile_size, "chunk": config.chunk, "near": config.near,
-                        "background": list(config.background)}
+    info["renderer"] = {
+        "max_pairs": max_pairs,
+        "calibrated_on": f"the training views (x{_PAIRS_MARGIN:g})",
+        "tile_size": config.tile_size,
+        "chunk": config.chunk,
+        "near": config.near,
+        "background": list(config.background),
+    }
     render = splat_renderer(splats, intrinsics, config)
     render_rgba = splat_renderer(splats, intrinsics, config, rgba=True)
     train_images, note = None, "not loaded (images=False)"
     if record is not None:
-        info.update({"run_dir": str(folder.resolve()), "scene_path": record.get("scene_path"),
-                     "psnr_test": record.get("psnr_test"), "train_steps": record.get("steps")})
+        info.update(
+            {
+                "run_dir": str(folder.resolve()),
+                "scene_path": record.get("scene_path"),
+                "psnr_test": record.get("psnr_test"),
+                "train_steps": record.get("steps"),
+            }
+        )
         if images:
             train_images, note = _run_images(record, names, intrinsics)
     if images and train_images is None:
@@ -265,8 +336,21 @@ def splat_source(spec: str, resolution: Optional[int] = None, cameras: Optional[
         info["train_images"] = "renders at the training poses" + (f" ({note})" if record is not None else "")
         note = ""
     name = folder.name if path.is_dir() else path.stem
-    return Source(spec=str(spec), kind="splats", name=name, train_c2w=np.asarray(c2w, np.float32),
-                  intrinsics=intrinsics, render=render, render_rgba=render_rgba, train_images=train_images,
-                  train_names=tuple(names), info=info, train_images_note=note,
-                  renderer_report=functools.partial(_report, splats, intrinsics, config),
-                  gradient="reverse", gradient_cost=SPLAT_GRADIENT_COST, splats=splats, splat_config=config)
+    return Source(
+        spec=str(spec),
+        kind="splats",
+        name=name,
+        train_c2w=np.asarray(c2w, np.float32),
+        intrinsics=intrinsics,
+        render=render,
+        render_rgba=render_rgba,
+        train_images=train_images,
+        train_names=tuple(names),
+        info=info,
+        train_images_note=note,
+        renderer_report=functools.partial(_report, splats, intrinsics, config),
+        gradient="reverse",
+        gradient_cost=SPLAT_GRADIENT_COST,
+        splats=splats,
+        splat_config=config,
+    )

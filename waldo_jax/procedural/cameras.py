@@ -19,7 +19,6 @@ from waldo_jax.types import Array, Intrinsics, PRNGKey
 __all__ = ["RoomCameraConfig", "training_cameras"]
 
 
-
 @dataclasses.dataclass(frozen=True)
 class RoomCameraConfig:
     """Where the training cameras of the room go (a band inside the walls, looking inwards).
@@ -46,8 +45,9 @@ class RoomCameraConfig:
     min_clearance: float = 0.15
 
 
-def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: Intrinsics,
-                     config: RoomCameraConfig = RoomCameraConfig()) -> np.ndarray:
+def training_cameras(
+    key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: Intrinsics, config: RoomCameraConfig = RoomCameraConfig()
+) -> np.ndarray:
     """Training cameras on a band around the room that see Waldo at most partly.
 
     Candidates are spread evenly in angle (with jitter) over the band, each looking at a random
@@ -68,8 +68,14 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
       ValueError: when too few candidates qualify (ask for fewer views or a larger oversample).
     """
     n = num_views * config.oversample
-    c2w = _candidates(key, n, np.float32(config.band_radius), np.float32(config.band_height),
-                      np.float32(config.target_radius), np.float32(config.target_height))
+    c2w = _candidates(
+        key,
+        n,
+        np.float32(config.band_radius),
+        np.float32(config.band_height),
+        np.float32(config.target_radius),
+        np.float32(config.target_height),
+    )
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
     clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
     keep = np.flatnonzero((visibility <= config.max_visibility) & (clearance >= config.min_clearance))
@@ -84,8 +90,9 @@ def training_cameras(key: PRNGKey, room: WaldoRoom, num_views: int, intrinsics: 
 
 
 @functools.partial(jax.jit, static_argnames="n")
-def _candidates(key: PRNGKey, n: int, band_radius: Array, band_height: Array, target_radius: Array,
-                target_height: Array) -> jax.Array:
+def _candidates(
+    key: PRNGKey, n: int, band_radius: Array, band_height: Array, target_radius: Array, target_height: Array
+) -> jax.Array:
     """`n` candidate cameras c2w [n, 4, 4] spread evenly in angle (with jitter) over the band
     (`RoomCameraConfig`'s ranges, as arrays), each looking at a random point near the centre."""
     k_angle, k_radius, k_height, k_target = jax.random.split(key, 4)

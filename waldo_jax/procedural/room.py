@@ -14,8 +14,20 @@ import numpy as np
 
 from waldo_jax.types import Array
 
-__all__ = ["WaldoRoom", "make_room", "room_field", "room_sdf", "ROOM_HALF", "WALL_HEIGHT", "DENSITY", "BACKGROUND",
-           "KIND_BOX", "KIND_SPHERE", "KIND_CYLINDER", "FAR"]
+__all__ = [
+    "WaldoRoom",
+    "make_room",
+    "room_field",
+    "room_sdf",
+    "ROOM_HALF",
+    "WALL_HEIGHT",
+    "DENSITY",
+    "BACKGROUND",
+    "KIND_BOX",
+    "KIND_SPHERE",
+    "KIND_CYLINDER",
+    "FAR",
+]
 
 ROOM_HALF = 4.0  # the room spans [-4, 4] in x and z
 WALL_HEIGHT = 2.6
@@ -81,8 +93,9 @@ class WaldoRoom:
     def aabb(self) -> np.ndarray:
         """The room's box [2, 3] (walls included)."""
         pad = 0.35
-        return np.array([[-ROOM_HALF - pad, -0.3, -ROOM_HALF - pad], [ROOM_HALF + pad, WALL_HEIGHT, ROOM_HALF + pad]],
-                        np.float32)
+        return np.array(
+            [[-ROOM_HALF - pad, -0.3, -ROOM_HALF - pad], [ROOM_HALF + pad, WALL_HEIGHT, ROOM_HALF + pad]], np.float32
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -137,10 +150,10 @@ def _all_sdf(room: WaldoRoom, p: Array) -> Array:
         jnp.max(q, axis=-1),
         jnp.sqrt(jnp.sum(jnp.maximum(q, 0.0) ** 2, axis=-1) + 1e-12),
     )
-    sph_c, sph_r = room.center[nb:nb + ns], room.size[nb:nb + ns, 0]
+    sph_c, sph_r = room.center[nb : nb + ns], room.size[nb : nb + ns, 0]
     sphere = jnp.sqrt(jnp.sum((p - sph_c) ** 2, axis=-1) + 1e-12) - sph_r
-    d = p - room.center[nb + ns:]  # [nc, 3]
-    size = room.size[nb + ns:]
+    d = p - room.center[nb + ns :]  # [nc, 3]
+    size = room.size[nb + ns :]
     radial = jnp.sqrt(d[:, 0] ** 2 + d[:, 2] ** 2 + 1e-12) - size[:, 0]
     vertical = jnp.abs(d[:, 1]) - size[:, 1]
     inside = (radial <= 0.0) & (vertical <= 0.0)
@@ -195,11 +208,21 @@ def room_field(room: WaldoRoom, x: Array, d: Array) -> Tuple[Array, Array]:
 # ---------------------------------------------------------------------------------------------
 # Building a room.
 
-_PALETTE = np.array([
-    [0.20, 0.45, 0.80], [0.95, 0.70, 0.15], [0.25, 0.65, 0.35], [0.55, 0.30, 0.65],
-    [0.90, 0.45, 0.25], [0.35, 0.75, 0.80], [0.80, 0.35, 0.50], [0.60, 0.55, 0.35],
-    [0.45, 0.45, 0.50], [0.70, 0.80, 0.30],
-], np.float32)
+_PALETTE = np.array(
+    [
+        [0.20, 0.45, 0.80],
+        [0.95, 0.70, 0.15],
+        [0.25, 0.65, 0.35],
+        [0.55, 0.30, 0.65],
+        [0.90, 0.45, 0.25],
+        [0.35, 0.75, 0.80],
+        [0.80, 0.35, 0.50],
+        [0.60, 0.55, 0.35],
+        [0.45, 0.45, 0.50],
+        [0.70, 0.80, 0.30],
+    ],
+    np.float32,
+)
 
 
 @dataclasses.dataclass
@@ -213,8 +236,9 @@ class _Builder:
 
     def add(self, kind, center, size, color, pattern=PATTERN_PLAIN, waldo=False):
         size = list(size) + [0.0] * (3 - len(size))
-        for name, value in zip(("kind", "center", "size", "color", "pattern", "is_waldo"),
-                               (kind, center, size, color, pattern, waldo)):
+        for name, value in zip(
+            ("kind", "center", "size", "color", "pattern", "is_waldo"), (kind, center, size, color, pattern, waldo)
+        ):
             getattr(self, name).append(value)
 
 
@@ -354,8 +378,14 @@ def _waldo_surface(waldo_parts, arrays: dict):
         areas.append(a)
     points, normals, areas = np.concatenate(points), np.concatenate(normals), np.concatenate(areas)
     waldo_rows = np.flatnonzero(arrays["is_waldo"])
-    sdf_to_parts = np.asarray(_sdf_to_primitives(jnp.asarray(points, jnp.float32), arrays["kind"][waldo_rows],
-                                                 arrays["center"][waldo_rows], arrays["size"][waldo_rows]))
+    sdf_to_parts = np.asarray(
+        _sdf_to_primitives(
+            jnp.asarray(points, jnp.float32),
+            arrays["kind"][waldo_rows],
+            arrays["center"][waldo_rows],
+            arrays["size"][waldo_rows],
+        )
+    )
     on_surface = np.all(sdf_to_parts > -1e-4, axis=1) & (points[:, 1] > 1e-3)  # not buried, not on the floor
     return points[on_surface], normals[on_surface], areas[on_surface]
 
@@ -396,5 +426,3 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         seed=int(seed),
         **{k: jnp.asarray(v) for k, v in arrays.items()},
     )
-
-

@@ -19,13 +19,19 @@ __all__ = ["room_render_config", "room_scene", "held_out_scene"]
 
 def room_render_config(room: WaldoRoom, num_samples: int = 128, **kwargs):
     """A `RenderConfig` suited to the room: its box, near 0.05, far 12 and the sky background."""
-    return RenderConfig.create(near=0.05, far=12.0, aabb=room.aabb, background=BACKGROUND,
-                               num_samples=num_samples, **kwargs)
+    return RenderConfig.create(
+        near=0.05, far=12.0, aabb=room.aabb, background=BACKGROUND, num_samples=num_samples, **kwargs
+    )
 
 
-def room_scene(seed: int = 0, num_views: int = 24, resolution: int = 64, num_samples: int = 128,
-               camera_config: RoomCameraConfig = RoomCameraConfig(),
-               room: Optional[WaldoRoom] = None) -> Tuple[Scene, WaldoRoom]:
+def room_scene(
+    seed: int = 0,
+    num_views: int = 24,
+    resolution: int = 64,
+    num_samples: int = 128,
+    camera_config: RoomCameraConfig = RoomCameraConfig(),
+    room: Optional[WaldoRoom] = None,
+) -> Tuple[Scene, WaldoRoom]:
     """The room's training views as a `Scene`, rendered with `waldo_jax.render.render_views`.
 
     Args:
@@ -58,19 +64,31 @@ def room_scene(seed: int = 0, num_views: int = 24, resolution: int = 64, num_sam
         split="train",
         path="",
         background=np.asarray(BACKGROUND, np.float32),
-        metadata={"seed": int(seed), "num_samples": int(num_samples),
-                  "max_visibility": float(camera_config.max_visibility)},
+        metadata={
+            "seed": int(seed),
+            "num_samples": int(num_samples),
+            "max_visibility": float(camera_config.max_visibility),
+        },
     )
     return scene, room
 
 
-def held_out_scene(room: WaldoRoom, seed: int, count: int, train_scene: Scene,
-                   camera_config: RoomCameraConfig = RoomCameraConfig()) -> Scene:
+def held_out_scene(
+    room: WaldoRoom, seed: int, count: int, train_scene: Scene, camera_config: RoomCameraConfig = RoomCameraConfig()
+) -> Scene:
     """`count` views of the room from cameras its NeRF has not seen (another key, the training views'
     `camera_config`), rendered analytically at `train_scene`'s intrinsics: the NeRF's held-out test split."""
-    c2w = training_cameras(jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics,
-                           camera_config)
-    images = np.asarray(render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics,
-                                     room_render_config(room)).rgb, np.float32)
-    return dataclasses.replace(train_scene, images=images, c2w=c2w, split="test",
-                               file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))))
+    c2w = training_cameras(
+        jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics, camera_config
+    )
+    images = np.asarray(
+        render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics, room_render_config(room)).rgb,
+        np.float32,
+    )
+    return dataclasses.replace(
+        train_scene,
+        images=images,
+        c2w=c2w,
+        split="test",
+        file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))),
+    )

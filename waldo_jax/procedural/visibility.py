@@ -59,8 +59,9 @@ def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Ar
     return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
 
 
-def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float,
-                        softness: float = 0.0) -> Tuple[Array, Array]:
+def _waldo_solid_angles(
+    room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float, softness: float = 0.0
+) -> Tuple[Array, Array]:
     """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it.
 
     softness > 0 weighs each sample by a product of sigmoids of its distance (in pixels) to the four
@@ -79,19 +80,26 @@ def _waldo_solid_angles(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, nea
         margins = jnp.stack([uv[:, 0], intrinsics.width - uv[:, 0], uv[:, 1], intrinsics.height - uv[:, 1]], -1)
         in_frame = (depth > near) * jnp.prod(jax.nn.sigmoid(margins / width), axis=-1)
     else:
-        in_frame = ((depth > near) & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width) & (uv[:, 1] >= 0)
-                    & (uv[:, 1] <= intrinsics.height)).astype(jnp.float32)
+        in_frame = (
+            (depth > near)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] <= intrinsics.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] <= intrinsics.height)
+        ).astype(jnp.float32)
 
     starts = room.waldo_points + 1e-4 * room.waldo_normals  # off the surface, so its own solid is not hit
-    hits = jax.vmap(lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(
-        room.kind, room.center, room.size, s, camera))(starts)  # [M, K]
+    hits = jax.vmap(
+        lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(room.kind, room.center, room.size, s, camera)
+    )(starts)  # [M, K]
     seen = jnp.where(jnp.any(hits, axis=-1), 0.0, in_frame)
     return jnp.sum(seen * weight), jnp.sum(weight)
 
 
 @functools.partial(jax.jit, static_argnames="softness")
-def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
-                     softness: float = 0.0) -> Array:
+def waldo_visibility(
+    room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05, softness: float = 0.0
+) -> Array:
     """The oracle: the fraction of Waldo's projected area that is in frame and not occluded.
 
     Waldo's surface is represented by regular area-weighted samples. A sample counts towards the
@@ -120,8 +128,9 @@ def waldo_visibility(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: 
 
 
 @functools.partial(jax.jit, static_argnames="softness")
-def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
-                   softness: float = 0.0) -> Array:
+def waldo_coverage(
+    room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05, softness: float = 0.0
+) -> Array:
     """The share of the image covered by the visible part of Waldo (his "visible pixels" / all pixels).
 
     The seen solid angle of `waldo_visibility` times the pixels per steradian at the image centre
@@ -139,8 +148,9 @@ def waldo_coverage(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: fl
 
 
 @functools.partial(jax.jit, static_argnames="softness")
-def waldo_view(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05,
-               softness: float = 0.0) -> Tuple[Array, Array]:
+def waldo_view(
+    room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float = 0.05, softness: float = 0.0
+) -> Tuple[Array, Array]:
     """(`waldo_visibility`, `waldo_coverage`) of one camera from one pass over Waldo's samples.
 
     Returns:

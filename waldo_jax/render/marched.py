@@ -28,8 +28,17 @@ from waldo_jax.render.sharding import shard_over_poses
 from waldo_jax.render.volume import RenderConfig, map_ray_chunks, to_images, view_rays
 from waldo_jax.types import Array, Field, Intrinsics, RenderOutput
 
-__all__ = ["BlockShape", "GRADIENTS", "MarchSetup", "MarchedViews", "Packing", "block_shape", "field_slots",
-           "render_marched", "render_marched_sharded"]
+__all__ = [
+    "BlockShape",
+    "GRADIENTS",
+    "MarchSetup",
+    "MarchedViews",
+    "Packing",
+    "block_shape",
+    "field_slots",
+    "render_marched",
+    "render_marched_sharded",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,14 +71,22 @@ class Packing:
     min_pass_slots: int = 1
 
     def __post_init__(self):
-        for name in ("rays_per_block", "slots_per_ray", "row_length", "max_rows_per_ray", "pass_levels",
-                     "level_ratio", "min_pass_slots"):
+        for name in (
+            "rays_per_block",
+            "slots_per_ray",
+            "row_length",
+            "max_rows_per_ray",
+            "pass_levels",
+            "level_ratio",
+            "min_pass_slots",
+        ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"Packing.{name} must be a positive int, got {value!r}")
         if self.slots_per_ray % self.row_length:
-            raise ValueError(f"Packing.slots_per_ray ({self.slots_per_ray}) must be a multiple of row_length "
-                             f"({self.row_length})")
+            raise ValueError(
+                f"Packing.slots_per_ray ({self.slots_per_ray}) must be a multiple of row_length ({self.row_length})"
+            )
         if self.max_rows_per_ray & (self.max_rows_per_ray - 1):
             raise ValueError(f"Packing.max_rows_per_ray must be a power of two, got {self.max_rows_per_ray}")
         if not 0.0 <= self.level_fill <= 1.0:
@@ -126,16 +143,25 @@ def block_shape(packing: Packing, total_rays: int, max_samples: int) -> BlockSha
     rays = -(-rays // 8) * 8
     first = rays * packing.slots_per_ray // packing.row_length
     sizes = [max(1, first // packing.level_ratio**level) for level in range(packing.pass_levels)]
-    sizes = [size for level, size in enumerate(sizes)
-             if level == 0 or size * packing.row_length >= packing.min_pass_slots]
+    sizes = [
+        size for level, size in enumerate(sizes) if level == 0 or size * packing.row_length >= packing.min_pass_slots
+    ]
     rows = tuple(sorted(set(sizes), reverse=True))
     rows_per_ray = -(-max_samples // packing.row_length)
     # Every pass either fills all its rows or gives every live ray all it asked for (>= 1 row), so no
     # block can need more passes than this, even in passes of the smallest size: no ray is ever cut.
     max_passes = -(-rays * rows_per_ray // rows[-1]) + rows_per_ray + 1
     chunk = packing.field_chunk or first * packing.row_length
-    return BlockShape(rays, rows, packing.row_length, packing.max_rows_per_ray, max_passes, chunk,
-                       packing.slots_per_ray // packing.row_length, packing.level_fill)
+    return BlockShape(
+        rays,
+        rows,
+        packing.row_length,
+        packing.max_rows_per_ray,
+        max_passes,
+        chunk,
+        packing.slots_per_ray // packing.row_length,
+        packing.level_fill,
+    )
 
 
 class _Rays(NamedTuple):
@@ -190,15 +216,22 @@ def field_slots(field: Field, params, points: Array, directions: Array, chunk: i
     return jax.lax.map(lambda pd: field(params, pd[0], pd[1]), (points, directions), batch_size=chunk)
 
 
-def _march_block(grid: occupancy.OccupancyGrid, origins: Array, directions: Array, real: Array,
-                 render_config: RenderConfig, march: marching.MarchConfig) -> Tuple[Array, Array, Array]:
+def _march_block(
+    grid: occupancy.OccupancyGrid,
+    origins: Array,
+    directions: Array,
+    real: Array,
+    render_config: RenderConfig,
+    march: marching.MarchConfig,
+) -> Tuple[Array, Array, Array]:
     """The marched samples of N rays [N, 3] (`real` [N] False for padding): t [N, S], delta [N, S] and
     the counts int32 [N]. Constants of the rays: a gradient moves the samples with the ray, not along it."""
     origins, directions = jax.lax.stop_gradient((origins, directions))
     t_start, t_end = jax.vmap(lambda o, d: marching.ray_interval(grid, o, d, render_config))(origins, directions)
     t_end = jnp.where(real, t_end, t_start)  # padding rays march an empty interval
     t, delta, mask = jax.vmap(lambda o, d, a, b: marching.march_ray(grid, o, d, a, b, march))(
-        origins, directions, t_start, t_end)  # [N, S] each
+        origins, directions, t_start, t_end
+    )  # [N, S] each
     return t, delta, jnp.sum(mask, axis=1, dtype=jnp.int32)
 
 
@@ -213,8 +246,17 @@ def _requests(shape: BlockShape, rows: int, state: _Rays, count: Array, first_ro
     return jnp.where(state.alive, jnp.minimum(rows_per_ray, need), 0)  # [N]
 
 
-def _pass_rows(evaluate: Callable, shape: BlockShape, layout: packed.RowLayout, state: _Rays, origins: Array,
-               directions: Array, t: Array, delta: Array, count: Array) -> packed.RowSums:
+def _pass_rows(
+    evaluate: Callable,
+    shape: BlockShape,
+    layout: packed.RowLayout,
+    state: _Rays,
+    origins: Array,
+    directions: Array,
+    t: Array,
+    delta: Array,
+    count: Array,
+) -> packed.RowSums:
     """One pass: the samples `layout` lays out from each ray's `next_sample`, evaluated (`evaluate(points
     [B, 3], directions [B, 3]) -> (sigma [B], rgb [B, 3])`) and composited onto the rays' optical depth.
     Differentiable in origins and directions [N, 3] (the points move with them)."""
@@ -227,18 +269,31 @@ def _pass_rows(evaluate: Callable, shape: BlockShape, layout: packed.RowLayout, 
     ray_dirs = jnp.broadcast_to(directions[layout.owner][:, None, :], (rows, row_length, 3))  # [M, s, 3]
     points = origins[layout.owner][:, None, :] + t_rows[..., None] * ray_dirs  # [M, s, 3]
     sigma, rgb = evaluate(points.reshape(-1, 3), ray_dirs.reshape(-1, 3))
-    return packed.composite_rows(sigma.reshape(rows, row_length), rgb.reshape(rows, row_length, 3), t_rows,
-                                 delta_rows, layout, state.optical_depth, shape.max_rows_per_ray)
+    return packed.composite_rows(
+        sigma.reshape(rows, row_length),
+        rgb.reshape(rows, row_length, 3),
+        t_rows,
+        delta_rows,
+        layout,
+        state.optical_depth,
+        shape.max_rows_per_ray,
+    )
 
 
 def _advance(state: _Rays, layout: packed.RowLayout, sums: packed.RowSums, count: Array, row_length: int) -> _Rays:
     """The rays after a pass: samples taken, sums added (`alive` is left to the caller)."""
     rows = layout.owner.shape[0]
     taken = jnp.minimum(layout.granted * row_length, count - state.next_sample)  # [N]
-    return state._replace(next_sample=state.next_sample + taken, optical_depth=state.optical_depth + sums.optical_depth,
-                          rgb=state.rgb + sums.rgb, depth=state.depth + sums.depth, acc=state.acc + sums.acc,
-                          evaluations=state.evaluations + taken, passes=state.passes + 1,
-                          slots=state.slots + rows * row_length)
+    return state._replace(
+        next_sample=state.next_sample + taken,
+        optical_depth=state.optical_depth + sums.optical_depth,
+        rgb=state.rgb + sums.rgb,
+        depth=state.depth + sums.depth,
+        acc=state.acc + sums.acc,
+        evaluations=state.evaluations + taken,
+        passes=state.passes + 1,
+        slots=state.slots + rows * row_length,
+    )
 
 
 def _run_passes(shape: BlockShape, count: Array, one_pass: Callable, state, rays: Callable, first_rows: int):
@@ -274,13 +329,30 @@ def _run_passes(shape: BlockShape, count: Array, one_pass: Callable, state, rays
 def _start(count: Array) -> _Rays:
     num_rays = count.shape[0]
     zeros = jnp.zeros((num_rays,), jnp.float32)
-    return _Rays(next_sample=jnp.zeros((num_rays,), jnp.int32), alive=count > 0, optical_depth=zeros,
-                 rgb=jnp.zeros((num_rays, 3), jnp.float32), depth=zeros, acc=zeros,
-                 evaluations=jnp.zeros((num_rays,), jnp.int32), passes=jnp.int32(0), slots=jnp.int32(0))
+    return _Rays(
+        next_sample=jnp.zeros((num_rays,), jnp.int32),
+        alive=count > 0,
+        optical_depth=zeros,
+        rgb=jnp.zeros((num_rays, 3), jnp.float32),
+        depth=zeros,
+        acc=zeros,
+        evaluations=jnp.zeros((num_rays,), jnp.int32),
+        passes=jnp.int32(0),
+        slots=jnp.int32(0),
+    )
 
 
-def _composite(field: Field, shape: BlockShape, params, origins: Array, directions: Array, t: Array, delta: Array,
-               count: Array, min_transmittance: Array) -> _Rays:
+def _composite(
+    field: Field,
+    shape: BlockShape,
+    params,
+    origins: Array,
+    directions: Array,
+    t: Array,
+    delta: Array,
+    count: Array,
+    min_transmittance: Array,
+) -> _Rays:
     """The passes of one block: every ray's samples composited until it is done or opaque."""
     evaluate = functools.partial(field_slots, field, params, chunk=shape.field_chunk)
 
@@ -301,22 +373,32 @@ def _finish(state: _Rays, background: Array):
 
 def _composite_forward(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
     """`_finish(_composite(...))`: differentiable in forward mode only (its `while_loop`s)."""
-    return _finish(_composite(field, shape, params, origins, directions, t, delta, count, min_transmittance),
-                   background)
+    return _finish(
+        _composite(field, shape, params, origins, directions, t, delta, count, min_transmittance), background
+    )
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def _composite_reverse(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
     """`_composite_forward` with a reverse-mode gradient with respect to origins and directions
     (`marched_vjp.composite_vjp`); no forward mode. Other inputs get no gradient."""
-    return _composite_forward(field, shape, params, origins, directions, t, delta, count, min_transmittance,
-                              background)
+    return _composite_forward(field, shape, params, origins, directions, t, delta, count, min_transmittance, background)
 
 
 def _composite_reverse_fwd(field, shape, params, origins, directions, t, delta, count, min_transmittance, background):
     state = _composite(field, shape, params, origins, directions, t, delta, count, min_transmittance)
-    residuals = (params, origins, directions, t, delta, state.next_sample, state.rgb, state.depth, state.acc,
-                 background)
+    residuals = (
+        params,
+        origins,
+        directions,
+        t,
+        delta,
+        state.next_sample,
+        state.rgb,
+        state.depth,
+        state.acc,
+        background,
+    )
     return _finish(state, background), residuals
 
 
@@ -334,28 +416,55 @@ def _composite_reverse_bwd(field, shape, residuals, cotangents):
 
     # The samples each ray composited (`used`) are known: no ray needs to hold back in its first pass.
     passes = marched_vjp.Passes(pass_rows, advance, functools.partial(_run_passes, shape, used))
-    d_origins, d_directions = marched_vjp.composite_vjp(passes, _start(used), origins, directions, (rgb, depth, acc),
-                                                        (g_rgb, g_depth, g_acc), background, shape.max_rows_per_ray)
+    d_origins, d_directions = marched_vjp.composite_vjp(
+        passes,
+        _start(used),
+        origins,
+        directions,
+        (rgb, depth, acc),
+        (g_rgb, g_depth, g_acc),
+        background,
+        shape.max_rows_per_ray,
+    )
     return None, d_origins, d_directions, None, None, None, None, None
 
 
 _composite_reverse.defvjp(_composite_reverse_fwd, _composite_reverse_bwd)
 
 
-def _render_block(field: Field, params, grid: occupancy.OccupancyGrid, origins: Array, directions: Array,
-                  real: Array, render_config: RenderConfig, march: marching.MarchConfig, shape: BlockShape,
-                  gradient: str = "forward"):
+def _render_block(
+    field: Field,
+    params,
+    grid: occupancy.OccupancyGrid,
+    origins: Array,
+    directions: Array,
+    real: Array,
+    render_config: RenderConfig,
+    march: marching.MarchConfig,
+    shape: BlockShape,
+    gradient: str = "forward",
+):
     """Renders one block of N rays [N, 3] (`real` [N] False for padding). Returns (RenderOutput [N],
     evaluations int32 [N], passes int32 [], slots int32 []). `gradient`: see `render_marched`."""
     t, delta, count = _march_block(grid, origins, directions, real, render_config, march)
     composite = _composite_reverse if gradient == "reverse" else _composite_forward
-    rgb, depth, acc, evaluations, passes, slots = composite(field, shape, params, origins, directions, t, delta, count,
-                                                            march.min_transmittance, render_config.background)
+    rgb, depth, acc, evaluations, passes, slots = composite(
+        field, shape, params, origins, directions, t, delta, count, march.min_transmittance, render_config.background
+    )
     return RenderOutput(rgb=rgb, depth=depth, acc=acc), evaluations, passes, slots
 
 
-def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, render_config: RenderConfig,
-            march: marching.MarchConfig, packing: Packing, gradient: str = "forward") -> MarchedViews:
+def _render(
+    field: Field,
+    params,
+    grid,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    render_config: RenderConfig,
+    march: marching.MarchConfig,
+    packing: Packing,
+    gradient: str = "forward",
+) -> MarchedViews:
     """`render_marched` unjitted (for `shard_over_poses`)."""
     c2w = jnp.asarray(c2w, jnp.float32)[:, :3, :4]
     num_poses = c2w.shape[0]
@@ -364,24 +473,35 @@ def _render(field: Field, params, grid, c2w: Array, intrinsics: Intrinsics, rend
 
     def block(ids: Array):
         origins, directions, _, _ = view_rays(c2w, intrinsics, ids)
-        out, evaluations, passes, slots = _render_block(field, params, grid, origins, directions, ids < total,
-                                                        render_config, march, shape, gradient)
+        out, evaluations, passes, slots = _render_block(
+            field, params, grid, origins, directions, ids < total, render_config, march, shape, gradient
+        )
         return out, evaluations, jnp.broadcast_to(jnp.stack([passes, slots]), ids.shape + (2,))
 
     out, evaluations, counts = map_ray_chunks(block, total, shape.rays)
     # Every ray of a block carries its block's counts; one value per block is kept.
     counts = jnp.pad(counts, ((0, (-total) % shape.rays), (0, 0)))[:: shape.rays]  # [num_blocks, 2]
-    return MarchedViews(output=jax.tree.map(lambda a: to_images(a, num_poses, intrinsics), out),
-                        evaluations=to_images(evaluations, num_poses, intrinsics), passes=counts[:, 0],
-                        slots=counts[:, 1])
+    return MarchedViews(
+        output=jax.tree.map(lambda a: to_images(a, num_poses, intrinsics), out),
+        evaluations=to_images(evaluations, num_poses, intrinsics),
+        passes=counts[:, 0],
+        slots=counts[:, 1],
+    )
 
 
 GRADIENTS = ("forward", "reverse")
 
 
 @functools.partial(jax.jit, static_argnames=("field", "packing", "gradient"))
-def render_marched(field: Field, params, setup: MarchSetup, c2w: Array, intrinsics: Intrinsics,
-                   packing: Optional[Packing] = None, gradient: str = "forward") -> MarchedViews:
+def render_marched(
+    field: Field,
+    params,
+    setup: MarchSetup,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    packing: Optional[Packing] = None,
+    gradient: str = "forward",
+) -> MarchedViews:
     """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
     One compilation per (field, packing, grid geometry, march sizes, image size, P).
@@ -405,8 +525,17 @@ def render_marched(field: Field, params, setup: MarchSetup, c2w: Array, intrinsi
     """
     if gradient not in GRADIENTS:
         raise ValueError(f"render_marched: gradient must be one of {GRADIENTS}, got {gradient!r}")
-    return _render(field, params, setup.grid, c2w, intrinsics, setup.render_config, setup.march,
-                   packing or Packing.for_backend(), gradient)
+    return _render(
+        field,
+        params,
+        setup.grid,
+        c2w,
+        intrinsics,
+        setup.render_config,
+        setup.march,
+        packing or Packing.for_backend(),
+        gradient,
+    )
 
 
 @functools.lru_cache(maxsize=None)
@@ -421,8 +550,15 @@ def _marched_local(field: Field, packing: Packing) -> Callable:
     return local
 
 
-def render_marched_sharded(field: Field, params, setup: MarchSetup, c2w: Array, intrinsics: Intrinsics,
-                           packing: Optional[Packing] = None, mesh=None):
+def render_marched_sharded(
+    field: Field,
+    params,
+    setup: MarchSetup,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    packing: Optional[Packing] = None,
+    mesh=None,
+):
     """`render_marched` with the poses split over the devices of `mesh` (`sharding.shard_over_poses`).
 
     Returns:

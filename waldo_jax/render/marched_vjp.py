@@ -56,8 +56,16 @@ class Passes(NamedTuple):
     run: Callable
 
 
-def composite_vjp(passes: Passes, start, origins: Array, directions: Array, sums: Tuple[Array, Array, Array],
-                  cotangents: Tuple[Array, Array, Array], background: Array, first_rows: int) -> Tuple[Array, Array]:
+def composite_vjp(
+    passes: Passes,
+    start,
+    origins: Array,
+    directions: Array,
+    sums: Tuple[Array, Array, Array],
+    cotangents: Tuple[Array, Array, Array],
+    background: Array,
+    first_rows: int,
+) -> Tuple[Array, Array]:
     """The gradient of a marched composite with respect to its rays' origins and directions.
 
     Args:
@@ -82,8 +90,9 @@ def composite_vjp(passes: Passes, start, origins: Array, directions: Array, sums
         part, pullback = jax.vjp(lambda o, d: passes.pass_rows(rows, layout, state.rays, o, d), origins, directions)
         done = state.done + jnp.sum(g_rgb * part.rgb, axis=-1) + g_depth * part.depth + g_acc * part.acc  # [N]
         d_o, d_d = pullback(packed.RowSums(rgb=g_rgb, depth=g_depth, acc=g_acc, optical_depth=done - total))
-        return _Backward(passes.advance(state.rays, layout, part), done, state.d_origins + d_o,
-                         state.d_directions + d_d)
+        return _Backward(
+            passes.advance(state.rays, layout, part), done, state.d_origins + d_o, state.d_directions + d_d
+        )
 
     init = _Backward(start, jnp.zeros_like(depth), jnp.zeros_like(origins), jnp.zeros_like(directions))
     final = passes.run(one_pass, init, lambda state: state.rays, first_rows)

@@ -46,9 +46,14 @@ class MarchConfig:
     min_transmittance: Array = 1e-4
 
     @classmethod
-    def create(cls, max_steps: int = 1024, max_samples: int = 256,
-               steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL, cone_angle: float = 0.0,
-               min_transmittance: float = 1e-4) -> "MarchConfig":
+    def create(
+        cls,
+        max_steps: int = 1024,
+        max_samples: int = 256,
+        steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL,
+        cone_angle: float = 0.0,
+        min_transmittance: float = 1e-4,
+    ) -> "MarchConfig":
         """A validated config with float32 leaves."""
         if min(max_steps, max_samples) < 1:
             raise ValueError(f"max_steps and max_samples must be >= 1, got {max_steps}, {max_samples}")
@@ -66,13 +71,24 @@ class MarchConfig:
         )
 
     @classmethod
-    def for_grid(cls, grid: "OccupancyGrid", steps_per_diagonal: float, cone_angle: float = 0.0,
-                 max_samples: Optional[int] = None, min_transmittance: float = 1e-4) -> "MarchConfig":
+    def for_grid(
+        cls,
+        grid: "OccupancyGrid",
+        steps_per_diagonal: float,
+        cone_angle: float = 0.0,
+        max_samples: Optional[int] = None,
+        min_transmittance: float = 1e-4,
+    ) -> "MarchConfig":
         """The march that crosses all of `grid` (K = `march_steps`), keeping at most min(max_samples, K)."""
         steps = march_steps(grid, steps_per_diagonal, cone_angle)
         samples = steps if max_samples is None else max(1, min(int(max_samples), steps))
-        return cls.create(max_steps=steps, max_samples=samples, steps_per_diagonal=steps_per_diagonal,
-                          cone_angle=cone_angle, min_transmittance=min_transmittance)
+        return cls.create(
+            max_steps=steps,
+            max_samples=samples,
+            steps_per_diagonal=steps_per_diagonal,
+            cone_angle=cone_angle,
+            min_transmittance=min_transmittance,
+        )
 
 
 def march_steps(grid: "OccupancyGrid", steps_per_diagonal: float, cone_angle: float, cap: int = 8192) -> int:
@@ -88,7 +104,6 @@ def march_steps(grid: "OccupancyGrid", steps_per_diagonal: float, cone_angle: fl
         t += min(max(t * float(cone_angle), dt_min), dt_max)
         steps += 1
     return steps
-
 
 
 def _step_limits(grid: OccupancyGrid, config: MarchConfig) -> Tuple[Array, Array]:
@@ -124,8 +139,15 @@ def _step_edges(t_start: Array, num_steps: int, dt_min: Array, dt_max: Array, co
     return jnp.where(k <= steps_a, phase_a, jnp.where(k <= steps_a + steps_b, phase_b, phase_c))  # [K + 1]
 
 
-def march_ray(grid: OccupancyGrid, origin: Array, direction: Array, t_start: Array, t_end: Array,
-              config: MarchConfig, key: Optional[PRNGKey] = None) -> Tuple[Array, Array, Array]:
+def march_ray(
+    grid: OccupancyGrid,
+    origin: Array,
+    direction: Array,
+    t_start: Array,
+    t_end: Array,
+    config: MarchConfig,
+    key: Optional[PRNGKey] = None,
+) -> Tuple[Array, Array, Array]:
     """Samples of ONE ray in occupied cells, compacted to a fixed budget (see docs/design.md, "Rendering").
 
     Args:

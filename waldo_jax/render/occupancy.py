@@ -123,9 +123,16 @@ class OccupancyConfig:
     density_threshold: Array = NGP_MIN_OPTICAL_THICKNESS * NGP_STEPS_PER_DIAGONAL / math.sqrt(3.0)
 
     @classmethod
-    def create(cls, grid: OccupancyGrid, min_optical_thickness: float = NGP_MIN_OPTICAL_THICKNESS,
-               steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL, warmup_steps: int = 256,
-               decay: float = 0.95, update_fraction: float = 0.25, eval_chunk: int = 2**18) -> "OccupancyConfig":
+    def create(
+        cls,
+        grid: OccupancyGrid,
+        min_optical_thickness: float = NGP_MIN_OPTICAL_THICKNESS,
+        steps_per_diagonal: float = NGP_STEPS_PER_DIAGONAL,
+        warmup_steps: int = 256,
+        decay: float = 0.95,
+        update_fraction: float = 0.25,
+        eval_chunk: int = 2**18,
+    ) -> "OccupancyConfig":
         """NGP's update for `grid`: tau = min_optical_thickness * steps_per_diagonal / base diagonal."""
         if not 0.0 < update_fraction <= 1.0:
             raise ValueError(f"update_fraction must be in (0, 1], got {update_fraction}")
@@ -157,8 +164,9 @@ def _as_box(aabb) -> Tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def init_occupancy(aabb, aabb_scale: float = 1.0, resolution: int = 128,
-                   max_cascades: int = MAX_CASCADES) -> OccupancyGrid:
+def init_occupancy(
+    aabb, aabb_scale: float = 1.0, resolution: int = 128, max_cascades: int = MAX_CASCADES
+) -> OccupancyGrid:
     """An empty-density grid with every cell marked occupied (nothing may be skipped before updates).
 
     Args:
@@ -295,8 +303,9 @@ def _sample_occupied(key: PRNGKey, bitfield: Array, fallback: Array) -> Array:
     return jnp.where((counts > 0)[:, None], cells, fallback)
 
 
-def update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step,
-                     config: OccupancyConfig) -> OccupancyGrid:
+def update_occupancy(
+    key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step, config: OccupancyConfig
+) -> OccupancyGrid:
     """One Instant-NGP occupancy update (decay, sample, max, threshold; see docs/design.md, "Rendering").
 
     Pure and jitted (`density_fn` is static: pass the same function object, e.g. `make_density(cfg)`,
@@ -320,17 +329,21 @@ def update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, p
 
 
 @functools.partial(jax.jit, static_argnames=("density_fn",))
-def _update_occupancy(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step: Array,
-                      config: OccupancyConfig) -> OccupancyGrid:
+def _update_occupancy(
+    key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, step: Array, config: OccupancyConfig
+) -> OccupancyGrid:
     """`update_occupancy` with a traced int32 step."""
-    return jax.lax.cond(step < config.warmup_steps,
-                        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=True),
-                        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=False),
-                        grid)
+    return jax.lax.cond(
+        step < config.warmup_steps,
+        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=True),
+        lambda g: update_occupancy_phase(key, g, density_fn, params, config, warmup=False),
+        grid,
+    )
 
 
-def update_occupancy_phase(key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params,
-                           config: OccupancyConfig, warmup: bool) -> OccupancyGrid:
+def update_occupancy_phase(
+    key: PRNGKey, grid: OccupancyGrid, density_fn: DensityFn, params, config: OccupancyConfig, warmup: bool
+) -> OccupancyGrid:
     """`update_occupancy` for a phase known on the host: `warmup` (static) samples every cell,
     otherwise 2 * M cells per cascade. Not jitted (call it inside a traced function).
 

@@ -109,8 +109,9 @@ class RowSums(NamedTuple):
     optical_depth: Array
 
 
-def composite_rows(sigma: Array, rgb: Array, t: Array, delta: Array, layout: RowLayout, carry: Array,
-                   max_rows_per_ray: int) -> RowSums:
+def composite_rows(
+    sigma: Array, rgb: Array, t: Array, delta: Array, layout: RowLayout, carry: Array, max_rows_per_ray: int
+) -> RowSums:
     """Volume rendering over packed rows: per-ray sums of w * rgb, w * t, w and sigma * delta.
 
     Args:
@@ -136,12 +137,15 @@ def composite_rows(sigma: Array, rgb: Array, t: Array, delta: Array, layout: Row
     before_rows = jnp.where(layout.rank > 0, jnp.concatenate([jnp.zeros((1,), tau.dtype), rows_tau[:-1]]), 0.0)
     depth_before = carry[layout.owner][:, None] + before_rows[:, None] + before_in_row  # [M, s]
     w = jnp.exp(-depth_before) * -jnp.expm1(-tau)  # [M, s]
-    sums = jnp.concatenate([jnp.sum(w[..., None] * rgb, axis=1), jnp.sum(w * t, axis=1, keepdims=True),
-                            jnp.sum(w, axis=1, keepdims=True)], axis=1)  # [M, 5]
+    sums = jnp.concatenate(
+        [jnp.sum(w[..., None] * rgb, axis=1), jnp.sum(w * t, axis=1, keepdims=True), jnp.sum(w, axis=1, keepdims=True)],
+        axis=1,
+    )  # [M, 5]
     sums = segment_cumsum(sums, layout.rank, max_rows_per_ray)  # [M, 5]
     per_ray = gather_rows(sums, layout.last)  # [N, 5]
-    return RowSums(rgb=per_ray[:, :3], depth=per_ray[:, 3], acc=per_ray[:, 4],
-                   optical_depth=gather_rows(rows_tau, layout.last))
+    return RowSums(
+        rgb=per_ray[:, :3], depth=per_ray[:, 3], acc=per_ray[:, 4], optical_depth=gather_rows(rows_tau, layout.last)
+    )
 
 
 def row_samples(layout: RowLayout, first: Array, count: Array, row_length: int) -> Tuple[Array, Array]:

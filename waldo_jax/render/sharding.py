@@ -76,8 +76,9 @@ def _sharded(render_fn: Callable, mesh: Mesh) -> Callable:
     spec = PartitionSpec("poses")
     # check_vma=False: renderers carry fresh (device-invariant) zeros through loops whose bodies make
     # them pose-varying; every output is per-pose, so no replication check is needed.
-    return jax.jit(jax.shard_map(render_fn, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec,
-                                 check_vma=False))
+    return jax.jit(
+        jax.shard_map(render_fn, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec, check_vma=False)
+    )
 
 
 def shard_over_poses(render_fn: Callable, replicated, c2w: Array, mesh: Optional[Mesh] = None, per_pose=None):
@@ -125,8 +126,15 @@ def _population_local(field: Field) -> Callable:
     return local
 
 
-def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
-                         key: Optional[PRNGKey] = None, mesh: Optional[Mesh] = None) -> RenderOutput:
+def render_views_sharded(
+    field: Field,
+    params,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    config: RenderConfig,
+    key: Optional[PRNGKey] = None,
+    mesh: Optional[Mesh] = None,
+) -> RenderOutput:
     """`render_views` with the population split over devices along the pose axis.
 
     The poses are padded to a multiple of the mesh size and sharded over the mesh axis "poses"; the
@@ -141,5 +149,6 @@ def render_views_sharded(field: Field, params, c2w: Array, intrinsics: Intrinsic
     Returns:
       `RenderOutput` with rgb [P, H, W, 3], depth [P, H, W], acc [P, H, W], sharded over the mesh.
     """
-    return shard_over_poses(_population_local(field), (params, intrinsics, config), c2w, mesh,
-                            per_pose=pose_keys(key, c2w.shape[0]))
+    return shard_over_poses(
+        _population_local(field), (params, intrinsics, config), c2w, mesh, per_pose=pose_keys(key, c2w.shape[0])
+    )

@@ -80,8 +80,9 @@ class RenderConfig:
     background: Array = (1.0, 1.0, 1.0)
 
     @classmethod
-    def create(cls, near=0.0, far=10.0, aabb=None, background=(1.0, 1.0, 1.0), num_samples=64,
-               ray_chunk=None) -> "RenderConfig":
+    def create(
+        cls, near=0.0, far=10.0, aabb=None, background=(1.0, 1.0, 1.0), num_samples=64, ray_chunk=None
+    ) -> "RenderConfig":
         """Builds a config with float32 leaves; `aabb=None` samples [near, far] only.
 
         `ray_chunk` defaults to `default_ray_chunk()` for the default JAX backend.
@@ -165,8 +166,9 @@ def composite(w: Array, rgb: Array, t: Array, background: Array) -> RenderOutput
     return RenderOutput(rgb=color, depth=depth, acc=acc)
 
 
-def render_ray(field: Field, params, origin: Array, direction: Array, config: RenderConfig,
-               key: Optional[PRNGKey] = None) -> RenderOutput:
+def render_ray(
+    field: Field, params, origin: Array, direction: Array, config: RenderConfig, key: Optional[PRNGKey] = None
+) -> RenderOutput:
     """Renders one ray.
 
     Args:
@@ -192,8 +194,9 @@ def render_ray(field: Field, params, origin: Array, direction: Array, config: Re
     return composite(w, rgb, t, config.background)
 
 
-def render_rays(field: Field, params, origins: Array, directions: Array, config: RenderConfig,
-                key: Optional[PRNGKey] = None) -> RenderOutput:
+def render_rays(
+    field: Field, params, origins: Array, directions: Array, config: RenderConfig, key: Optional[PRNGKey] = None
+) -> RenderOutput:
     """Renders a flat batch of rays [R, 3] in chunks of `config.ray_chunk` (padded, then cropped).
 
     With a key, ray i draws its stratified samples from `fold_in(key, i)`.
@@ -205,8 +208,9 @@ def render_rays(field: Field, params, origins: Array, directions: Array, config:
     def render_chunk(ids: Array) -> RenderOutput:
         index = jnp.minimum(ids, num_rays - 1)  # padding rays repeat the last ray, then are cropped
         keys = None if key is None else jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, ids)
-        return jax.vmap(lambda o, d, k: render_ray(field, params, o, d, config, k),
-                        in_axes=(0, 0, None if keys is None else 0))(origins[index], directions[index], keys)
+        return jax.vmap(
+            lambda o, d, k: render_ray(field, params, o, d, config, k), in_axes=(0, 0, None if keys is None else 0)
+        )(origins[index], directions[index], keys)
 
     return map_ray_chunks(render_chunk, num_rays, min(config.ray_chunk, num_rays))
 
@@ -246,8 +250,9 @@ def to_images(a: Array, num_poses: int, intrinsics: Intrinsics) -> Array:
     return a.reshape((num_poses, intrinsics.height, intrinsics.width) + a.shape[1:])
 
 
-def render_population(field: Field, params, c2w: Array, pose_keys: Optional[Array], intrinsics: Intrinsics,
-                      config: RenderConfig) -> RenderOutput:
+def render_population(
+    field: Field, params, c2w: Array, pose_keys: Optional[Array], intrinsics: Intrinsics, config: RenderConfig
+) -> RenderOutput:
     """Renders P poses c2w [P, 3 or 4, 4] (unjitted; `render_views` is the jitted entry).
 
     The P * H * W rays are one flat list, rendered `config.ray_chunk` at a time; ray (p, q) draws from
@@ -261,8 +266,9 @@ def render_population(field: Field, params, c2w: Array, pose_keys: Optional[Arra
     def render_chunk(ids: Array) -> RenderOutput:
         origins, directions, pose, pixel = view_rays(c2w, intrinsics, ids)
         keys = None if pose_keys is None else jax.vmap(jax.random.fold_in)(pose_keys[pose], pixel)
-        return jax.vmap(lambda o, d, k: render_ray(field, params, o, d, config, k),
-                        in_axes=(0, 0, None if keys is None else 0))(origins, directions, keys)
+        return jax.vmap(
+            lambda o, d, k: render_ray(field, params, o, d, config, k), in_axes=(0, 0, None if keys is None else 0)
+        )(origins, directions, keys)
 
     num_rays = num_poses * intrinsics.height * intrinsics.width
     out = map_ray_chunks(render_chunk, num_rays, min(config.ray_chunk, num_rays))
@@ -274,8 +280,9 @@ def pose_keys(key: Optional[PRNGKey], num_poses: int) -> Optional[Array]:
     return None if key is None else jax.random.split(key, num_poses)
 
 
-def render_view(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
-                key: Optional[PRNGKey] = None) -> RenderOutput:
+def render_view(
+    field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig, key: Optional[PRNGKey] = None
+) -> RenderOutput:
     """Renders one camera (as a population of one: the same image `render_views` gives it).
 
     Args:
@@ -293,8 +300,9 @@ def render_view(field: Field, params, c2w: Array, intrinsics: Intrinsics, config
 
 
 @functools.partial(jax.jit, static_argnames=("field",))
-def render_views(field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig,
-                 key: Optional[PRNGKey] = None) -> RenderOutput:
+def render_views(
+    field: Field, params, c2w: Array, intrinsics: Intrinsics, config: RenderConfig, key: Optional[PRNGKey] = None
+) -> RenderOutput:
     """Renders a population of P poses in one jitted call.
 
     The rays of all P views form one flat list rendered `config.ray_chunk` at a time (vmap within a

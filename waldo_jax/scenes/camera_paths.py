@@ -52,10 +52,24 @@ from waldo_jax.scenes.tool_frames import (
 )
 from waldo_jax.types import Intrinsics
 
-__all__ = ["NGP_DEFAULT_SCALE", "NGP_DEFAULT_OFFSET", "NERFSTUDIO_COLMAP_APPLIED_TRANSFORM", "MITSUBA_TO_OPENGL",
-           "NgpFrame", "ngp_frame", "nerfstudio_applied", "nerfstudio_pose_transform", "nerfstudio_camera_path",
-           "instant_ngp_camera_path", "run_py_video_args", "read_camera_path", "is_camera_path", "to_ngp",
-           "from_ngp", "read_dataparser_transform"]
+__all__ = [
+    "NGP_DEFAULT_SCALE",
+    "NGP_DEFAULT_OFFSET",
+    "NERFSTUDIO_COLMAP_APPLIED_TRANSFORM",
+    "MITSUBA_TO_OPENGL",
+    "NgpFrame",
+    "ngp_frame",
+    "nerfstudio_applied",
+    "nerfstudio_pose_transform",
+    "nerfstudio_camera_path",
+    "instant_ngp_camera_path",
+    "run_py_video_args",
+    "read_camera_path",
+    "is_camera_path",
+    "to_ngp",
+    "from_ngp",
+    "read_dataparser_transform",
+]
 
 
 def _homogeneous(m: np.ndarray) -> np.ndarray:
@@ -87,9 +101,13 @@ def _quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
 
 def _rotation_xyzw(q) -> np.ndarray:
     x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,10 +125,15 @@ def _focal(fov_degrees: float, height: int) -> float:
     return focal_from_angle(fov_degrees, height, "'fov'", degrees=True)
 
 
-def nerfstudio_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float,
-                           dataparser: Optional[Tuple[np.ndarray, float]] = None,
-                           extra: Optional[Dict[str, Any]] = None, applied_transform: Optional[np.ndarray] = None,
-                           applied_scale: float = 1.0) -> Dict[str, Any]:
+def nerfstudio_camera_path(
+    c2w: np.ndarray,
+    intrinsics: Intrinsics,
+    fps: float,
+    dataparser: Optional[Tuple[np.ndarray, float]] = None,
+    extra: Optional[Dict[str, Any]] = None,
+    applied_transform: Optional[np.ndarray] = None,
+    applied_scale: float = 1.0,
+) -> Dict[str, Any]:
     """nerfstudio's camera_path.json dict of frames c2w [F, 4, 4] (scene frame) rendered with `intrinsics`.
 
     Args:
@@ -124,22 +147,45 @@ def nerfstudio_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float,
         transform, scale = nerfstudio_pose_transform(dataparser, applied_transform, applied_scale)
         c2w = transform @ c2w
         c2w[:, :3, 3] *= scale
-        waldo = {"world": "nerfstudio", "dataparser_transform": dataparser[0][:3].tolist(),
-                 "dataparser_scale": float(dataparser[1]),
-                 "applied_transform": None if applied_transform is None else np.asarray(applied_transform)[:3].tolist(),
-                 "applied_scale": float(applied_scale), "pose_transform": transform[:3].tolist(), "pose_scale": scale}
-    waldo["note"] = ("nerfstudio renders with fx = fy from fov and a centred principal point; to open the path in "
-                     "the viewer, copy this file into the data folder's camera_paths/")
+        waldo = {
+            "world": "nerfstudio",
+            "dataparser_transform": dataparser[0][:3].tolist(),
+            "dataparser_scale": float(dataparser[1]),
+            "applied_transform": None if applied_transform is None else np.asarray(applied_transform)[:3].tolist(),
+            "applied_scale": float(applied_scale),
+            "pose_transform": transform[:3].tolist(),
+            "pose_scale": scale,
+        }
+    waldo["note"] = (
+        "nerfstudio renders with fx = fy from fov and a centred principal point; to open the path in "
+        "the viewer, copy this file into the data folder's camera_paths/"
+    )
     waldo.update(extra or {})
     fov, aspect = _vertical_fov(intrinsics), intrinsics.width / intrinsics.height
     flat = [np.round(m, 8).reshape(-1).tolist() for m in c2w]
-    return {"camera_type": "perspective", "render_height": int(intrinsics.height),
-            "render_width": int(intrinsics.width), "fps": float(fps), "seconds": len(c2w) / float(fps),
-            "smoothness_value": 0.0, "is_cycle": False, "default_fov": fov, "default_transition_sec": 1.0 / float(fps),
-            "keyframes": [{"matrix": m, "fov": fov, "aspect": aspect, "override_transition_enabled": False,
-                           "override_transition_sec": None} for m in flat],
-            "camera_path": [{"camera_to_world": m, "fov": fov, "aspect": aspect} for m in flat],
-            "waldo": waldo}
+    return {
+        "camera_type": "perspective",
+        "render_height": int(intrinsics.height),
+        "render_width": int(intrinsics.width),
+        "fps": float(fps),
+        "seconds": len(c2w) / float(fps),
+        "smoothness_value": 0.0,
+        "is_cycle": False,
+        "default_fov": fov,
+        "default_transition_sec": 1.0 / float(fps),
+        "keyframes": [
+            {
+                "matrix": m,
+                "fov": fov,
+                "aspect": aspect,
+                "override_transition_enabled": False,
+                "override_transition_sec": None,
+            }
+            for m in flat
+        ],
+        "camera_path": [{"camera_to_world": m, "fov": fov, "aspect": aspect} for m in flat],
+        "waldo": waldo,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -159,9 +205,16 @@ def run_py_video_args(frames: int, fps: float) -> Tuple[int, int]:
     return 1, frames
 
 
-def instant_ngp_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float, scale: float = NGP_DEFAULT_SCALE,
-                            offset=NGP_DEFAULT_OFFSET, extra: Optional[Dict[str, Any]] = None,
-                            from_mitsuba: bool = False, frame: Optional[NgpFrame] = None) -> Dict[str, Any]:
+def instant_ngp_camera_path(
+    c2w: np.ndarray,
+    intrinsics: Intrinsics,
+    fps: float,
+    scale: float = NGP_DEFAULT_SCALE,
+    offset=NGP_DEFAULT_OFFSET,
+    extra: Optional[Dict[str, Any]] = None,
+    from_mitsuba: bool = False,
+    frame: Optional[NgpFrame] = None,
+) -> Dict[str, Any]:
     """Instant-NGP's camera path dict of frames c2w [F, 4, 4] (scene frame).
 
     F + 1 keyframes (the frames and a copy of the last), `spline_order` 1, timestamps (j + 1) / fps:
@@ -176,20 +229,50 @@ def instant_ngp_camera_path(c2w: np.ndarray, intrinsics: Intrinsics, fps: float,
     path = []
     for i, m in enumerate(np.concatenate([c2w, c2w[-1:]])):
         ngp = to_ngp(m, frame=frame)
-        path.append({"R": np.round(_quaternion_xyzw(ngp[:, :3]), 9).tolist(), "T": np.round(ngp[:, 3], 9).tolist(),
-                     "fov": fov, "timestamp": (i + 1) / float(fps), "slice": 0.0, "scale": 1.0, "dof": 0.0,
-                     "aperture_size": 0.0})
+        path.append(
+            {
+                "R": np.round(_quaternion_xyzw(ngp[:, :3]), 9).tolist(),
+                "T": np.round(ngp[:, 3], 9).tolist(),
+                "fov": fov,
+                "timestamp": (i + 1) / float(fps),
+                "slice": 0.0,
+                "scale": 1.0,
+                "dof": 0.0,
+                "aperture_size": 0.0,
+            }
+        )
     seconds, rate = run_py_video_args(count, fps)
-    waldo = {"ngp_scale": frame.scale, "ngp_offset": list(frame.offset), "ngp_from_mitsuba": frame.from_mitsuba,
-             "frames": count, "render_width": int(intrinsics.width), "render_height": int(intrinsics.height),
-             "run_py": ["--video_camera_path", "instant_ngp_path.json", "--video_n_seconds", str(seconds),
-                        "--video_fps", str(rate), "--width", str(int(intrinsics.width)),
-                        "--height", str(int(intrinsics.height))],
-             "note": f"{count} frames + a copy of the last as keyframes; render all {count} with run.py's "
-                     "--video_n_seconds x --video_fps equal to that count"}
+    waldo = {
+        "ngp_scale": frame.scale,
+        "ngp_offset": list(frame.offset),
+        "ngp_from_mitsuba": frame.from_mitsuba,
+        "frames": count,
+        "render_width": int(intrinsics.width),
+        "render_height": int(intrinsics.height),
+        "run_py": [
+            "--video_camera_path",
+            "instant_ngp_path.json",
+            "--video_n_seconds",
+            str(seconds),
+            "--video_fps",
+            str(rate),
+            "--width",
+            str(int(intrinsics.width)),
+            "--height",
+            str(int(intrinsics.height)),
+        ],
+        "note": f"{count} frames + a copy of the last as keyframes; render all {count} with run.py's "
+        "--video_n_seconds x --video_fps equal to that count",
+    }
     waldo.update(extra or {})
-    return {"loop": False, "time": 0.0, "duration_seconds": count / float(fps), "spline_order": 1, "path": path,
-            "waldo": waldo}
+    return {
+        "loop": False,
+        "time": 0.0,
+        "duration_seconds": count / float(fps),
+        "spline_order": 1,
+        "path": path,
+        "waldo": waldo,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,8 +289,9 @@ def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
         transform = _homogeneous(np.asarray(waldo["pose_transform"], np.float64))
         scale = float(waldo["pose_scale"])
     else:  # written before applied transforms were undone: the dataparser transform was the pose transform
-        transform, scale = read_dataparser_transform({"transform": waldo["dataparser_transform"],
-                                                      "scale": waldo["dataparser_scale"]})
+        transform, scale = read_dataparser_transform(
+            {"transform": waldo["dataparser_transform"], "scale": waldo["dataparser_scale"]}
+        )
     if not (scale > 0 and math.isfinite(scale)) or not np.all(np.isfinite(transform)):
         raise ValueError("the waldo block's pose transform is not finite")
     c2w = c2w.copy()
@@ -219,9 +303,15 @@ def _ngp_back(meta: Dict[str, Any], waldo: Dict[str, Any]) -> np.ndarray:
     frame = NgpFrame.create(float(waldo["ngp_scale"]), waldo["ngp_offset"], bool(waldo.get("ngp_from_mitsuba", False)))
     keys: Sequence[Dict[str, Any]] = meta["path"]
     if "frames" in waldo:  # the last keyframe repeats the last frame
-        keys = keys[:int(waldo["frames"])]
-    return np.stack([from_ngp(np.concatenate([_rotation_xyzw(k["R"]), np.asarray(k["T"], np.float64)[:, None]],
-                                             axis=1), frame=frame) for k in keys])
+        keys = keys[: int(waldo["frames"])]
+    return np.stack(
+        [
+            from_ngp(
+                np.concatenate([_rotation_xyzw(k["R"]), np.asarray(k["T"], np.float64)[:, None]], axis=1), frame=frame
+            )
+            for k in keys
+        ]
+    )
 
 
 def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndarray, Intrinsics]:
@@ -234,11 +324,15 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
     waldo = meta.get("waldo")
     if not isinstance(waldo, dict):
         if "camera_path" in meta:
-            raise ValueError("a nerfstudio camera path from another tool is in nerfstudio's normalised world frame, "
-                             "not the scene's; pass a transforms.json-like file with frames[].transform_matrix, or "
-                             "a camera_path.json written by `waldo path`")
-        raise ValueError("an Instant-NGP camera path from another tool is in NGP's frame with an unknown scale and "
-                         "offset; pass a transforms.json-like file, or a camera path written by `waldo path`")
+            raise ValueError(
+                "a nerfstudio camera path from another tool is in nerfstudio's normalised world frame, "
+                "not the scene's; pass a transforms.json-like file with frames[].transform_matrix, or "
+                "a camera_path.json written by `waldo path`"
+            )
+        raise ValueError(
+            "an Instant-NGP camera path from another tool is in NGP's frame with an unknown scale and "
+            "offset; pass a transforms.json-like file, or a camera path written by `waldo path`"
+        )
     try:
         if "camera_path" in meta:
             c2w = np.stack([np.asarray(e["camera_to_world"], np.float64).reshape(4, 4) for e in meta["camera_path"]])

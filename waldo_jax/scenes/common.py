@@ -108,7 +108,7 @@ def _transforms_kind(meta: Dict[str, Any]) -> str:
 
 
 def blender_split_of(name: str) -> Optional[str]:
-    """"train" for "transforms_train.json", None for other names."""
+    """ "train" for "transforms_train.json", None for other names."""
     m = re.fullmatch(r"transforms_(train|val|test)\.json", name)
     return m.group(1) if m else None
 
@@ -198,8 +198,10 @@ def check_origin(m: np.ndarray, path: Path, what: str) -> None:
     largest = float(np.max(np.abs(m[:3, 3])))
     if largest > MAX_COORDINATE:
         raise SceneFormatError(
-            path, f"{what}: camera origin has a coordinate of {largest:.6g}, beyond the {MAX_COORDINATE:g} "
-            "that float32 geometry handles (rescale the scene)")
+            path,
+            f"{what}: camera origin has a coordinate of {largest:.6g}, beyond the {MAX_COORDINATE:g} "
+            "that float32 geometry handles (rescale the scene)",
+        )
 
 
 def camera_bounds(
@@ -287,11 +289,12 @@ def focal_from_angle(angle: float, size: float, what: str, degrees: bool = False
     limit = 180.0 if degrees else math.pi
     angle = check_float32(angle, what)
     if not 0 < angle < limit:
-        raise NumberError(f"{what} must be a field of view between 0 and {limit:.6g} {'degrees' if degrees else 'radians'} "
-                          f"(exclusive), got {angle:g}")
+        raise NumberError(
+            f"{what} must be a field of view between 0 and {limit:.6g} {'degrees' if degrees else 'radians'} "
+            f"(exclusive), got {angle:g}"
+        )
     radians = math.radians(angle) if degrees else angle
-    return check_float32(0.5 * size / math.tan(0.5 * radians), f"the focal length of {what} = {angle:g}",
-                         positive=True)
+    return check_float32(0.5 * size / math.tan(0.5 * radians), f"the focal length of {what} = {angle:g}", positive=True)
 
 
 def extent_problem(aabb: Any, near: Any, far: Any) -> Optional[str]:
@@ -318,8 +321,9 @@ def _box_text(box: np.ndarray) -> str:
     return "[" + ", ".join("[" + ", ".join(f"{v:.6g}" for v in corner) + "]" for corner in box) + "]"
 
 
-def intrinsics_problem(intrinsics: Intrinsics, sides: Optional[Tuple[int, int]] = (MIN_RESOLUTION, MAX_RESOLUTION)
-                       ) -> Optional[str]:
+def intrinsics_problem(
+    intrinsics: Intrinsics, sides: Optional[Tuple[int, int]] = (MIN_RESOLUTION, MAX_RESOLUTION)
+) -> Optional[str]:
     """What makes a camera unusable, or None: image sides outside `sides` (None: any size >= 1), focal
     lengths that are not positive and finite in float32 or give a field of view outside
     [MIN_FIELD_OF_VIEW, MAX_FIELD_OF_VIEW], a principal point that is not finite or lies beyond
@@ -336,12 +340,17 @@ def intrinsics_problem(intrinsics: Intrinsics, sides: Optional[Tuple[int, int]] 
             return f"focal length {key} = {f:g} px: must be a positive finite number"
         fov = math.degrees(2.0 * math.atan(0.5 * size / f))
         if not MIN_FIELD_OF_VIEW <= fov <= MAX_FIELD_OF_VIEW:
-            return (f"focal length {key} = {f:g} px gives a {fov:.4g} degree field of view across {size} pixels; "
-                    f"a pinhole camera needs {MIN_FIELD_OF_VIEW:g} to {MAX_FIELD_OF_VIEW:g}")
+            return (
+                f"focal length {key} = {f:g} px gives a {fov:.4g} degree field of view across {size} pixels; "
+                f"a pinhole camera needs {MIN_FIELD_OF_VIEW:g} to {MAX_FIELD_OF_VIEW:g}"
+            )
     for key, size, f in (("cx", width, values["fx"]), ("cy", height, values["fy"])):
         c = values[key]
         if not math.isfinite(c) or max(abs(c), abs(size - c)) / f > MAX_RAY_SLOPE:
-            return f"principal point {key} = {c:g} px: must be finite and within {MAX_RAY_SLOPE:g} focal lengths of the image"
+            return (
+                f"principal point {key} = {c:g} px: must be finite and within {MAX_RAY_SLOPE:g} focal lengths of "
+                f"the image"
+            )
     if not np.all(np.isfinite(np.asarray(intrinsics.distortion, np.float32))):
         return "distortion coefficients (k1, k2, p1, p2) must be finite float32 numbers"
     return None
@@ -354,6 +363,8 @@ def warn_off_image_principal_point(intrinsics: Intrinsics, path: Path) -> None:
     """
     cx, cy = float(intrinsics.cx), float(intrinsics.cy)
     if not (0.0 <= cx <= intrinsics.width and 0.0 <= cy <= intrinsics.height):
-        warnings.warn(f"{path}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the "
-                      f"{intrinsics.width}x{intrinsics.height} image; the cameras look far off their image centre",
-                      stacklevel=4)
+        warnings.warn(
+            f"{path}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the "
+            f"{intrinsics.width}x{intrinsics.height} image; the cameras look far off their image centre",
+            stacklevel=4,
+        )

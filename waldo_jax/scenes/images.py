@@ -39,8 +39,7 @@ def _box_resize(array: np.ndarray, size: Tuple[int, int]) -> np.ndarray:
         ky, kx = h // th, w // tw
         return array.reshape(th, ky, tw, kx, c).mean(axis=(1, 3), dtype=np.float32)
     channels = [
-        np.asarray(Image.fromarray(np.ascontiguousarray(array[..., i]), "F").resize(size, Image.BOX))
-        for i in range(c)
+        np.asarray(Image.fromarray(np.ascontiguousarray(array[..., i]), "F").resize(size, Image.BOX)) for i in range(c)
     ]
     return np.stack(channels, -1).astype(np.float32)
 
@@ -59,8 +58,11 @@ def _decode(img: Image.Image, size: Tuple[int, int], path: Path) -> Tuple[np.nda
             grey = grey / 65535.0
         if np.all(np.isfinite(grey)) and not (grey.min() >= 0.0 and grey.max() <= 1.0):  # NaN: refused below
             scale = 1.0 if mode == "F" else 65535.0
-            raise SceneFormatError(path, f"a {mode}-mode image with values in [{grey.min() * scale:g}, "
-                                   f"{grey.max() * scale:g}], outside [0, {scale:g}]; rescale it (it is not clipped)")
+            raise SceneFormatError(
+                path,
+                f"a {mode}-mode image with values in [{grey.min() * scale:g}, "
+                f"{grey.max() * scale:g}], outside [0, {scale:g}]; rescale it (it is not clipped)",
+            )
         rgb = np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, -1)
         return _box_resize(rgb, size), None
     if has_alpha:

@@ -120,14 +120,11 @@ def _image_paths(image_dir: Path, path: Path, count: int) -> List[Path]:
         key=lambda p: natural_key(p.name),
     )
     if len(image_paths) != count:
-        raise SceneFormatError(
-            image_dir, f"holds {len(image_paths)} images but {path.name} has {count} poses"
-        )
+        raise SceneFormatError(image_dir, f"holds {len(image_paths)} images but {path.name} has {count} poses")
     return image_paths
 
 
-def _frustums_aabb(c2w_all: np.ndarray, bounds: np.ndarray, full_w: float, full_h: float,
-                   focal: float) -> np.ndarray:
+def _frustums_aabb(c2w_all: np.ndarray, bounds: np.ndarray, full_w: float, full_h: float, focal: float) -> np.ndarray:
     """Scene box float32 [2, 3]: all camera frustums between each camera's own near and far bound."""
     half_w, half_h = 0.5 * full_w / focal, 0.5 * full_h / focal
     corners_cam = np.array([[sx * half_w, sy * half_h, -1.0] for sx in (-1, 1) for sy in (-1, 1)])  # [4, 3]
@@ -138,8 +135,12 @@ def _frustums_aabb(c2w_all: np.ndarray, bounds: np.ndarray, full_w: float, full_
 
 
 def load_llff(
-    folder: Path, path: Path, split: Optional[str], factor: Optional[float],
-    background: np.ndarray, max_images: Optional[int],
+    folder: Path,
+    path: Path,
+    split: Optional[str],
+    factor: Optional[float],
+    background: np.ndarray,
+    max_images: Optional[int],
 ) -> Dict[str, Any]:
     """LLFF poses_bounds.npy with images/ or images_K/ folders."""
     check_split(split, SPLITS)
@@ -170,10 +171,17 @@ def load_llff(
     intrinsics = Intrinsics.create(int(round(full_w)), int(round(full_h)), focal).scaled(width, height)
     aabb = _frustums_aabb(c2w_all, bounds, full_w, full_h, focal)
     return dict(
-        images=images, alphas=alphas, original_size=(int(round(full_w)), int(round(full_h))),
-        intrinsics=intrinsics, c2w=c2w_all[index], aabb=aabb, near=float(LLFF_NEAR_MARGIN * bounds[:, 0].min()),
+        images=images,
+        alphas=alphas,
+        original_size=(int(round(full_w)), int(round(full_h))),
+        intrinsics=intrinsics,
+        c2w=c2w_all[index],
+        aabb=aabb,
+        near=float(LLFF_NEAR_MARGIN * bounds[:, 0].min()),
         far=float(LLFF_FAR_MARGIN * bounds[:, 1].max()),
-        file_names=tuple(relative(p, folder) for p in chosen), split=split, skipped_missing=0,
+        file_names=tuple(relative(p, folder) for p in chosen),
+        split=split,
+        skipped_missing=0,
         applied_transform=None,
         metadata={
             "scene_file": relative(path, folder),

@@ -80,8 +80,11 @@ def _warn_about_cameras(parts: Dict[str, Any], path: Path) -> None:
         scale = max(float(np.max(np.abs(np.asarray(parts["aabb"])))), 1e-6)
         distinct = np.unique(np.round(c2w[:, :3, :] / np.array([1.0, 1.0, 1.0, scale]) * 1e6), axis=0)
         if len(distinct) < len(c2w):
-            warnings.warn(f"{path}: {len(c2w) - len(distinct)} of {len(c2w)} cameras repeat another camera's pose "
-                          f"({len(distinct)} distinct); views from one pose give a NeRF no parallax", stacklevel=3)
+            warnings.warn(
+                f"{path}: {len(c2w) - len(distinct)} of {len(c2w)} cameras repeat another camera's pose "
+                f"({len(distinct)} distinct); views from one pose give a NeRF no parallax",
+                stacklevel=3,
+            )
     warn_off_image_principal_point(parts["intrinsics"], path)
 
 

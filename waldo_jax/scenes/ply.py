@@ -18,10 +18,22 @@ from waldo_jax.errors import SceneFormatError
 __all__ = ["PlyElement", "PlyHeader", "parse_ply_header", "read_ply_header", "read_ply_points"]
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 # A header longer than this is no PLY header (a splat scene's is about 1.5 kB).
@@ -173,7 +185,7 @@ def read_ply_points(path: str | os.PathLike, colors: bool = False):
     count = vertex.count
     try:
         if header.format == "ascii":
-            lines = raw[header.body_start:].decode("ascii").split("\n")
+            lines = raw[header.body_start :].decode("ascii").split("\n")
             skip = sum(e.count for e in header.elements[: header.elements.index(vertex)])
             rows = [ln.split() for ln in lines[skip : skip + count]]
             table = np.array([[float(r[prop_names.index(k)]) for k in wanted] for r in rows], np.float64)

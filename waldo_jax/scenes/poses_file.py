@@ -63,8 +63,11 @@ def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics
         w = w or (h * default.width / default.height if h else float(default.width))
         h = h or (w * default.height / default.width)
     if not (MIN_RESOLUTION <= min(w, h) and max(w, h) <= MAX_RESOLUTION):
-        raise SceneFormatError(path, f"camera of {w:g}x{h:g} pixels: sides must lie between {MIN_RESOLUTION} and "
-                               f"{MAX_RESOLUTION} (--resolution R renders at another size)")
+        raise SceneFormatError(
+            path,
+            f"camera of {w:g}x{h:g} pixels: sides must lie between {MIN_RESOLUTION} and "
+            f"{MAX_RESOLUTION} (--resolution R renders at another size)",
+        )
     try:
         if fl_x is None and angle_x is not None:
             fl_x = focal_from_angle(angle_x, w, "'camera_angle_x'")
@@ -75,8 +78,9 @@ def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics
     fl_x = fl_x if fl_x is not None else fl_y
     fl_y = fl_y if fl_y is not None else fl_x
     distortion = [number(meta, k, path) or 0.0 for k in ("k1", "k2", "p1", "p2")]
-    intrinsics = Intrinsics.create(int(round(w)), int(round(h)), fl_x, fl_y, number(meta, "cx", path),
-                                   number(meta, "cy", path), distortion)
+    intrinsics = Intrinsics.create(
+        int(round(w)), int(round(h)), fl_x, fl_y, number(meta, "cx", path), number(meta, "cy", path), distortion
+    )
     _check_camera(intrinsics, path)
     warn_off_image_principal_point(intrinsics, path)
     return intrinsics

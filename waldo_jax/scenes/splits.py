@@ -12,8 +12,9 @@ from waldo_jax.types import Scene
 __all__ = ["load_splits"]
 
 
-def load_splits(scene_path: str, downscale: Optional[float], stacklevel: int = 2,
-                model: str = "a NeRF") -> Tuple[Scene, Optional[Scene]]:
+def load_splits(
+    scene_path: str, downscale: Optional[float], stacklevel: int = 2, model: str = "a NeRF"
+) -> Tuple[Scene, Optional[Scene]]:
     """(training scene, held-out scene or None) with the format's own hold-out.
 
     Blender scenes hold out transforms_test.json (else _val); other formats every 8th image. A scene
@@ -24,12 +25,16 @@ def load_splits(scene_path: str, downscale: Optional[float], stacklevel: int = 2
     train_scene = load_scene(scene_path, downscale=downscale, split="train")
     if min(train_scene.width, train_scene.height) < MIN_RESOLUTION:
         how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
-        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
-                         f"needs sides of at least {MIN_RESOLUTION} pixels")
+        raise WaldoError(
+            f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
+            f"needs sides of at least {MIN_RESOLUTION} pixels"
+        )
     if max(train_scene.width, train_scene.height) > MAX_RESOLUTION:  # renders of its poses and int32 ray indices
         how = f"--downscale {downscale:g} leaves" if downscale else "the scene has"
-        raise WaldoError(f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
-                         f"takes sides of at most {MAX_RESOLUTION} pixels (pass --downscale)")
+        raise WaldoError(
+            f"{scene_path}: {how} {train_scene.width}x{train_scene.height} training images; {model} "
+            f"takes sides of at most {MAX_RESOLUTION} pixels (pass --downscale)"
+        )
     test_scene = None
     splits = ("test", "val") if train_scene.format == "blender" else ("test",)
     for split in splits:

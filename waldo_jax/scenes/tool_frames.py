@@ -23,9 +23,19 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["NGP_DEFAULT_SCALE", "NGP_DEFAULT_OFFSET", "NERFSTUDIO_COLMAP_APPLIED_TRANSFORM", "MITSUBA_TO_OPENGL",
-           "NgpFrame", "ngp_frame", "to_ngp", "from_ngp", "read_dataparser_transform", "nerfstudio_applied",
-           "nerfstudio_pose_transform"]
+__all__ = [
+    "NGP_DEFAULT_SCALE",
+    "NGP_DEFAULT_OFFSET",
+    "NERFSTUDIO_COLMAP_APPLIED_TRANSFORM",
+    "MITSUBA_TO_OPENGL",
+    "NgpFrame",
+    "ngp_frame",
+    "to_ngp",
+    "from_ngp",
+    "read_dataparser_transform",
+    "nerfstudio_applied",
+    "nerfstudio_pose_transform",
+]
 
 NGP_DEFAULT_SCALE = 0.33  # NGP's NERF_SCALE
 NGP_DEFAULT_OFFSET = (0.5, 0.5, 0.5)
@@ -114,8 +124,13 @@ def _ngp_args(frame: Optional[NgpFrame], scale, offset, from_mitsuba) -> NgpFram
     return frame if frame is not None else NgpFrame.create(scale, offset, from_mitsuba)
 
 
-def to_ngp(c2w: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET, from_mitsuba: bool = False,
-           frame: Optional[NgpFrame] = None) -> np.ndarray:
+def to_ngp(
+    c2w: np.ndarray,
+    scale: float = NGP_DEFAULT_SCALE,
+    offset=NGP_DEFAULT_OFFSET,
+    from_mitsuba: bool = False,
+    frame: Optional[NgpFrame] = None,
+) -> np.ndarray:
     """Instant-NGP's camera matrix [3, 4] of an OpenGL camera-to-world matrix in the scene's frame.
 
     NGP's `nerf_matrix_to_ngp` of the file's matrix: y and z columns negated, translation x scale +
@@ -129,8 +144,13 @@ def to_ngp(c2w: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT
     return m if frame.from_mitsuba else m[_CYCLE]
 
 
-def from_ngp(matrix: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET,
-             from_mitsuba: bool = False, frame: Optional[NgpFrame] = None) -> np.ndarray:
+def from_ngp(
+    matrix: np.ndarray,
+    scale: float = NGP_DEFAULT_SCALE,
+    offset=NGP_DEFAULT_OFFSET,
+    from_mitsuba: bool = False,
+    frame: Optional[NgpFrame] = None,
+) -> np.ndarray:
     """The inverse of `to_ngp`: a [4, 4] OpenGL camera-to-world matrix in the scene's frame."""
     frame = _ngp_args(frame, scale, offset, from_mitsuba)
     m = np.empty((3, 4))
@@ -141,7 +161,6 @@ def from_ngp(matrix: np.ndarray, scale: float = NGP_DEFAULT_SCALE, offset=NGP_DE
     m[:, 3] = (m[:, 3] - np.asarray(frame.offset)) / frame.scale
     m[:, 1:3] *= -1.0
     return np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
-
 
 
 # ---------------------------------------------------------------------------------------------
@@ -158,13 +177,14 @@ def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
         transform = np.asarray(meta["transform"], np.float64)
         scale = float(meta["scale"])
     except (KeyError, TypeError, ValueError):
-        raise ValueError("expected nerfstudio's dataparser_transforms.json: "
-                         "{\"transform\": 3x4, \"scale\": s}") from None
+        raise ValueError('expected nerfstudio\'s dataparser_transforms.json: {"transform": 3x4, "scale": s}') from None
     if transform.shape == (3, 4):
         transform = _homogeneous(transform)
     if transform.shape != (4, 4) or not np.all(np.isfinite(transform)) or not (scale > 0 and math.isfinite(scale)):
-        raise ValueError(f"dataparser transform must be a finite 3x4 matrix with a positive scale, got shape "
-                         f"{list(transform.shape)} and scale {scale}")
+        raise ValueError(
+            f"dataparser transform must be a finite 3x4 matrix with a positive scale, got shape "
+            f"{list(transform.shape)} and scale {scale}"
+        )
     if abs(np.linalg.det(transform[:3, :3])) < 1e-9:
         raise ValueError("dataparser transform has a singular rotation part")
     return transform, scale
@@ -200,8 +220,9 @@ def nerfstudio_applied(meta: Dict[str, Any], folder: Optional[Path] = None) -> T
     return applied, applied_scale, source
 
 
-def nerfstudio_pose_transform(dataparser: Tuple[np.ndarray, float], applied_transform: Optional[np.ndarray] = None,
-                              applied_scale: float = 1.0) -> Tuple[np.ndarray, float]:
+def nerfstudio_pose_transform(
+    dataparser: Tuple[np.ndarray, float], applied_transform: Optional[np.ndarray] = None, applied_scale: float = 1.0
+) -> Tuple[np.ndarray, float]:
     """(T [4, 4], s): nerfstudio's world pose of a transforms.json pose P is T P with its translation times s.
 
     `dataparser` is `read_dataparser_transform` of the model's file (D, scale); T = D A^-1 and

@@ -63,8 +63,20 @@ ORIGIN_PAD = 0.25  # fraction of the camera box size added on each side (no poin
 
 _NERFSTUDIO_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE"}
 _INTRINSIC_KEYS = (
-    "w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y",
-    "k1", "k2", "k3", "k4", "p1", "p2",
+    "w",
+    "h",
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "camera_angle_x",
+    "camera_angle_y",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
 )
 
 
@@ -194,8 +206,7 @@ def _existing_frames(
         )
     if missing:
         warnings.warn(
-            f"{path}: skipped {len(missing)} of {len(frames)} frames whose image file is missing "
-            f"(first: {missing[0]})",
+            f"{path}: skipped {len(missing)} of {len(frames)} frames whose image file is missing (first: {missing[0]})",
             stacklevel=4,
         )
     return found, len(missing)
@@ -206,8 +217,14 @@ def _existing_frames(
 
 
 def load_transforms(
-    folder: Path, fmt: str, path: Path, meta: Dict[str, Any], split: Optional[str],
-    factor: Optional[float], background: np.ndarray, max_images: Optional[int],
+    folder: Path,
+    fmt: str,
+    path: Path,
+    meta: Dict[str, Any],
+    split: Optional[str],
+    factor: Optional[float],
+    background: np.ndarray,
+    max_images: Optional[int],
 ) -> Dict[str, Any]:
     """instant-ngp and nerfstudio transforms.json: OpenGL c2w, one camera."""
     check_split(split, SPLITS)
@@ -226,8 +243,11 @@ def load_transforms(
         applied, applied_scale, applied_source = nerfstudio_applied(meta, folder)
     except ValueError as e:
         raise SceneFormatError(path, str(e)) from None
-    metadata["nerfstudio_applied"] = {"transform": None if applied is None else applied.tolist(),
-                                      "scale": applied_scale, "source": applied_source}
+    metadata["nerfstudio_applied"] = {
+        "transform": None if applied is None else applied.tolist(),
+        "scale": applied_scale,
+        "source": applied_source,
+    }
     applied = None if applied is None else applied.astype(np.float32)
     ngp = NgpFrame()
     if fmt == "instant-ngp":
@@ -253,16 +273,22 @@ def load_transforms(
         aabb_scale = number(meta, "aabb_scale", path)
         aabb_scale = 1.0 if aabb_scale is None else aabb_scale
         if aabb_scale <= 0:
-            raise SceneFormatError(path, f"'aabb_scale' and 'scale' must be positive, got {aabb_scale:g} and "
-                                         f"{ngp.scale:g}")
+            raise SceneFormatError(
+                path, f"'aabb_scale' and 'scale' must be positive, got {aabb_scale:g} and {ngp.scale:g}"
+            )
         # NGP marches in the cube 0.5 +- aabb_scale / 2 of its frame; the cube is symmetric under NGP's
         # axis cycle, so its world box is (cube - offset) / scale per axis.
         offset_vec = np.asarray(ngp.offset, np.float64)
         ngp_lo, ngp_hi = 0.5 - 0.5 * aabb_scale, 0.5 + 0.5 * aabb_scale
         corners = (np.stack([np.full(3, ngp_lo), np.full(3, ngp_hi)]) - offset_vec) / ngp.scale
         aabb = np.stack([corners.min(0), corners.max(0)]).astype(np.float32)
-        metadata.update(aabb_scale=aabb_scale, scale=ngp.scale, offset=offset_vec.tolist(),
-                        from_mitsuba=ngp.from_mitsuba, ngp_aabb=[[ngp_lo] * 3, [ngp_hi] * 3])
+        metadata.update(
+            aabb_scale=aabb_scale,
+            scale=ngp.scale,
+            offset=offset_vec.tolist(),
+            from_mitsuba=ngp.from_mitsuba,
+            ngp_aabb=[[ngp_lo] * 3, [ngp_hi] * 3],
+        )
     else:
         ply_name = meta.get("ply_file_path", "sparse_pc.ply")
         ply = folder / ply_name if isinstance(ply_name, str) else None
@@ -280,16 +306,29 @@ def load_transforms(
     near, far = camera_bounds(c2w_all, aabb)
     metadata["distortion"] = [float(v) for v in np.asarray(intrinsics.distortion)]
     return dict(
-        images=images, alphas=alphas, original_size=full, intrinsics=intrinsics,
-        c2w=np.stack([f["_c2w"] for f, _ in chosen]), aabb=aabb, near=near, far=far,
-        file_names=tuple(relative(p, folder) for _, p in chosen), split=split,
-        skipped_missing=skipped, applied_transform=applied, metadata=metadata,
+        images=images,
+        alphas=alphas,
+        original_size=full,
+        intrinsics=intrinsics,
+        c2w=np.stack([f["_c2w"] for f, _ in chosen]),
+        aabb=aabb,
+        near=near,
+        far=far,
+        file_names=tuple(relative(p, folder) for _, p in chosen),
+        split=split,
+        skipped_missing=skipped,
+        applied_transform=applied,
+        metadata=metadata,
     )
 
 
 def load_blender(
-    folder: Path, path: Path, split: Optional[str], factor: Optional[float],
-    background: np.ndarray, max_images: Optional[int],
+    folder: Path,
+    path: Path,
+    split: Optional[str],
+    factor: Optional[float],
+    background: np.ndarray,
+    max_images: Optional[int],
 ) -> Dict[str, Any]:
     """Blender transforms_{train,val,test}.json: camera_angle_x, RGBA PNGs."""
     check_split(split, SPLITS)
@@ -316,9 +355,17 @@ def load_blender(
     images, alphas, full = load_images([p for _, p in chosen], factor or 1.0, background)
     intrinsics = _json_intrinsics(camera, full, files[0]).scaled(images.shape[2], images.shape[1])
     return dict(
-        images=images, alphas=alphas, original_size=full, intrinsics=intrinsics,
-        c2w=np.stack([f["_c2w"] for f, _ in chosen]), aabb=np.asarray(BLENDER_AABB, np.float32),
-        near=BLENDER_NEAR, far=BLENDER_FAR, file_names=tuple(relative(p, folder) for _, p in chosen),
-        split=split, skipped_missing=skipped, applied_transform=None,
+        images=images,
+        alphas=alphas,
+        original_size=full,
+        intrinsics=intrinsics,
+        c2w=np.stack([f["_c2w"] for f, _ in chosen]),
+        aabb=np.asarray(BLENDER_AABB, np.float32),
+        near=BLENDER_NEAR,
+        far=BLENDER_FAR,
+        file_names=tuple(relative(p, folder) for _, p in chosen),
+        split=split,
+        skipped_missing=skipped,
+        applied_transform=None,
         metadata={"scene_file": [relative(f, folder) for f in files]},
     )

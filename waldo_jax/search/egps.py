@@ -137,8 +137,11 @@ def crossover(u: Array, parent1: Pose, parent2: Pose) -> Pose:
     up = parent1.up + parent2.up  # the mean, up to a factor normalised away
     norm = jnp.linalg.norm(up)
     up = jnp.where(norm > 0.0, up / jnp.where(norm > 0.0, norm, 1.0), up)
-    return Pose(origin=between(u[:3], parent1.origin, parent2.origin),
-                target=between(u[3:], parent1.target, parent2.target), up=up)
+    return Pose(
+        origin=between(u[:3], parent1.origin, parent2.origin),
+        target=between(u[3:], parent1.target, parent2.target),
+        up=up,
+    )
 
 
 def mutation_delta(u: Array, nabla: Array, mutation_probs: Array) -> Array:
@@ -166,8 +169,9 @@ def _child(u: Array, poses: Pose, fitness: Array, weights: Array, params: Params
     return breed(u[2:], pick(parent1), pick(parent2), params)
 
 
-def ask(key: PRNGKey, population: Population, params: Params, config: Config,
-        epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(
+    key: PRNGKey, population: Population, params: Params, config: Config, epoch: Array
+) -> Tuple[Pose, Array, Population]:
     """Breeds one epoch of EGPS children.
 
     Args:
@@ -189,7 +193,8 @@ def ask(key: PRNGKey, population: Population, params: Params, config: Config,
     weights, can_breed = parent_weights(fitness, params.rank_bias)
     uniforms = uniform_rows(key, n, NUM_UNIFORMS)
     children = jax.vmap(_child, in_axes=(0, None, None, None, None))(
-        uniforms, population.poses, fitness, weights, params)
+        uniforms, population.poses, fitness, weights, params
+    )
     return children, jnp.broadcast_to(can_breed, (n,)), population
 
 

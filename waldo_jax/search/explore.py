@@ -94,13 +94,15 @@ def budget_children(n_train: int, budget: Budget = "low", epochs: int = 5) -> in
     if n_train + epochs > high:
         raise ValueError(
             f"{n_train} training views already exceed the {budget!r} budget of at most {high} images "
-            f"with one child per epoch over {epochs} epochs; choose a larger budget or fewer views")
+            f"with one child per epoch over {epochs} epochs; choose a larger budget or fewer views"
+        )
     fewest = max(1, math.ceil((low - n_train) / epochs))
     most = (high - n_train) // epochs
     if fewest > most:
         raise ValueError(
             f"no whole number of children per epoch puts {n_train} + {epochs} x children in [{low}, {high}]; "
-            f"set children_per_epoch explicitly")
+            f"set children_per_epoch explicitly"
+        )
     goal = round(((low + high) / 2 - n_train) / epochs)
     return int(min(max(goal, fewest), most))
 
@@ -194,14 +196,18 @@ class ExploreConfig:
             # others cost (fewer than `epochs` renders less when its gradient renders do not divide evenly).
             children -= -(-self.gradient_renders() // self.epochs)
             if children < 1:
-                raise ValueError(f"refinement costs {self.gradient_renders()} renders, more than the {self.budget!r} "
-                                 f"budget leaves for children after {n_train} training views; refine fewer poses "
-                                 "or take fewer steps")
+                raise ValueError(
+                    f"refinement costs {self.gradient_renders()} renders, more than the {self.budget!r} "
+                    f"budget leaves for children after {n_train} training views; refine fewer poses "
+                    "or take fewer steps"
+                )
             resolved = dataclasses.replace(self, children_per_epoch=children)
         capacity = int(n_train) + resolved.epochs * resolved.children_per_epoch
         if resolved.top_k > capacity:
-            raise ValueError(f"top_k (--top-k) {resolved.top_k} exceeds the {capacity} views of the run ({n_train} training "
-                             f"+ {resolved.epochs} epochs x {resolved.children_per_epoch} children)")
+            raise ValueError(
+                f"top_k (--top-k) {resolved.top_k} exceeds the {capacity} views of the run ({n_train} training "
+                f"+ {resolved.epochs} epochs x {resolved.children_per_epoch} children)"
+            )
         return resolved
 
     def capacity(self, n_train: int) -> int:
@@ -230,9 +236,13 @@ class ExploreConfig:
         gradients = resolved.gradient_renders()
         children = resolved.epochs * resolved.children_per_epoch
         per_gradient = resolved.refine_config().gradient_cost if gradients else 0
-        return {"renders": int(n_train) + children + gradients, "training_views": int(n_train), "children": children,
-                "gradient_evaluations": gradients // per_gradient if gradients else 0,
-                "renders_per_gradient_evaluation": per_gradient}
+        return {
+            "renders": int(n_train) + children + gradients,
+            "training_views": int(n_train),
+            "children": children,
+            "gradient_evaluations": gradients // per_gradient if gradients else 0,
+            "renders_per_gradient_evaluation": per_gradient,
+        }
 
 
 @flax.struct.dataclass
@@ -317,11 +327,15 @@ def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params, 
     config = ExploreConfig() if config is None else config
     search_method = _resolve_method(method, config)
     if search_method.differentiable != search_method.name.endswith(REFINE_SUFFIX):
-        raise ValueError(f"method {search_method.name!r}: a method takes gradient steps exactly when its name "
-                         f"ends with {REFINE_SUFFIX!r} (its budget is counted that way)")
+        raise ValueError(
+            f"method {search_method.name!r}: a method takes gradient steps exactly when its name "
+            f"ends with {REFINE_SUFFIX!r} (its budget is counted that way)"
+        )
     if search_method.differentiable and objective_fn is None:
-        raise ValueError(f"method {search_method.name!r} takes gradient steps: pass a differentiable objective_fn "
-                         "(e.g. the criterion's smooth() composed with the render)")
+        raise ValueError(
+            f"method {search_method.name!r} takes gradient steps: pass a differentiable objective_fn "
+            "(e.g. the criterion's smooth() composed with the render)"
+        )
     config = dataclasses.replace(config, method=search_method.name)
     c2w = np.asarray(initial.c2w, np.float32)
     scores = np.asarray(initial.scores, np.float32)
@@ -353,8 +367,11 @@ def _report(method_name: str, epochs: int, top_n: int, runs: int, run, epoch, be
     """Host-side progress line (one per epoch and run; under vmap the callback runs once per run)."""
     for r, e, b, m, s, f in zip(*(np.atleast_1d(np.asarray(v)) for v in (run, epoch, best, mean_top, scored, failed))):
         label = f" run {int(r) + 1}/{runs}" if runs > 1 else ""
-        print(f"[explore {method_name}{label}] epoch {int(e)}/{epochs}: best {float(b):.6g}, "
-              f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}", flush=True)
+        print(
+            f"[explore {method_name}{label}] epoch {int(e)}/{epochs}: best {float(b):.6g}, "
+            f"mean top-{top_n} {float(m):.6g}, scored {int(s)}, failed {int(f)}",
+            flush=True,
+        )
 
 
 def _init_state(key: PRNGKey, population: Population, params, method: SearchMethod, method_config):
@@ -362,9 +379,20 @@ def _init_state(key: PRNGKey, population: Population, params, method: SearchMeth
     return method.init(jax.random.fold_in(key, 0), population, params, method_config)
 
 
-def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry, epoch: Array, params,
-                method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False, run: Array = 0,
-                runs: int = 1):
+def _epoch_step(
+    key: PRNGKey,
+    score_fn: jax.tree_util.Partial,
+    objective,
+    carry,
+    epoch: Array,
+    params,
+    method: SearchMethod,
+    method_config,
+    config: ExploreConfig,
+    progress: bool = False,
+    run: Array = 0,
+    runs: int = 1,
+):
     """One epoch of Algorithm 1: ask, score, write, tell. epoch is 1-based (int32, may be traced).
 
     carry is (population, method state); with `progress` (static) it prints a line, where run / runs
@@ -373,8 +401,7 @@ def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry,
     population, state = carry
     n = config.children_per_epoch
     ask_key, tell_key = split_for_state(jax.random.fold_in(key, epoch), method)
-    children, mask, population, state = method.ask(ask_key, population, state, params, method_config, epoch,
-                                                   objective)
+    children, mask, population, state = method.ask(ask_key, population, state, params, method_config, epoch, objective)
     c2w = jax.vmap(pose_to_c2w)(children)  # [n, 4, 4]
     scores = jnp.asarray(score_fn(c2w), jnp.float32).reshape(n)
     offset = population.num_train + (epoch - 1) * n
@@ -386,8 +413,13 @@ def _epoch_step(key: PRNGKey, score_fn: jax.tree_util.Partial, objective, carry,
         curves = epoch_metrics(population, config.epochs, config.top_n)
         jax.debug.callback(
             lambda *a: _report(method.name, config.epochs, config.top_n, runs, *a),
-            run, epoch, curves.best[epoch], curves.mean_top_n[epoch], curves.num_scored[epoch],
-            curves.num_failed[epoch])
+            run,
+            epoch,
+            curves.best[epoch],
+            curves.mean_top_n[epoch],
+            curves.num_scored[epoch],
+            curves.num_failed[epoch],
+        )
     return population, state
 
 
@@ -406,28 +438,59 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
     )
 
 
-def _search(key: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
-            method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False, run: Array = 0,
-            runs: int = 1) -> Result:
+def _search(
+    key: PRNGKey,
+    score_fn,
+    objective,
+    poses: Pose,
+    c2w: Array,
+    scores: Array,
+    params,
+    method: SearchMethod,
+    method_config,
+    config: ExploreConfig,
+    progress: bool = False,
+    run: Array = 0,
+    runs: int = 1,
+) -> Result:
     population = _init(poses, c2w, scores, config)
     carry = (population, _init_state(key, population, params, method, method_config))
 
     def body(carry, epoch):
-        return _epoch_step(key, score_fn, objective, carry, epoch, params, method, method_config, config, progress,
-                           run, runs), None
+        return _epoch_step(
+            key, score_fn, objective, carry, epoch, params, method, method_config, config, progress, run, runs
+        ), None
 
     (population, _), _ = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
     return _finish(population, config)
 
 
-def _search_seeds(keys: PRNGKey, score_fn, objective, poses: Pose, c2w: Array, scores: Array, params,
-                  method: SearchMethod, method_config, config: ExploreConfig, progress: bool = False) -> SeedsResult:
+def _search_seeds(
+    keys: PRNGKey,
+    score_fn,
+    objective,
+    poses: Pose,
+    c2w: Array,
+    scores: Array,
+    params,
+    method: SearchMethod,
+    method_config,
+    config: ExploreConfig,
+    progress: bool = False,
+) -> SeedsResult:
     runs = keys.shape[0]
-    results = jax.vmap(lambda key, run: _search(key, score_fn, objective, poses, c2w, scores, params, method,
-                                                method_config, config, progress, run, runs))(
-        keys, jnp.arange(runs, dtype=jnp.int32))
-    return SeedsResult(results=results, cvir_mean=jnp.mean(results.cvir), cvir_std=jnp.std(results.cvir),
-                       mcvir_mean=jnp.mean(results.mcvir), mcvir_std=jnp.std(results.mcvir))
+    results = jax.vmap(
+        lambda key, run: _search(
+            key, score_fn, objective, poses, c2w, scores, params, method, method_config, config, progress, run, runs
+        )
+    )(keys, jnp.arange(runs, dtype=jnp.int32))
+    return SeedsResult(
+        results=results,
+        cvir_mean=jnp.mean(results.cvir),
+        cvir_std=jnp.std(results.cvir),
+        mcvir_mean=jnp.mean(results.mcvir),
+        mcvir_std=jnp.std(results.mcvir),
+    )
 
 
 _STATIC = ("method", "method_config", "config", "progress")
@@ -443,9 +506,16 @@ _finish_jit = jax.jit(_finish, static_argnames=("config",))
 # Public entry points.
 
 
-def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
-            method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-            params=None, objective_fn: Optional[Callable[[Array], Array]] = None, progress: bool = False) -> Result:
+def explore(
+    key: PRNGKey,
+    score_fn: Callable[[Array], Array],
+    initial: Initial,
+    method: Union[str, SearchMethod, None] = None,
+    config: Optional[ExploreConfig] = None,
+    params=None,
+    objective_fn: Optional[Callable[[Array], Array]] = None,
+    progress: bool = False,
+) -> Result:
     """Runs one search (Algorithm 1) as a single compiled `lax.scan` over epochs.
 
     Args:
@@ -467,36 +537,69 @@ def explore(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
       `Result`.
     """
     search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
-        initial, method, config, params, objective_fn)
-    return _search_jit(key, _as_partial(score_fn), objective, poses, c2w, scores, params,
-                       method=search_method, method_config=method_config, config=config, progress=bool(progress))
+        initial, method, config, params, objective_fn
+    )
+    return _search_jit(
+        key,
+        _as_partial(score_fn),
+        objective,
+        poses,
+        c2w,
+        scores,
+        params,
+        method=search_method,
+        method_config=method_config,
+        config=config,
+        progress=bool(progress),
+    )
 
 
-def explore_loop(key: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
-                 method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                 params=None, objective_fn: Optional[Callable[[Array], Array]] = None,
-                 progress: bool = False) -> Result:
+def explore_loop(
+    key: PRNGKey,
+    score_fn: Callable[[Array], Array],
+    initial: Initial,
+    method: Union[str, SearchMethod, None] = None,
+    config: Optional[ExploreConfig] = None,
+    params=None,
+    objective_fn: Optional[Callable[[Array], Array]] = None,
+    progress: bool = False,
+) -> Result:
     """`explore` as a Python loop over a jitted per-epoch step (same arguments, same result).
 
     Useful to inspect or checkpoint between epochs, and as the reference the scan is tested against.
     """
     search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
-        initial, method, config, params, objective_fn)
+        initial, method, config, params, objective_fn
+    )
     score_fn = _as_partial(score_fn)
     population = _init_jit(poses, c2w, scores, config=config)
-    carry = (population, _init_state_jit(key, population, params, method=search_method,
-                                         method_config=method_config))
+    carry = (population, _init_state_jit(key, population, params, method=search_method, method_config=method_config))
     for epoch in range(1, config.epochs + 1):
-        carry = _epoch_step_jit(key, score_fn, objective, carry, jnp.int32(epoch), params,
-                                method=search_method, method_config=method_config, config=config,
-                                progress=bool(progress))
+        carry = _epoch_step_jit(
+            key,
+            score_fn,
+            objective,
+            carry,
+            jnp.int32(epoch),
+            params,
+            method=search_method,
+            method_config=method_config,
+            config=config,
+            progress=bool(progress),
+        )
     return _finish_jit(carry[0], config=config)
 
 
-def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: Initial,
-                  method: Union[str, SearchMethod, None] = None, config: Optional[ExploreConfig] = None,
-                  params=None, objective_fn: Optional[Callable[[Array], Array]] = None,
-                  progress: bool = False) -> SeedsResult:
+def explore_seeds(
+    keys: PRNGKey,
+    score_fn: Callable[[Array], Array],
+    initial: Initial,
+    method: Union[str, SearchMethod, None] = None,
+    config: Optional[ExploreConfig] = None,
+    params=None,
+    objective_fn: Optional[Callable[[Array], Array]] = None,
+    progress: bool = False,
+) -> SeedsResult:
     """`explore` for a batch of keys [K], vmapped in one compiled call.
 
     Args:
@@ -508,7 +611,18 @@ def explore_seeds(keys: PRNGKey, score_fn: Callable[[Array], Array], initial: In
       `SeedsResult`: per-seed `Result`s (leading axis K) and the mean / std of CVIR and mCVIR.
     """
     search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
-        initial, method, config, params, objective_fn)
-    return _search_seeds_jit(keys, _as_partial(score_fn), objective, poses, c2w, scores, params,
-                             method=search_method, method_config=method_config, config=config,
-                             progress=bool(progress))
+        initial, method, config, params, objective_fn
+    )
+    return _search_seeds_jit(
+        keys,
+        _as_partial(score_fn),
+        objective,
+        poses,
+        c2w,
+        scores,
+        params,
+        method=search_method,
+        method_config=method_config,
+        config=config,
+        progress=bool(progress),
+    )

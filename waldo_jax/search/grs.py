@@ -57,8 +57,9 @@ def _sample_one(u: Array, low: Array, high: Array, target_weights: Array, target
     return Pose(origin=origin, target=targets[draw_index(u[3], target_weights)], up=up)
 
 
-def ask(key: PRNGKey, population: Population, params: Params, config: Config,
-        epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(
+    key: PRNGKey, population: Population, params: Params, config: Config, epoch: Array
+) -> Tuple[Pose, Array, Population]:
     """Draws one epoch of GRS children.
 
     The key is used once, for a [children_per_epoch, 4] block of uniforms (3 for the origin, 1 for
@@ -84,7 +85,8 @@ def ask(key: PRNGKey, population: Population, params: Params, config: Config,
     up = mean_up(population)
     uniforms = uniform_rows(key, n, 4)
     children = jax.vmap(_sample_one, in_axes=(0, None, None, None, None, None))(
-        uniforms, low, high, target_weights, population.target, up)
+        uniforms, low, high, target_weights, population.target, up
+    )
     return children, jnp.ones(n, bool), population
 
 

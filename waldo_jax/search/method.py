@@ -66,8 +66,9 @@ class ChildrenConfig:
             raise ValueError(f"children_per_epoch must be >= 1, got {self.children_per_epoch}")
 
     @classmethod
-    def create(cls, children_per_epoch: int, epochs: Optional[int] = None, method: Optional[str] = None,
-               **options: Any) -> "ChildrenConfig":
+    def create(
+        cls, children_per_epoch: int, epochs: Optional[int] = None, method: Optional[str] = None, **options: Any
+    ) -> "ChildrenConfig":
         """The config for `children_per_epoch` children (`epochs` unused).
 
         Raises:

@@ -90,8 +90,13 @@ def mean_top_n(scores: Array, n: int = 10, valid: Optional[Array] = None, direct
     return sign * _mean_top_fitness(_fitness(scores, valid, sign), n)
 
 
-def cvir(all_scores: Array, train_scores: Array, direction: str = "max",
-         all_valid: Optional[Array] = None, train_valid: Optional[Array] = None) -> Array:
+def cvir(
+    all_scores: Array,
+    train_scores: Array,
+    direction: str = "max",
+    all_valid: Optional[Array] = None,
+    train_valid: Optional[Array] = None,
+) -> Array:
     """CVIR in percent (see docs/design.md, "Search" for the "min" direction).
 
     Args:
@@ -104,16 +109,25 @@ def cvir(all_scores: Array, train_scores: Array, direction: str = "max",
       float32 [], NaN when undefined.
     """
     sign = direction_sign(direction)
-    return _ratio(_best_fitness(_fitness(all_scores, all_valid, sign)),
-                  _best_fitness(_fitness(train_scores, train_valid, sign)))
+    return _ratio(
+        _best_fitness(_fitness(all_scores, all_valid, sign)), _best_fitness(_fitness(train_scores, train_valid, sign))
+    )
 
 
-def mcvir(all_scores: Array, train_scores: Array, n: int = 10, direction: str = "max",
-          all_valid: Optional[Array] = None, train_valid: Optional[Array] = None) -> Array:
+def mcvir(
+    all_scores: Array,
+    train_scores: Array,
+    n: int = 10,
+    direction: str = "max",
+    all_valid: Optional[Array] = None,
+    train_valid: Optional[Array] = None,
+) -> Array:
     """mCVIR in percent: CVIR on the mean of the best n scores of each set (arguments as `cvir`)."""
     sign = direction_sign(direction)
-    return _ratio(_mean_top_fitness(_fitness(all_scores, all_valid, sign), n),
-                  _mean_top_fitness(_fitness(train_scores, train_valid, sign), n))
+    return _ratio(
+        _mean_top_fitness(_fitness(all_scores, all_valid, sign), n),
+        _mean_top_fitness(_fitness(train_scores, train_valid, sign), n),
+    )
 
 
 def population_cvir(population: Population) -> Array:
@@ -125,8 +139,9 @@ def population_cvir(population: Population) -> Array:
 def population_mcvir(population: Population, n: int = 10) -> Array:
     """mCVIR of a population (see `population_cvir`)."""
     fitness = population.fitness
-    return _ratio(_mean_top_fitness(fitness, n),
-                  _mean_top_fitness(jnp.where(population.is_train, fitness, -jnp.inf), n))
+    return _ratio(
+        _mean_top_fitness(fitness, n), _mean_top_fitness(jnp.where(population.is_train, fitness, -jnp.inf), n)
+    )
 
 
 def epoch_metrics(population: Population, epochs: int, n: int = 10) -> EpochMetrics:

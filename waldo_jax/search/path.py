@@ -26,8 +26,17 @@ import jax.numpy as jnp
 from waldo_jax.cameras import pose_to_c2w, rotation_angle
 from waldo_jax.types import Array, Pose
 
-__all__ = ["DENSITY", "catmull_rom", "slerp_unit", "sample_path", "path_c2w", "straight_path", "PathLimits",
-           "path_motion", "Motion"]
+__all__ = [
+    "DENSITY",
+    "catmull_rom",
+    "slerp_unit",
+    "sample_path",
+    "path_c2w",
+    "straight_path",
+    "PathLimits",
+    "path_motion",
+    "Motion",
+]
 
 # Dense curve samples per output frame for the arc-length parametrisation.
 DENSITY = 8
@@ -46,8 +55,9 @@ def catmull_rom(points: Array, u: Array) -> Array:
     segment = jnp.clip(jnp.floor(u), 0, points.shape[0] - 2).astype(jnp.int32)
     t = (u - segment)[..., None]
     p0, p1, p2, p3 = (padded[segment + i] for i in range(4))
-    return 0.5 * (2.0 * p1 + (p2 - p0) * t + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * t ** 2
-                  + (3.0 * p1 - p0 - 3.0 * p2 + p3) * t ** 3)
+    return 0.5 * (
+        2.0 * p1 + (p2 - p0) * t + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * t**2 + (3.0 * p1 - p0 - 3.0 * p2 + p3) * t**3
+    )
 
 
 def slerp_unit(a: Array, b: Array, t: Array) -> Array:
@@ -88,8 +98,9 @@ def sample_path(keyframes: Pose, frames: int) -> Pose:
     count = keyframes.origin.shape[0]
     dense = jnp.linspace(0.0, count - 1.0, DENSITY * (frames - 1) + 1)
     curve = _curve(keyframes, dense)
-    step = (jnp.linalg.norm(jnp.diff(curve.origin, axis=0), axis=-1)
-            + jnp.linalg.norm(jnp.diff(curve.target, axis=0), axis=-1))
+    step = jnp.linalg.norm(jnp.diff(curve.origin, axis=0), axis=-1) + jnp.linalg.norm(
+        jnp.diff(curve.target, axis=0), axis=-1
+    )
     length = jnp.concatenate([jnp.zeros(1), jnp.cumsum(step + 1e-9)])  # strictly increasing for interp
     goal = jnp.linspace(0.0, 1.0, frames) * length[-1]
     u = jnp.interp(goal, length, dense)
@@ -109,8 +120,9 @@ def straight_path(start: Pose, end: Pose, keyframes: int) -> Pose:
     origin and look-at point linearly, up by SLERP. Sampled, it moves at constant speed."""
     t = jnp.linspace(0.0, 1.0, keyframes)[:, None]
     up = jax.vmap(lambda s: slerp_unit(_unit(start.up), _unit(end.up), s))(t[:, 0])
-    return Pose(origin=(1.0 - t) * start.origin + t * end.origin, target=(1.0 - t) * start.target + t * end.target,
-                up=up)
+    return Pose(
+        origin=(1.0 - t) * start.origin + t * end.origin, target=(1.0 - t) * start.target + t * end.target, up=up
+    )
 
 
 @flax.struct.dataclass

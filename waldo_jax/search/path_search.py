@@ -41,9 +41,22 @@ from waldo_jax.search import strategy as evosax_strategy
 from waldo_jax.search.population import DIRECTIONS, direction_sign, draw_index, training_poses, uniform_rows
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["PATH_BUDGETS", "AGGREGATES", "PathConfig", "PathPopulation", "PathResult", "path_limits",
-           "aggregate_scores", "initial_paths", "search_path", "search_path_loop", "search_path_seeds",
-           "check_method", "default_params", "EVOSAX_STD_INIT"]
+__all__ = [
+    "PATH_BUDGETS",
+    "AGGREGATES",
+    "PathConfig",
+    "PathPopulation",
+    "PathResult",
+    "path_limits",
+    "aggregate_scores",
+    "initial_paths",
+    "search_path",
+    "search_path_loop",
+    "search_path_seeds",
+    "check_method",
+    "default_params",
+    "EVOSAX_STD_INIT",
+]
 
 # Rendered frames in all (initial paths included). A path of F frames is F images, so these are ten
 # times the paper's image budgets: about 100 paths of 24 frames at "low".
@@ -57,10 +70,11 @@ def check_method(method: str) -> str:
     if method == "egps":
         return method
     if method.startswith(evosax_strategy.PREFIX):
-        name = method[len(evosax_strategy.PREFIX):]
+        name = method[len(evosax_strategy.PREFIX) :]
         if name not in evosax_strategy.strategy_names():
-            raise ValueError(f"unknown evosax strategy {name!r}; choose one of "
-                             f"{', '.join(evosax_strategy.strategy_names())}")
+            raise ValueError(
+                f"unknown evosax strategy {name!r}; choose one of {', '.join(evosax_strategy.strategy_names())}"
+            )
         return method
     raise ValueError(f"path search method must be egps or evosax:NAME, got {method!r}")
 
@@ -100,9 +114,13 @@ class PathConfig:
     paths_per_call: Optional[int] = None
 
     def __post_init__(self):
-        for name, value, least in (("keyframes", self.keyframes, 2), ("frames", self.frames, 4),
-                                   ("epochs", self.epochs, 1), ("initial_paths", self.initial_paths, 3),
-                                   ("top_k", self.top_k, 1)):
+        for name, value, least in (
+            ("keyframes", self.keyframes, 2),
+            ("frames", self.frames, 4),
+            ("epochs", self.epochs, 1),
+            ("initial_paths", self.initial_paths, 3),
+            ("top_k", self.top_k, 1),
+        ):
             if int(value) < least:
                 raise ValueError(f"PathConfig.{name} must be >= {least}, got {value}")
         if self.paths_per_epoch is not None and self.paths_per_epoch < 2:
@@ -125,8 +143,10 @@ class PathConfig:
     def budget_bounds(self) -> Tuple[int, int]:
         if isinstance(self.budget, str):
             if self.budget not in PATH_BUDGETS:
-                raise ValueError(f"path budget must be one of {tuple(PATH_BUDGETS)} or a (min, max) number of "
-                                 f"frames, got {self.budget!r}")
+                raise ValueError(
+                    f"path budget must be one of {tuple(PATH_BUDGETS)} or a (min, max) number of "
+                    f"frames, got {self.budget!r}"
+                )
             return PATH_BUDGETS[self.budget]
         low, high = self.budget
         if not 0 < low <= high:
@@ -142,9 +162,11 @@ class PathConfig:
         fewest = max(2, math.ceil((low / f - m) / e))
         most = math.floor((high / f - m) / e)
         if fewest > most:
-            raise ValueError(f"no number of paths per epoch (>= 2) puts {f} frames x ({m} initial + {e} epochs x "
-                             f"paths) inside the budget of {low}-{high} frames; use fewer frames or initial paths, "
-                             "or a larger budget")
+            raise ValueError(
+                f"no number of paths per epoch (>= 2) puts {f} frames x ({m} initial + {e} epochs x "
+                f"paths) inside the budget of {low}-{high} frames; use fewer frames or initial paths, "
+                "or a larger budget"
+            )
         goal = round(((low + high) / 2 / f - m) / e)
         return dataclasses.replace(self, paths_per_epoch=int(min(max(goal, fewest), most)))
 
@@ -158,8 +180,14 @@ class PathConfig:
         return {"frames": self.capacity() * self.frames, "paths": self.capacity(), "frames_per_path": self.frames}
 
 
-def path_limits(train_c2w: np.ndarray, max_speed: float = 0.05, max_turn: float = 5.0, min_opacity: float = 0.0,
-                min_travel: float = 0.0, margin: float = 0.1) -> PathLimits:
+def path_limits(
+    train_c2w: np.ndarray,
+    max_speed: float = 0.05,
+    max_turn: float = 5.0,
+    min_opacity: float = 0.0,
+    min_travel: float = 0.0,
+    margin: float = 0.1,
+) -> PathLimits:
     """`PathLimits` of a scene from its training cameras: the box is their origins' bounding box grown by
     `margin` x its largest side (the extent), speed in extents per frame, turn in degrees per frame,
     travel (the whole path's length) in extents."""
@@ -174,8 +202,15 @@ def path_limits(train_c2w: np.ndarray, max_speed: float = 0.05, max_turn: float 
     if not (0 <= min_travel < math.inf):
         raise ValueError(f"min_travel must be a number >= 0, got {min_travel}")
     f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-    return PathLimits(max_speed=f32(max_speed), max_turn=f32(max_turn), min_opacity=f32(min_opacity),
-                      min_travel=f32(min_travel), low=f32(low - margin * extent), high=f32(high + margin * extent), extent=f32(extent))
+    return PathLimits(
+        max_speed=f32(max_speed),
+        max_turn=f32(max_turn),
+        min_opacity=f32(min_opacity),
+        min_travel=f32(min_travel),
+        low=f32(low - margin * extent),
+        high=f32(high + margin * extent),
+        extent=f32(extent),
+    )
 
 
 def aggregate_scores(frame_scores: Array, config: PathConfig) -> Array:
@@ -274,8 +309,9 @@ def _chain(start: Array, origins: Array, count: int) -> Array:
     return jnp.concatenate([start[None], rest])
 
 
-def initial_paths(key: PRNGKey, anchors: Pose, anchor_fitness: Array, train: Pose, limits: PathLimits,
-                  config: PathConfig) -> Pose:
+def initial_paths(
+    key: PRNGKey, anchors: Pose, anchor_fitness: Array, train: Pose, limits: PathLimits, config: PathConfig
+) -> Pose:
     """The M starting paths ([M, K, 3] fields); see the module docstring.
 
     Args:
@@ -299,8 +335,9 @@ def initial_paths(key: PRNGKey, anchors: Pose, anchor_fitness: Array, train: Pos
     chains = jax.tree.map(lambda x: x[order], anchors)
     noise = jax.random.normal(jitter_key, (2, m - 2, k, 3)) * config.jitter * limits.extent
     chains = chains.replace(origin=chains.origin + noise[0], target=chains.target + noise[1])
-    return jax.tree.map(lambda *xs: jnp.concatenate([x[None] if x.ndim == 2 else x for x in xs]),
-                        trajectory, straight, chains)
+    return jax.tree.map(
+        lambda *xs: jnp.concatenate([x[None] if x.ndim == 2 else x for x in xs]), trajectory, straight, chains
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -335,7 +372,8 @@ def _write(population: PathPopulation, keyframes: Pose, score, frame_scores, vio
         frame_scores=put(population.frame_scores, jnp.where(mask[:, None], frame_scores, jnp.nan)),
         violation=put(population.violation, jnp.where(mask, violation, jnp.nan)),
         valid=put(population.valid, mask),
-        epoch=put(population.epoch, jnp.where(mask, jnp.broadcast_to(epoch, (n,)), -1)))
+        epoch=put(population.epoch, jnp.where(mask, jnp.broadcast_to(epoch, (n,)), -1)),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -360,7 +398,7 @@ def _scaling(train: Pose, limits: PathLimits, k: int) -> Tuple[Array, Array]:
 
 
 def _strategy(config: PathConfig):
-    name = config.method[len(evosax_strategy.PREFIX):]
+    name = config.method[len(evosax_strategy.PREFIX) :]
     return evosax_strategy.make_strategy(name, config.paths_per_epoch, config.keyframes * evosax_strategy.POSE_DIM)
 
 
@@ -381,14 +419,12 @@ def _start(key, population: PathPopulation, train: Pose, limits: PathLimits, par
     if evosax_strategy.is_distribution_based(strategy):
         es_state = strategy.init(key, start[0], es_params)
     else:
-        loss = jnp.where(jnp.isfinite(population.selection[order]), -population.selection[order],
-                         evosax_strategy.WORST)
+        loss = jnp.where(jnp.isfinite(population.selection[order]), -population.selection[order], evosax_strategy.WORST)
         es_state = strategy.init(key, start, loss, es_params)
     return _EvosaxState(strategy=es_state, asked=jnp.zeros_like(start), shift=shift, scale=scale)
 
 
-def _egps_child(u: Array, keyframes: Pose, selection: Array, weights: Array, params: egps.Params,
-                k: int) -> Pose:
+def _egps_child(u: Array, keyframes: Pose, selection: Array, weights: Array, params: egps.Params, k: int) -> Pose:
     parent1, parent2 = egps.select_parents(u[:2], weights, selection)
     pick = lambda i: jax.tree.map(lambda x: x[i], keyframes)  # noqa: E731
     return jax.vmap(egps.breed, in_axes=(0, 0, 0, None))(u[2:].reshape(k, 12), pick(parent1), pick(parent2), params)
@@ -401,7 +437,8 @@ def _ask(key, population: PathPopulation, state, params, config: PathConfig):
         weights, can_breed = egps.parent_weights(selection, params.rank_bias)
         u = uniform_rows(key, n, 2 + 12 * k)
         children = jax.vmap(_egps_child, in_axes=(0, None, None, None, None, None))(
-            u, population.keyframes, selection, weights, params, k)
+            u, population.keyframes, selection, weights, params, k
+        )
         return children, jnp.broadcast_to(can_breed, (n,)), state
     strategy = _strategy(config)
     asked, es_state = strategy.ask(key, state.strategy, evosax_strategy.strategy_params(strategy, params))
@@ -415,8 +452,9 @@ def _tell(key, state, selection: Array, params, config: PathConfig):
         return state
     strategy = _strategy(config)
     loss = jnp.where(jnp.isfinite(selection), -selection, evosax_strategy.WORST)
-    es_state, _ = strategy.tell(key, state.asked, loss, state.strategy,
-                                evosax_strategy.strategy_params(strategy, params))
+    es_state, _ = strategy.tell(
+        key, state.asked, loss, state.strategy, evosax_strategy.strategy_params(strategy, params)
+    )
     return state.replace(strategy=es_state)
 
 
@@ -438,14 +476,17 @@ def default_params(config: PathConfig):
 # The search.
 
 
-def _init(key, frame_fn, anchors: Pose, anchor_fitness, train: Pose, limits: PathLimits, params,
-          config: PathConfig):
+def _init(key, frame_fn, anchors: Pose, anchor_fitness, train: Pose, limits: PathLimits, params, config: PathConfig):
     c, f, k, m = config.capacity(), config.frames, config.keyframes, config.initial_paths
     empty = PathPopulation(
         keyframes=Pose(*(jnp.zeros((c, k, 3), jnp.float32) for _ in range(3))),
-        score=jnp.full((c,), jnp.nan, jnp.float32), frame_scores=jnp.full((c, f), jnp.nan, jnp.float32),
-        violation=jnp.full((c,), jnp.nan, jnp.float32), valid=jnp.zeros((c,), bool),
-        epoch=jnp.full((c,), -1, jnp.int32), direction=config.direction)
+        score=jnp.full((c,), jnp.nan, jnp.float32),
+        frame_scores=jnp.full((c, f), jnp.nan, jnp.float32),
+        violation=jnp.full((c,), jnp.nan, jnp.float32),
+        valid=jnp.zeros((c,), bool),
+        epoch=jnp.full((c,), -1, jnp.int32),
+        direction=config.direction,
+    )
     start_key, state_key = jax.random.split(jax.random.fold_in(key, 0))
     paths = initial_paths(start_key, anchors, anchor_fitness, train, limits, config)
     score, frame_scores, violation = _evaluate(frame_fn, paths, limits, config)
@@ -475,10 +516,17 @@ def _finish(population: PathPopulation, curve: Array, config: PathConfig) -> Pat
     # No path kept the limits: the one that broke them least (still `found` False).
     best = jnp.where(jnp.isfinite(values[0]), indices[0], jnp.argmax(population.selection))
     keyframes = jax.tree.map(lambda x: x[best], population.keyframes)
-    return PathResult(population=population, top_indices=indices.astype(jnp.int32), top_valid=jnp.isfinite(values),
-                      best_keyframes=keyframes, best_c2w=path_c2w(keyframes, config.frames),
-                      best_frame_scores=population.frame_scores[best], best_score=population.score[best],
-                      found=jnp.isfinite(values[0]), curve=curve)
+    return PathResult(
+        population=population,
+        top_indices=indices.astype(jnp.int32),
+        top_valid=jnp.isfinite(values),
+        best_keyframes=keyframes,
+        best_c2w=path_c2w(keyframes, config.frames),
+        best_frame_scores=population.frame_scores[best],
+        best_score=population.score[best],
+        found=jnp.isfinite(values[0]),
+        curve=curve,
+    )
 
 
 def _search(key, frame_fn, anchors, anchor_fitness, train, limits, params, config: PathConfig) -> PathResult:
@@ -520,8 +568,10 @@ def _prepare(frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, par
         raise ValueError(f"anchor scores must have shape ({anchor_c2w.shape[0]},), got {anchor_scores.shape}")
     usable = int(np.sum(np.isfinite(anchor_scores)))
     if usable < max(2, config.keyframes) or anchor_c2w.shape[0] < config.keyframes:
-        raise ValueError(f"a path of {config.keyframes} keyframes needs at least {max(2, config.keyframes)} anchor "
-                         f"poses with a finite score, got {usable} of {anchor_c2w.shape[0]}")
+        raise ValueError(
+            f"a path of {config.keyframes} keyframes needs at least {max(2, config.keyframes)} anchor "
+            f"poses with a finite score, got {usable} of {anchor_c2w.shape[0]}"
+        )
     if train_c2w.ndim != 3 or train_c2w.shape[0] < 2:
         raise ValueError(f"the training trajectory needs at least 2 training poses, got shape {train_c2w.shape}")
     focus = camera_focus(train_c2w)
@@ -533,8 +583,16 @@ def _prepare(frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, par
     return frame_fn, anchors, fitness, train, limits, params, config
 
 
-def search_path(key: PRNGKey, frame_fn: Callable, anchor_c2w, anchor_scores, train_c2w, limits: PathLimits,
-                config: PathConfig = PathConfig(), params=None) -> PathResult:
+def search_path(
+    key: PRNGKey,
+    frame_fn: Callable,
+    anchor_c2w,
+    anchor_scores,
+    train_c2w,
+    limits: PathLimits,
+    config: PathConfig = PathConfig(),
+    params=None,
+) -> PathResult:
     """Runs one path search as a single compiled `lax.scan` over epochs.
 
     Args:
@@ -548,24 +606,43 @@ def search_path(key: PRNGKey, frame_fn: Callable, anchor_c2w, anchor_scores, tra
       params: the method's numeric parameters (default `default_params`).
     """
     frame_fn, anchors, fitness, train, limits, params, config = _prepare(
-        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params)
+        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
+    )
     return _search_jit(key, frame_fn, anchors, fitness, train, limits, params, config=config)
 
 
-def search_path_seeds(keys: PRNGKey, frame_fn: Callable, anchor_c2w, anchor_scores, train_c2w, limits: PathLimits,
-                      config: PathConfig = PathConfig(), params=None) -> PathResult:
+def search_path_seeds(
+    keys: PRNGKey,
+    frame_fn: Callable,
+    anchor_c2w,
+    anchor_scores,
+    train_c2w,
+    limits: PathLimits,
+    config: PathConfig = PathConfig(),
+    params=None,
+) -> PathResult:
     """`search_path` for a batch of keys [S], vmapped in one compiled call (leaves gain a leading [S])."""
     frame_fn, anchors, fitness, train, limits, params, config = _prepare(
-        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params)
+        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
+    )
     return _search_seeds_jit(keys, frame_fn, anchors, fitness, train, limits, params, config=config)
 
 
-def search_path_loop(key: PRNGKey, frame_fn: Callable, anchor_c2w, anchor_scores, train_c2w, limits: PathLimits,
-                     config: PathConfig = PathConfig(), params=None) -> PathResult:
+def search_path_loop(
+    key: PRNGKey,
+    frame_fn: Callable,
+    anchor_c2w,
+    anchor_scores,
+    train_c2w,
+    limits: PathLimits,
+    config: PathConfig = PathConfig(),
+    params=None,
+) -> PathResult:
     """`search_path` as a Python loop over jitted epochs (same result): to inspect between epochs, and
     the reference the scan is tested against."""
     frame_fn, anchors, fitness, train, limits, params, config = _prepare(
-        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params)
+        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
+    )
     carry = _init_jit(key, frame_fn, anchors, fitness, train, limits, params, config=config)
     curve = [_best_so_far(carry[0])]
     for epoch in range(1, config.epochs + 1):

@@ -63,8 +63,15 @@ class Config:
     OPTIONS = ("top_c", "fallback")
 
     @classmethod
-    def create(cls, children_per_epoch: int, epochs: Optional[int] = None, method: str = "pibs", top_c: int = 5,
-               fallback: str = "none", **options: Any) -> "Config":
+    def create(
+        cls,
+        children_per_epoch: int,
+        epochs: Optional[int] = None,
+        method: str = "pibs",
+        top_c: int = 5,
+        fallback: str = "none",
+        **options: Any,
+    ) -> "Config":
         """The config for `children_per_epoch` slots (`epochs` unused).
 
         Raises:
@@ -86,8 +93,9 @@ def _interpolate_one(pose_a: Pose, pose_b: Pose, t: Array) -> Pose:
     return slerp_pose(pose_a, pose_b, t)
 
 
-def ask(key: PRNGKey, population: Population, params: Params, config: Config,
-        epoch: Array) -> Tuple[Pose, Array, Population]:
+def ask(
+    key: PRNGKey, population: Population, params: Params, config: Config, epoch: Array
+) -> Tuple[Pose, Array, Population]:
     """Proposes one epoch of PIBS children and marks their pairs as explored.
 
     Args:

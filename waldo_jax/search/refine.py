@@ -16,7 +16,8 @@ not finite or whose origin leaves the scene box is never kept (the step that led
 Gradients are forward-mode by default (`jax.jvp`, six tangents: origin and look-at point), which any
 renderer allows, or reverse-mode (`RefineConfig.gradient`: one `jax.vjp`, cheaper) where the source's
 renderer supports it (the splat renderer; the marched NeRF renderer through its own backward pass,
-`render.marched_vjp`); optimistix receives them through its reverse-mode API either way (see `_loss`). Each gradient evaluation of one pose counts as
+`render.marched_vjp`); optimistix receives them through its reverse-mode API either way (see `_loss`). Each gradient
+evaluation of one pose counts as
 `config.gradient_cost` renders in the budget. Why Adam, the units, the box and the measured cost:
 docs/design.md, section "Search > Gradient refinement".
 """
@@ -97,11 +98,14 @@ class RefineConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"RefineConfig.{name} must be an int >= 1, got {value!r}")
         if isinstance(self.gradient_cost, bool) or not isinstance(self.gradient_cost, int) or self.gradient_cost < 2:
-            raise ValueError(f"RefineConfig.gradient_cost must be an int >= 2 (a gradient costs more than a render), "
-                             f"got {self.gradient_cost!r}")
+            raise ValueError(
+                f"RefineConfig.gradient_cost must be an int >= 2 (a gradient costs more than a render), "
+                f"got {self.gradient_cost!r}"
+            )
         if not 0.0 < self.step_size <= 1.0:
-            raise ValueError(f"RefineConfig.step_size must be in (0, 1] (a fraction of the scene extent), "
-                             f"got {self.step_size!r}")
+            raise ValueError(
+                f"RefineConfig.step_size must be in (0, 1] (a fraction of the scene extent), got {self.step_size!r}"
+            )
         if not 0.0 <= self.box_margin <= 10.0:
             raise ValueError(f"RefineConfig.box_margin must be in [0, 10], got {self.box_margin!r}")
         if self.gradient not in GRADIENT_MODES:
@@ -163,8 +167,9 @@ class RefineResult:
     improved: Array
 
 
-def values_and_gradients(objective: Callable[[Array], Array], start: Pose, extent: Array,
-                         offsets: Array, mode: str = "forward") -> Tuple[Array, Array]:
+def values_and_gradients(
+    objective: Callable[[Array], Array], start: Pose, extent: Array, offsets: Array, mode: str = "forward"
+) -> Tuple[Array, Array]:
     """The objective and its gradient at poses moved by `offsets`.
 
     Pose p sits at origin start.origin[p] + extent * offsets[p, :3] and look-at point
@@ -185,8 +190,9 @@ def values_and_gradients(objective: Callable[[Array], Array], start: Pose, exten
     """
 
     def values(offsets):
-        poses = Pose(origin=start.origin + extent * offsets[:, :3], target=start.target + extent * offsets[:, 3:],
-                     up=start.up)
+        poses = Pose(
+            origin=start.origin + extent * offsets[:, :3], target=start.target + extent * offsets[:, 3:], up=start.up
+        )
         return jnp.asarray(objective(jax.vmap(pose_to_c2w)(poses)), jnp.float32).reshape(offsets.shape[0])
 
     if mode == "reverse":
@@ -226,8 +232,13 @@ def _solver(config: RefineConfig) -> optx.OptaxMinimiser:
     return optx.OptaxMinimiser(update, rtol=0.0, atol=0.0)
 
 
-def refine_poses(objective: Callable[[Array], Array], poses: Pose, box: SceneBox, direction: str = "max",
-                 config: RefineConfig = RefineConfig()) -> RefineResult:
+def refine_poses(
+    objective: Callable[[Array], Array],
+    poses: Pose,
+    box: SceneBox,
+    direction: str = "max",
+    config: RefineConfig = RefineConfig(),
+) -> RefineResult:
     """`config.steps` bounded gradient steps from each pose; the best point of each path (jit-able).
 
     Args:
@@ -269,33 +280,52 @@ def refine_poses(objective: Callable[[Array], Array], poses: Pose, box: SceneBox
     nan = jnp.full((count,), jnp.nan, jnp.float32)
     init = (offsets, state, offsets, jnp.full((count,), -jnp.inf, jnp.float32), nan, jnp.zeros((count,), jnp.int32))
     (_, _, best, best_fitness, start_values, accepted), _ = jax.lax.scan(
-        step, init, jnp.arange(config.steps, dtype=jnp.int32))
-    refined = Pose(origin=poses.origin + box.extent * best[:, :3], target=poses.target + box.extent * best[:, 3:],
-                   up=poses.up)
+        step, init, jnp.arange(config.steps, dtype=jnp.int32)
+    )
+    refined = Pose(
+        origin=poses.origin + box.extent * best[:, :3], target=poses.target + box.extent * best[:, 3:], up=poses.up
+    )
     values = jnp.where(jnp.isfinite(best_fitness), sign * best_fitness, jnp.nan)
-    return RefineResult(poses=refined, start_values=start_values, values=values, accepted=accepted, scores=nan,
-                        improved=jnp.zeros((count,), bool))
+    return RefineResult(
+        poses=refined,
+        start_values=start_values,
+        values=values,
+        accepted=accepted,
+        scores=nan,
+        improved=jnp.zeros((count,), bool),
+    )
 
 
-def _refine(objective, score_fn, poses: Pose, scores: Array, box: SceneBox, direction: str,
-            config: RefineConfig) -> RefineResult:
+def _refine(
+    objective, score_fn, poses: Pose, scores: Array, box: SceneBox, direction: str, config: RefineConfig
+) -> RefineResult:
     sign = direction_sign(direction)
     result = refine_poses(objective, poses, box, direction, config)
     new_scores = jnp.asarray(score_fn(jax.vmap(pose_to_c2w)(result.poses)), jnp.float32).reshape(scores.shape)
     start_fitness = jnp.where(jnp.isfinite(scores), sign * scores, -jnp.inf)
-    moved = jnp.any(result.poses.origin != poses.origin, axis=-1) | jnp.any(result.poses.target != poses.target, axis=-1)
+    moved = jnp.any(result.poses.origin != poses.origin, axis=-1) | jnp.any(
+        result.poses.target != poses.target, axis=-1
+    )
     # A pose that did not move keeps its given score (its re-render could differ by rounding alone).
     improved = moved & jnp.isfinite(new_scores) & (sign * new_scores > start_fitness)
     pick = lambda new, old: jnp.where(improved.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
-    return result.replace(poses=jax.tree.map(pick, result.poses, poses), scores=pick(new_scores, scores),
-                          improved=improved)
+    return result.replace(
+        poses=jax.tree.map(pick, result.poses, poses), scores=pick(new_scores, scores), improved=improved
+    )
 
 
 _refine_jit = jax.jit(_refine, static_argnames=("direction", "config"))
 
 
-def refine(objective: Callable[[Array], Array], score_fn: Callable[[Array], Array], poses: Pose, scores: Array,
-           box: SceneBox, direction: str = "max", config: RefineConfig = RefineConfig()) -> RefineResult:
+def refine(
+    objective: Callable[[Array], Array],
+    score_fn: Callable[[Array], Array],
+    poses: Pose,
+    scores: Array,
+    box: SceneBox,
+    direction: str = "max",
+    config: RefineConfig = RefineConfig(),
+) -> RefineResult:
     """Refines poses and keeps, per pose, the better of start and refined pose by the exact score.
 
     Args:
@@ -311,8 +341,15 @@ def refine(objective: Callable[[Array], Array], score_fn: Callable[[Array], Arra
     Returns:
       `RefineResult`: `scores` is never worse than the start's (NaN start scores can only improve).
     """
-    return _refine_jit(jax.tree_util.Partial(objective), jax.tree_util.Partial(score_fn), poses,
-                       jnp.asarray(scores, jnp.float32), box, direction=direction, config=config)
+    return _refine_jit(
+        jax.tree_util.Partial(objective),
+        jax.tree_util.Partial(score_fn),
+        poses,
+        jnp.asarray(scores, jnp.float32),
+        box,
+        direction=direction,
+        config=config,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -340,14 +377,17 @@ class RefinedConfig:
 
     def __post_init__(self):
         if self.refine.poses > self.children_per_epoch:
-            raise ValueError(f"refining {self.refine.poses} poses needs at least as many children per epoch, "
-                             f"got {self.children_per_epoch}")
+            raise ValueError(
+                f"refining {self.refine.poses} poses needs at least as many children per epoch, "
+                f"got {self.children_per_epoch}"
+            )
         if self.refine.epochs > self.epochs:
             raise ValueError(f"refine epochs ({self.refine.epochs}) exceed the search's {self.epochs} epochs")
 
 
-def _refined_children(population: Population, children: Pose, mask: Array, objective,
-                      config: RefinedConfig) -> Tuple[Pose, Array]:
+def _refined_children(
+    population: Population, children: Pose, mask: Array, objective, config: RefinedConfig
+) -> Tuple[Pose, Array]:
     """The epoch's children with the last `refine.poses` replaced by refined copies of the best poses."""
     count = config.refine.poses
     indices, ok = top_k_indices(population, count)
@@ -375,13 +415,18 @@ def refined_method(base: SearchMethod) -> SearchMethod:
     def init(key: PRNGKey, population: Population, params, config: RefinedConfig):
         return base.init(key, population, params, config.base)
 
-    def ask(key: PRNGKey, population: Population, state, params, config: RefinedConfig, epoch: Array,
-            objective) -> Tuple[Pose, Array, Population, Any]:
+    def ask(
+        key: PRNGKey, population: Population, state, params, config: RefinedConfig, epoch: Array, objective
+    ) -> Tuple[Pose, Array, Population, Any]:
         children, mask, population, state = base.ask(key, population, state, params, config.base, epoch, objective)
         refining = epoch > config.epochs - config.refine.epochs
         children, mask = jax.lax.cond(
-            refining, lambda c, m: _refined_children(population, c, m, objective, config), lambda c, m: (c, m),
-            children, mask)
+            refining,
+            lambda c, m: _refined_children(population, c, m, objective, config),
+            lambda c, m: (c, m),
+            children,
+            mask,
+        )
         return children, mask, population, state
 
     def tell(key: PRNGKey, state, fitness: Array, params, config: RefinedConfig):
@@ -389,16 +434,31 @@ def refined_method(base: SearchMethod) -> SearchMethod:
 
     options = base.options + ("refine",)
 
-    def create(children_per_epoch: int, epochs: Optional[int] = None, method: str = name,
-               refine: RefineConfig = RefineConfig(), **base_options):
+    def create(
+        children_per_epoch: int,
+        epochs: Optional[int] = None,
+        method: str = name,
+        refine: RefineConfig = RefineConfig(),
+        **base_options,
+    ):
         check_options(method, base_options, options)
         if epochs is None:
             raise ConfigError(f"search method {method!r} needs the search's epochs (its last refine.epochs refine)")
-        return RefinedConfig(base=base.config_type.create(children_per_epoch, epochs, method=method, **base_options),
-                             refine=refine, epochs=int(epochs))
+        return RefinedConfig(
+            base=base.config_type.create(children_per_epoch, epochs, method=method, **base_options),
+            refine=refine,
+            epochs=int(epochs),
+        )
 
-    return SearchMethod(name=name, params_type=base.params_type, config_type=_Factory(create, options), ask_fn=ask,
-                        init_fn=init, tell_fn=tell, differentiable=True)
+    return SearchMethod(
+        name=name,
+        params_type=base.params_type,
+        config_type=_Factory(create, options),
+        ask_fn=ask,
+        init_fn=init,
+        tell_fn=tell,
+        differentiable=True,
+    )
 
 
 @dataclasses.dataclass(frozen=True)

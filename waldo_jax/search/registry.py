@@ -30,5 +30,5 @@ def get_method(name: str) -> SearchMethod:
     if name in METHODS:
         return METHODS[name]
     if isinstance(name, str) and name.startswith(EVOSAX_PREFIX):
-        return evosax_method(name[len(EVOSAX_PREFIX):])
+        return evosax_method(name[len(EVOSAX_PREFIX) :])
     raise ValueError(f"unknown search method {name!r}; choose one of {method_names()}")

@@ -27,9 +27,25 @@ from waldo_jax.search.method import SearchMethod, check_options
 from waldo_jax.search.population import Population, top_k_indices
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["PREFIX", "POSE_DIM", "WORST", "Params", "Config", "EvosaxState", "strategy_names", "make_strategy",
-           "is_distribution_based", "strategy_params", "pose_scaling", "to_vector", "to_pose", "init", "ask", "tell",
-           "evosax_method"]
+__all__ = [
+    "PREFIX",
+    "POSE_DIM",
+    "WORST",
+    "Params",
+    "Config",
+    "EvosaxState",
+    "strategy_names",
+    "make_strategy",
+    "is_distribution_based",
+    "strategy_params",
+    "pose_scaling",
+    "to_vector",
+    "to_pose",
+    "init",
+    "ask",
+    "tell",
+    "evosax_method",
+]
 
 PREFIX = "evosax:"
 POSE_DIM = 9
@@ -59,8 +75,9 @@ class Config:
 
     def __post_init__(self):
         if self.children_per_epoch < 2:
-            raise ValueError(f"an evosax strategy needs a population of at least 2, got {self.children_per_epoch} "
-                             "children per epoch")
+            raise ValueError(
+                f"an evosax strategy needs a population of at least 2, got {self.children_per_epoch} children per epoch"
+            )
         make_strategy(self.strategy, self.children_per_epoch)  # raises a clear error for an unusable one
 
 
@@ -159,16 +176,21 @@ def init(key: PRNGKey, population: Population, params: Params, config: Config) -
     return EvosaxState(strategy=es_state, asked=jnp.zeros((n, POSE_DIM), jnp.float32), shift=shift, scale=scale)
 
 
-def ask(key: PRNGKey, population: Population, state: EvosaxState, params: Params, config: Config,
-        epoch: Array, objective) -> Tuple[Pose, Array, Population, EvosaxState]:
+def ask(
+    key: PRNGKey, population: Population, state: EvosaxState, params: Params, config: Config, epoch: Array, objective
+) -> Tuple[Pose, Array, Population, EvosaxState]:
     """One epoch's children: the strategy's `children_per_epoch` asked vectors as poses (all real)."""
     del epoch, objective
     strategy = make_strategy(config.strategy, config.children_per_epoch)
     asked, es_state = strategy.ask(key, state.strategy, strategy_params(strategy, params))
     asked = jnp.asarray(asked, jnp.float32)
     children = to_pose(state.shift + state.scale * asked)
-    return children, jnp.ones(config.children_per_epoch, bool), population, state.replace(
-        strategy=es_state, asked=asked)
+    return (
+        children,
+        jnp.ones(config.children_per_epoch, bool),
+        population,
+        state.replace(strategy=es_state, asked=asked),
+    )
 
 
 def tell(key: PRNGKey, state: EvosaxState, fitness: Array, params: Params, config: Config) -> EvosaxState:
@@ -186,8 +208,9 @@ class _ConfigFactory:
     # The options `create` accepts besides children_per_epoch and epochs.
     OPTIONS = ()
 
-    def create(self, children_per_epoch: int, epochs: Optional[int] = None, method: str = "evosax",
-               **options: Any) -> Config:
+    def create(
+        self, children_per_epoch: int, epochs: Optional[int] = None, method: str = "evosax", **options: Any
+    ) -> Config:
         """The config for `children_per_epoch` children (`epochs` unused); `ConfigError` for any option."""
         del epochs
         check_options(method, options, self.OPTIONS)
@@ -203,5 +226,6 @@ def evosax_method(name: str) -> SearchMethod:
     """
     if name not in strategy_names():
         raise ValueError(f"unknown evosax strategy {name!r}; choose one of {', '.join(strategy_names())}")
-    return SearchMethod(name=PREFIX + name, params_type=Params, config_type=_ConfigFactory(name), ask_fn=ask,
-                        init_fn=init, tell_fn=tell)
+    return SearchMethod(
+        name=PREFIX + name, params_type=Params, config_type=_ConfigFactory(name), ask_fn=ask, init_fn=init, tell_fn=tell
+    )

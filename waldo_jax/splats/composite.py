@@ -34,8 +34,9 @@ from waldo_jax.types import Array
 __all__ = ["ChunkSplats", "alphas", "segmented", "composite_chunks"]
 
 
-def alphas(pixels: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array, alpha_min: float,
-           alpha_max: float) -> Array:
+def alphas(
+    pixels: Array, mean2d: Array, conic: Array, opacity: Array, filled: Array, alpha_min: float, alpha_max: float
+) -> Array:
     """alpha [K, S] of one splat per chunk (the i-th of each) at its tile's pixel centres (0 where skipped).
 
     Args:
@@ -95,14 +96,16 @@ def _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, a
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9))
 def _composite_vjp(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance):
-    values, leaving, _ = _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max,
-                                  min_transmittance)
+    values, leaving, _ = _forward(
+        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
+    )
     return values, leaving
 
 
 def _composite_fwd(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance):
-    values, leaving, entering = _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min,
-                                         alpha_max, min_transmittance)
+    values, leaving, entering = _forward(
+        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
+    )
     return (values, leaving), (pixels, first, mean2d, conic, opacity, filled, sample, entering, values)
 
 
@@ -143,14 +146,26 @@ def _composite_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangent
         live = used & (raw < alpha_max)
         d_power = jnp.where(live, d_alpha * alpha, 0.0)
         d_o = jnp.sum(jnp.where(live, d_alpha * jnp.exp(jnp.minimum(power, 0.0)), 0.0), axis=1)
-        d_m = jnp.stack([jnp.sum(d_power * (c[:, None, 0] * ddx + c[:, None, 1] * ddy), 1),
-                         jnp.sum(d_power * (c[:, None, 1] * ddx + c[:, None, 2] * ddy), 1)], -1)
-        d_c = jnp.stack([jnp.sum(d_power * -0.5 * ddx * ddx, 1), jnp.sum(d_power * -ddx * ddy, 1),
-                         jnp.sum(d_power * -0.5 * ddy * ddy, 1)], -1)
+        d_m = jnp.stack(
+            [
+                jnp.sum(d_power * (c[:, None, 0] * ddx + c[:, None, 1] * ddy), 1),
+                jnp.sum(d_power * (c[:, None, 1] * ddx + c[:, None, 2] * ddy), 1),
+            ],
+            -1,
+        )
+        d_c = jnp.stack(
+            [
+                jnp.sum(d_power * -0.5 * ddx * ddx, 1),
+                jnp.sum(d_power * -ddx * ddy, 1),
+                jnp.sum(d_power * -0.5 * ddy * ddy, 1),
+            ],
+            -1,
+        )
         return suffix + weight * e, (d_m, d_c, d_o, d_v)
 
     _, (d_mean2d, d_conic, d_opacity, d_sample) = jax.lax.scan(
-        backward, later, (mean2d, conic, opacity, filled, sample, before), reverse=True)
+        backward, later, (mean2d, conic, opacity, filled, sample, before), reverse=True
+    )
     return None, None, d_mean2d, d_conic, d_opacity, None, d_sample
 
 
@@ -173,8 +188,16 @@ class ChunkSplats(NamedTuple):
     filled: Array
 
 
-def composite_chunks(pixels: Array, first: Array, splats: ChunkSplats, sample: Array, alpha_min: float,
-                     alpha_max: float, min_transmittance: float, custom_gradient: bool = True):
+def composite_chunks(
+    pixels: Array,
+    first: Array,
+    splats: ChunkSplats,
+    sample: Array,
+    alpha_min: float,
+    alpha_max: float,
+    min_transmittance: float,
+    custom_gradient: bool = True,
+):
     """The chunks' composited values and the transmittance leaving each (see the module docstring).
 
     Args:
@@ -192,8 +215,10 @@ def composite_chunks(pixels: Array, first: Array, splats: ChunkSplats, sample: A
     """
     mean2d, conic, opacity, filled = splats
     if custom_gradient:
-        return _composite_vjp(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max,
-                              min_transmittance)
-    values, leaving, _ = _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max,
-                                  min_transmittance)
+        return _composite_vjp(
+            pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
+        )
+    values, leaving, _ = _forward(
+        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
+    )
     return values, leaving

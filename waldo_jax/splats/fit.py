@@ -172,8 +172,13 @@ def _knn_scale(points: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(mean, 1e-7))
 
 
-def init_splats(key: PRNGKey, scene: Scene, config: FitConfig,
-                points: Optional[np.ndarray] = None, colors: Optional[np.ndarray] = None) -> Tuple[Splats, str]:
+def init_splats(
+    key: PRNGKey,
+    scene: Scene,
+    config: FitConfig,
+    points: Optional[np.ndarray] = None,
+    colors: Optional[np.ndarray] = None,
+) -> Tuple[Splats, str]:
     """The initial splats in `config.capacity` rows (the rest invalid) and how they were made.
 
     Args:
@@ -263,11 +268,14 @@ def _sh_adam(lr_dc: float, lr_rest: float) -> optax.GradientTransformation:
 
 def _optimizer(config: FitConfig, extent: float) -> optax.GradientTransformation:
     """Adam with the reference's per-parameter learning rates (the means' decaying, x the scene extent)."""
-    means_lr = optax.exponential_decay(config.lr_means * extent, config.steps,
-                                       config.lr_means_final / config.lr_means)
-    transforms = {"means": optax.adam(means_lr, eps=1e-15), "log_scales": optax.adam(config.lr_scales, eps=1e-15),
-                  "quats": optax.adam(config.lr_quats, eps=1e-15), "logits": optax.adam(config.lr_opacity, eps=1e-15),
-                  "sh": _sh_adam(config.lr_sh_dc, config.lr_sh_rest)}
+    means_lr = optax.exponential_decay(config.lr_means * extent, config.steps, config.lr_means_final / config.lr_means)
+    transforms = {
+        "means": optax.adam(means_lr, eps=1e-15),
+        "log_scales": optax.adam(config.lr_scales, eps=1e-15),
+        "quats": optax.adam(config.lr_quats, eps=1e-15),
+        "logits": optax.adam(config.lr_opacity, eps=1e-15),
+        "sh": _sh_adam(config.lr_sh_dc, config.lr_sh_rest),
+    }
     return optax.multi_transform(transforms, {name: name for name in _FIELDS})
 
 
@@ -277,8 +285,17 @@ def _sh_mask(degree_now: Array, k: int) -> Array:
     return (jnp.asarray(degree_of)[:, None] <= degree_now).astype(jnp.float32)
 
 
-def _loss(params: Dict[str, Array], offset: Array, valid: Array, c2w: Array, target: Array, background: Array,
-          degree_now: Array, intrinsics, config: FitConfig):
+def _loss(
+    params: Dict[str, Array],
+    offset: Array,
+    valid: Array,
+    c2w: Array,
+    target: Array,
+    background: Array,
+    degree_now: Array,
+    intrinsics,
+    config: FitConfig,
+):
     splats = Splats(**{**params, "sh": params["sh"] * _sh_mask(degree_now, params["sh"].shape[1])}, valid=valid)
     rgb, _, _, stats = render_view(splats, c2w, intrinsics, config.render, background, mean2d_offset=offset)
     l1 = jnp.mean(jnp.abs(rgb - target))
@@ -301,12 +318,13 @@ def _step(state: _State, key: PRNGKey, step: Array, data: _Data, intrinsics, opt
 
     def total(params, offset):
         losses, (rgb, stats) = jax.vmap(
-            lambda o, c, t, b: _loss(params, o, state.valid, c, t, b, degree_now, intrinsics, config))(
-            offset, c2w, target, background)
+            lambda o, c, t, b: _loss(params, o, state.valid, c, t, b, degree_now, intrinsics, config)
+        )(offset, c2w, target, background)
         return jnp.mean(losses), (rgb, stats)
 
     (loss, (rgb, stats)), (grads, grad_offset) = jax.value_and_grad(total, argnums=(0, 1), has_aux=True)(
-        state.params, offset)
+        state.params, offset
+    )
     updates, opt = optimizer.update(grads, state.opt, state.params)
     params = optax.apply_updates(state.params, updates)
     # The view-space positional gradient of each view in the reference's units (normalised device
@@ -314,14 +332,22 @@ def _step(state: _State, key: PRNGKey, step: Array, data: _Data, intrinsics, opt
     ndc = jnp.array([0.5 * intrinsics.width, 0.5 * intrinsics.height], jnp.float32)
     norm = jnp.linalg.norm(grad_offset * ndc, axis=-1) * config.views_per_step  # [V, N]
     mse = jnp.mean((rgb - target) ** 2)
-    new = state.replace(params=params, opt=opt, grad_sum=state.grad_sum + jnp.sum(norm, 0),
-                        grad_count=state.grad_count + jnp.sum(norm > 0, 0))
-    return new, {"loss": loss, "psnr": -10.0 * jnp.log10(jnp.maximum(mse, 1e-12)),
-                 "pair_overflow": jnp.sum(stats.pair_overflow > 0)}
+    new = state.replace(
+        params=params,
+        opt=opt,
+        grad_sum=state.grad_sum + jnp.sum(norm, 0),
+        grad_count=state.grad_count + jnp.sum(norm > 0, 0),
+    )
+    return new, {
+        "loss": loss,
+        "psnr": -10.0 * jnp.log10(jnp.maximum(mse, 1e-12)),
+        "pair_overflow": jnp.sum(stats.pair_overflow > 0),
+    }
 
 
-def _run_steps(state: _State, key: PRNGKey, first: Array, data: _Data, intrinsics, optimizer, config: FitConfig,
-               count: int):
+def _run_steps(
+    state: _State, key: PRNGKey, first: Array, data: _Data, intrinsics, optimizer, config: FitConfig, count: int
+):
     def body(state, index):
         step = first + index
         return _step(state, jax.random.fold_in(key, step), step, data, intrinsics, optimizer, config)
@@ -358,8 +384,11 @@ def _densify(state: _State, key: PRNGKey, extent: Array, reset_opacity: Array, c
     large = scale_max > config.percent_dense * extent
     candidate = splats.valid & (grad >= config.grad_threshold) & (state.grad_count > 0)
     split = candidate & large
-    prune = splats.valid & ~candidate & ((splats.opacities() < config.prune_opacity)
-                                         | (scale_max > config.max_scale * extent))
+    prune = (
+        splats.valid
+        & ~candidate
+        & ((splats.opacities() < config.prune_opacity) | (scale_max > config.max_scale * extent))
+    )
     valid = splats.valid & ~prune
     # One new row per candidate, largest gradients first, into the free rows; the rest are counted.
     source = jnp.argsort(jnp.where(candidate, -grad, jnp.inf))  # [N] candidates first
@@ -371,24 +400,29 @@ def _densify(state: _State, key: PRNGKey, extent: Array, reset_opacity: Array, c
     # A split's two halves are drawn from the Gaussian and shrink by 1.6; a clone is a copy.
     rotation = quat_to_rotmat(splats.rotations())  # [N, 3, 3]
     key_a, key_b = jax.random.split(key)
-    draw = lambda k: splats.means + jnp.einsum("nij,nj->ni", rotation,  # noqa: E731
-                                               jax.random.normal(k, (n, 3)) * splats.scales())
+
+    def draw(k):
+        return splats.means + jnp.einsum("nij,nj->ni", rotation, jax.random.normal(k, (n, 3)) * splats.scales())
+
     shrink = jnp.where(split, jnp.log(1.6), 0.0)[:, None]
     moved = jnp.where(split[:, None], draw(key_a), splats.means)
     params = dict(state.params)
     params["means"] = moved.at[target].set(jnp.where(split[:, None], draw(key_b), splats.means)[source], mode="drop")
-    params["log_scales"] = (splats.log_scales - shrink).at[target].set((splats.log_scales - shrink)[source],
-                                                                         mode="drop")
+    params["log_scales"] = (
+        (splats.log_scales - shrink).at[target].set((splats.log_scales - shrink)[source], mode="drop")
+    )
     for name in ("quats", "logits", "sh"):
         params[name] = params[name].at[target].set(params[name][source], mode="drop")
     added = jnp.zeros(n, bool).at[target].set(True, mode="drop")
     valid = valid | added
-    params["logits"] = jnp.where(reset_opacity & valid, jnp.minimum(params["logits"], math.log(0.01 / 0.99)),
-                                 params["logits"])
+    params["logits"] = jnp.where(
+        reset_opacity & valid, jnp.minimum(params["logits"], math.log(0.01 / 0.99)), params["logits"]
+    )
     opt = _reset_moments(state.opt, added | split | prune)
     opt = _reset_moments(opt, jnp.broadcast_to(reset_opacity, (n,)), field="logits")
-    return state.replace(params=params, valid=valid, opt=opt, grad_sum=jnp.zeros(n, jnp.float32),
-                         grad_count=jnp.zeros(n, jnp.int32)), wanted - placed
+    return state.replace(
+        params=params, valid=valid, opt=opt, grad_sum=jnp.zeros(n, jnp.float32), grad_count=jnp.zeros(n, jnp.int32)
+    ), wanted - placed
 
 
 _densify_jit = jax.jit(_densify, static_argnames=("config",))
@@ -405,8 +439,11 @@ def _data(scene: Scene) -> _Data:
         alphas = np.asarray(scene.alphas, np.float32)
         background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
         images = images - (1.0 - alphas[..., None]) * background  # premultiplied
-    return _Data(images=jnp.asarray(images), alphas=None if alphas is None else jnp.asarray(alphas),
-                 c2w=jnp.asarray(np.asarray(scene.c2w, np.float32)[:, :3, :4]))
+    return _Data(
+        images=jnp.asarray(images),
+        alphas=None if alphas is None else jnp.asarray(alphas),
+        c2w=jnp.asarray(np.asarray(scene.c2w, np.float32)[:, :3, :4]),
+    )
 
 
 def _scene_extent(scene: Scene) -> float:
@@ -430,14 +467,22 @@ def evaluate_splats(splats: Splats, scene: Scene, config: SplatRenderConfig) -> 
     background = np.zeros(3, np.float32) if scene.background is None else np.asarray(scene.background, np.float32)
     c2w = jnp.asarray(np.asarray(scene.c2w, np.float32))
     config = dataclasses.replace(config, max_pairs=_max_pairs(splats, c2w, scene.intrinsics, config))
-    rendered = jax.jit(render_splats, static_argnames=("config",))(splats, c2w, scene.intrinsics, config=config,
-                                                                   background=jnp.asarray(background))
+    rendered = jax.jit(render_splats, static_argnames=("config",))(
+        splats, c2w, scene.intrinsics, config=config, background=jnp.asarray(background)
+    )
     return psnr(np.asarray(rendered.rgb), scene.images)
 
 
-def fit_splats(key: PRNGKey, scene: Scene, config: FitConfig = FitConfig(), test_scene: Optional[Scene] = None,
-               points: Optional[np.ndarray] = None, colors: Optional[np.ndarray] = None,
-               progress: bool = True, log=print) -> FitResult:
+def fit_splats(
+    key: PRNGKey,
+    scene: Scene,
+    config: FitConfig = FitConfig(),
+    test_scene: Optional[Scene] = None,
+    points: Optional[np.ndarray] = None,
+    colors: Optional[np.ndarray] = None,
+    progress: bool = True,
+    log=print,
+) -> FitResult:
     """Fits splats to `scene`'s images; the held-out PSNR on `test_scene` when given.
 
     Args:
@@ -461,8 +506,13 @@ def fit_splats(key: PRNGKey, scene: Scene, config: FitConfig = FitConfig(), test
     intrinsics = scene.intrinsics
     n = config.capacity
     params = _params(splats)
-    state = _State(params=params, valid=splats.valid, opt=optimizer.init(params),
-                   grad_sum=jnp.zeros(n, jnp.float32), grad_count=jnp.zeros(n, jnp.int32))
+    state = _State(
+        params=params,
+        valid=splats.valid,
+        opt=optimizer.init(params),
+        grad_sum=jnp.zeros(n, jnp.float32),
+        grad_count=jnp.zeros(n, jnp.int32),
+    )
     sample = data.c2w[:: max(1, data.c2w.shape[0] // 16)]
     render_config = dataclasses.replace(config.render, max_pairs=_max_pairs(splats, sample, intrinsics, config.render))
     history: List[Dict[str, Any]] = [{"step": 0, "splats": int(np.sum(np.asarray(splats.valid))), "init": how}]
@@ -475,29 +525,49 @@ def fit_splats(key: PRNGKey, scene: Scene, config: FitConfig = FitConfig(), test
         step += count
         metrics = jax.device_get(metrics)
         overflow_views += int(np.sum(metrics["pair_overflow"]))
-        row = {"step": step, "loss": float(np.mean(metrics["loss"])), "psnr": float(np.mean(metrics["psnr"])),
-               "max_pairs": render_config.max_pairs}
+        row = {
+            "step": step,
+            "loss": float(np.mean(metrics["loss"])),
+            "psnr": float(np.mean(metrics["psnr"])),
+            "max_pairs": render_config.max_pairs,
+        }
         if config.densify_from <= step <= config.last_densify and step < config.steps:
             reset = config.opacity_reset_every > 0 and step % config.opacity_reset_every == 0
-            state, dropped = _densify_jit(state, jax.random.fold_in(key_densify, step), jnp.float32(extent),
-                                          jnp.bool_(reset), config=cfg)
+            state, dropped = _densify_jit(
+                state, jax.random.fold_in(key_densify, step), jnp.float32(extent), jnp.bool_(reset), config=cfg
+            )
             dropped_total += int(dropped)
             render_config = dataclasses.replace(
-                render_config, max_pairs=_max_pairs(state.splats, sample, intrinsics, config.render))
-            row.update({"splats": int(np.sum(np.asarray(state.splats.valid))), "densify_dropped": int(dropped),
-                        "opacity_reset": bool(reset)})
+                render_config, max_pairs=_max_pairs(state.splats, sample, intrinsics, config.render)
+            )
+            row.update(
+                {
+                    "splats": int(np.sum(np.asarray(state.splats.valid))),
+                    "densify_dropped": int(dropped),
+                    "opacity_reset": bool(reset),
+                }
+            )
         history.append(row)
         if progress:
-            log(f"[fit] step {step}/{config.steps}: loss {row['loss']:.4f}, train PSNR {row['psnr']:.2f} dB, "
-                f"{int(np.sum(np.asarray(state.splats.valid)))} splats, max_pairs {render_config.max_pairs}")
+            log(
+                f"[fit] step {step}/{config.steps}: loss {row['loss']:.4f}, train PSNR {row['psnr']:.2f} dB, "
+                f"{int(np.sum(np.asarray(state.splats.valid)))} splats, max_pairs {render_config.max_pairs}"
+            )
     seconds = time.perf_counter() - start
     degree_now = min(step // config.sh_every, config.sh_degree)
     final = _compact(state.splats)
     final = final.replace(sh=final.sh * _sh_mask(jnp.int32(degree_now), final.sh.shape[1]))
     psnr_test = None if test_scene is None else evaluate_splats(final, test_scene, config.render)
-    return FitResult(splats=final, psnr_test=psnr_test, seconds=seconds, steps=step, history=tuple(history),
-                     max_pairs=render_config.max_pairs, overflow_views=overflow_views,
-                     densify_dropped=dropped_total)
+    return FitResult(
+        splats=final,
+        psnr_test=psnr_test,
+        seconds=seconds,
+        steps=step,
+        history=tuple(history),
+        max_pairs=render_config.max_pairs,
+        overflow_views=overflow_views,
+        densify_dropped=dropped_total,
+    )
 
 
 def _compact(splats: Splats) -> Splats:

@@ -37,8 +37,17 @@ from waldo_jax.scenes.ply import PlyElement, PlyHeader, read_ply_header
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 from waldo_jax.types import Intrinsics
 
-__all__ = ["SplatCameras", "SplatModel", "splat_ply_properties", "read_splat_ply", "write_splat_ply",
-           "read_cameras_json", "write_cameras_json", "load_splat_model", "write_splat_model"]
+__all__ = [
+    "SplatCameras",
+    "SplatModel",
+    "splat_ply_properties",
+    "read_splat_ply",
+    "write_splat_ply",
+    "read_cameras_json",
+    "write_cameras_json",
+    "load_splat_model",
+    "write_splat_model",
+]
 
 SH_C0 = 0.28209479177387814  # the degree-0 SH basis, 1 / (2 sqrt(pi)): colour = SH_C0 * f_dc + 0.5
 # Focal lengths in pixels: below this, float32 projections lose all precision (and a tiny float64
@@ -63,8 +72,15 @@ _CAMERA_KEYS = ("width", "height", "position", "rotation", "fx", "fy")
 def splat_ply_properties(sh_degree: int, normals: bool = True) -> List[str]:
     """The reference PLY's vertex properties in their order, for SH `sh_degree` (0..3)."""
     rest = 3 * (sh_coefficients(sh_degree) - 1)
-    return (list(_XYZ) + (["nx", "ny", "nz"] if normals else []) + list(_DC)
-            + [f"f_rest_{i}" for i in range(rest)] + ["opacity"] + list(_SCALES) + list(_ROTS))
+    return (
+        list(_XYZ)
+        + (["nx", "ny", "nz"] if normals else [])
+        + list(_DC)
+        + [f"f_rest_{i}" for i in range(rest)]
+        + ["opacity"]
+        + list(_SCALES)
+        + list(_ROTS)
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -75,35 +91,50 @@ def _splat_layout(path: Path, header: PlyHeader, vertex: PlyElement) -> Tuple[Li
     """Checks the vertex properties; returns (properties to read, M, colours from red/green/blue)."""
     types = dict(vertex.properties)
     if "packed_position" in types or header.element("chunk") is not None:
-        raise SceneFormatError(path, "a compressed splat PLY (SuperSplat / gsplat 'ply_compressed'): not supported, "
-                               "export the uncompressed reference layout")
+        raise SceneFormatError(
+            path,
+            "a compressed splat PLY (SuperSplat / gsplat 'ply_compressed'): not supported, "
+            "export the uncompressed reference layout",
+        )
     rest = {int(m.group(1)): name for name in types if (m := _REST.fullmatch(name))}
     splat_only = set(_DC) | {"opacity"} | set(_SCALES) | set(_ROTS)
     if all(k in types for k in _XYZ) and not rest and not splat_only & set(types):
-        raise SceneFormatError(path, f"a point cloud, not a splat scene (its vertices have {' '.join(types)}; "
-                               "a splat PLY's have f_dc_0..2, opacity, scale_0..2, rot_0..3)")
+        raise SceneFormatError(
+            path,
+            f"a point cloud, not a splat scene (its vertices have {' '.join(types)}; "
+            "a splat PLY's have f_dc_0..2, opacity, scale_0..2, rot_0..3)",
+        )
     if vertex.has_lists:
         lists = [p for p, t in vertex.properties if t == "list"]
-        raise SceneFormatError(path, f"the vertex element has list properties ({', '.join(lists)}): not supported "
-                               "in a splat PLY")
+        raise SceneFormatError(
+            path, f"the vertex element has list properties ({', '.join(lists)}): not supported in a splat PLY"
+        )
     # nerfstudio's `ply_color_mode="rgb"` export writes red/green/blue in place of f_dc.
     from_rgb = not any(k in types for k in _DC) and all(k in types for k in _RGB)
     wanted = list(_XYZ) + ([] if from_rgb else list(_DC)) + ["opacity"] + list(_SCALES) + list(_ROTS)
     missing = [k for k in wanted if k not in types]
     if missing:
-        raise SceneFormatError(path, f"missing splat properties {', '.join(missing)} (a splat PLY's vertices have "
-                               "x y z f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3)")
+        raise SceneFormatError(
+            path,
+            f"missing splat properties {', '.join(missing)} (a splat PLY's vertices have "
+            "x y z f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3)",
+        )
     if header.format != "binary_little_endian":
-        raise SceneFormatError(path, f"{header.format} PLY is not supported: convert it to binary_little_endian "
-                               "(the reference 3DGS layout)")
+        raise SceneFormatError(
+            path,
+            f"{header.format} PLY is not supported: convert it to binary_little_endian (the reference 3DGS layout)",
+        )
     m = len(rest)
     gaps = [f"f_rest_{i}" for i in range(m) if i not in rest]
     if gaps:
         raise SceneFormatError(path, f"f_rest_* properties are not numbered 0..{m - 1}: missing {', '.join(gaps[:4])}")
     k = m // 3 + 1
     if m % 3 or math.isqrt(k) ** 2 != k or math.isqrt(k) - 1 > MAX_SH_DEGREE:
-        raise SceneFormatError(path, f"{m} f_rest_* properties are no SH degree 0..{MAX_SH_DEGREE} (expected 0, 9, 24 "
-                               "or 45: 3 ((degree + 1)^2 - 1))")
+        raise SceneFormatError(
+            path,
+            f"{m} f_rest_* properties are no SH degree 0..{MAX_SH_DEGREE} (expected 0, 9, 24 "
+            "or 45: 3 ((degree + 1)^2 - 1))",
+        )
     wanted += [rest[i] for i in range(m)]
     wrong = [f"{p} is {types[p]}" for p in wanted if types[p] not in _FLOAT_TYPES]
     if wrong:
@@ -124,8 +155,11 @@ def _check_values(path: Path, columns: dict, n: int) -> None:
             counts.append(f"{name} ({int(bad.sum())} rows)")
     if counts:
         more = f" and {len(counts) - 6} more properties" if len(counts) > 6 else ""
-        raise SceneFormatError(path, f"non-finite values (NaN, infinity, or beyond float32) in {int(bad_rows.sum())} "
-                               f"of {n} splats: {', '.join(counts[:6])}{more}")
+        raise SceneFormatError(
+            path,
+            f"non-finite values (NaN, infinity, or beyond float32) in {int(bad_rows.sum())} "
+            f"of {n} splats: {', '.join(counts[:6])}{more}",
+        )
     quats = np.stack([columns[k] for k in _ROTS], -1)
     with np.errstate(over="ignore", under="ignore"):
         zero = np.flatnonzero(np.sum(quats * quats, -1) < np.finfo(np.float32).tiny)
@@ -174,8 +208,11 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
             expected = n * dtype.itemsize
             available = os.fstat(f.fileno()).st_size - offset
             if available < expected:
-                raise SceneFormatError(path, f"truncated: {n} splats of {dtype.itemsize} bytes need {expected} bytes "
-                                       f"of data, the file holds {max(available, 0)}")
+                raise SceneFormatError(
+                    path,
+                    f"truncated: {n} splats of {dtype.itemsize} bytes need {expected} bytes "
+                    f"of data, the file holds {max(available, 0)}",
+                )
             f.seek(offset)
             data = np.fromfile(f, dtype=dtype, count=n)
     except OSError as e:
@@ -192,8 +229,13 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
     _check_values(path, columns, n)
     k = m // 3 + 1
     rest = np.stack([columns[f"f_rest_{i}"] for i in range(m)], -1) if m else np.zeros((n, 0), np.float32)
-    sh = np.concatenate([np.stack([columns[c] for c in _DC], -1)[:, None, :],  # [N, 1, 3]
-                         rest.reshape(n, 3, k - 1).transpose(0, 2, 1)], axis=1)  # [N, K, 3]
+    sh = np.concatenate(
+        [
+            np.stack([columns[c] for c in _DC], -1)[:, None, :],  # [N, 1, 3]
+            rest.reshape(n, 3, k - 1).transpose(0, 2, 1),
+        ],
+        axis=1,
+    )  # [N, K, 3]
     return make_splats(
         means=np.stack([columns[c] for c in _XYZ], -1),
         log_scales=np.stack([columns[c] for c in _SCALES], -1),
@@ -231,19 +273,28 @@ def write_splat_ply(path: str | os.PathLike, splats: Splats, normals: bool = Tru
     n, k = sh.shape[:2]
     columns = [np.asarray(splats.means, np.float32)[rows]]
     columns += [np.zeros((n, 3), np.float32)] if normals else []
-    columns += [sh[:, 0, :], sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
-                np.asarray(splats.logits, np.float32)[rows, None], np.asarray(splats.log_scales, np.float32)[rows],
-                np.asarray(splats.quats, np.float32)[rows]]
+    columns += [
+        sh[:, 0, :],
+        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
+        np.asarray(splats.logits, np.float32)[rows, None],
+        np.asarray(splats.log_scales, np.float32)[rows],
+        np.asarray(splats.quats, np.float32)[rows],
+    ]
     table = np.ascontiguousarray(np.concatenate(columns, axis=1), "<f4")  # [N, properties]
     quats = table[:, -4:]
     with np.errstate(over="ignore", under="ignore"):
         bad = ~np.all(np.isfinite(table), axis=1) | (np.sum(quats * quats, -1) < np.finfo(np.float32).tiny)
     if bad.any():
-        raise WaldoError(f"{path}: {int(bad.sum())} valid splats have non-finite values or a zero quaternion (first: "
-                         f"row {int(rows[np.argmax(bad)])}); mark them invalid before writing")
+        raise WaldoError(
+            f"{path}: {int(bad.sum())} valid splats have non-finite values or a zero quaternion (first: "
+            f"row {int(rows[np.argmax(bad)])}); mark them invalid before writing"
+        )
     names = splat_ply_properties(splats.sh_degree, normals)
-    header = "".join(["ply\n", "format binary_little_endian 1.0\n", f"element vertex {n}\n"]
-                     + [f"property float {name}\n" for name in names] + ["end_header\n"])
+    header = "".join(
+        ["ply\n", "format binary_little_endian 1.0\n", f"element vertex {n}\n"]
+        + [f"property float {name}\n" for name in names]
+        + ["end_header\n"]
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(path) as f:
         f.write(header.encode("ascii"))
@@ -295,18 +346,30 @@ def _camera_intrinsics(cam: dict, path: Path, what: str) -> Intrinsics:
     sides = []
     for key in ("width", "height"):
         v = cam[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v).is_integer() \
-                or not MIN_RESOLUTION <= v <= MAX_CAMERA_SIDE:
-            raise SceneFormatError(path, f"{what}: {key} must be a whole number of pixels between {MIN_RESOLUTION} and "
-                                   f"{MAX_CAMERA_SIDE}, got {v!r}")
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float))
+            or not float(v).is_integer()
+            or not MIN_RESOLUTION <= v <= MAX_CAMERA_SIDE
+        ):
+            raise SceneFormatError(
+                path,
+                f"{what}: {key} must be a whole number of pixels between {MIN_RESOLUTION} and "
+                f"{MAX_CAMERA_SIDE}, got {v!r}",
+            )
         sides.append(int(v))
     focal = []
     for key in ("fx", "fy"):
         v = cam[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                or not MIN_FOCAL <= v < _FLOAT32_MAX:
-            raise SceneFormatError(path, f"{what}: {key} must be a finite focal length of at least {MIN_FOCAL:g} "
-                                   f"pixels, got {v!r}")
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float))
+            or not math.isfinite(v)
+            or not MIN_FOCAL <= v < _FLOAT32_MAX
+        ):
+            raise SceneFormatError(
+                path, f"{what}: {key} must be a finite focal length of at least {MIN_FOCAL:g} pixels, got {v!r}"
+            )
         focal.append(float(v))
     return Intrinsics.create(sides[0], sides[1], focal[0], focal[1])
 
@@ -393,8 +456,10 @@ def write_cameras_json(path: str | os.PathLike, c2w, intrinsics, names: Sequence
     intrinsics = [intrinsics] * n if isinstance(intrinsics, Intrinsics) else list(intrinsics)
     names = list(names)
     if len(intrinsics) != n or len(names) != n or n == 0:
-        raise ValueError(f"{n} cameras need as many names and intrinsics (or one), got {len(names)} names and "
-                         f"{len(intrinsics)} intrinsics")
+        raise ValueError(
+            f"{n} cameras need as many names and intrinsics (or one), got {len(names)} names and "
+            f"{len(intrinsics)} intrinsics"
+        )
     entries, dropped = [], []
     for i, (m, camera, name) in enumerate(zip(c2w, intrinsics, names)):
         check_rigid(m, path, f"camera {i}")
@@ -402,11 +467,24 @@ def write_cameras_json(path: str | os.PathLike, c2w, intrinsics, names: Sequence
         if abs(d["cx"] - d["width"] / 2) > 1e-3 or abs(d["cy"] - d["height"] / 2) > 1e-3 or camera.has_distortion:
             dropped.append(i)
         rotation = m[:3, :3] * np.array([1.0, -1.0, -1.0])  # OpenGL -> OpenCV: negate the y and z columns
-        entries.append({"id": i, "img_name": str(name), "width": d["width"], "height": d["height"],
-                        "position": m[:3, 3].tolist(), "rotation": rotation.tolist(), "fy": d["fy"], "fx": d["fx"]})
+        entries.append(
+            {
+                "id": i,
+                "img_name": str(name),
+                "width": d["width"],
+                "height": d["height"],
+                "position": m[:3, 3].tolist(),
+                "rotation": rotation.tolist(),
+                "fy": d["fy"],
+                "fx": d["fx"],
+            }
+        )
     if dropped:
-        warnings.warn(f"{path}: cameras.json holds a centred pinhole only; the principal point or distortion of "
-                      f"{len(dropped)} cameras (first: camera {dropped[0]}) is dropped", stacklevel=2)
+        warnings.warn(
+            f"{path}: cameras.json holds a centred pinhole only; the principal point or distortion of "
+            f"{len(dropped)} cameras (first: camera {dropped[0]}) is dropped",
+            stacklevel=2,
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, entries)
     return path
@@ -455,15 +533,21 @@ def _find_ply(folder: Path) -> Tuple[Path, Optional[int]]:
     if iterations is None and folder.name == "point_cloud":
         iterations = folder
     if iterations is not None:
-        found = {int(m.group(1)): d / "point_cloud.ply" for d in iterations.iterdir()
-                 if (m := _ITERATION.fullmatch(d.name)) and (d / "point_cloud.ply").is_file()}
+        found = {
+            int(m.group(1)): d / "point_cloud.ply"
+            for d in iterations.iterdir()
+            if (m := _ITERATION.fullmatch(d.name)) and (d / "point_cloud.ply").is_file()
+        }
         if found:
             return found[max(found)], max(found)
     if (folder / "point_cloud.ply").is_file():
         return folder / "point_cloud.ply", _iteration_of(folder / "point_cloud.ply")
     holds = "; its point_cloud/ holds no iteration_<N>/point_cloud.ply" if iterations is not None else ""
-    raise SceneFormatError(folder, "no splat scene here: looked for point_cloud/iteration_<N>/point_cloud.ply (the "
-                           f"reference 3DGS layout) and point_cloud.ply{holds}")
+    raise SceneFormatError(
+        folder,
+        "no splat scene here: looked for point_cloud/iteration_<N>/point_cloud.ply (the "
+        f"reference 3DGS layout) and point_cloud.ply{holds}",
+    )
 
 
 def load_splat_model(path: str | os.PathLike) -> SplatModel:
@@ -481,8 +565,12 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
     """
     path = Path(path).expanduser()
     if not path.exists():
-        raise SceneFormatError(path, "no such file or folder" if not os.path.islink(path)
-                               else "a symbolic link that leads nowhere (a loop or a missing target)")
+        raise SceneFormatError(
+            path,
+            "no such file or folder"
+            if not os.path.islink(path)
+            else "a symbolic link that leads nowhere (a loop or a missing target)",
+        )
     if path.is_dir():
         ply, iteration = _find_ply(path)
     else:
@@ -499,8 +587,13 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
     return SplatModel(splats, cameras, ply, iteration, source)
 
 
-def write_splat_model(folder: str | os.PathLike, splats: Splats, iteration: int,
-                      cameras: Optional[SplatCameras] = None, normals: bool = True) -> Path:
+def write_splat_model(
+    folder: str | os.PathLike,
+    splats: Splats,
+    iteration: int,
+    cameras: Optional[SplatCameras] = None,
+    normals: bool = True,
+) -> Path:
     """Writes a model folder in the reference layout.
 
     Writes `<folder>/point_cloud/iteration_<iteration>/point_cloud.ply` (see `write_splat_ply`) and,

@@ -41,8 +41,10 @@ def sh_degree_of(coefficients: int) -> int:
     """The degree d with (d + 1)^2 == coefficients; a ValueError when there is none in 0..3."""
     degree = int(round(math.sqrt(coefficients))) - 1
     if degree < 0 or degree > MAX_SH_DEGREE or sh_coefficients(degree) != coefficients:
-        raise ValueError(f"{coefficients} SH coefficients per channel is no degree 0..{MAX_SH_DEGREE} "
-                         "((degree + 1)^2: 1, 4, 9 or 16)")
+        raise ValueError(
+            f"{coefficients} SH coefficients per channel is no degree 0..{MAX_SH_DEGREE} "
+            "((degree + 1)^2: 1, 4, 9 or 16)"
+        )
     return degree
 
 
@@ -92,8 +94,13 @@ def make_splats(means, log_scales, quats, logits, sh, valid=None) -> Splats:
     sh = np.asarray(sh, np.float32)
     if sh.ndim == 2:  # DC only, [N, 3]
         sh = sh[:, None, :]
-    arrays = dict(means=means, log_scales=np.asarray(log_scales, np.float32), quats=np.asarray(quats, np.float32),
-                  logits=np.asarray(logits, np.float32).reshape(n), sh=sh)
+    arrays = dict(
+        means=means,
+        log_scales=np.asarray(log_scales, np.float32),
+        quats=np.asarray(quats, np.float32),
+        logits=np.asarray(logits, np.float32).reshape(n),
+        sh=sh,
+    )
     expected = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "logits": (n,)}
     for name, shape in expected.items():
         if arrays[name].shape != shape:

@@ -232,8 +232,9 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     tx = z * jnp.clip(x / z, -lim_x, lim_x)
     ty = z * jnp.clip(y / z, -lim_y, lim_y)
     zero = jnp.zeros_like(z)
-    jac = jnp.stack([jnp.stack([fx / z, zero, -fx * tx / (z * z)], -1),
-                     jnp.stack([zero, fy / z, -fy * ty / (z * z)], -1)], axis=-2)  # [N, 2, 3]
+    jac = jnp.stack(
+        [jnp.stack([fx / z, zero, -fx * tx / (z * z)], -1), jnp.stack([zero, fy / z, -fy * ty / (z * z)], -1)], axis=-2
+    )  # [N, 2, 3]
     # Sigma2 = A A^T with A = J W R diag(s) [N, 2, 3]. Its determinant is the sum of A's squared 2x2
     # minors (Cauchy-Binet): no cancellation for needle-like splats, where a c - b^2 loses float32.
     a_mat = jac @ w2c @ m  # [N, 2, 3]
@@ -259,8 +260,9 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     rgb = sh_to_rgb(splats.sh, direction)  # [N, 3]
     finite = jnp.all(jnp.isfinite(mean2d), -1) & jnp.all(jnp.isfinite(conic), -1) & jnp.all(jnp.isfinite(rgb), -1)
     visible = splats.valid & in_front & ok & (opacity >= config.alpha_min) & finite
-    return Projected(mean2d=mean2d, conic=conic, depth=p[:, 2], opacity=opacity, rgb=rgb, extent=extent,
-                     visible=visible)
+    return Projected(
+        mean2d=mean2d, conic=conic, depth=p[:, 2], opacity=opacity, rgb=rgb, extent=extent, visible=visible
+    )
 
 
 def _tile_spans(projected: Projected, intrinsics: Intrinsics, config: SplatRenderConfig):
@@ -322,8 +324,9 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     # starts and a running maximum fills the run (cheaper than a binary search per slot).
     n_sorted = n_tiles[order]
     starts = jnp.where(n_sorted > 0, ends - n_sorted, config.max_pairs)  # [N]
-    marks = jnp.zeros(config.max_pairs, jnp.int32).at[starts].max(
-        jnp.arange(order.shape[0], dtype=jnp.int32), mode="drop")
+    marks = (
+        jnp.zeros(config.max_pairs, jnp.int32).at[starts].max(jnp.arange(order.shape[0], dtype=jnp.int32), mode="drop")
+    )
     rank = jax.lax.cummax(marks)  # [max_pairs]
     splat = order[rank]
     local = slot - (ends[rank] - n_sorted[rank])
@@ -350,14 +353,27 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     # (a 2D difference array over the tiles, scattered and summed; integers, so in any order exactly).
     inverse = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=jnp.int32))
     cut = visible & (ends[inverse] > config.max_pairs)  # [N], in splat order
-    corners = jnp.stack([lo[:, 1], lo[:, 0], lo[:, 1], hi[:, 0] + 1, hi[:, 1] + 1, lo[:, 0], hi[:, 1] + 1,
-                         hi[:, 0] + 1], -1).reshape(-1, 4, 2)  # [N, 4, (row, column)]
+    corners = jnp.stack(
+        [lo[:, 1], lo[:, 0], lo[:, 1], hi[:, 0] + 1, hi[:, 1] + 1, lo[:, 0], hi[:, 1] + 1, hi[:, 0] + 1], -1
+    ).reshape(-1, 4, 2)  # [N, 4, (row, column)]
     signs = jnp.array([1, -1, -1, 1], jnp.int32)
-    marks = jnp.zeros((tiles_y + 1, tiles_x + 1), jnp.int32).at[corners[..., 0], corners[..., 1]].add(
-        jnp.where(cut[:, None], signs, 0))
+    marks = (
+        jnp.zeros((tiles_y + 1, tiles_x + 1), jnp.int32)
+        .at[corners[..., 0], corners[..., 1]]
+        .add(jnp.where(cut[:, None], signs, 0))
+    )
     lost = (jnp.cumsum(jnp.cumsum(marks, 0), 1)[:tiles_y, :tiles_x] > 0).reshape(-1)  # [T]
-    return (ids, filled, jnp.where(used, tile, num_tiles), (level == 0) | ~used, last, counts, lost, pairs,
-            jnp.sum(visible).astype(jnp.int32))
+    return (
+        ids,
+        filled,
+        jnp.where(used, tile, num_tiles),
+        (level == 0) | ~used,
+        last,
+        counts,
+        lost,
+        pairs,
+        jnp.sum(visible).astype(jnp.int32),
+    )
 
 
 def _sort_by_tile(pair_tile: Array, rank: Array, num_tiles: int, max_pairs: int) -> Tuple[Array, Array]:
@@ -379,8 +395,14 @@ def _pixel_offsets(tile_size: int) -> np.ndarray:
     return np.stack([i.reshape(-1), j.reshape(-1)], -1).astype(np.float32) + 0.5
 
 
-def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
-                background: Optional[Array] = None, mean2d_offset: Optional[Array] = None):
+def render_view(
+    splats: Splats,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    config: SplatRenderConfig,
+    background: Optional[Array] = None,
+    mean2d_offset: Optional[Array] = None,
+):
     """Renders one view.
 
     Every chunk is composited on its own, in parallel; the chunks of a tile are then chained in
@@ -414,12 +436,21 @@ def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: Spla
     rgb, depth = projected.rgb[ids.T], projected.depth[ids.T]  # [B, K, 3], [B, K]
     sample = jnp.concatenate([rgb, jnp.ones_like(depth)[..., None], depth[..., None]], axis=-1)  # [B, K, 5]
     chunk_splats = ChunkSplats(projected.mean2d[ids.T], projected.conic[ids.T], projected.opacity[ids.T], filled.T)
-    values, leaving = composite_chunks(pixels, first, chunk_splats, sample, config.alpha_min, config.alpha_max,
-                                       config.min_transmittance, config.custom_gradient)  # [K, S, 5], [K, S]
+    values, leaving = composite_chunks(
+        pixels,
+        first,
+        chunk_splats,
+        sample,
+        config.alpha_min,
+        config.alpha_max,
+        config.min_transmittance,
+        config.custom_gradient,
+    )  # [K, S, 5], [K, S]
     leaving = jax.lax.stop_gradient(leaving)
     # Summed per tile (chunks are in tile order; integer-free sums over a sorted segment, in a fixed order).
-    per_tile = jax.ops.segment_sum(values, tile, num_segments=tiles_x * tiles_y + 1,
-                                   indices_are_sorted=True)[:-1]  # [T, S, 5]
+    per_tile = jax.ops.segment_sum(values, tile, num_segments=tiles_x * tiles_y + 1, indices_are_sorted=True)[
+        :-1
+    ]  # [T, S, 5]
     acc = per_tile[..., 3]
     transmittance = jnp.maximum(1.0 - acc, 0.0)
     colour = per_tile[..., :3] + transmittance[..., None] * bg
@@ -430,9 +461,14 @@ def render_view(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: Spla
     # tile's last chunk, carried without the stop, is still >= min_transmittance.
     open_end = jnp.where((last >= 0)[:, None], leaving[jnp.maximum(last, 0)], 1.0) >= config.min_transmittance
     lossy = jnp.sum(lost[:, None] & open_end & _inside(intrinsics, config, pixel_corners))
-    stats = SplatStats(visible=visible, pairs=pairs.astype(jnp.int32), pair_overflow=pair_overflow.astype(jnp.int32),
-                       chunks=jnp.sum(tile < tiles_x * tiles_y).astype(jnp.int32),
-                       max_tile_count=jnp.max(counts).astype(jnp.int32), lossy_pixels=lossy.astype(jnp.int32))
+    stats = SplatStats(
+        visible=visible,
+        pairs=pairs.astype(jnp.int32),
+        pair_overflow=pair_overflow.astype(jnp.int32),
+        chunks=jnp.sum(tile < tiles_x * tiles_y).astype(jnp.int32),
+        max_tile_count=jnp.max(counts).astype(jnp.int32),
+        lossy_pixels=lossy.astype(jnp.int32),
+    )
 
     def image(a):  # [T, S, ...] -> [H, W, ...]
         a = a.reshape((tiles_y, tiles_x, ts, ts) + a.shape[2:])
@@ -457,8 +493,9 @@ def default_pose_chunk(intrinsics: Intrinsics, config: SplatRenderConfig, backen
     return max(1, budget // per_pose)
 
 
-def render_splats(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
-                  background: Optional[Array] = None) -> SplatRenderOutput:
+def render_splats(
+    splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig, background: Optional[Array] = None
+) -> SplatRenderOutput:
     """Renders P poses in one program: `render_view` vmapped over groups of `pose_chunk` poses.
 
     Args:
@@ -493,8 +530,14 @@ def _local_fn(config: SplatRenderConfig):
     return functools.partial(_render_local, config)
 
 
-def render_splats_sharded(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig,
-                          background: Optional[Array] = None, mesh=None) -> SplatRenderOutput:
+def render_splats_sharded(
+    splats: Splats,
+    c2w: Array,
+    intrinsics: Intrinsics,
+    config: SplatRenderConfig,
+    background: Optional[Array] = None,
+    mesh=None,
+) -> SplatRenderOutput:
     """`render_splats` with the poses split over the devices of `mesh` (default: all local devices).
 
     The splats are replicated; each device renders its poses with the same program, so the images

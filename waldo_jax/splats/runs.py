@@ -44,9 +44,14 @@ def sparse_points(scene: Scene) -> Tuple[Optional[np.ndarray], Optional[np.ndarr
     return points, colors, str(folder / SPARSE_POINTS)
 
 
-def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None, capacity: Optional[int] = None,
-                  config: Optional[FitConfig] = None,
-                  options: RunOptions = RunOptions()) -> Tuple[FitResult, Dict[str, Any], Path]:
+def fit_scene_run(
+    scene_path: str,
+    out: str | Path,
+    steps: Optional[int] = None,
+    capacity: Optional[int] = None,
+    config: Optional[FitConfig] = None,
+    options: RunOptions = RunOptions(),
+) -> Tuple[FitResult, Dict[str, Any], Path]:
     """Fits splats to a scene on disk and writes a splat run folder `out`.
 
     Every value and `out` are checked before the scene is loaded (a fit is never lost to a folder it
@@ -78,11 +83,21 @@ def fit_scene_run(scene_path: str, out: str | Path, steps: Optional[int] = None,
     if not os.access(out, os.W_OK):
         raise WaldoError(f"{out}: not a writable folder to save the run in")
     log = lambda message: print(message, flush=True)  # noqa: E731
-    result = fit_splats(jax.random.key(options.seed), train_scene, config, test_scene, points, colors,
-                        progress=options.progress, log=log)
-    cameras = SplatCameras(c2w=np.asarray(train_scene.c2w, np.float32),
-                           intrinsics=(train_scene.intrinsics,) * train_scene.n_images,
-                           names=tuple(train_scene.file_names))
+    result = fit_splats(
+        jax.random.key(options.seed),
+        train_scene,
+        config,
+        test_scene,
+        points,
+        colors,
+        progress=options.progress,
+        log=log,
+    )
+    cameras = SplatCameras(
+        c2w=np.asarray(train_scene.c2w, np.float32),
+        intrinsics=(train_scene.intrinsics,) * train_scene.n_images,
+        names=tuple(train_scene.file_names),
+    )
     ply = write_splat_model(out, result.splats, result.steps, cameras=cameras)
     background = (np.zeros(3) if train_scene.background is None else np.asarray(train_scene.background)).tolist()
     stats = {

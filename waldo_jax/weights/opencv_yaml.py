@@ -28,8 +28,7 @@ _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 _INTEGER = re.compile(r"[-+]?\d+$")
 _SPECIAL = {".inf": np.inf, "+.inf": np.inf, "-.inf": -np.inf, ".nan": np.nan}
 _KEY = re.compile(r"([A-Za-z_][\w\-]*)\s*:(\s+|$)(.*)$")
-_DTYPES = {"u": np.uint8, "c": np.int8, "w": np.uint16, "s": np.int16, "i": np.int32, "f": np.float32,
-           "d": np.float64}
+_DTYPES = {"u": np.uint8, "c": np.int8, "w": np.uint16, "s": np.int16, "i": np.int32, "f": np.float32, "d": np.float64}
 
 
 def _scalar(token: str) -> Any:
@@ -72,7 +71,7 @@ def _flow(text: str, line: int) -> Any:
                 if is_map:
                     match = re.compile(r"([A-Za-z_][\w\-]*)\s*:").match(text, pos)
                     if not match:
-                        raise _StorageError(line, f"expected 'key:' in a flow mapping at {text[pos:pos + 20]!r}")
+                        raise _StorageError(line, f"expected 'key:' in a flow mapping at {text[pos : pos + 20]!r}")
                     pos = match.end()
                     items[match.group(1)] = value()
                 else:
@@ -83,7 +82,7 @@ def _flow(text: str, line: int) -> Any:
                 elif pos < len(text) and text[pos] == closing:
                     continue
                 else:
-                    raise _StorageError(line, f"expected ',' or {closing!r} at {text[pos:pos + 20]!r}")
+                    raise _StorageError(line, f"expected ',' or {closing!r} at {text[pos : pos + 20]!r}")
         start = pos
         while pos < len(text) and text[pos] not in ",]}":
             pos += 1
@@ -92,7 +91,7 @@ def _flow(text: str, line: int) -> Any:
     result = value()
     skip()
     if pos != len(text):
-        raise _StorageError(line, f"unexpected text after a value: {text[pos:pos + 20]!r}")
+        raise _StorageError(line, f"unexpected text after a value: {text[pos : pos + 20]!r}")
     return result
 
 

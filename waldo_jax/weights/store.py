@@ -81,7 +81,8 @@ def resolve_weights_dir(weights_dir: Optional[str | os.PathLike] = None) -> Path
     if found is None:
         raise DataNotFoundError(
             "no weights folder: pass --weights DIR or set WALDO_WEIGHTS (or WALDO_DATA, whose weights/ is used) "
-            "to a folder in the ../shared/weights layout")
+            "to a folder in the ../shared/weights layout"
+        )
     return found
 
 
@@ -95,7 +96,8 @@ def weights_file(weights_dir: Optional[str | os.PathLike], model: str, filename:
     if not path.is_file():
         raise DataNotFoundError(
             f"weights file not found: expected {path} (model {model!r}); pass --weights DIR or set WALDO_WEIGHTS "
-            "to a folder in the ../shared/weights layout")
+            "to a folder in the ../shared/weights layout"
+        )
     return path
 
 
@@ -109,8 +111,9 @@ def check_shapes(expected: Mapping[str, Sequence[int]], arrays: Mapping[str, np.
         if name not in arrays:
             raise WeightsError(f"{source}: missing weight {name!r} (expected shape {tuple(shape)})")
         if tuple(np.shape(arrays[name])) != tuple(shape):
-            raise WeightsError(f"{source}: weight {name!r} has shape {tuple(np.shape(arrays[name]))}, "
-                               f"expected {tuple(shape)}")
+            raise WeightsError(
+                f"{source}: weight {name!r} has shape {tuple(np.shape(arrays[name]))}, expected {tuple(shape)}"
+            )
     extra = sorted(set(arrays) - set(expected))
     if extra:
         raise WeightsError(f"{source}: unexpected weight {extra[0]!r} ({len(extra)} unexpected in all)")
@@ -168,8 +171,10 @@ def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Di
         raise WeightsError(f"{path}: not a waldo weights archive (no {_META_KEY} record)")
     record = json.loads(flat.pop(_META_KEY).tobytes().decode())
     if record.get("format_version") != NATIVE_FORMAT_VERSION:
-        raise WeightsError(f"{path}: weights format version {record.get('format_version')!r}, this waldo_jax "
-                           f"reads version {NATIVE_FORMAT_VERSION}: convert the original files again")
+        raise WeightsError(
+            f"{path}: weights format version {record.get('format_version')!r}, this waldo_jax "
+            f"reads version {NATIVE_FORMAT_VERSION}: convert the original files again"
+        )
     if record.get("model") != model:
         raise WeightsError(f"{path}: holds weights of {record.get('model')!r}, expected {model!r}")
     return _unflatten(flat), record.get("meta", {})
@@ -184,9 +189,11 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
         (the criteria register theirs when `waldo_jax.criteria` is imported).
     """
     if model not in CONVERTERS:
-        raise WeightsError(f"no converter registered for model {model!r} (registered: "
-                           f"{', '.join(sorted(CONVERTERS)) or 'none'}); import waldo_jax.criteria, which registers "
-                           "the criteria's models")
+        raise WeightsError(
+            f"no converter registered for model {model!r} (registered: "
+            f"{', '.join(sorted(CONVERTERS)) or 'none'}); import waldo_jax.criteria, which registers "
+            "the criteria's models"
+        )
     converter = CONVERTERS[model]
     root = resolve_weights_dir(weights_dir)
     native = root / model / f"{model}.npz"
@@ -197,8 +204,9 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
     return converter.read(root / model)
 
 
-def convert_all(src: str | os.PathLike, dst: str | os.PathLike,
-                models: Optional[Sequence[str]] = None) -> Dict[str, Path]:
+def convert_all(
+    src: str | os.PathLike, dst: str | os.PathLike, models: Optional[Sequence[str]] = None
+) -> Dict[str, Path]:
     """Converts every model of `src` (or the named `models`) to `dst/<model>/<model>.npz`.
 
     Models whose original files are all absent from `src` are skipped when `models` is None.
@@ -215,7 +223,9 @@ def convert_all(src: str | os.PathLike, dst: str | os.PathLike,
     if models is None:
         chosen = [m for m, c in CONVERTERS.items() if any((src / m / f).is_file() for f in c.files)]
         if not chosen:
-            raise DataNotFoundError(f"{src}: no model files found; expected sub-folders {', '.join(sorted(CONVERTERS))}")
+            raise DataNotFoundError(
+                f"{src}: no model files found; expected sub-folders {', '.join(sorted(CONVERTERS))}"
+            )
     else:
         unknown = [m for m in models if m not in CONVERTERS]
         if unknown:

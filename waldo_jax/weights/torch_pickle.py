@@ -82,9 +82,11 @@ class _LazyTensor:
         needed = self.offset + sum((n - 1) * s for n, s in zip(self.size, self.stride)) + 1 if all(self.size) else 0
         if needed > data.size:
             raise TorchPickleError(
-                f"tensor of size {self.size} at offset {self.offset} overruns its storage of {data.size} elements")
+                f"tensor of size {self.size} at offset {self.offset} overruns its storage of {data.size} elements"
+            )
         array = np.lib.stride_tricks.as_strided(
-            data[self.offset:], shape=self.size, strides=tuple(s * itemsize for s in self.stride), writeable=False)
+            data[self.offset :], shape=self.size, strides=tuple(s * itemsize for s in self.stride), writeable=False
+        )
         array = np.array(array)  # own, contiguous copy
         if self.storage.type.bfloat16:
             array = (array.astype(np.uint32) << 16).view(np.float32)
@@ -192,8 +194,10 @@ def _read_legacy(raw: bytes, path: str) -> Any:
         nbytes = count * storage.type.dtype.itemsize
         data = f.read(nbytes)
         if count != storage.numel or len(data) != nbytes:
-            raise TorchPickleError(f"{path}: truncated or corrupt (storage {key!r}: expected {storage.numel} "
-                                   f"elements, header says {count}, {len(data)} of {nbytes} bytes present)")
+            raise TorchPickleError(
+                f"{path}: truncated or corrupt (storage {key!r}: expected {storage.numel} "
+                f"elements, header says {count}, {len(data)} of {nbytes} bytes present)"
+            )
         storage.data = np.frombuffer(data, dtype=storage.type.dtype.newbyteorder("<"))
     return obj
 
@@ -244,8 +248,17 @@ def read_torch_file(path: str | os.PathLike) -> Any:
             obj = _read_legacy(Path(path).read_bytes(), path)
     except TorchPickleError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
-            struct.error, zipfile.BadZipFile) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        IndexError,
+        KeyError,
+        struct.error,
+        zipfile.BadZipFile,
+    ) as exc:
         raise TorchPickleError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
     return _materialise(obj)
 
@@ -266,8 +279,9 @@ def state_dict(obj: Any, path: str = "checkpoint") -> Dict[str, np.ndarray]:
                 break
     if not isinstance(obj, dict):
         raise TorchPickleError(f"{path}: expected a state dict, found {type(obj).__name__}")
-    tensors = {(k[len("module."):] if k.startswith("module.") else k): v
-               for k, v in obj.items() if isinstance(v, np.ndarray)}
+    tensors = {
+        (k[len("module.") :] if k.startswith("module.") else k): v for k, v in obj.items() if isinstance(v, np.ndarray)
+    }
     if not tensors:
         raise TorchPickleError(f"{path}: the state dict holds no tensors")
     return tensors

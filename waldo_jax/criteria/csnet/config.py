@@ -70,8 +70,11 @@ class CSNetConfig:
             for k in range(length):
                 stride = 2 if (stage >= 2 and k == 0) else 1
                 kernel = 3 if stride == 2 else 1
-                specs.append(BlockSpec(f"stage{stage}.{k}", f"stage{stage}_{k}", *self.blocks[index],
-                                       kernel_size=kernel, stride=stride))
+                specs.append(
+                    BlockSpec(
+                        f"stage{stage}.{k}", f"stage{stage}_{k}", *self.blocks[index], kernel_size=kernel, stride=stride
+                    )
+                )
                 index += 1
         return tuple(specs)
 
@@ -99,17 +102,24 @@ class CSNetConfig:
         try:
             layers = list(layer_config)
         except TypeError:
-            raise WeightsError(f"{source}: not a CSNet layer config (a list), got {type(layer_config).__name__}") \
-                from None
+            raise WeightsError(
+                f"{source}: not a CSNet layer config (a list), got {type(layer_config).__name__}"
+            ) from None
         stages = _stage_lengths(layers, source)
         num_blocks = 1 + sum(stages)
         blocks = _block_splits(layers, num_blocks, source)
         head = _head_splits(layers, num_blocks, source)
-        config = cls(blocks=blocks, stages=stages, fuse_in=head.fuse_in, fuse_mid=head.fuse_mid, fuse_ms=head.fuse_ms,
-                     fuse_dilations=head.fuse_dilations, fuse_out=0)
+        config = cls(
+            blocks=blocks,
+            stages=stages,
+            fuse_in=head.fuse_in,
+            fuse_mid=head.fuse_mid,
+            fuse_ms=head.fuse_ms,
+            fuse_dilations=head.fuse_dilations,
+            fuse_out=0,
+        )
         _check_head(config, head, layers, num_blocks, source)
         return dataclasses.replace(config, fuse_out=head.fuse_out[0])
-
 
 
 # ----------------------------------------------------------------------------------------------
@@ -160,11 +170,12 @@ def _block_splits(layers: List[Any], num_blocks: int, source: str) -> Tuple[Tupl
         if index == 0 and _splits(raw_in, "entry 0 (in)", source) != (3,):
             raise WeightsError(f"{source}: entry 0 must take the 3 RGB channels, got {raw_in!r}")
         if index > 0 and in_splits != blocks[-1][1]:
-            raise WeightsError(f"{source}: entry {index} takes {in_splits} but entry {index - 1} gives "
-                               f"{blocks[-1][1]}")
+            raise WeightsError(f"{source}: entry {index} takes {in_splits} but entry {index - 1} gives {blocks[-1][1]}")
         if 0 in in_splits or 0 in out_splits:
-            raise WeightsError(f"{source}: entry {index} has a zero-width branch ({in_splits} -> {out_splits}); "
-                               "this port supports only CSNets without empty branches")
+            raise WeightsError(
+                f"{source}: entry {index} has a zero-width branch ({in_splits} -> {out_splits}); "
+                "this port supports only CSNets without empty branches"
+            )
         blocks.append((in_splits, out_splits))
     return tuple(blocks)
 
@@ -195,8 +206,10 @@ def _head_splits(layers: List[Any], num_blocks: int, source: str) -> _HeadSplits
     except (TypeError, ValueError):
         dils = np.zeros((0,))
     if dils.shape != (len(fuse_ms), len(DILATIONS)):
-        raise WeightsError(f"{source}: entry {num_blocks + 1} needs dilation channels of shape "
-                           f"({len(fuse_ms)}, {len(DILATIONS)}), got {dils.shape}")
+        raise WeightsError(
+            f"{source}: entry {num_blocks + 1} needs dilation channels of shape "
+            f"({len(fuse_ms)}, {len(DILATIONS)}), got {dils.shape}"
+        )
     fuse_dilations = tuple(_splits(row, f"entry {num_blocks + 1} (dilations)", source) for row in dils)
     return _HeadSplits(fuse_in, fuse_mid, fuse_ms, fuse_dilations, fuse_out, raw_ms_in, raw_out_in)
 
@@ -206,13 +219,17 @@ def _check_head(config: CSNetConfig, head: _HeadSplits, layers: List[Any], num_b
     fuse_in, fuse_mid, fuse_ms = head.fuse_in, head.fuse_mid, head.fuse_ms
     stage_outs = tuple(config.blocks[i][1] for i in config.stage_ends())
     if any(len(out) != 1 for out in stage_outs) or fuse_in != tuple(out[0] for out in stage_outs):
-        raise WeightsError(f"{source}: the head takes {fuse_in} but stages 2-4 end in branches {stage_outs} "
-                           "(each must be one branch of that width)")
+        raise WeightsError(
+            f"{source}: the head takes {fuse_in} but stages 2-4 end in branches {stage_outs} "
+            "(each must be one branch of that width)"
+        )
     if len(fuse_mid) != len(fuse_in) or _splits(head.raw_ms_in, f"entry {num_blocks + 1} (in)", source) != fuse_mid:
         raise WeightsError(f"{source}: the head's splits {fuse_in} -> {fuse_mid} -> {head.raw_ms_in!r} do not chain")
     if tuple(sum(d) for d in head.fuse_dilations) != fuse_ms or 0 in fuse_mid or 0 in fuse_ms:
-        raise WeightsError(f"{source}: dilation channels {head.fuse_dilations} must sum to the non-empty "
-                           f"multi-scale widths {fuse_ms}")
+        raise WeightsError(
+            f"{source}: dilation channels {head.fuse_dilations} must sum to the non-empty multi-scale widths {fuse_ms}"
+        )
     if _splits(head.raw_out_in, f"entry {num_blocks + 2} (in)", source) != fuse_ms or len(head.fuse_out) != 1:
-        raise WeightsError(f"{source}: entry {num_blocks + 2} must map {fuse_ms} to one branch, "
-                           f"got {layers[num_blocks + 2]!r}")
+        raise WeightsError(
+            f"{source}: entry {num_blocks + 2} must map {fuse_ms} to one branch, got {layers[num_blocks + 2]!r}"
+        )

@@ -20,8 +20,15 @@ from flax import traverse_util
 
 from waldo_jax.criteria.csnet.config import CSNetConfig, Splits
 from waldo_jax.errors import DataNotFoundError
-from waldo_jax.weights import (Converter, TorchPickleError, WeightsError, check_shapes, read_torch_file,
-                               register_converter, state_dict)
+from waldo_jax.weights import (
+    Converter,
+    TorchPickleError,
+    WeightsError,
+    check_shapes,
+    read_torch_file,
+    register_converter,
+    state_dict,
+)
 
 __all__ = [
     "MODEL",
@@ -60,23 +67,35 @@ class _Weight(NamedTuple):
         return (kh, kw, in_channels, out_channels)
 
 
-def _bn_prelu_weights(torch_bn: str, torch_prelu: str, path: Tuple[str, ...], index: int,
-                      channels: int) -> List[_Weight]:
+def _bn_prelu_weights(
+    torch_bn: str, torch_prelu: str, path: Tuple[str, ...], index: int, channels: int
+) -> List[_Weight]:
     bn, prelu = path + (f"bn_{index}",), path + (f"prelu_{index}",)
-    return [_Weight(f"{torch_bn}.weight", (channels,), ("params",) + bn + ("scale",)),
-            _Weight(f"{torch_bn}.bias", (channels,), ("params",) + bn + ("bias",)),
-            _Weight(f"{torch_bn}.running_mean", (channels,), ("batch_stats",) + bn + ("mean",)),
-            _Weight(f"{torch_bn}.running_var", (channels,), ("batch_stats",) + bn + ("var",)),
-            _Weight(f"{torch_prelu}.weight", (channels,), ("params",) + prelu + ("alpha",))]
+    return [
+        _Weight(f"{torch_bn}.weight", (channels,), ("params",) + bn + ("scale",)),
+        _Weight(f"{torch_bn}.bias", (channels,), ("params",) + bn + ("bias",)),
+        _Weight(f"{torch_bn}.running_mean", (channels,), ("batch_stats",) + bn + ("mean",)),
+        _Weight(f"{torch_bn}.running_var", (channels,), ("batch_stats",) + bn + ("var",)),
+        _Weight(f"{torch_prelu}.weight", (channels,), ("params",) + prelu + ("alpha",)),
+    ]
 
 
-def _goctave_weights(prefix: str, path: Tuple[str, ...], in_splits: Splits, out_splits: Splits,
-                     kernel_size: int) -> List[_Weight]:
+def _goctave_weights(
+    prefix: str, path: Tuple[str, ...], in_splits: Splits, out_splits: Splits, kernel_size: int
+) -> List[_Weight]:
     shape = (sum(out_splits), sum(in_splits), kernel_size, kernel_size)
     in_bounds, out_bounds = _bounds(in_splits), _bounds(out_splits)
-    weights = [_Weight(f"{prefix}.conv.weight", shape, ("params",) + path + (f"kernel_{i}_{j}",), True,
-                       (out_bounds[j], out_bounds[j + 1], in_bounds[i], in_bounds[i + 1]))
-               for i in range(len(in_splits)) for j in range(len(out_splits))]
+    weights = [
+        _Weight(
+            f"{prefix}.conv.weight",
+            shape,
+            ("params",) + path + (f"kernel_{i}_{j}",),
+            True,
+            (out_bounds[j], out_bounds[j + 1], in_bounds[i], in_bounds[i + 1]),
+        )
+        for i in range(len(in_splits))
+        for j in range(len(out_splits))
+    ]
     for j, channels in enumerate(out_splits):
         weights += _bn_prelu_weights(f"{prefix}.bns.{j}", f"{prefix}.prelus.{j}", path, j, channels)
     return weights
@@ -87,13 +106,17 @@ def _layout(config: CSNetConfig) -> Tuple[_Weight, ...]:
     """Every variable of the network, in torch order of construction."""
     weights: List[_Weight] = []
     for spec in config.block_specs():
-        weights += _goctave_weights(f"{spec.torch_prefix}.conv1x1", (spec.name, "conv1x1"), spec.in_splits,
-                                    spec.out_splits, spec.kernel_size)
+        weights += _goctave_weights(
+            f"{spec.torch_prefix}.conv1x1", (spec.name, "conv1x1"), spec.in_splits, spec.out_splits, spec.kernel_size
+        )
         for layer in ("conv3x3_1", "conv3x3_2"):
             prefix, path = f"{spec.torch_prefix}.{layer}", (spec.name, layer)
             for i, channels in enumerate(spec.out_splits):
-                weights.append(_Weight(f"{prefix}.convs.{i}.weight", (channels, 1, 3, 3),
-                                       ("params",) + path + (f"kernel_{i}",), True))
+                weights.append(
+                    _Weight(
+                        f"{prefix}.convs.{i}.weight", (channels, 1, 3, 3), ("params",) + path + (f"kernel_{i}",), True
+                    )
+                )
             for i, channels in enumerate(spec.out_splits):
                 weights += _bn_prelu_weights(f"{prefix}.bns.{i}", f"{prefix}.prelus.{i}", path, i, channels)
     weights += _goctave_weights("oct_fuse.fuse", ("oct_fuse", "fuse"), config.fuse_in, config.fuse_mid, 1)
@@ -101,12 +124,20 @@ def _layout(config: CSNetConfig) -> Tuple[_Weight, ...]:
         prefix, path = f"oct_fuse.ms.convs.{i}", ("oct_fuse", f"ms_{i}")
         for index, channels in enumerate(dils):
             if channels:
-                weights.append(_Weight(f"{prefix}.msconv.{index}.weight", (channels, in_channels, 3, 3),
-                                       ("params",) + path + (f"kernel_{index}",), True))
+                weights.append(
+                    _Weight(
+                        f"{prefix}.msconv.{index}.weight",
+                        (channels, in_channels, 3, 3),
+                        ("params",) + path + (f"kernel_{index}",),
+                        True,
+                    )
+                )
         weights += _bn_prelu_weights(f"{prefix}.bn", f"{prefix}.prelu", path, 0, sum(dils))
     weights += _goctave_weights("oct_fuse.fuse1x1", ("oct_fuse", "fuse1x1"), config.fuse_ms, (config.fuse_out,), 1)
-    weights += [_Weight("cls_layer.weight", (1, config.fuse_out, 1, 1), ("params", "cls_layer", "kernel"), True),
-                _Weight("cls_layer.bias", (1,), ("params", "cls_layer", "bias"))]
+    weights += [
+        _Weight("cls_layer.weight", (1, config.fuse_out, 1, 1), ("params", "cls_layer", "kernel"), True),
+        _Weight("cls_layer.bias", (1,), ("params", "cls_layer", "bias")),
+    ]
     return tuple(weights)
 
 
@@ -120,8 +151,9 @@ def flax_shapes(config: CSNetConfig) -> Dict[str, Tuple[int, ...]]:
     return {"/".join(w.path): w.flax_shape() for w in _layout(config)}
 
 
-def convert_state_dict(state: Mapping[str, np.ndarray], config: CSNetConfig,
-                       source: str = "state dict") -> Dict[str, Any]:
+def convert_state_dict(
+    state: Mapping[str, np.ndarray], config: CSNetConfig, source: str = "state dict"
+) -> Dict[str, Any]:
     """The Flax variables `{"params": ..., "batch_stats": ...}` of a torch CSNet state dict.
 
     Args:
@@ -143,7 +175,7 @@ def convert_state_dict(state: Mapping[str, np.ndarray], config: CSNetConfig,
     for w in _layout(config):
         value = np.asarray(weights[w.torch_name], np.float32)
         if w.part is not None:
-            value = value[w.part[0]:w.part[1], w.part[2]:w.part[3]]
+            value = value[w.part[0] : w.part[1], w.part[2] : w.part[3]]
         flat[w.path] = np.ascontiguousarray(value.transpose(2, 3, 1, 0)) if w.conv else value
     return traverse_util.unflatten_dict(flat)
 

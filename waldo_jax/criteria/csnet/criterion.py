@@ -19,8 +19,14 @@ import jax
 import jax.numpy as jnp
 from flax import traverse_util
 
-from waldo_jax.criteria.base import (Criterion, CriterionContext, CriterionSpec, finite_or_worst, register,
-                                     sanitize_images)
+from waldo_jax.criteria.base import (
+    Criterion,
+    CriterionContext,
+    CriterionSpec,
+    finite_or_worst,
+    register,
+    sanitize_images,
+)
 from waldo_jax.criteria.csnet.config import CSNetConfig
 from waldo_jax.criteria.csnet.convert import MODEL, flax_shapes
 from waldo_jax.criteria.csnet.model import CSNet
@@ -156,8 +162,7 @@ def _smooth_apply(params: CSNetParams, images: Array) -> Array:
     return _scores(params, images, soft_salient_fraction)
 
 
-_DESCRIPTION = ("CSNet-L-x1 salient-object detection (Gao et al., ECCV 2020): the fraction of pixels with "
-                "saliency > 0.5")
+_DESCRIPTION = "CSNet-L-x1 salient-object detection (Gao et al., ECCV 2020): the fraction of pixels with saliency > 0.5"
 
 
 def saliency(context: CriterionContext) -> Criterion:
@@ -170,9 +175,16 @@ def saliency(context: CriterionContext) -> Criterion:
     Raises:
       DataNotFoundError / WeightsError: from `load_params(context.weights_dir)`.
     """
-    return Criterion(params=load_params(context.weights_dir), name="saliency", direction="max",
-                     value_range=(0.0, 1.0), inputs="images", apply=_apply, description=_DESCRIPTION,
-                     smooth_apply=_smooth_apply)
+    return Criterion(
+        params=load_params(context.weights_dir),
+        name="saliency",
+        direction="max",
+        value_range=(0.0, 1.0),
+        inputs="images",
+        apply=_apply,
+        description=_DESCRIPTION,
+        smooth_apply=_smooth_apply,
+    )
 
 
 register(CriterionSpec("saliency", "max", "images", _DESCRIPTION, saliency, smooth=True))

@@ -46,8 +46,14 @@ _X100 = 100.0  # Conv2dX100's run-time weight multiplier
 
 def conv(x: Array, kernel: Array, *, stride: int = 1, padding: int = 0, dilation: int = 1) -> Array:
     """PyTorch-style conv2d without bias: x [N, H, W, C_in], kernel [kh, kw, C_in, C_out], zero padding."""
-    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), ((padding, padding), (padding, padding)),
-                                        rhs_dilation=(dilation, dilation), dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return jax.lax.conv_general_dilated(
+        x,
+        kernel,
+        (stride, stride),
+        ((padding, padding), (padding, padding)),
+        rhs_dilation=(dilation, dilation),
+        dimension_numbers=("NHWC", "HWIO", "NHWC"),
+    )
 
 
 def avg_pool(x: Array, factor: int) -> Array:
@@ -77,7 +83,7 @@ def _upsample_axis(x: Array, factor: int, axis: int) -> Array:
         d = (p + 0.5) / factor - 0.5
         phases.append(-d * previous + (1.0 + d) * x if d < 0 else (1.0 - d) * x + d * following)
     y = jnp.stack(phases, axis=axis + 1)  # [..., n, factor, ...]
-    return y.reshape(x.shape[:axis] + (n * factor,) + x.shape[axis + 1:])
+    return y.reshape(x.shape[:axis] + (n * factor,) + x.shape[axis + 1 :])
 
 
 def upsample(x: Array, factor: int) -> Array:
@@ -100,7 +106,7 @@ def depthwise3x3(x: Array, kernel: Array) -> Array:
     out = 0.0
     for a in range(3):
         for b in range(3):
-            out = out + padded[:, a:a + height, b:b + width, :] * kernel[a, b, 0]
+            out = out + padded[:, a : a + height, b : b + width, :] * kernel[a, b, 0]
     return out
 
 
@@ -142,8 +148,13 @@ class GOctaveCBR(nn.Module):
     def __call__(self, xs: Sequence[Array]) -> List[Array]:
         """xs: branches [N, H / 2**i, W / 2**i, in_splits[i]] -> branches [N, H' / 2**j, W' / 2**j, out_splits[j]]."""
         k, pad = self.kernel_size, self.kernel_size // 2
-        kernels = [[self.param(f"kernel_{i}_{j}", nn.initializers.lecun_normal(), (k, k, c_in, c_out))
-                    for j, c_out in enumerate(self.out_splits)] for i, c_in in enumerate(self.in_splits)]
+        kernels = [
+            [
+                self.param(f"kernel_{i}_{j}", nn.initializers.lecun_normal(), (k, k, c_in, c_out))
+                for j, c_out in enumerate(self.out_splits)
+            ]
+            for i, c_in in enumerate(self.in_splits)
+        ]
         if len(self.in_splits) == 1 and len(self.out_splits) == 1:
             # The reference builds a plain Conv2dX100 here: a strided conv, weights x 100 (applied to
             # the output, which is the same by linearity and fuses with what follows).
