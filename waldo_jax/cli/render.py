@@ -6,13 +6,12 @@
     waldo render SPLATS --poses FILE|train --out DIR [--resolution R]     (a .ply or a 3DGS model folder)
 
 The room renders its training views analytically, with a contact sheet, transforms.json and
-room.json (Waldo's visibility per view), or, with --poses, the cameras of a poses file. A run renders the poses of a
-file read by
-`waldo_jax.scenes.read_poses_file` (a JSON object with `frames[].transform_matrix`: instant-ngp /
-nerfstudio transforms, OpenGL camera-to-world in the scene's world frame, as the training poses;
-nerfstudio viewer camera paths are refused) or its training poses. Intrinsics come from the file
-when it has a focal length, else from the checkpoint; `--resolution` rescales them so that the
-longer side has R pixels.
+room.json (Waldo's visibility per view), or, with --poses, the cameras of a poses file. A run renders
+the poses of a file read by `waldo_jax.scenes.read_poses_file` (a JSON object with
+`frames[].transform_matrix`: instant-ngp / nerfstudio transforms, OpenGL camera-to-world in the
+scene's world frame, as the training poses; nerfstudio viewer camera paths are refused) or its
+training poses. Intrinsics come from the file when it has a focal length, else from the checkpoint;
+`--resolution` rescales them so that the longer side has R pixels.
 """
 
 from __future__ import annotations

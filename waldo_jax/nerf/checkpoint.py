@@ -4,8 +4,7 @@
 SHA-256 digest and every array's dtype and shape against the stored config, then the contents as a
 whole (finite field parameters, a usable camera, box and near < far, finite rigid training poses, a
 background in [0, 1]; the occupancy grid's densities may hold NaN: its update sanitises them), raising
-`CheckpointError` naming the file. A round trip
-is bit-exact. The file layout: docs/design.md, "Checkpoints".
+`CheckpointError` naming the file. A round trip is bit-exact. The file layout: docs/design.md, "Checkpoints".
 """
 
 from __future__ import annotations

@@ -16,10 +16,9 @@ not finite or whose origin leaves the scene box is never kept (the step that led
 Gradients are forward-mode by default (`jax.jvp`, six tangents: origin and look-at point), which any
 renderer allows, or reverse-mode (`RefineConfig.gradient`: one `jax.vjp`, cheaper) where the source's
 renderer supports it (the splat renderer; the marched NeRF renderer through its own backward pass,
-`render.marched_vjp`); optimistix receives them through its reverse-mode API either way (see `_loss`). Each gradient
-evaluation of one pose counts as
-`config.gradient_cost` renders in the budget. Why Adam, the units, the box and the measured cost:
-docs/design.md, section "Search > Gradient refinement".
+`render.marched_vjp`); optimistix receives them through its reverse-mode API either way (see
+`_loss`). Each gradient evaluation of one pose counts as `config.gradient_cost` renders in the budget.
+Why Adam, the units, the box and the measured cost: docs/design.md, section "Search > Gradient refinement".
 """
 
 from __future__ import annotations
