@@ -90,7 +90,7 @@ class DemoSettings:
 
 
 SETTINGS = {
-    "full": DemoSettings(views=48, resolution=64, train_steps=560, seeds=8, finest_resolution_scale=0.5),
+    "full": DemoSettings(views=48, resolution=64, train_steps=500, seeds=8, finest_resolution_scale=0.5),
     "quick": DemoSettings(views=20, resolution=48, train_steps=120, seeds=4, test_views=4, render_step_scale=3.0),
 }
 
