@@ -38,10 +38,9 @@ import numpy as np  # noqa: E402
 from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.nerf import train as training  # noqa: E402
-from waldo_jax.nerf.config import TrainConfig  # noqa: E402
 from waldo_jax.nerf.trained import TrainedField  # noqa: E402
 from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
-from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS, render_psnr  # noqa: E402
+from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS, render_psnr, room_train_config  # noqa: E402
 from waldo_jax.pipeline.sources import field_renderer  # noqa: E402
 from waldo_jax.procedural import held_out_scene, room_scene  # noqa: E402
 from waldo_jax.search import ExploreConfig  # noqa: E402
@@ -86,11 +85,11 @@ def measure(name: str, overrides: dict, c2w, truth, best, intrinsics) -> dict:
     t0 = time.perf_counter()
     scene, room = room_scene(DEMO_ROOM_SEED, num_views=views, resolution=resolution, camera_config=base.camera)
     test = held_out_scene(room, DEMO_ROOM_SEED, base.test_views, scene, base.camera)
-    config = TrainConfig.preset("fast", scene, steps=steps)
+    settings = dataclasses.replace(
+        base, train_steps=steps, render_step_scale=None, finest_resolution_scale=overrides.get("nmax_scale", 1.0)
+    )
+    config = room_train_config(scene, settings)
     hashgrid = config.field.hashgrid
-    if "nmax_scale" in overrides:
-        hashgrid = dataclasses.replace(hashgrid, N_max=max(32, int(hashgrid.N_max * overrides["nmax_scale"])))
-        config = config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
     if "spd_scale" in overrides:
         config = config.replace(steps_per_diagonal=config.steps_per_diagonal * overrides["spd_scale"])
     t1 = time.perf_counter()

@@ -49,6 +49,7 @@ import numpy as np  # noqa: E402
 from bench_common import emit_with_load, header, refuse_existing_out, timed_alternately, wait_for_quiet  # noqa: E402
 from waldo_jax import paths  # noqa: E402
 from waldo_jax.cameras import slerp_c2w  # noqa: E402
+from waldo_jax.metrics import image_psnr  # noqa: E402
 from waldo_jax.nerf.checkpoint import load_checkpoint  # noqa: E402
 from waldo_jax.nerf.config import TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
@@ -143,8 +144,7 @@ def field_alone(config, params, points: np.ndarray, directions: np.ndarray, pass
 
 
 def psnr(rendered, images):
-    mse = np.mean((np.asarray(rendered, np.float64) - np.asarray(images, np.float64)) ** 2, axis=(1, 2, 3))
-    return float(np.mean(-10.0 * np.log10(np.maximum(mse, 1e-12))))
+    return float(np.mean(image_psnr(rendered, images)))
 
 
 def quick_run(folder: Path, steps: int) -> tuple:

@@ -206,6 +206,9 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
         m = summary["methods"][method]
         assert len(m["best_visible_per_seed"]) == 2 and all(0.0 <= v <= 1.0 for v in m["best_visible_per_seed"])
         assert len(m["best_psnr_per_seed"]) == 2 and all(np.isfinite(m["best_psnr_per_seed"]))
+        assert len(m["closeup_psnr_per_seed"]) == 2 and all(np.isfinite(m["closeup_psnr_per_seed"]))
+        assert 1.0 <= m["closeup_zoom"] <= 6.0
+    assert "![Waldo close-ups](waldo_closeups.png)" in report and (out / "waldo_closeups.png").is_file()
     assert "Waldo visible in best view" in report and "NeRF render PSNR at best view" in report
     assert f"Scores in every table and figure: {summary['criterion_caption']}." in report
     assert summary["criterion_caption"].startswith("waldo_found: ") and "higher is better, in [0, 2]" in report

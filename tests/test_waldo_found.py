@@ -186,3 +186,32 @@ def test_egps_finds_waldo_whole_with_waldo_found():
         best[name] = np.asarray(waldo_visibility_batch(source.room, c2w, source.intrinsics))
     assert np.all(best["waldo_found"] >= FOUND_VISIBILITY), best
     assert np.mean(best["waldo_oracle"]) < FOUND_VISIBILITY, best
+
+
+def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
+    """`waldo demo`'s close-ups: same camera centres, Waldo's centre at the image centre, zoomed so that he
+    fills about `CLOSEUP_FILL` of the height (twice as far: twice the zoom), the image size unchanged."""
+    from waldo_jax.cameras import project_points
+    from waldo_jax.pipeline.demo import CLOSEUP_FILL, closeup_cameras
+
+    centre = np.asarray(bare_room.waldo_points).mean(axis=0)
+    aside = np.asarray(look_at(jnp.asarray(centre + 3.0 * _inwards(bare_room)), jnp.asarray(centre) + 1.0, UP))
+    near = np.asarray(_facing(bare_room, [2.0]))
+    cameras, zoomed, zoom = closeup_cameras(bare_room, np.stack([aside, near[0]]), INTR)
+    np.testing.assert_allclose(cameras[:, :3, 3], [aside[:3, 3], near[0, :3, 3]], atol=1e-6)
+    for camera in cameras:
+        uv, depth = project_points(jnp.asarray(camera), zoomed, jnp.asarray(centre)[None])
+        np.testing.assert_allclose(np.asarray(uv[0]), [INTR.width / 2, INTR.height / 2], atol=1e-3)
+        assert float(depth[0]) > 0
+    assert (zoomed.width, zoomed.height) == (INTR.width, INTR.height)
+    _, _, far_zoom = closeup_cameras(bare_room, np.asarray(_facing(bare_room, [4.0])), INTR)
+    _, _, near_zoom = closeup_cameras(bare_room, near, INTR)
+    np.testing.assert_allclose(far_zoom, 2.0 * near_zoom, rtol=1e-4)
+    points = np.asarray(bare_room.waldo_points)
+    uv, _ = project_points(
+        jnp.asarray(closeup_cameras(bare_room, near, INTR)[0][0]),
+        zoomed.replace(fx=INTR.fx * near_zoom, fy=INTR.fy * near_zoom),
+        jnp.asarray(points),
+    )
+    extent = float(np.ptp(np.asarray(uv[:, 1])))
+    assert 0.5 * CLOSEUP_FILL * INTR.height < extent < 1.1 * CLOSEUP_FILL * INTR.height  # about: perspective

@@ -20,6 +20,7 @@ import numpy as np
 import optax
 
 from waldo_jax.cameras import pixel_directions
+from waldo_jax.metrics import psnr_from_mse
 from waldo_jax.nerf.config import TrainConfig, TrainHParams
 from waldo_jax.nerf.field import init_field
 from waldo_jax.nerf.samplers import TRAIN_ROW_LENGTH, make_sampler
@@ -179,9 +180,7 @@ def _loss(residual: Array, included: Array, config: TrainConfig, hparams: TrainH
     return mse, mse
 
 
-def _psnr(mse: Array) -> Array:
-    """PSNR in dB of images in [0, 1] from their MSE."""
-    return -10.0 * jnp.log10(jnp.maximum(mse, jnp.finfo(jnp.float32).tiny))
+_psnr = psnr_from_mse
 
 
 def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -> Callable:

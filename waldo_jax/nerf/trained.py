@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.metrics import psnr_from_mse
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError, check_scene
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.samplers import make_sampler
@@ -236,7 +237,7 @@ def evaluate(
     rendered = np.asarray(jax.device_get(out.rgb), np.float32)
     images = np.asarray(scene.images, np.float64)[index]
     mse = np.mean((rendered.astype(np.float64) - images) ** 2, axis=(1, 2, 3))
-    psnr = -10.0 * np.log10(np.maximum(mse, 1e-12))
+    psnr = psnr_from_mse(mse)
     scale = step_scale if step_scale is not None else (config.render_step_scale or 1.0)
     return {
         "psnr": float(np.mean(psnr)),

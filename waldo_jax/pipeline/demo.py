@@ -24,12 +24,15 @@ import time
 from pathlib import Path
 from typing import Any, Dict, Optional
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
+from waldo_jax.cameras import look_at
 from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
+from waldo_jax.metrics import image_psnr as render_psnr  # public here too: PSNR [P] of renders against the truth
 from waldo_jax.nerf.config import TrainConfig
 from waldo_jax.nerf.runs import train_run
 from waldo_jax.nerf.trained import TrainedField
@@ -39,7 +42,7 @@ from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import NERF_GRADIENT, Source, field_renderer, room_renderer
 from waldo_jax.procedural import FOUND_VISIBILITY, RoomCameraConfig, held_out_scene, room_scene, waldo_visibility_batch
 from waldo_jax.search import ExploreConfig
-from waldo_jax.types import Scene
+from waldo_jax.types import Intrinsics, Scene
 
 __all__ = [
     "DEMO_ROOM_SEED",
@@ -52,6 +55,7 @@ __all__ = [
     "room_scenes",
     "nerf_source",
     "train_room_nerf",
+    "room_train_config",
 ]
 
 METHOD_ORDER = ("grs", "pibs", "egps")
@@ -106,12 +110,6 @@ def default_demo_dir(root: str | Path = "runs") -> Path:
     return path
 
 
-def render_psnr(rendered: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """PSNR (dB) [P] of renders [P, H, W, 3] against the truth [P, H, W, 3] (both in [0, 1])."""
-    mse = np.mean((np.asarray(rendered, np.float64) - np.asarray(truth, np.float64)) ** 2, axis=(1, 2, 3))
-    return -10.0 * np.log10(np.maximum(mse, 1e-12))
-
-
 def render_in(render, c2w, count: int) -> np.ndarray:
     """`render(c2w)` [P, H, W, 3] in calls of `count` poses (the last padded by repeating a pose)."""
     c2w = np.asarray(c2w, np.float32)
@@ -121,21 +119,25 @@ def render_in(render, c2w, count: int) -> np.ndarray:
     return np.concatenate(parts)[:total]
 
 
+def room_train_config(scene: Scene, settings: DemoSettings) -> TrainConfig:
+    """The room NeRF's training config: the fast preset with `settings.train_steps`, its render step and
+    the hash grid's finest resolution scaled by `settings.finest_resolution_scale` (at least 32)."""
+    overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
+    config = TrainConfig.preset("fast", scene, steps=settings.train_steps, **overrides)
+    if settings.finest_resolution_scale == 1.0:
+        return config
+    hashgrid = config.field.hashgrid
+    n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))
+    return config.replace(field=dataclasses.replace(config.field, hashgrid=dataclasses.replace(hashgrid, N_max=n_max)))
+
+
 def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path, progress: bool):
-    """The room's NeRF (fast preset, `settings.train_steps`) trained into the existing folder `run_dir`.
+    """The room's NeRF (`room_train_config`) trained into the existing folder `run_dir`.
 
     Returns:
       (the `TrainResult`, its train.json contents), as `waldo_jax.nerf.runs.train_run`.
     """
-    overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
-    config = TrainConfig.preset("fast", scene, steps=settings.train_steps, **overrides)
-    if settings.finest_resolution_scale != 1.0:
-        hashgrid = config.field.hashgrid
-        n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))
-        config = config.replace(
-            field=dataclasses.replace(config.field, hashgrid=dataclasses.replace(hashgrid, N_max=n_max))
-        )
-    return train_run(seed, scene, config, test_scene, run_dir, "fast", progress)
+    return train_run(seed, scene, room_train_config(scene, settings), test_scene, run_dir, "fast", progress)
 
 
 def _report(out: Path, summary: Dict[str, Any]) -> str:
@@ -148,7 +150,10 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             f"{m['best_visible_mean']:.0%} ({m['found_seeds']}/{len(m['best_visible_per_seed'])}) | "
             f"{m['best_psnr_mean']:.1f} | {m['top_psnr_mean']:.1f} | {m['seconds']:.1f} |"
         )
-        cells = [f"{v:.0%}, {p:.1f} dB" for v, p in zip(m["best_visible_per_seed"], m["best_psnr_per_seed"])]
+        cells = [
+            f"{v:.0%}, {p:.1f} dB, {c:.1f} dB"
+            for v, p, c in zip(m["best_visible_per_seed"], m["best_psnr_per_seed"], m["closeup_psnr_per_seed"])
+        ]
         seed_rows.append(f"| {method.upper()} | " + " | ".join(cells) + " |")
     nerf = summary["nerf"]
     winner = max(METHOD_ORDER, key=lambda k: summary["methods"][k]["mcvir_mean"])
@@ -175,8 +180,8 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             "|---|---|---|---|---|---|---|---|",
             *rows,
             "",
-            "Each seed's best view: Waldo's visible share (exact) and the PSNR of the NeRF's render against the "
-            "analytic truth at the demo's resolution:",
+            "Each seed's best view: Waldo's visible share (exact), the PSNR of the NeRF's render against the "
+            "analytic truth at the demo's resolution, and on the close-up of Waldo from there (below):",
             "",
             "| method | " + " | ".join(f"seed {k}" for k in seeds) + " |",
             "|---|" + "---|" * len(seeds),
@@ -194,6 +199,12 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             "",
             "Rows: the best training views, then for each method the best views it found (seed "
             f"{seeds[0]}) as the NeRF renders them and as the analytic room renders them (the truth).",
+            "",
+            "![Waldo close-ups](waldo_closeups.png)",
+            "",
+            "Close-ups: from each seed's best camera centre, turned onto Waldo and zoomed until he fills about "
+            f"{CLOSEUP_FILL:.0%} of the height (one zoom per method, the median of its seeds'; the same image size), "
+            "by the NeRF and by the truth.",
             "",
             "![EGPS pose cloud](egps/pose_cloud.png)",
             "",
@@ -241,14 +252,55 @@ def nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedFiel
     )
 
 
-def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any]:
+# Close-ups: each seed's best view seen from the same camera centre, turned onto Waldo and zoomed so that
+# he fills about `CLOSEUP_FILL` of the image's height (one zoom for all, the median of the views').
+CLOSEUP_FILL = 0.6
+CLOSEUP_MAX_ZOOM = 6.0
+
+
+def _with_intrinsics(render: jax.tree_util.Partial, intrinsics: Intrinsics) -> jax.tree_util.Partial:
+    """The renderer `render` (a Partial taking c2w) with its `Intrinsics` argument replaced: same image
+    size, so the same compiled program."""
+    args = [intrinsics if isinstance(a, Intrinsics) else a for a in render.args]
+    return jax.tree_util.Partial(render.func, *args, **render.keywords)
+
+
+def closeup_cameras(room, c2w: np.ndarray, intrinsics: Intrinsics):
+    """Cameras at the centres of c2w [P, 4, 4] looking at Waldo's centre (up as before), and the shared
+    intrinsics zoomed onto him: (closeup c2w [P, 4, 4], intrinsics, zoom)."""
+    c2w = np.asarray(c2w, np.float32)
+    points = np.asarray(room.waldo_points)
+    center = points.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(points - center, axis=-1)))
+    distance = np.linalg.norm(c2w[:, :3, 3] - center, axis=-1)  # [P]
+    height_px = 2.0 * radius * float(intrinsics.fy) / np.maximum(distance, 1e-3)  # Waldo's extent, unzoomed
+    zoom = float(np.clip(np.median(CLOSEUP_FILL * intrinsics.height / height_px), 1.0, CLOSEUP_MAX_ZOOM))
+    cameras = jax.vmap(look_at, in_axes=(0, None, 0))(
+        jnp.asarray(c2w[:, :3, 3]), jnp.asarray(center), jnp.asarray(c2w[:, :3, 1])
+    )
+    zoomed = intrinsics.replace(fx=intrinsics.fx * zoom, fy=intrinsics.fy * zoom)
+    return np.asarray(cameras), zoomed, zoom
+
+
+def _closeups(source: Source, best_c2w: np.ndarray, views: int):
+    """Close-ups of Waldo from each best view [P, 4, 4] by the NeRF and by the truth: (nerf, truth, zoom)."""
+    cameras, zoomed, zoom = closeup_cameras(source.room, best_c2w, source.intrinsics)
+    nerf = render_in(_with_intrinsics(source.render, zoomed), cameras, views)
+    truth = render_in(_with_intrinsics(source.truth_render, zoomed), cameras, views)
+    return nerf, truth, zoom
+
+
+def _method_stats(run, results: Dict[str, Any], source: Source):
     """One method's line of the report: CVIR / mCVIR over seeds, Waldo's visible share at each seed's best
-    view, and the NeRF render's PSNR against the truth there and over the first seed's top-k."""
+    view, the NeRF render's PSNR against the truth there, on a close-up of Waldo from there, and over the
+    first seed's top-k. Returns (stats, (close-ups by the NeRF [P, H, W, 3], by the truth))."""
     best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
     best_psnr = render_psnr(render_in(source.render, best_c2w, views), render_in(source.truth_render, best_c2w, views))
     top_psnr = render_psnr(run.top_images, run.top_truth)
+    nerf, truth, zoom = _closeups(source, np.asarray(best_c2w), views)
+    closeup_psnr = render_psnr(nerf, truth)
     return {
         "cvir_mean": results.get("cvir_mean", results["cvir"]),
         "cvir_std": results.get("cvir_std", 0.0),
@@ -262,30 +314,54 @@ def _method_stats(run, results: Dict[str, Any], source: Source) -> Dict[str, Any
         "best_psnr_per_seed": best_psnr.tolist(),
         "top_psnr_mean": float(np.mean(top_psnr)),
         "top_psnr": top_psnr.tolist(),
+        "closeup_zoom": zoom,
+        "closeup_psnr_mean": float(np.mean(closeup_psnr)),
+        "closeup_psnr_per_seed": closeup_psnr.tolist(),
         "seconds": run.seconds["search"],
         "per_seed": results.get("per_seed"),
-    }
+    }, (nerf, truth)
 
 
 def _run_methods(out: Path, source: Source, criterion, settings: DemoSettings, seed: int, say):
     """GRS, PIBS and EGPS at the low budget, `settings.seeds` seeds each, written to out/<method>/:
-    (runs, stats) by method."""
-    runs, methods = {}, {}
+    (runs, stats, close-ups) by method."""
+    runs, methods, closeups = {}, {}, {}
     for method in METHOD_ORDER:
         say(f"[demo] {method.upper()}: {settings.seeds} seeds at the low budget ...", flush=True)
         explore_config = ExploreConfig(method=method, budget="low")
         run = run_explore(source, criterion, explore_config, seed=seed, seeds=settings.seeds)
         (out / method).mkdir()
         results = write_outputs(run, out / method, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")
-        methods[method] = m = _method_stats(run, results, source)
+        methods[method], closeups[method] = _method_stats(run, results, source)
+        m = methods[method]
         runs[method] = run
         say(
             f"[demo] {method.upper()}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, mCVIR {m['mcvir_mean']:.0f} "
             f"± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible in the best views "
-            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there",
+            f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there, "
+            f"{m['closeup_psnr_mean']:.1f} dB on Waldo's close-up",
             flush=True,
         )
-    return runs, methods
+    return runs, methods, closeups
+
+
+def closeup_sheet(methods: Dict[str, Any], closeups: Dict[str, Any], seeds) -> np.ndarray:
+    """uint8 sheet of Waldo's close-ups: per method a row by the NeRF (labelled with the seed and Waldo's
+    visible share in its best view) and a row by the truth (labelled with the NeRF's PSNR there)."""
+    images, labels, titles = [], [], []
+    for method, (nerf, truth) in closeups.items():
+        m = methods[method]
+        images += list(nerf) + list(truth)
+        labels += [f"seed {k} {v:.0%}" for k, v in zip(seeds, m["best_visible_per_seed"])]
+        labels += [f"{p:.1f} dB" for p in m["closeup_psnr_per_seed"]]
+        titles += [f"{method.upper()} (NeRF) x{m['closeup_zoom']:.1f}", f"{method.upper()} (truth)"]
+    caption = (
+        "Waldo close-ups: each seed's best view, turned from its camera centre onto Waldo and zoomed (the zoom "
+        f"after the method) so that he fills about {CLOSEUP_FILL:.0%} of the height; "
+        f"NeRF tiles: the seed and Waldo's visible share in that best view (found: >= {FOUND_VISIBILITY:.0%}); "
+        "truth tiles: the NeRF's PSNR against it"
+    )
+    return io.contact_sheet(images, columns=len(seeds), labels=labels, row_titles=titles, caption=caption)
 
 
 def run_demo(
@@ -321,11 +397,12 @@ def run_demo(
     source = nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene), stats["psnr_test"])
     context = CriterionContext(room=room, source=source.spec, train_c2w=source.train_c2w)
     criterion = make_criterion(settings.criterion, context)
-    runs, methods = _run_methods(out, source, criterion, settings, seed, say)
+    runs, methods, closeups = _run_methods(out, source, criterion, settings, seed, say)
 
     # One sheet like the paper's qualitative figures: training views, then each method's best views.
     first = runs["egps"]
     io.save_png(out / "contact_sheet.png", methods_sheet(runs, max(len(first.top_images), 1)))
+    io.save_png(out / "waldo_closeups.png", closeup_sheet(methods, closeups, first.seeds))
 
     train_visible = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
     best_train = int(np.nanargmax(first.scores_train))

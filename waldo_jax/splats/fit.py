@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from waldo_jax.metrics import image_psnr, psnr_from_mse
 from waldo_jax.splats.model import Splats, make_splats, sh_coefficients
 from waldo_jax.splats.render import SplatRenderConfig, count_pairs, quat_to_rotmat, render_view
 from waldo_jax.splats.sh import SH_C0
@@ -154,8 +155,7 @@ def ssim(a: Array, b: Array) -> Array:
 
 def psnr(a, b) -> float:
     """Mean PSNR (dB) over images a, b [N, H, W, 3] (host arrays)."""
-    mse = np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2, axis=(1, 2, 3))
-    return float(np.mean(-10.0 * np.log10(np.maximum(mse, 1e-12))))
+    return float(np.mean(image_psnr(a, b)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -340,7 +340,7 @@ def _step(state: _State, key: PRNGKey, step: Array, data: _Data, intrinsics, opt
     )
     return new, {
         "loss": loss,
-        "psnr": -10.0 * jnp.log10(jnp.maximum(mse, 1e-12)),
+        "psnr": psnr_from_mse(mse),
         "pair_overflow": jnp.sum(stats.pair_overflow > 0),
     }
 
