@@ -40,7 +40,8 @@ from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.nerf import train as training  # noqa: E402
 from waldo_jax.nerf.trained import TrainedField  # noqa: E402
 from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
-from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS, render_psnr, room_train_config  # noqa: E402
+from waldo_jax.metrics import image_psnr  # noqa: E402
+from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS, room_train_config  # noqa: E402
 from waldo_jax.pipeline.sources import field_renderer  # noqa: E402
 from waldo_jax.procedural import held_out_scene, room_scene  # noqa: E402
 from waldo_jax.search import ExploreConfig  # noqa: E402
@@ -89,20 +90,19 @@ def measure(name: str, overrides: dict, c2w, truth, best, intrinsics) -> dict:
         base, train_steps=steps, render_step_scale=None, finest_resolution_scale=overrides.get("nmax_scale", 1.0)
     )
     config = room_train_config(scene, settings)
-    hashgrid = config.field.hashgrid
     if "spd_scale" in overrides:
         config = config.replace(steps_per_diagonal=config.steps_per_diagonal * overrides["spd_scale"])
     t1 = time.perf_counter()
     result = training.train(jax.random.key(DEMO_ROOM_SEED), scene, config, test, progress=False)
     t2 = time.perf_counter()
     render = field_renderer(TrainedField.from_result(result, scene), intrinsics)
-    psnr = render_psnr(np.asarray(render(jnp.asarray(c2w))), truth)
+    psnr = image_psnr(np.asarray(render(jnp.asarray(c2w))), truth)
     return {
         "name": name,
         "views": views,
         "steps": steps,
         "resolution": resolution,
-        "n_max": int(hashgrid.N_max),
+        "n_max": int(config.field.hashgrid.N_max),
         "steps_per_diagonal": float(config.steps_per_diagonal),
         "render_step_scale": result.config.render_step_scale,
         "seconds": {"scene": round(t1 - t0, 1), "train": round(t2 - t1, 1)},

@@ -39,6 +39,7 @@ from bench_common import emit_with_load, header, refuse_existing_out, wait_for_q
 from waldo_jax.criteria import CriterionContext  # noqa: E402
 from waldo_jax.criteria.combine import build_criterion, constrained  # noqa: E402
 from waldo_jax.criteria.trust import MAX_ANGLE, MAX_RATIO, trust, trust_params, trust_scores  # noqa: E402
+from waldo_jax.metrics import image_psnr  # noqa: E402
 from waldo_jax.nerf.trained import TrainedField  # noqa: E402
 from waldo_jax.pipeline import run_explore  # noqa: E402
 from waldo_jax.pipeline import demo  # noqa: E402
@@ -63,7 +64,7 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 def render_psnr_of(source, c2w: np.ndarray) -> np.ndarray:
     """PSNR [V] of the NeRF's renders at c2w [V, 4, 4] against the analytic room, in calls of 8 poses."""
-    return demo.render_psnr(demo.render_in(source.render, c2w, 8), demo.render_in(source.truth_render, c2w, 8))
+    return image_psnr(demo.render_in(source.render, c2w, 8), demo.render_in(source.truth_render, c2w, 8))
 
 
 def sweep(source, runs: dict) -> dict:

@@ -135,6 +135,34 @@ def methods_table() -> str:
     )
 
 
+REFINE_FOX = "methods_fox_refine_cpu_loaded.json"
+
+
+def refine_fox_table() -> str:
+    """EGPS against `egps+refine` on fox with the reverse-mode gradient, both budgets, from one run."""
+    data = _json(REFINE_FOX)
+    cost = data["gradient_cost"]["fox"]
+    lines = [
+        "| budget | method | children | gradient evaluations x renders each | CVIR % [95 % CI] | mCVIR % [95 % CI] |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    for cell in data["cells"]:
+        c, m, k = cell["cost"], cell["mcvir"], cell["cvir"]
+        grads = f"{c['gradient_evaluations']} x {c['renders_per_gradient_evaluation']}"
+        grads = grads if c["gradient_evaluations"] else ""
+        mark = " **(> EGPS)**" if cell.get("beats_egps") else ""
+        lines.append(
+            f"| {cell['budget']} | {cell['method']}{mark} | {c['children']} | {grads} | "
+            f"{k['mean']:.1f} [{k['ci95'][0]:.1f}, {k['ci95'][1]:.1f}] | "
+            f"{m['mean']:.1f} [{m['ci95'][0]:.1f}, {m['ci95'][1]:.1f}] |"
+        )
+    return "\n".join(lines) + (
+        f"\n\n{data['settings']['seeds']} seeds per cell; a gradient measured at {cost['ratio']:.2f} renders "
+        f"({cost['resolution'][1]}x{cost['resolution'][0]} px, {cost['gradient_mode']} mode), charged "
+        f"{data['cells'][-1]['cost']['renders_per_gradient_evaluation']}. From `benchmarks/results/{REFINE_FOX}`."
+    )
+
+
 def waldo_found_table() -> str:
     """Waldo found: per room and method, the seeds whose best view shows him >= 90 % visible."""
     data = _json("methods_room_found_cpu_loaded.json")
@@ -466,6 +494,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
     "methods": methods_table,
     "paths": paths_table,
     "waldo-found": waldo_found_table,
+    "refine-fox": refine_fox_table,
     "perf-collected": perf_table,
     "packed": packed_table,
     "training": training_table,

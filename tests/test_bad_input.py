@@ -38,6 +38,7 @@ CASES = [
     ("procedural-negative-seed", ["explore", "procedural:-1", "--out", "{tmp}/new"], "procedural:-1"),
     ("procedural-seed-overflow", ["render", f"procedural:{BIG}", "--out", "{tmp}/new"], BIG),
     ("demo-into-an-earlier-run", ["demo", "--out", "{tmp}/run"], "{tmp}/run"),
+    ("demo-zero-train-steps", ["demo", "--out", "{tmp}/new", "--train-steps", "0"], "--train-steps"),
     # Scenes whose cameras cannot be used.
     ("scene-info-translation-overflow", ["scene", "info", "{tmp}/far", "--json"], "1e+308"),
     ("train-translation-overflow", ["train", "{tmp}/far", "--out", "{tmp}/new"], "far/transforms.json"),

@@ -1,11 +1,14 @@
-"""`waldo demo [--out DIR] [--quick]`: the procedural room end to end (`waldo_jax.pipeline.demo`)."""
+"""`waldo demo [--out DIR] [--quick] [--seed S] [--train-steps N]`: the procedural room end to end
+(`waldo_jax.pipeline.demo`)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 from waldo_jax.cli.conventions import add_quiet
-from waldo_jax.pipeline.demo import run_demo
+from waldo_jax.errors import check_int
+from waldo_jax.pipeline.demo import SETTINGS, run_demo
 
 __all__ = ["add_command", "cmd_demo"]
 
@@ -28,12 +31,22 @@ def add_command(subparsers) -> None:
         default=None,
         help="room seed and first search seed (default: 1, the first room where Waldo can be seen whole)",
     )
+    demo.add_argument(
+        "--train-steps",
+        type=int,
+        default=None,
+        help=f"NeRF training steps (default: {SETTINGS['full'].train_steps}, {SETTINGS['quick'].train_steps} with "
+        "--quick); more steps render Waldo better where the time allows, e.g. on a GPU",
+    )
     add_quiet(demo)
     demo.set_defaults(handler=cmd_demo)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """`waldo demo`: runs the demo into a new folder and names its report."""
-    out = run_demo(args.out, quick=args.quick, seed=args.seed, progress=not args.quiet)
+    settings = SETTINGS["quick" if args.quick else "full"]
+    if args.train_steps is not None:
+        settings = dataclasses.replace(settings, train_steps=check_int(args.train_steps, "--train-steps"))
+    out = run_demo(args.out, quick=args.quick, seed=args.seed, progress=not args.quiet, settings=settings)
     print(f"wrote {out / 'report.md'}")
     return 0

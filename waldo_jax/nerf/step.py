@@ -180,9 +180,6 @@ def _loss(residual: Array, included: Array, config: TrainConfig, hparams: TrainH
     return mse, mse
 
 
-_psnr = psnr_from_mse
-
-
 def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -> Callable:
     """The training step for one batch, without the occupancy update (pure; jit it or scan it).
 
@@ -223,7 +220,7 @@ def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -
         new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
         return new_state, {
             "loss": loss,
-            "psnr": _psnr(mse),
+            "psnr": psnr_from_mse(mse),
             "rays": rays,
             "samples": stats["samples"],
             "rows": stats["rows"],

@@ -32,7 +32,7 @@ from waldo_jax import io
 from waldo_jax.cameras import look_at
 from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.metrics import image_psnr as render_psnr  # public here too: PSNR [P] of renders against the truth
+from waldo_jax.metrics import image_psnr
 from waldo_jax.nerf.config import TrainConfig
 from waldo_jax.nerf.runs import train_run
 from waldo_jax.nerf.trained import TrainedField
@@ -50,7 +50,8 @@ __all__ = [
     "SETTINGS",
     "run_demo",
     "default_demo_dir",
-    "render_psnr",
+    "closeup_cameras",
+    "closeup_sheet",
     "render_in",
     "room_scenes",
     "nerf_source",
@@ -258,23 +259,44 @@ CLOSEUP_FILL = 0.6
 CLOSEUP_MAX_ZOOM = 6.0
 
 
-def _with_intrinsics(render: jax.tree_util.Partial, intrinsics: Intrinsics) -> jax.tree_util.Partial:
-    """The renderer `render` (a Partial taking c2w) with its `Intrinsics` argument replaced: same image
-    size, so the same compiled program."""
-    args = [intrinsics if isinstance(a, Intrinsics) else a for a in render.args]
+def with_intrinsics(render: jax.tree_util.Partial, intrinsics: Intrinsics) -> jax.tree_util.Partial:
+    """The renderer `render` (a Partial taking c2w, as `Source.render`) with its one positional
+    `Intrinsics` argument replaced. The same image size keeps the same compiled program.
+
+    Raises:
+      WaldoError: `render` does not take exactly one positional `Intrinsics`.
+    """
+    found = [i for i, a in enumerate(render.args) if isinstance(a, Intrinsics)]
+    if len(found) != 1:
+        raise WaldoError(f"renderer {render.func}: expected one Intrinsics argument, found {len(found)}")
+    args = list(render.args)
+    args[found[0]] = intrinsics
     return jax.tree_util.Partial(render.func, *args, **render.keywords)
 
 
 def closeup_cameras(room, c2w: np.ndarray, intrinsics: Intrinsics):
-    """Cameras at the centres of c2w [P, 4, 4] looking at Waldo's centre (up as before), and the shared
-    intrinsics zoomed onto him: (closeup c2w [P, 4, 4], intrinsics, zoom)."""
+    """Close-up cameras of Waldo from the given views: the same centres, turned onto him, zoomed.
+
+    Args:
+      room: the `WaldoRoom`.
+      c2w: float [P, 4, 4], the views (e.g. each seed's best).
+      intrinsics: their camera.
+
+    Returns:
+      (c2w [P, 4, 4]: the same camera centres looking at the centroid of Waldo's surface samples, each
+      with its own up vector; the intrinsics with fx, fy times `zoom`, the same image size; zoom: the
+      median over the views of the zoom at which Waldo's bounding sphere spans `CLOSEUP_FILL` of the
+      image height, in [1, `CLOSEUP_MAX_ZOOM`], 1 where no view gives a finite one).
+    """
     c2w = np.asarray(c2w, np.float32)
     points = np.asarray(room.waldo_points)
     center = points.mean(axis=0)
     radius = float(np.max(np.linalg.norm(points - center, axis=-1)))
-    distance = np.linalg.norm(c2w[:, :3, 3] - center, axis=-1)  # [P]
+    distance = np.linalg.norm(c2w[:, :3, 3] - center, axis=-1)  # [P], NaN for a NaN pose
     height_px = 2.0 * radius * float(intrinsics.fy) / np.maximum(distance, 1e-3)  # Waldo's extent, unzoomed
-    zoom = float(np.clip(np.median(CLOSEUP_FILL * intrinsics.height / height_px), 1.0, CLOSEUP_MAX_ZOOM))
+    zooms = CLOSEUP_FILL * intrinsics.height / height_px
+    zooms = zooms[np.isfinite(zooms)]
+    zoom = float(np.clip(np.median(zooms), 1.0, CLOSEUP_MAX_ZOOM)) if zooms.size else 1.0
     cameras = jax.vmap(look_at, in_axes=(0, None, 0))(
         jnp.asarray(c2w[:, :3, 3]), jnp.asarray(center), jnp.asarray(c2w[:, :3, 1])
     )
@@ -285,8 +307,8 @@ def closeup_cameras(room, c2w: np.ndarray, intrinsics: Intrinsics):
 def _closeups(source: Source, best_c2w: np.ndarray, views: int):
     """Close-ups of Waldo from each best view [P, 4, 4] by the NeRF and by the truth: (nerf, truth, zoom)."""
     cameras, zoomed, zoom = closeup_cameras(source.room, best_c2w, source.intrinsics)
-    nerf = render_in(_with_intrinsics(source.render, zoomed), cameras, views)
-    truth = render_in(_with_intrinsics(source.truth_render, zoomed), cameras, views)
+    nerf = render_in(with_intrinsics(source.render, zoomed), cameras, views)
+    truth = render_in(with_intrinsics(source.truth_render, zoomed), cameras, views)
     return nerf, truth, zoom
 
 
@@ -297,10 +319,10 @@ def _method_stats(run, results: Dict[str, Any], source: Source):
     best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
-    best_psnr = render_psnr(render_in(source.render, best_c2w, views), render_in(source.truth_render, best_c2w, views))
-    top_psnr = render_psnr(run.top_images, run.top_truth)
+    best_psnr = image_psnr(render_in(source.render, best_c2w, views), render_in(source.truth_render, best_c2w, views))
+    top_psnr = image_psnr(run.top_images, run.top_truth)
     nerf, truth, zoom = _closeups(source, np.asarray(best_c2w), views)
-    closeup_psnr = render_psnr(nerf, truth)
+    closeup_psnr = image_psnr(nerf, truth)
     return {
         "cvir_mean": results.get("cvir_mean", results["cvir"]),
         "cvir_std": results.get("cvir_std", 0.0),
@@ -346,13 +368,25 @@ def _run_methods(out: Path, source: Source, criterion, settings: DemoSettings, s
 
 
 def closeup_sheet(methods: Dict[str, Any], closeups: Dict[str, Any], seeds) -> np.ndarray:
-    """uint8 sheet of Waldo's close-ups: per method a row by the NeRF (labelled with the seed and Waldo's
-    visible share in its best view) and a row by the truth (labelled with the NeRF's PSNR there)."""
+    """uint8 sheet of Waldo's close-ups, one column per seed.
+
+    Args:
+      methods: per method its report statistics (`best_visible_per_seed`, `closeup_psnr_per_seed`,
+        `closeup_zoom`).
+      closeups: per method (close-ups by the NeRF [S, H, W, 3], by the truth [S, H, W, 3]).
+      seeds: the S seeds.
+
+    Returns:
+      uint8 sheet: per method a row by the NeRF (tiles labelled with the seed and Waldo's visible share in
+      its best view) above a row by the truth (labelled with the NeRF's PSNR there), under a caption.
+    """
     images, labels, titles = [], [], []
     for method, (nerf, truth) in closeups.items():
         m = methods[method]
+        if not len(nerf) == len(truth) == len(seeds):
+            raise ValueError(f"{method}: {len(nerf)} and {len(truth)} close-ups for {len(seeds)} seeds")
         images += list(nerf) + list(truth)
-        labels += [f"seed {k} {v:.0%}" for k, v in zip(seeds, m["best_visible_per_seed"])]
+        labels += [f"seed {k} {v:.0%}" for k, v in zip(seeds, m["best_visible_per_seed"], strict=True)]
         labels += [f"{p:.1f} dB" for p in m["closeup_psnr_per_seed"]]
         titles += [f"{method.upper()} (NeRF) x{m['closeup_zoom']:.1f}", f"{method.upper()} (truth)"]
     caption = (
@@ -362,6 +396,13 @@ def closeup_sheet(methods: Dict[str, Any], closeups: Dict[str, Any], seeds) -> n
         "truth tiles: the NeRF's PSNR against it"
     )
     return io.contact_sheet(images, columns=len(seeds), labels=labels, row_titles=titles, caption=caption)
+
+
+def _command(quick: bool, seed: int, settings: DemoSettings) -> str:
+    """The `waldo demo` command line of a run (settings beyond `--train-steps` are not flags)."""
+    command = "waldo demo" + (" --quick" if quick else "") + ("" if seed == DEMO_ROOM_SEED else f" --seed {seed}")
+    steps = settings.train_steps
+    return command + ("" if steps == SETTINGS["quick" if quick else "full"].train_steps else f" --train-steps {steps}")
 
 
 def run_demo(
@@ -378,7 +419,7 @@ def run_demo(
       quick: smaller settings (fewer views and seeds, shorter training).
       seed: the room's seed and the first search seed (default `DEMO_ROOM_SEED`).
       progress: progress bar and per-epoch lines.
-      settings: explicit sizes (overrides `quick`).
+      settings: explicit sizes (overrides `quick`'s; `quick` still names the command in the report).
     """
     settings = settings or SETTINGS["quick" if quick else "full"]
     seed = DEMO_ROOM_SEED if seed is None else int(seed)
@@ -427,7 +468,7 @@ def run_demo(
             "total": round(total, 2),
         },
         "device": stats["device"],
-        "command": "waldo demo" + (" --quick" if quick else "") + ("" if seed == DEMO_ROOM_SEED else f" --seed {seed}"),
+        "command": _command(quick, seed, settings),
     }
     io.write_json(out / "summary.json", summary)
     io.write_text(out / "report.md", _report(out, summary))

@@ -95,8 +95,12 @@ def upsample(x: Array, factor: int) -> Array:
     return _upsample_axis(_upsample_axis(x, factor, 1), factor, 2)
 
 
-def _shifted_sum(x: Array, kernel: Array) -> Array:
-    """sum over (a, b) of x zero-padded by 1, shifted by (a, b), times kernel[a, b, 0]: [N, H, W, C]."""
+def depthwise3x3(x: Array, kernel: Array) -> Array:
+    """Depthwise 3x3 conv with zero padding 1: x [N, H, W, C], kernel [3, 3, 1, C] -> [N, H, W, C].
+
+    A sum of nine shifted products, which XLA fuses into one loop; its grouped convolution is ~20x
+    slower on CPU.
+    """
     height, width = x.shape[1:3]
     padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
     out = 0.0
@@ -104,37 +108,6 @@ def _shifted_sum(x: Array, kernel: Array) -> Array:
         for b in range(3):
             out = out + padded[:, a : a + height, b : b + width, :] * kernel[a, b, 0]
     return out
-
-
-@jax.custom_vjp
-def depthwise3x3(x: Array, kernel: Array) -> Array:
-    """Depthwise 3x3 conv with zero padding 1: x [N, H, W, C], kernel [3, 3, 1, C] -> [N, H, W, C].
-
-    A sum of nine shifted products, which XLA fuses into one loop; its grouped convolution is ~20x
-    slower on CPU. Its gradient with respect to x is the same sum over the cotangent with the kernel
-    flipped (written out: autodiff's nine pad-and-add transposes made CSNet's backward pass ~40 %
-    slower on CPU); with respect to the kernel, nine reductions.
-    """
-    return _shifted_sum(x, kernel)
-
-
-def _depthwise3x3_fwd(x: Array, kernel: Array):
-    return _shifted_sum(x, kernel), (x, kernel)
-
-
-def _depthwise3x3_bwd(residuals, g: Array):
-    x, kernel = residuals
-    height, width = x.shape[1:3]
-    d_x = _shifted_sum(g, kernel[::-1, ::-1])
-    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
-    rows = [
-        [jnp.sum(padded[:, a : a + height, b : b + width, :] * g, axis=(0, 1, 2)) for b in range(3)] for a in range(3)
-    ]
-    d_kernel = jnp.stack([jnp.stack(row) for row in rows])[:, :, None, :]  # [3, 3, 1, C]
-    return d_x.astype(x.dtype), d_kernel.astype(kernel.dtype)
-
-
-depthwise3x3.defvjp(_depthwise3x3_fwd, _depthwise3x3_bwd)
 
 
 class _PReLU(nn.Module):
