@@ -377,6 +377,32 @@ def packed_table() -> str:
     )
 
 
+DEMO_CLOSEUPS = "demo_training_closeups_cpu.json"
+
+
+def demo_closeups_table() -> str:
+    """The room NeRF's training settings against its PSNR at the found views and on Waldo's close-ups."""
+    data = _json(DEMO_CLOSEUPS)
+    views = data["evaluation_views"]
+    lines = [
+        "| setting | training views | image | steps | N_max | held-out | found views | best views | Waldo close-ups "
+        "| training time |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in data["settings"]:
+        lines.append(
+            f"| {row['name']} | {row['views']} | {row['resolution']} px | {row['steps']} | {row['n_max']} | "
+            f"{row['psnr_test']:.2f} dB | {row['psnr_found']:.2f} dB | {row['psnr_best']:.2f} dB | "
+            f"{row['psnr_closeup']:.2f} dB | {row['seconds']['train']:.0f} s |"
+        )
+    return "\n".join(lines) + (
+        f"\n\nPSNR against the analytic room at {views['count']} found views ({views['best_views']} per-seed best "
+        f"views of GRS, PIBS and EGPS, {views['seeds']} seeds, `{views['criterion']}`) and on Waldo's close-ups from "
+        f"the best views (zoom x{views['closeup_zoom']:.1f}); renders at 64 px. "
+        f"From `benchmarks/results/{DEMO_CLOSEUPS}`."
+    )
+
+
 def training_table() -> str:
     """Held-out PSNR against training time, fast preset (the packed step where measured, else the one before)."""
     names = [
@@ -495,6 +521,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
     "paths": paths_table,
     "waldo-found": waldo_found_table,
     "refine-fox": refine_fox_table,
+    "demo-closeups": demo_closeups_table,
     "perf-collected": perf_table,
     "packed": packed_table,
     "training": training_table,

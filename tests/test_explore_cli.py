@@ -208,6 +208,7 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
         assert len(m["best_psnr_per_seed"]) == 2 and all(np.isfinite(m["best_psnr_per_seed"]))
         assert len(m["closeup_psnr_per_seed"]) == 2 and all(np.isfinite(m["closeup_psnr_per_seed"]))
         assert 1.0 <= m["closeup_zoom"] <= 6.0
+    assert 0.0 <= summary["waldo_surface_seen_in_training"] <= 1.0 and "of Waldo's surface" in report
     assert "![Waldo close-ups](waldo_closeups.png)" in report and (out / "waldo_closeups.png").is_file()
     assert "Waldo visible in best view" in report and "NeRF render PSNR at best view" in report
     assert f"Scores in every table and figure: {summary['criterion_caption']}." in report

@@ -228,3 +228,24 @@ def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
     nan_pose = np.full((1, 4, 4), np.nan, np.float32)
     assert closeup_cameras(bare_room, np.concatenate([near, nan_pose]), INTR)[2] == near_zoom
     assert closeup_cameras(bare_room, nan_pose, INTR)[2] == 1.0
+
+
+def test_surface_seen_by_cameras(bare_room):
+    """`waldo_surface_seen`: one camera in front sees about half of Waldo's surface; four around him see
+    most of it (not his soles and undersides); a box between camera and Waldo hides all; more cameras never
+    see less."""
+    from waldo_jax.procedural import waldo_surface_seen
+
+    front = np.asarray(_facing(bare_room, [2.5]))
+    one = float(waldo_surface_seen(bare_room, jnp.asarray(front), INTR))
+    assert 0.3 < one < 0.6
+    centre = np.asarray(bare_room.waldo_center)
+    around = []
+    for angle in np.radians([0.0, 90.0, 180.0, 270.0]):
+        origin = centre + 1.5 * np.array([np.cos(angle), 0.6, np.sin(angle)])
+        around.append(np.asarray(look_at(jnp.asarray(origin), jnp.asarray(centre), UP)))
+    four = float(waldo_surface_seen(bare_room, jnp.asarray(np.stack(around)), INTR))
+    assert four > 0.8 and four >= float(waldo_surface_seen(bare_room, jnp.asarray(np.stack(around[:2])), INTR))
+    wall = centre + 1.2 * _inwards(bare_room)
+    hidden = _with_box(bare_room, wall, [0.6, 1.5, 0.6])
+    assert float(waldo_surface_seen(hidden, jnp.asarray(front), INTR)) == 0.0

@@ -40,7 +40,14 @@ from waldo_jax.pipeline.experiment import run_explore
 from waldo_jax.pipeline.figures import criterion_caption, methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import NERF_GRADIENT, Source, field_renderer, room_renderer
-from waldo_jax.procedural import FOUND_VISIBILITY, RoomCameraConfig, held_out_scene, room_scene, waldo_visibility_batch
+from waldo_jax.procedural import (
+    FOUND_VISIBILITY,
+    RoomCameraConfig,
+    held_out_scene,
+    room_scene,
+    waldo_surface_seen,
+    waldo_visibility_batch,
+)
 from waldo_jax.search import ExploreConfig
 from waldo_jax.types import Intrinsics, Scene
 
@@ -189,7 +196,8 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             *seed_rows,
             "",
             f"Best training view: score {summary['best_train_score']:.4f}, Waldo {summary['best_train_visible']:.0%} "
-            f"visible. "
+            f"visible. The training views together see {summary['waldo_surface_seen_in_training']:.0%} of Waldo's "
+            "surface (the NeRF can only render what they saw). "
             f"Highest mCVIR: **{winner.upper()}**.",
             "",
             f"NeRF (hash grid, fast preset, {nerf['steps']} steps, {nerf['seconds']:.0f} s on {nerf['device']}): "
@@ -458,6 +466,7 @@ def run_demo(
         "children_per_epoch": first.config.children_per_epoch,
         "best_train_score": float(first.scores_train[best_train]),
         "best_train_visible": float(train_visible[best_train]),
+        "waldo_surface_seen_in_training": float(waldo_surface_seen(room, jnp.asarray(scene.c2w), scene.intrinsics)),
         "nerf": stats,
         "methods": methods,
         "egps_ahead_of_grs_on_mcvir": bool(methods["egps"]["mcvir_mean"] > methods["grs"]["mcvir_mean"]),

@@ -19,6 +19,7 @@ from waldo_jax.procedural.visibility import FOUND_VISIBILITY as FOUND_VISIBILITY
 from waldo_jax.procedural.visibility import waldo_coverage as waldo_coverage
 from waldo_jax.procedural.visibility import waldo_visibility as waldo_visibility
 from waldo_jax.procedural.visibility import waldo_view as waldo_view
+from waldo_jax.procedural.visibility import waldo_surface_seen as waldo_surface_seen
 from waldo_jax.procedural.visibility import waldo_visibility_batch as waldo_visibility_batch
 from waldo_jax.procedural.room import DENSITY as DENSITY
 from waldo_jax.procedural.room import WaldoRoom as WaldoRoom
@@ -45,4 +46,5 @@ __all__ = [
     "waldo_view",
     "waldo_visibility",
     "waldo_visibility_batch",
+    "waldo_surface_seen",
 ]

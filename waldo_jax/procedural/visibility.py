@@ -16,7 +16,14 @@ from waldo_jax.cameras import project_points
 from waldo_jax.procedural.room import FAR, KIND_BOX, KIND_SPHERE, WaldoRoom
 from waldo_jax.types import Array, Intrinsics
 
-__all__ = ["FOUND_VISIBILITY", "waldo_visibility", "waldo_coverage", "waldo_view", "waldo_visibility_batch"]
+__all__ = [
+    "FOUND_VISIBILITY",
+    "waldo_visibility",
+    "waldo_coverage",
+    "waldo_view",
+    "waldo_visibility_batch",
+    "waldo_surface_seen",
+]
 
 # A view shows Waldo "whole" (found) when at least this fraction of him is in frame and unoccluded: the
 # sampled surface and the frame's pixel grid make 100 % a knife edge, and 90 % is a hat brim or a heel.
@@ -59,14 +66,13 @@ def _segment_hits(kind: Array, center: Array, size: Array, start: Array, end: Ar
     return (t_in < t_out) & (t_out > 0.0) & (t_in < 1.0)
 
 
-def _waldo_solid_angles(
+def _samples_seen(
     room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float, softness: float = 0.0
 ) -> Tuple[Array, Array]:
-    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it.
-
-    softness > 0 weighs each sample by a product of sigmoids of its distance (in pixels) to the four
-    image borders, of width softness * image width, instead of the in-frame step; occlusion stays exact.
-    """
+    """Per surface sample of Waldo: (seen [M] in [0, 1], solid angle [M] in steradians, 0 where it faces
+    away). seen is 1 in frame and unoccluded, 0 else; softness > 0 replaces the in-frame step by a
+    product of sigmoids of the distance (in pixels) to the four image borders, of width softness * image
+    width; occlusion stays exact."""
     c2w = jnp.asarray(c2w, jnp.float32)
     camera = c2w[:3, 3]
     to_camera = camera - room.waldo_points  # [M, 3]
@@ -92,8 +98,25 @@ def _waldo_solid_angles(
     hits = jax.vmap(
         lambda s: jax.vmap(_segment_hits, in_axes=(0, 0, 0, None, None))(room.kind, room.center, room.size, s, camera)
     )(starts)  # [M, K]
-    seen = jnp.where(jnp.any(hits, axis=-1), 0.0, in_frame)
+    return jnp.where(jnp.any(hits, axis=-1), 0.0, in_frame), weight
+
+
+def _waldo_solid_angles(
+    room: WaldoRoom, c2w: Array, intrinsics: Intrinsics, near: float, softness: float = 0.0
+) -> Tuple[Array, Array]:
+    """(seen, facing): Waldo's solid angle (steradians) that the camera sees, and that faces it
+    (`_samples_seen` summed)."""
+    seen, weight = _samples_seen(room, c2w, intrinsics, near, softness)
     return jnp.sum(seen * weight), jnp.sum(weight)
+
+
+@jax.jit
+def waldo_surface_seen(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
+    """The share of Waldo's surface area that at least one of the cameras c2w [P, 4, 4] sees (facing it,
+    in frame, unoccluded; exact): what a field trained on those views can know of him. In [0, 1]."""
+    seen = jax.vmap(lambda c: _samples_seen(room, c, intrinsics, 0.05))(jnp.asarray(c2w, jnp.float32))
+    by_any = jnp.any((seen[0] > 0.0) & (seen[1] > 0.0), axis=0)  # [M]
+    return jnp.sum(jnp.where(by_any, room.waldo_areas, 0.0)) / jnp.sum(room.waldo_areas)
 
 
 @functools.partial(jax.jit, static_argnames="softness")
