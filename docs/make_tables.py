@@ -377,7 +377,7 @@ def packed_table() -> str:
     )
 
 
-DEMO_CLOSEUPS = "demo_training_closeups_cpu.json"
+DEMO_CLOSEUPS = "demo_training_closeups_cpu_loaded.json"
 
 
 def demo_closeups_table() -> str:
