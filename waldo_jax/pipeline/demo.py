@@ -9,8 +9,10 @@
      see) and by the analytic room (the truth);
   4. write `report.md` (CVIR / mCVIR per method, mean +/- std over seeds; Waldo's visible share and
      the NeRF render's PSNR against the truth at each seed's best view), one folder per method
-     (results.json, top-k PNGs, contact sheet, poses.json, pose cloud), a combined contact sheet and
-     `summary.json`, into a new directory (default `runs/demo-<timestamp>`; never overwritten).
+     (results.json, top-k PNGs, contact sheet, poses.json, pose cloud), a combined contact sheet,
+     `waldo_closeups.png` (Waldo up close from each seed's best view, NeRF above truth, with the
+     close-up PSNR) and `summary.json`, into a new directory (default `runs/demo-<timestamp>`; never
+     overwritten).
 
 The room is `procedural:1` by default: in room 0 (and 2, 3) the crates hide part of Waldo from every
 camera the searches may place, so no view shows him whole (docs/results.md, "The Waldo room").
