@@ -85,6 +85,66 @@ def test_files_are_written_and_consistent(egps_run):
     assert float(waldo_coverage(room, c2w, intr)) == pytest.approx(r["topk"][0]["score"], rel=1e-4, abs=1e-7)
 
 
+def _separation(a, b, frame):
+    from waldo_jax.search.views import SceneFrame, view_separation
+
+    frame = SceneFrame(focus=np.asarray(frame["focus"]), up=np.asarray(frame["up"]), radius=np.float32(frame["radius"]))
+    return float(view_separation(np.asarray(a, np.float32), np.asarray(b, np.float32), frame))
+
+
+def test_topk_are_different_shots_and_the_paper_topk_is_kept(egps_run, tmp_path):
+    out, r = egps_run
+    assert r["min_separation"] == 20.0 and len(r["topk"]) == 4 and len(r["paper_topk"]) == 4
+    frame = r["archive"]["frame"]
+    for i, a in enumerate(r["topk"]):  # every pair of the written top-k is at least 20 degrees apart
+        for b in r["topk"][i + 1 :]:
+            assert _separation(a["c2w"], b["c2w"], frame) >= 20.0
+        assert set(a["view"]) == {"azimuth", "elevation", "distance"}
+    assert r["topk"][0]["c2w"] == r["paper_topk"][0]["c2w"] and r["paper_topk"][0]["in_topk"]
+    paper = [t["score"] for t in r["paper_topk"]]
+    everything = sorted(r["scores_train"] + r["scores_generated"], reverse=True)
+    assert paper == pytest.approx(everything[:4], rel=1e-6)  # the paper's top-k: the 4 best, however alike
+    best_train = max(r["scores_train"])
+    shots = [t["score"] for t in r["topk"]]
+    assert r["dcvir"] == pytest.approx(100.0 * (np.mean(shots) - best_train) / best_train, rel=1e-4)
+    assert r["shots_beating_train"] == sum(v > best_train for v in shots)
+    assert 1 <= r["paper_topk_shots"] <= 4
+    archive = r["archive"]
+    assert archive["grid"]["cells"] == 96 and archive["cells_filled"] == len(archive["elites"]) > 0
+    assert archive["coverage"] == pytest.approx(archive["cells_filled"] / 96)
+    assert archive["qd_floor"] == pytest.approx(min(r["scores_train"]))
+    assert (out / "archive.png").is_file()
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["waldo_explore"]["min_separation"] == 20.0
+    # --min-separation 0: the paper's top-k, the same search bit for bit.
+    assert explore(tmp_path / "paper", "--method", "egps", "--seed", "3", "--min-separation", "0") == 0
+    paper_run = json.loads((tmp_path / "paper" / "results.json").read_text())
+    assert [t["c2w"] for t in paper_run["topk"]] == [t["c2w"] for t in r["paper_topk"]]
+    assert paper_run["scores_generated"] == r["scores_generated"] and paper_run["mcvir"] == r["mcvir"]
+
+
+def test_map_elites_from_the_cli_writes_its_archive(tmp_path, capsys):
+    out = tmp_path / "qd"
+    assert explore(out, "--method", "map-elites", "--grid", "6x3", "--distance-edges", "", "--seed", "1") == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["method"] == "map-elites" and r["archive"]["grid"]["cells"] == 18
+    assert all(e["distance_band"] == 0 for e in r["archive"]["elites"])
+    sheet = iio.imread(out / "archive.png")
+    assert sheet.shape[0] > 3 * 16 and sheet.shape[1] > 6 * 16
+    for extra, message in (
+        (["--grid", "6by3"], "--grid must be AZxEL"),
+        (["--grid", "0x3"], "--grid must be an int"),
+        (["--distance-edges", "2,1"], "--distance-edges must be"),
+        (["--distance-edges", "a"], "--distance-edges must be comma-separated"),
+        (["--min-separation", "-1"], "--min-separation must be"),
+        (["--min-separation", "nan"], "--min-separation must be"),
+    ):
+        refused = tmp_path / "refused"
+        assert explore(refused, "--method", "map-elites", *extra) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1 and not refused.exists()
+
+
 def test_same_seed_same_scores_other_seed_differs(egps_run, tmp_path):
     _, first = egps_run
     assert explore(tmp_path / "again", "--method", "egps", "--seed", "3") == 0

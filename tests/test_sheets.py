@@ -25,7 +25,7 @@ def _render(c2w):
     return np.broadcast_to((0.1 * (np.asarray(c2w)[:, 0, 3] + 1.0))[:, None, None, None], (len(c2w), 4, 4, 3))
 
 
-def _run(initial="renders", photos=True, top_indices=(1, 5), truth=False):
+def _run(initial="renders", photos=True, top_indices=(1, 5), truth=False, separation=0.0):
     c2w = np.tile(np.eye(4, dtype=np.float32), (3, 1, 1))
     c2w[:, 0, 3] = np.arange(3)
     source = SimpleNamespace(
@@ -48,7 +48,7 @@ def _run(initial="renders", photos=True, top_indices=(1, 5), truth=False):
         result=result,
         top_images=top,
         top_truth=top + 0.25 if truth else None,
-        config=SimpleNamespace(method="egps"),
+        config=SimpleNamespace(method="egps", min_separation=separation),
     )
 
 
@@ -75,9 +75,10 @@ def test_methods_sheet_rows_labels_and_training_marks(monkeypatch):
             captured.update(images=images, labels=labels, titles=row_titles) or np.zeros((1, 1, 3), np.uint8)
         ),
     )
-    runs = {"grs": _run(top_indices=(1, 5)), "egps": _run(top_indices=(7, 2), truth=True)}
+    runs = {"grs": _run(top_indices=(1, 5), separation=20.0), "egps": _run(top_indices=(7, 2), truth=True)}
     figures.methods_sheet(runs, columns=3)
-    assert captured["titles"] == ["training (renders)", "GRS", "EGPS (NeRF)", "EGPS (truth)"]
+    # GRS's top views are different shots (>= 20 degrees apart); EGPS's are the paper's top-k.
+    assert captured["titles"] == ["training (renders)", "GRS, >= 20 deg apart", "EGPS (NeRF)", "EGPS (truth)"]
     labels, images = captured["labels"], captured["images"]
     assert labels[:3] == ["0.9", "0.4", "0.2"]  # the best training views, best first
     assert [float(t[0, 0, 0]) for t in images[:3]] == pytest.approx([0.2, 0.3, 0.1])

@@ -39,6 +39,7 @@ __all__ = [
     "pixel_ray",
     "project_points",
     "camera_focus",
+    "scene_up",
 ]
 
 _EPS = 1e-8
@@ -328,3 +329,17 @@ def camera_focus(c2w: np.ndarray) -> np.ndarray:
     lhs = projectors.sum(0) + ridge * np.eye(3)
     rhs = np.einsum("nij,nj->i", projectors, origins) + ridge * origins.mean(0)
     return np.linalg.solve(lhs, rhs)
+
+
+def scene_up(c2w: np.ndarray) -> np.ndarray:
+    """The scene's up direction float64 [3] (unit): the normalised mean of the cameras' up vectors
+    c2w[:, :3, 1] (OpenGL cameras: +y is the image's up), as nerfstudio's and multinerf's "up"
+    orientation takes it. +z when there are no cameras or their up vectors cancel out (host, NumPy).
+
+    Args:
+      c2w: float [N, 4, 4] (or [N, 3, 4]) camera-to-world poses, the training cameras.
+    """
+    c2w = np.asarray(c2w, np.float64)
+    mean = c2w[:, :3, 1].mean(axis=0) if len(c2w) else np.zeros(3)
+    norm = float(np.linalg.norm(mean))
+    return mean / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])

@@ -125,6 +125,7 @@ def contact_sheet(
     min_cell: int = 96,
     row_titles: Optional[Sequence[str]] = None,
     caption: Optional[str] = None,
+    column_titles: Optional[Sequence[str]] = None,
 ) -> np.ndarray:
     """Tiles images into one uint8 picture, with an optional label written on each tile.
 
@@ -137,6 +138,7 @@ def contact_sheet(
         keeping labels readable.
       row_titles: optional title per row, drawn in a band left of the row.
       caption: optional text above the tiles (wrapped to the sheet's width): what the labels' scores are.
+      column_titles: optional title per column, drawn in a band above the first row.
 
     Returns:
       uint8 [H_sheet, W_sheet, 3].
@@ -157,7 +159,8 @@ def contact_sheet(
     width = title_w + columns * tw + (columns + 1) * pad
     lines = _wrap(caption, font, width - 12) if caption else []
     line_h = font.getbbox("Ag")[3] + 3
-    top = len(lines) * line_h + 6 if lines else 0
+    caption_h = len(lines) * line_h + 6 if lines else 0
+    top = caption_h + (line_h + 4 if column_titles else 0)
     sheet = Image.new("RGB", (width, top + rows * th + (rows + 1) * pad), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     for n, line in enumerate(lines):
@@ -176,6 +179,8 @@ def contact_sheet(
             box = draw.textbbox((x0 + 3, y0 + 2), labels[i], font=font)
             draw.rectangle((box[0] - 2, box[1] - 1, box[2] + 2, box[3] + 1), fill=(0, 0, 0))
             draw.text((x0 + 3, y0 + 2), labels[i], fill=(255, 255, 255), font=font)
+    for c, title in enumerate(column_titles or []):
+        draw.text((title_w + pad + c * (tw + pad) + 3, caption_h + 2), title, fill=(0, 0, 0), font=font)
     for r, title in enumerate(row_titles or []):
         draw.text((6, top + pad + r * (th + pad) + th // 2 - 6), title, fill=(0, 0, 0), font=font)
     return np.asarray(sheet)

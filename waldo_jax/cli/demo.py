@@ -1,5 +1,5 @@
-"""`waldo demo [--out DIR] [--quick] [--seed S] [--train-steps N]`: the procedural room end to end
-(`waldo_jax.pipeline.demo`)."""
+"""`waldo demo [--out DIR] [--quick] [--seed S] [--train-steps N] [--min-separation DEG]`: the procedural
+room end to end (`waldo_jax.pipeline.demo`)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 
 from waldo_jax.cli.conventions import add_quiet
+from waldo_jax.cli.shots import add_shot_arguments, shot_separation
 from waldo_jax.errors import check_int
 from waldo_jax.pipeline.demo import SETTINGS, run_demo
 
@@ -38,6 +39,7 @@ def add_command(subparsers) -> None:
         help=f"NeRF training steps (default: {SETTINGS['full'].train_steps}, {SETTINGS['quick'].train_steps} with "
         "--quick); more steps render Waldo better where the time allows, e.g. on a GPU",
     )
+    add_shot_arguments(demo, grid=False)
     add_quiet(demo)
     demo.set_defaults(handler=cmd_demo)
 
@@ -47,6 +49,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     settings = SETTINGS["quick" if args.quick else "full"]
     if args.train_steps is not None:
         settings = dataclasses.replace(settings, train_steps=check_int(args.train_steps, "--train-steps"))
+    settings = dataclasses.replace(settings, min_separation=shot_separation(args))
     out = run_demo(args.out, quick=args.quick, seed=args.seed, progress=not args.quiet, settings=settings)
     print(f"wrote {out / 'report.md'}")
     return 0

@@ -3,8 +3,10 @@
     waldo explore SOURCE --criterion NAME --method METHOD --budget low|high --seed N
                   [--seeds K] [--resolution R] --out DIR
 
-METHOD is grs, pibs, egps, one of them + "+refine" (gradient refinement in the last epoch) or
-evosax:NAME (any evosax strategy).
+METHOD is grs, pibs, egps, map-elites (an archive of the best view per view cell), one of them +
+"+refine" (gradient refinement in the last epoch) or evosax:NAME (any evosax strategy). The top-k
+written are the best views pairwise at least --min-separation degrees apart (default 20: different
+shots; 0: the paper's top-k).
 
 SOURCE is `procedural[:SEED]` or a run directory of `waldo train` / `waldo demo`; see
 `waldo_jax.pipeline.outputs` for what is written.
@@ -19,6 +21,7 @@ from typing import Optional
 from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
+from waldo_jax.cli.shots import add_shot_arguments, shot_separation, view_grid
 from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
 from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
@@ -30,10 +33,11 @@ def add_command(subparsers) -> None:
     """Registers `explore` on an argparse subparsers object (function as `handler`)."""
     p = subparsers.add_parser(
         "explore",
-        help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS)",
+        help="search a scene for the views that best satisfy a criterion (GRS, PIBS, EGPS, MAP-Elites)",
         description="Run one of the paper's searches (Algorithm 1) on SOURCE: start from the scored training "
         "views, add children_per_epoch rendered and scored poses per epoch, report CVIR/mCVIR and "
-        "write the top-k views, a contact sheet, poses.json, a pose-cloud plot and results.json.",
+        "write the top-k different shots, a contact sheet, the archive of views, poses.json, a pose-cloud "
+        "plot and results.json.",
     )
     p.add_argument(
         "source",
@@ -69,6 +73,7 @@ def add_command(subparsers) -> None:
         help="poses per epoch (default: derived from the budget and the number of training views)",
     )
     p.add_argument("--top-k", type=int, default=10, help="views returned")
+    add_shot_arguments(p)
     p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired")
     p.add_argument("--pibs-fallback", default="none", choices=("none", "grs"), help="PIBS once its pairs run out")
     p.add_argument(
@@ -158,6 +163,8 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
             children_per_epoch=args.children_per_epoch,
             budget=args.budget,
             top_k=args.top_k,
+            min_separation=shot_separation(args),
+            grid=view_grid(args),
             options=options,
         )
     except ValueError as e:

@@ -84,8 +84,9 @@ def add_command(subparsers) -> None:
         "--from-explore",
         default=None,
         metavar="DIR",
-        help="build the starting paths from the top poses of a `waldo explore` --out folder "
-        "(default: from the training views)",
+        help="build the starting paths from the top poses of a `waldo explore` --out folder: its poses.json, "
+        "the different shots (or the paper's top-k where it ran with --min-separation 0); without it, from the "
+        "training views",
     )
     p.add_argument("--aggregate", default="mean", choices=AGGREGATES, help="a path's score from its frames")
     p.add_argument(

@@ -194,10 +194,11 @@ class ExploreRun:
       seeds: the seeds (one per vmapped run).
       results: `Result` of each seed (NumPy leaves, no seed axis), in the order of `seeds`.
       scores_train: float32 [N] initial scores; initial: what they were computed on.
-      top_images: float32 [k, H, W, 3] renders of the first seed's top-k views.
+      top_images: float32 [k, H, W, 3] renders of the first seed's top-k views (its different shots,
+        `ExploreConfig.min_separation`; the paper's top-k at 0).
       top_truth: the same views rendered by the analytic room (a NeRF of the room), or None.
       seconds: {"setup", "search", "render_topk", "total"} wall-clock.
-      stats: mean / std of CVIR and mCVIR over the seeds.
+      stats: mean / std of CVIR, mCVIR and dCVIR over the seeds.
     """
 
     source: Source
@@ -267,6 +268,8 @@ def run_explore(
             "cvir_std": 0.0,
             "mcvir_mean": float(results[0].mcvir),
             "mcvir_std": 0.0,
+            "dcvir_mean": float(results[0].dcvir),
+            "dcvir_std": 0.0,
         }
     else:
         out = jax.device_get(
@@ -280,6 +283,8 @@ def run_explore(
             "cvir_std": float(out.cvir_std),
             "mcvir_mean": float(out.mcvir_mean),
             "mcvir_std": float(out.mcvir_std),
+            "dcvir_mean": float(out.dcvir_mean),
+            "dcvir_std": float(out.dcvir_std),
         }
     searched = time.perf_counter()
 

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
+from waldo_jax.cameras import scene_up
 from waldo_jax.io import atomic_file
 from waldo_jax.pipeline.experiment import ExploreRun
 from waldo_jax.pipeline.sources import resize_images
@@ -83,20 +84,6 @@ def criterion_caption(criterion) -> str:
 
 # ---------------------------------------------------------------------------------------------
 # The scene's up axis.
-
-
-def scene_up(c2w: np.ndarray) -> np.ndarray:
-    """The scene's up direction float64 [3] (unit): the normalised mean of the cameras' up vectors
-    c2w[:, :3, 1] (OpenGL cameras: +y is the image's up), as nerfstudio's and multinerf's "up"
-    orientation takes it. +z when there are no cameras or their up vectors cancel out.
-
-    Args:
-      c2w: float [N, 4, 4] (or [N, 3, 4]) camera-to-world poses, the training cameras.
-    """
-    c2w = np.asarray(c2w, np.float64)
-    mean = c2w[:, :3, 1].mean(axis=0) if len(c2w) else np.zeros(3)
-    norm = float(np.linalg.norm(mean))
-    return mean / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -431,7 +418,7 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
     scores = np.asarray(run.result.top_scores)[np.asarray(run.result.top_valid)]
     images += found
     labels += [f"#{r + 1} {_format_score(s)}" for r, s in enumerate(scores)] + [None] * (columns - k)
-    titles = [f"{train_title}", f"{run.config.method.upper()} found"]
+    titles = [f"{train_title}", f"{run.config.method.upper()} found{_apart(run)}"]
     if run.top_truth is not None:
         images += list(run.top_truth) + [None] * (columns - k)
         labels += [None] * columns
@@ -439,6 +426,12 @@ def contact_sheet(run: ExploreRun, columns: Optional[int] = None) -> np.ndarray:
     return io.contact_sheet(
         images, columns=columns, labels=labels, row_titles=titles, caption=_sheet_caption(run.criterion)
     )
+
+
+def _apart(run: ExploreRun) -> str:
+    """ ", >= 20 deg apart" when the top-k are different shots (`ExploreConfig.min_separation`), else ""."""
+    separation = run.config.min_separation
+    return f", >= {separation:g} deg apart" if separation > 0 else ""
 
 
 def _sheet_caption(criterion) -> str:
@@ -474,11 +467,11 @@ def methods_sheet(runs: Mapping[str, ExploreRun], columns: int) -> np.ndarray:
         )
         images, labels = images + found[0], labels + found[1]
         if run.top_truth is None:
-            titles.append(method.upper())
+            titles.append(method.upper() + _apart(run))
         else:
             truth = row(run.top_truth, [])
             images, labels = images + truth[0], labels + truth[1]
-            titles += [f"{method.upper()} (NeRF)", f"{method.upper()} (truth)"]
+            titles += [f"{method.upper()} (NeRF{_apart(run)})", f"{method.upper()} (truth)"]
     return io.contact_sheet(
         images, columns=columns, labels=labels, row_titles=titles, caption=_sheet_caption(first.criterion)
     )

@@ -2,10 +2,13 @@
 
 results.json      the run: method, criterion (its description, and criterion_caption: what the scores
                   are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
-                  scores_train, scores_generated (generation order), cvir, mcvir, topk
-                  [{score, c2w, image, ...}], epochs (per-epoch best and mean-top-N), seconds;
-                  with several seeds also per_seed and the mean / std of CVIR and mCVIR
-topk/NN.png       the top-k views, best first (the first seed's)
+                  scores_train, scores_generated (generation order), cvir and mcvir (the paper's), topk
+                  [{score, c2w, image, view, ...}] (the k best different shots, `min_separation` apart),
+                  dcvir, shots_beating_train, paper_topk (the paper's top-k) and paper_topk_shots, archive
+                  (grid, frame, coverage, QD-score, elites), epochs (per-epoch best and mean-top-N), seconds;
+                  with several seeds also per_seed and the mean / std of CVIR, mCVIR and dCVIR
+topk/NN.png       the top-k views, best first (the first seed's): different shots unless --min-separation 0
+archive.png       the best view in each (azimuth, elevation) cell around the scene's focus (`archive_figure`)
 contact_sheet.png best training views in the first row, best found views below, scores on them, the
                   criterion named above
 poses.json        the top-k poses in transforms.json form (instant-ngp / nerfstudio can render them)
@@ -24,6 +27,7 @@ import jax
 import numpy as np
 
 from waldo_jax import io
+from waldo_jax.pipeline.archive_figure import archive_sheet, archive_summary, view_descriptors
 from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
 from waldo_jax.pipeline.figures import PoseCloudStyle, contact_sheet, criterion_caption, criterion_label, pose_cloud
 from waldo_jax.search import Result
@@ -63,8 +67,9 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
     population = result.population
     valid = np.asarray(result.top_valid)
     indices = np.asarray(result.top_indices)[valid]
+    views = view_descriptors(run, np.asarray(population.c2w)[indices])
     topk = []
-    for rank, (slot, name) in enumerate(zip(indices, image_names)):
+    for rank, (slot, name, view) in enumerate(zip(indices, image_names, views)):
         entry = {
             "rank": rank,
             "score": _float(population.score[slot]),
@@ -75,10 +80,23 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
             "origin": _floats(population.origin[slot]),
             "look_at": _floats(population.target[slot]),
             "up": _floats(population.up[slot]),
+            "view": view,
         }
         if slot < source.n_train:
             entry["training_image"] = source.train_names[slot]
         topk.append(entry)
+    paper = np.asarray(result.paper_top_indices)[np.asarray(result.paper_top_valid)]
+    paper_topk = [
+        {
+            "rank": rank,
+            "score": _float(population.score[slot]),
+            "c2w": np.round(np.asarray(population.c2w[slot], np.float64), 8).tolist(),
+            "epoch": int(population.epoch[slot]),
+            "training_view": bool(slot < source.n_train),
+            "in_topk": bool(np.any(indices == slot)),
+        }
+        for rank, slot in enumerate(paper)
+    ]
     out: Dict[str, Any] = {
         "method": config.method,
         "criterion": run.criterion.name,
@@ -104,7 +122,13 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "generated_epochs": [int(e) for e in epochs_generated],
         "cvir": _float(result.cvir),
         "mcvir": _float(result.mcvir),
+        "min_separation": config.min_separation,
         "topk": topk,
+        "dcvir": _float(result.dcvir),
+        "shots_beating_train": int(result.shots_beating_train),
+        "paper_topk": paper_topk,
+        "paper_topk_shots": int(result.paper_top_shots),
+        "archive": archive_summary(run),
         "epochs": _epoch_rows(result),
         "seconds": run.seconds,
         "device": jax.devices()[0].platform
@@ -127,6 +151,11 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
                 "mcvir": _float(r.mcvir),
                 "best": _float(r.metrics.best[-1]),
                 "mean_top_n": _float(r.metrics.mean_top_n[-1]),
+                "dcvir": _float(r.dcvir),
+                "shots_beating_train": int(r.shots_beating_train),
+                "paper_topk_shots": int(r.paper_top_shots),
+                "coverage": _float(r.coverage),
+                "qd_score": _float(r.qd_score),
             }
             for s, r in zip(run.seeds, run.results)
         ]
@@ -135,7 +164,7 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
 
 
 def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]:
-    """Writes results.json, topk/*.png, contact_sheet.png, poses.json and pose_cloud.png into `out`.
+    """Writes results.json, topk/*.png, contact_sheet.png, archive.png, poses.json and pose_cloud.png into `out`.
 
     `out` must exist (see `waldo_jax.io.prepare_output_dir`). Returns the results dictionary.
     """
@@ -152,6 +181,7 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
     for path in io.stale_files(out / "topk", r"\d{2,}(_truth)?\.png", written):  # an earlier run's (--force)
         path.unlink()
     io.save_png(out / "contact_sheet.png", contact_sheet(run))
+    io.save_png(out / "archive.png", archive_sheet(run))
 
     result = run.result
     valid_top = np.asarray(result.top_valid)
@@ -166,6 +196,7 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
                 "criterion": run.criterion.name,
                 "method": run.config.method,
                 "scores": _floats(top_scores),
+                "min_separation": run.config.min_separation,
                 "source": run.source.spec,
             }
         },

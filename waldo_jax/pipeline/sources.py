@@ -44,6 +44,7 @@ __all__ = [
     "procedural_source",
     "run_source",
     "resize_images",
+    "render_in",
     "parse_procedural",
     "room_renderer",
     "field_renderer",
@@ -118,6 +119,18 @@ class Source:
     @property
     def n_train(self) -> int:
         return int(self.train_c2w.shape[0])
+
+
+def render_in(render, c2w, count: int) -> np.ndarray:
+    """`render(c2w)` [P, H, W, 3] in calls of `count` poses (the last padded by repeating a pose), so that
+    any number of views renders with the program already compiled for `count`."""
+    c2w = np.asarray(c2w, np.float32)
+    total = c2w.shape[0]
+    if total == 0:
+        raise ValueError("render_in needs at least one pose")
+    padded = np.concatenate([c2w, np.repeat(c2w[-1:], (-total) % count, axis=0)])
+    parts = [np.asarray(render(jnp.asarray(padded[i : i + count]))) for i in range(0, len(padded), count)]
+    return np.concatenate(parts)[:total]
 
 
 def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Scene-space search of "Finding Waldo" (MMSys'24), Algorithm 1: GRS, PIBS and EGPS, and beyond the
-paper: gradient refinement (`refine`: `refine`, `refine_poses` and the `+refine` methods) and any evosax
-strategy (`strategy`: "evosax:NAME").
+paper: MAP-Elites (`map_elites`, over the view archive of `archive`), different shots (`views`: the
+distance between two views and the k best views pairwise apart), gradient refinement (`refine`:
+`refine`, `refine_poses` and the `+refine` methods) and any evosax strategy (`strategy`: "evosax:NAME").
 
 One module per method (`grs`, `pibs`, `egps`), each with a numeric `Params` pytree, a static `Config`
 (its own options: `ExploreConfig(options=...)`) and a pure `ask(key, population, params, config, epoch)`
@@ -15,7 +16,11 @@ in `explore`.
 
 from waldo_jax.search import egps as egps
 from waldo_jax.search import grs as grs
+from waldo_jax.search import map_elites as map_elites
 from waldo_jax.search import pibs as pibs
+from waldo_jax.search.archive import Archive as Archive
+from waldo_jax.search.archive import ViewGrid as ViewGrid
+from waldo_jax.search.archive import archive_of as archive_of
 from waldo_jax.search.explore import BUDGETS as BUDGETS
 from waldo_jax.search.explore import ExploreConfig as ExploreConfig
 from waldo_jax.search.explore import Initial as Initial
@@ -46,6 +51,12 @@ from waldo_jax.search.refine import scene_box as scene_box
 from waldo_jax.search.registry import METHODS as METHODS
 from waldo_jax.search.registry import get_method as get_method
 from waldo_jax.search.registry import method_names as method_names
+from waldo_jax.search.views import DEFAULT_MIN_SEPARATION as DEFAULT_MIN_SEPARATION
+from waldo_jax.search.views import SceneFrame as SceneFrame
+from waldo_jax.search.views import distinct_count as distinct_count
+from waldo_jax.search.views import distinct_top_k as distinct_top_k
+from waldo_jax.search.views import scene_frame as scene_frame
+from waldo_jax.search.views import view_separation as view_separation
 from waldo_jax.search.path import PathLimits as PathLimits
 from waldo_jax.search.path import path_c2w as path_c2w
 from waldo_jax.search.path import path_motion as path_motion

@@ -22,12 +22,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.cameras import pose_to_c2w
+from waldo_jax.cameras import camera_focus, pose_to_c2w
+from waldo_jax.search.archive import Archive, ViewGrid, archive_of, coverage, qd_score
 from waldo_jax.search.method import SearchMethod, split_for_state
-from waldo_jax.search.metrics import EpochMetrics, epoch_metrics, population_cvir, population_mcvir
+from waldo_jax.search.metrics import EpochMetrics, epoch_metrics, population_cvir, population_mcvir, shot_gains
 from waldo_jax.search.population import (
     DIRECTIONS,
     Population,
+    direction_sign,
     gather_poses,
     init_population,
     top_k_indices,
@@ -36,6 +38,7 @@ from waldo_jax.search.population import (
 )
 from waldo_jax.search.refine import REFINE_SUFFIX, RefineConfig
 from waldo_jax.search.registry import get_method
+from waldo_jax.search.views import DEFAULT_MIN_SEPARATION, SceneFrame, distinct_count, distinct_top_k, scene_frame
 from waldo_jax.types import Array, Pose, PRNGKey
 
 __all__ = [
@@ -119,6 +122,11 @@ class ExploreConfig:
       budget: "low", "high" or a (min, max) total image count; used when children_per_epoch is None.
       top_k: views returned (paper: 10).
       top_n: N of mCVIR and of the mean-top-N curve (paper: 10).
+      min_separation: degrees; the top-k returned are the best views pairwise at least this far
+        apart (`views.distinct_top_k`: different shots); 0 returns the paper's top-k. CVIR and mCVIR
+        are the paper's whatever it is.
+      grid: the cells of view descriptors (`archive.ViewGrid`): every run reports its archive's
+        coverage and QD-score over them, and MAP-Elites searches them.
       direction: "max" when higher criterion scores are better, "min" when lower ones are.
       focus_min_fraction: training look-at points lie at least this fraction of the distance to the
         scene focus in front of their camera (`population.training_look_at`).
@@ -137,6 +145,8 @@ class ExploreConfig:
     budget: Budget = "low"
     top_k: int = 10
     top_n: int = 10
+    min_separation: float = DEFAULT_MIN_SEPARATION
+    grid: ViewGrid = ViewGrid()
     direction: str = "max"
     focus_min_fraction: float = 0.1
     options: Union[Mapping[str, Any], Tuple[Tuple[str, Any], ...]] = ()
@@ -150,12 +160,20 @@ class ExploreConfig:
             raise ValueError(f"top_k and top_n must be >= 1, got {self.top_k} and {self.top_n}")
         if self.direction not in DIRECTIONS:
             raise ValueError(f"direction must be one of {DIRECTIONS}, got {self.direction!r}")
+        separation = float(self.min_separation)
+        if not 0.0 <= separation <= 180.0:
+            raise ValueError(f"min_separation must be in [0, 180] degrees, got {self.min_separation!r}")
+        object.__setattr__(self, "min_separation", separation)
+        if not isinstance(self.grid, ViewGrid):
+            raise ValueError(f"grid must be a ViewGrid, got {type(self.grid).__name__}")
         if not isinstance(self.budget, str):  # a list would make the config unhashable
             object.__setattr__(self, "budget", tuple(int(b) for b in self.budget))
         _budget_bounds(self.budget)
         options = dict(self.options)  # a dict would make the config unhashable
         if not all(isinstance(name, str) for name in options):
             raise ValueError(f"options must be named by strings, got {sorted(map(repr, options))}")
+        if "grid" in options:
+            raise ValueError("the view grid is ExploreConfig.grid, not a method option")
         object.__setattr__(self, "options", tuple(sorted(options.items())))
 
     @property
@@ -181,7 +199,8 @@ class ExploreConfig:
         if self.children_per_epoch is None:
             raise ValueError("children_per_epoch is None: resolve the config first (ExploreConfig.resolve)")
         method = get_method(self.method) if method is None else method
-        return method.make_config(self.children_per_epoch, self.epochs, **self.method_options)
+        grid = {"grid": self.grid} if "grid" in method.options else {}  # MAP-Elites searches the run's grid
+        return method.make_config(self.children_per_epoch, self.epochs, **self.method_options, **grid)
 
     def resolve(self, n_train: int) -> "ExploreConfig":
         """This config with children_per_epoch fixed (from the budget when it is None).
@@ -253,13 +272,15 @@ class Initial:
       c2w: float32 [N, 4, 4] (or [N, 3, 4]) training camera-to-world matrices.
       scores: float32 [N] their raw criterion scores (from the real images or from renders: the
         caller decides). NaN marks a failed score.
-      focus: optional [3] scene focus point for the training look-at points (default:
-        `waldo_jax.cameras.camera_focus` of c2w).
+      focus: optional [3] scene focus point for the training look-at points and the scene frame
+        (default: `waldo_jax.cameras.camera_focus` of c2w).
+      up: optional [3] the scene's up for the scene frame (default: `waldo_jax.cameras.scene_up` of c2w).
     """
 
     c2w: Array
     scores: Array
     focus: Optional[Array] = None
+    up: Optional[Array] = None
 
 
 @flax.struct.dataclass
@@ -268,14 +289,27 @@ class Result:
 
     Attributes:
       population: the final `Population` (training views and every child, with scores).
-      top_indices: int32 [k], slots of the k best views, best first.
-      top_valid: bool [k], False for entries beyond the number of usable scores.
+      top_indices: int32 [k], slots of the k best views pairwise at least `config.min_separation`
+        degrees apart (different shots, `views.distinct_top_k`), best first; the paper's top-k
+        when min_separation is 0.
+      top_valid: bool [k], False for entries beyond the number of usable (distinct) views.
       top_poses: `Pose` with [k, 3] fields.
       top_c2w: float32 [k, 4, 4].
       top_scores: float32 [k] raw scores (NaN where top_valid is False).
+      paper_top_indices: int32 [k], the paper's top-k: the k best views whatever their separation.
+      paper_top_valid: bool [k].
+      paper_top_shots: int32 [], how many different shots (at `config.min_separation`) the paper's
+        top-k holds (`views.distinct_count`).
       metrics: `EpochMetrics`, [E + 1] curves (index 0: the training views).
       cvir: float32 [] CVIR in percent.
-      mcvir: float32 [] mCVIR in percent (N = config.top_n).
+      mcvir: float32 [] mCVIR in percent (N = config.top_n), on the paper's top views.
+      dcvir: float32 [] dCVIR in percent: the mean of the returned top-k over the best training view
+        (`metrics.shot_gains`).
+      shots_beating_train: int32 [], entries of the returned top-k better than the best training view.
+      archive: `archive.Archive` [M] of every view of the run over `config.grid`.
+      coverage: float32 [], the share of the archive's cells filled.
+      qd_score: float32 [], the archive's QD-score over `qd_floor` (`archive.qd_score`).
+      qd_floor: float32 [], the raw score of the worst usable training view (the QD-score's floor).
     """
 
     population: Population
@@ -284,9 +318,18 @@ class Result:
     top_poses: Pose
     top_c2w: Array
     top_scores: Array
+    paper_top_indices: Array
+    paper_top_valid: Array
+    paper_top_shots: Array
     metrics: EpochMetrics
     cvir: Array
     mcvir: Array
+    dcvir: Array
+    shots_beating_train: Array
+    archive: Archive
+    coverage: Array
+    qd_score: Array
+    qd_floor: Array
 
 
 @flax.struct.dataclass
@@ -295,8 +338,8 @@ class SeedsResult:
 
     Attributes:
       results: `Result` whose every leaf has a leading [K] axis.
-      cvir_mean, cvir_std, mcvir_mean, mcvir_std: float32 [] over the K seeds (population std,
-        ddof = 0; NaN if any seed's value is NaN).
+      cvir_mean, cvir_std, mcvir_mean, mcvir_std, dcvir_mean, dcvir_std: float32 [] over the K seeds
+        (population std, ddof = 0; NaN if any seed's value is NaN).
     """
 
     results: Result
@@ -304,6 +347,8 @@ class SeedsResult:
     cvir_std: Array
     mcvir_mean: Array
     mcvir_std: Array
+    dcvir_mean: Array
+    dcvir_std: Array
 
 
 # ---------------------------------------------------------------------------------------------
@@ -349,18 +394,36 @@ def _prepare(initial: Initial, method, config: Optional[ExploreConfig], params, 
     config = config.resolve(n_train)  # raises when top_k exceeds the capacity
     method_config = config.method_config(search_method)  # raises for an option the method does not have
     params = search_method.default_params() if params is None else params
-    poses = training_poses(c2w, initial.focus, config.focus_min_fraction)
+    focus = camera_focus(c2w) if initial.focus is None else np.asarray(initial.focus, np.float64)
+    start = _Start(
+        poses=training_poses(c2w, focus, config.focus_min_fraction),
+        c2w=jnp.asarray(c2w),
+        scores=jnp.asarray(scores),
+        frame=scene_frame(c2w, focus, None if initial.up is None else np.asarray(initial.up, np.float64)),
+    )
     objective = None if objective_fn is None else _as_partial(objective_fn)
-    return search_method, method_config, config, params, poses, jnp.asarray(c2w), jnp.asarray(scores), objective
+    return search_method, method_config, config, params, start, objective
 
 
 # ---------------------------------------------------------------------------------------------
 # The search (pure, jitted with method / method_config / config static).
 
 
-def _init(poses: Pose, c2w: Array, scores: Array, config: ExploreConfig) -> Population:
-    n_train = int(c2w.shape[0])
-    return init_population(poses, scores, config.capacity(n_train), config.direction, train_c2w=c2w)
+@flax.struct.dataclass
+class _Start:
+    """What the search starts from: the training poses, matrices [N, 4, 4], scores [N] and the scene frame."""
+
+    poses: Pose
+    c2w: Array
+    scores: Array
+    frame: SceneFrame
+
+
+def _init(start: _Start, config: ExploreConfig) -> Population:
+    n_train = int(start.c2w.shape[0])
+    return init_population(
+        start.poses, start.scores, config.capacity(n_train), config.direction, train_c2w=start.c2w, frame=start.frame
+    )
 
 
 def _report(method_name: str, epochs: int, top_n: int, runs: int, run, epoch, best, mean_top, scored, failed) -> None:
@@ -424,7 +487,14 @@ def _epoch_step(
 
 
 def _finish(population: Population, config: ExploreConfig) -> Result:
-    indices, ok = top_k_indices(population, config.top_k)
+    fitness, frame = population.fitness, population.frame
+    paper, paper_ok = top_k_indices(population, config.top_k)
+    indices, ok = distinct_top_k(fitness, population.c2w, frame, config.top_k, config.min_separation)
+    dcvir, beating = shot_gains(population, indices, ok)
+    slots = jnp.arange(population.capacity, dtype=jnp.int32)
+    archive = archive_of(fitness, population.c2w, slots, frame, config.grid)
+    floor = jnp.min(jnp.where(population.is_train & jnp.isfinite(fitness), fitness, jnp.inf))
+    floor = jnp.where(jnp.isfinite(floor), floor, jnp.nan)  # no usable training view: no floor
     return Result(
         population=population,
         top_indices=indices,
@@ -432,9 +502,18 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
         top_poses=gather_poses(population, indices),
         top_c2w=population.c2w[indices],
         top_scores=jnp.where(ok, population.score[indices], jnp.nan),
+        paper_top_indices=paper,
+        paper_top_valid=paper_ok,
+        paper_top_shots=distinct_count(population.c2w[paper], paper_ok, frame, config.min_separation),
         metrics=epoch_metrics(population, config.epochs, config.top_n),
         cvir=population_cvir(population),
         mcvir=population_mcvir(population, config.top_n),
+        dcvir=dcvir,
+        shots_beating_train=beating,
+        archive=archive,
+        coverage=coverage(archive),
+        qd_score=qd_score(archive, floor),
+        qd_floor=direction_sign(population.direction) * floor,
     )
 
 
@@ -442,9 +521,7 @@ def _search(
     key: PRNGKey,
     score_fn,
     objective,
-    poses: Pose,
-    c2w: Array,
-    scores: Array,
+    start: _Start,
     params,
     method: SearchMethod,
     method_config,
@@ -453,7 +530,7 @@ def _search(
     run: Array = 0,
     runs: int = 1,
 ) -> Result:
-    population = _init(poses, c2w, scores, config)
+    population = _init(start, config)
     carry = (population, _init_state(key, population, params, method, method_config))
 
     def body(carry, epoch):
@@ -469,9 +546,7 @@ def _search_seeds(
     keys: PRNGKey,
     score_fn,
     objective,
-    poses: Pose,
-    c2w: Array,
-    scores: Array,
+    start: _Start,
     params,
     method: SearchMethod,
     method_config,
@@ -481,7 +556,7 @@ def _search_seeds(
     runs = keys.shape[0]
     results = jax.vmap(
         lambda key, run: _search(
-            key, score_fn, objective, poses, c2w, scores, params, method, method_config, config, progress, run, runs
+            key, score_fn, objective, start, params, method, method_config, config, progress, run, runs
         )
     )(keys, jnp.arange(runs, dtype=jnp.int32))
     return SeedsResult(
@@ -490,6 +565,8 @@ def _search_seeds(
         cvir_std=jnp.std(results.cvir),
         mcvir_mean=jnp.mean(results.mcvir),
         mcvir_std=jnp.std(results.mcvir),
+        dcvir_mean=jnp.mean(results.dcvir),
+        dcvir_std=jnp.std(results.dcvir),
     )
 
 
@@ -536,16 +613,14 @@ def explore(
     Returns:
       `Result`.
     """
-    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+    search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
     return _search_jit(
         key,
         _as_partial(score_fn),
         objective,
-        poses,
-        c2w,
-        scores,
+        start,
         params,
         method=search_method,
         method_config=method_config,
@@ -568,11 +643,11 @@ def explore_loop(
 
     Useful to inspect or checkpoint between epochs, and as the reference the scan is tested against.
     """
-    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+    search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
     score_fn = _as_partial(score_fn)
-    population = _init_jit(poses, c2w, scores, config=config)
+    population = _init_jit(start, config=config)
     carry = (population, _init_state_jit(key, population, params, method=search_method, method_config=method_config))
     for epoch in range(1, config.epochs + 1):
         carry = _epoch_step_jit(
@@ -608,18 +683,16 @@ def explore_seeds(
         objective_fn) are vmapped over the seeds, so they must be vmap-able (any jnp function is).
 
     Returns:
-      `SeedsResult`: per-seed `Result`s (leading axis K) and the mean / std of CVIR and mCVIR.
+      `SeedsResult`: per-seed `Result`s (leading axis K) and the mean / std of CVIR, mCVIR and dCVIR.
     """
-    search_method, method_config, config, params, poses, c2w, scores, objective = _prepare(
+    search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
     return _search_seeds_jit(
         keys,
         _as_partial(score_fn),
         objective,
-        poses,
-        c2w,
-        scores,
+        start,
         params,
         method=search_method,
         method_config=method_config,

@@ -2,7 +2,8 @@
 
 CVIR = 100 * (op(S_all) - op(S_train)) / |op(S_train)| (criterion value improvement ratio), with
 S_train the training views' scores, S_all those of every view of the run and op = max; mCVIR is the
-same on the mean of the best N = 10 scores of each set. For a "min" criterion both are computed on
+same on the mean of the best N = 10 scores of each set. dCVIR is the gain of the mean of the k best
+*different shots* (`views.distinct_top_k`) over the best training view. For a "min" criterion both are computed on
 the signed fitness F = sign * score, 100 * (F_all - F_train) / |F_train|, so that a positive value
 still means an improvement. Only valid, finite scores count; a ratio is NaN when undefined. `cvir`
 and `mcvir` take score arrays; `population_cvir`, `population_mcvir` and `epoch_metrics` a population.
@@ -29,6 +30,7 @@ __all__ = [
     "mcvir",
     "population_cvir",
     "population_mcvir",
+    "shot_gains",
     "epoch_metrics",
 ]
 
@@ -142,6 +144,27 @@ def population_mcvir(population: Population, n: int = 10) -> Array:
     return _ratio(
         _mean_top_fitness(fitness, n), _mean_top_fitness(jnp.where(population.is_train, fitness, -jnp.inf), n)
     )
+
+
+def shot_gains(population: Population, indices: Array, ok: Array) -> tuple:
+    """dCVIR and how many of a set of views beat the best training view.
+
+    Args:
+      population: the population.
+      indices: int32 [k] slots of the set (e.g. the distinct top-k), best first.
+      ok: bool [k], which entries are real.
+
+    Returns:
+      (dcvir, beating): float32 [] 100 * (mean fitness of the set - best training fitness) / |best
+      training fitness| (NaN when undefined), and int32 [] the entries whose fitness is strictly
+      above the best training view's.
+    """
+    fitness = jnp.where(ok, population.fitness[indices], -jnp.inf)
+    train_best = _best_fitness(jnp.where(population.is_train, population.fitness, -jnp.inf))
+    finite = jnp.isfinite(fitness)
+    count = jnp.sum(finite)
+    mean = jnp.where(count > 0, jnp.sum(jnp.where(finite, fitness, 0.0)) / jnp.maximum(count, 1), jnp.nan)
+    return _ratio(mean, train_best), jnp.sum(finite & (fitness > train_best), dtype=jnp.int32)
 
 
 def epoch_metrics(population: Population, epochs: int, n: int = 10) -> EpochMetrics:

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import camera_focus, pose_to_c2w
+from waldo_jax.search.views import SceneFrame
 from waldo_jax.types import Array, Pose
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "training_look_at",
     "training_poses",
     "init_population",
+    "poses_frame",
     "top_k_indices",
     "write_children",
     "gather_poses",
@@ -67,6 +69,7 @@ class Population:
       epoch: int32 [C], 0 for training views, e for a child born (and rendered) in epoch e,
         -1 for slots not filled (not yet reached, or masked children).
       explored: bool [C, C], PIBS's explored pairs (symmetric: both orders are marked).
+      frame: the `SceneFrame` views are measured in (different shots, view cells).
       num_train: n_train, the number of leading training slots (static).
       direction: "max" or "min", the criterion's direction (static).
     """
@@ -79,6 +82,7 @@ class Population:
     valid: Array
     epoch: Array
     explored: Array
+    frame: SceneFrame
     num_train: int = flax.struct.field(pytree_node=False, default=0)
     direction: str = flax.struct.field(pytree_node=False, default="max")
 
@@ -158,6 +162,7 @@ def init_population(
     capacity: int,
     direction: str = "max",
     train_c2w: Optional[Array] = None,
+    frame: Optional[SceneFrame] = None,
 ) -> Population:
     """A population holding the N scored training views in its first N slots; the rest empty.
 
@@ -169,6 +174,8 @@ def init_population(
       capacity: C >= N, the total number of slots.
       direction: "max" or "min".
       train_c2w: [N, 4, 4] the training matrices; default `look_at` of `train_poses`.
+      frame: the scene's `SceneFrame` (`views.scene_frame`, as `explore` passes it); default
+        `poses_frame(train_poses)`.
 
     Returns:
       The `Population`.
@@ -194,9 +201,21 @@ def init_population(
         valid=padded(jnp.ones(n_train, bool), False),
         epoch=padded(jnp.zeros(n_train, jnp.int32), -1),
         explored=jnp.zeros((capacity, capacity), bool),
+        frame=poses_frame(train_poses) if frame is None else frame,
         num_train=n_train,
         direction=direction,
     )
+
+
+def poses_frame(poses: Pose) -> SceneFrame:
+    """A `SceneFrame` from poses alone (jit-able): the mean look-at point as the focus, the normalised
+    mean up (+z if they cancel) and the median distance of the origins to that focus (1 if zero)."""
+    focus = jnp.mean(jnp.asarray(poses.target, jnp.float32), axis=0)
+    up = jnp.mean(jnp.asarray(poses.up, jnp.float32), axis=0)
+    norm = jnp.linalg.norm(up)
+    up = jnp.where(norm > 1e-6, up / jnp.where(norm > 1e-6, norm, 1.0), jnp.array([0.0, 0.0, 1.0]))
+    radius = jnp.median(jnp.linalg.norm(jnp.asarray(poses.origin, jnp.float32) - focus, axis=-1))
+    return SceneFrame(focus=focus, up=up, radius=jnp.where(radius > 1e-9, radius, 1.0))
 
 
 def top_k_indices(population: Population, k: int) -> Tuple[Array, Array]:

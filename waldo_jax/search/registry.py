@@ -1,10 +1,10 @@
-"""The search methods by name: the paper's three, their `+refine` variants and any evosax strategy.
+"""The search methods by name: the paper's three, MAP-Elites, their `+refine` variants and any evosax strategy.
 
-`METHODS` holds the fixed ones ("grs", "pibs", "egps", "grs+refine", "pibs+refine", "egps+refine");
+`METHODS` holds the fixed ones ("grs", "pibs", "egps", "map-elites" and each + "+refine");
 `get_method(name)` also builds "evosax:NAME" for any strategy of evosax's registry.
 """
 
-from waldo_jax.search import egps, grs, pibs
+from waldo_jax.search import egps, grs, map_elites, pibs
 from waldo_jax.search.method import SearchMethod
 from waldo_jax.search.refine import refined_method
 from waldo_jax.search.strategy import PREFIX as EVOSAX_PREFIX
@@ -13,7 +13,8 @@ from waldo_jax.search.strategy import evosax_method
 __all__ = ["METHODS", "PAPER_METHODS", "get_method", "method_names"]
 
 PAPER_METHODS = {"grs": grs.METHOD, "pibs": pibs.METHOD, "egps": egps.METHOD}
-METHODS = dict(PAPER_METHODS, **{f"{name}+refine": refined_method(method) for name, method in PAPER_METHODS.items()})
+_BASE_METHODS = dict(PAPER_METHODS, **{"map-elites": map_elites.METHOD})
+METHODS = dict(_BASE_METHODS, **{f"{name}+refine": refined_method(method) for name, method in _BASE_METHODS.items()})
 
 
 def method_names() -> str:
