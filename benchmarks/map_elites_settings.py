@@ -3,10 +3,10 @@
 For each SOURCE:CRITERION case and budget, EGPS and each MAP-Elites setting run K seeds (one vmapped
 call each, the same scored training views, the same budget): the mean best score, the mean number of
 the 10 best different shots (20 degrees) that beat the best training view, and the coverage. A setting
-is `elite_bias/iso_sigma/line_sigma/AZxEL/edges`.
+is `elite_bias/line_probability/iso_sigma/line_sigma/AZxEL/edges`.
 
-  python benchmarks/map_elites_settings.py --cases procedural:4:waldo_visible,procedural:6:waldo_visible \\
-      --seeds 8 --out benchmarks/results/map_elites_settings_cpu.json
+  python benchmarks/map_elites_settings.py --cases procedural:3:saliency,procedural:4:waldo_visible \\
+      --resolution 24 --budgets low --seeds 8 --out benchmarks/results/map_elites_settings_cpu.json
 
 The cases are rooms other than the methods table's (procedural:1) and, where given, a NeRF run; the
 table's scenes are not tuned on.
@@ -15,6 +15,7 @@ table's scenes are not tuned on.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -33,23 +34,25 @@ from waldo_jax.search import ExploreConfig, Initial, explore_seeds, map_elites  
 from waldo_jax.search.archive import ViewGrid  # noqa: E402
 
 DEFAULT_SETTINGS = (
-    "1/0.1/0.2/8x4/0.75,1.33",
-    "0/0.1/0.2/8x4/0.75,1.33",
-    "2/0.1/0.2/8x4/0.75,1.33",
-    "1/0.05/0.2/8x4/0.75,1.33",
-    "1/0.2/0.2/8x4/0.75,1.33",
-    "1/0.1/0.5/8x4/0.75,1.33",
-    "1/0.1/0.2/12x6/1",
-    "1/0.1/0.2/6x3/",
+    "1/0.25/0.1/0.2/8x4/0.75,1.33",
+    "1/0/0.1/0.2/8x4/0.75,1.33",
+    "1/0.5/0.1/0.2/8x4/0.75,1.33",
+    "1/1/0.1/0.2/8x4/0.75,1.33",
+    "0/0.25/0.1/0.2/8x4/0.75,1.33",
+    "2/0.25/0.1/0.2/8x4/0.75,1.33",
+    "1/0.25/0.1/0.2/6x3/",
 )
 
 
 def parse_setting(text: str):
-    """(Params, ViewGrid) of `elite_bias/iso_sigma/line_sigma/AZxEL/edges`."""
-    bias, iso, line, grid, edges = text.split("/")
+    """(Params, ViewGrid) of `elite_bias/line_probability/iso_sigma/line_sigma/AZxEL/edges`."""
+    bias, line_probability, iso, line, grid, edges = text.split("/")
     azimuth, elevation = (int(v) for v in grid.lower().split("x"))
     params = map_elites.Params(
-        iso_sigma=jnp.float32(float(iso)), line_sigma=jnp.float32(float(line)), elite_bias=jnp.float32(float(bias))
+        elite_bias=jnp.float32(float(bias)),
+        line_probability=jnp.float32(float(line_probability)),
+        iso_sigma=jnp.float32(float(iso)),
+        line_sigma=jnp.float32(float(line)),
     )
     cut = tuple(float(e) for e in edges.split(",")) if edges else ()
     return params, ViewGrid(azimuth_cells=azimuth, elevation_cells=elevation, distance_edges=cut)
@@ -70,7 +73,7 @@ def run(score_fn, initial, method, config, params, keys) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", default="procedural:4:waldo_visible,procedural:6:waldo_visible")
+    parser.add_argument("--cases", default="procedural:3:saliency,procedural:4:waldo_visible")
     parser.add_argument("--settings", default=";".join(DEFAULT_SETTINGS), help="';'-separated")
     parser.add_argument("--budgets", default="low,high")
     parser.add_argument("--seeds", type=int, default=8)
@@ -92,16 +95,14 @@ def main(argv=None) -> None:
         score_fn = score_function(source, criterion)
         keys = seed_keys(0, args.seeds)
         for budget in args.budgets.split(","):
-            base = ExploreConfig(budget=budget, direction=criterion.direction)
-            rows.append(
-                {"case": case, "budget": budget, "setting": "egps"} | run(score_fn, initial, "egps", base, None, keys)
-            )
-            for setting in args.settings.split(";"):
-                params, grid = parse_setting(setting)
-                config = ExploreConfig(method="map-elites", budget=budget, direction=criterion.direction, grid=grid)
-                row = {"case": case, "budget": budget, "setting": setting} | run(
-                    score_fn, initial, "map-elites", config, params, keys
-                )
+            for setting in ["egps"] + args.settings.split(";"):
+                if setting == "egps":
+                    method, params, grid = "egps", None, ViewGrid()
+                else:
+                    (params, grid), method = parse_setting(setting), "map-elites"
+                config = ExploreConfig(method=method, budget=budget, direction=criterion.direction, grid=grid)
+                row = {"case": case, "budget": budget, "setting": setting}
+                row.update(run(score_fn, initial, method, config, params, keys))
                 rows.append(row)
                 print(
                     f"[map-elites] {case} {budget} {setting}: best {np.mean(row['best']):.4g}, shots "
@@ -109,6 +110,8 @@ def main(argv=None) -> None:
                     file=sys.stderr,
                     flush=True,
                 )
+                if args.out:
+                    Path(args.out + ".partial").write_text(json.dumps(rows))
     lines = ["| case | budget | setting | best (mean) | shots beating the best training view (mean) | coverage |"]
     lines.append("|---|---|---|---|---|---|")
     for r in rows:
@@ -119,6 +122,8 @@ def main(argv=None) -> None:
     result.update({"rows": rows, "table": "\n".join(lines)})
     print(result["table"], file=sys.stderr)
     emit_with_load(result, args.out, quiet, args.load_threshold)
+    if args.out:
+        Path(args.out + ".partial").unlink(missing_ok=True)
 
 
 if __name__ == "__main__":

@@ -135,6 +135,43 @@ def methods_table() -> str:
     )
 
 
+# Different shots (issue 41): one methods.py run per scene, in this order (a `_loaded` name when the CPU was shared).
+SHOTS = ("fox", "room", "donut", "lego")
+
+
+def _shots_json(scene: str) -> str:
+    name = f"methods_shots_{scene}_cpu.json"
+    return name if (RESULTS / name).exists() else name.replace(".json", "_loaded.json")
+
+
+def shots_table() -> str:
+    """Different shots per scene, budget and method, from the `methods_shots_<scene>_cpu` JSONs."""
+    names = [_shots_json(scene) for scene in SHOTS if (RESULTS / _shots_json(scene)).exists()]
+    runs = [_json(name) for name in names]
+    rows = [line for run in runs for line in run["shots_table"].strip().splitlines()[2:]]
+    header = runs[0]["shots_table"].strip().splitlines()[:2]
+    settings = runs[0]["settings"]
+
+    def scene_text(run: dict) -> str:
+        cell, s = run["cells"][0], run["settings"]
+        what = {
+            "fox": "a fast-preset fox NeRF",
+            "donut": "the real splats, a ring of views",
+            "lego": "a fast-preset lego_tiny NeRF",
+        }
+        if cell["scene"] == "room":
+            return f"room (`{cell['criterion']}`, exact, `procedural:{s['room_seeds']}`)"
+        return f"{cell['scene']} (`{cell['criterion']}`, {cell['resolution']} px, {what[cell['scene']]})"
+
+    used = [scene_text(run) for run in runs]
+    return "\n".join(header + rows) + (
+        f"\n\n{settings['seeds']} seeds per cell, equal cost (the budget's renders, training views included), "
+        f"different shots at least {settings['min_separation']:g} degrees apart, coverage over the default "
+        f"{runs[0]['cells'][0]['grid']['cells']}-cell archive; in brackets 95 % bootstrap intervals over the seeds. "
+        f"Scenes: {'; '.join(used)}. From " + ", ".join(f"`benchmarks/results/{n}`" for n in names) + "."
+    )
+
+
 REFINE_FOX = "methods_fox_refine_cpu_loaded.json"
 # The same fox run and seeds, `egps+refine` alone with 4 poses x 3 steps (compared with REFINE_FOX's EGPS).
 REFINE_FOX_4X3 = "methods_fox_refine_4x3_cpu.json"
@@ -532,6 +569,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
         "paper_tables_room_seed1_paper_budget_cpu.json", "paper_tables_room_seed0_paper_budget_cpu.json"
     ),
     "methods": methods_table,
+    "shots": shots_table,
     "paths": paths_table,
     "waldo-found": waldo_found_table,
     "refine-fox": refine_fox_table,

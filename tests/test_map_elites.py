@@ -136,10 +136,22 @@ def test_map_elites_children_come_from_elites_and_configs_are_checked():
         ViewGrid(distance_edges=(1.5, 0.5))
     with pytest.raises(ValueError, match="elevation_range"):
         ViewGrid(elevation_range=(10.0, 10.0))
-    # With no spread (sigma 0), a child is a copy of an elite's origin and look-at point.
-    params = map_elites.Params(iso_sigma=jnp.float32(0.0), line_sigma=jnp.float32(0.0))
+    # Iso+LineDD alone with no spread: every child is a copy of an elite's origin and look-at point.
+    params = map_elites.Params(
+        line_probability=jnp.float32(1.0), iso_sigma=jnp.float32(0.0), line_sigma=jnp.float32(0.0)
+    )
     result = explore(jax.random.key(1), toy_score, INITIAL, config=CONFIG, params=params)
     origins = np.asarray(result.population.origin)
     train = {tuple(np.round(o, 5)) for o in origins[:8]}
     assert {tuple(np.round(o, 5)) for o in origins[8:]} <= train
     assert math.isfinite(float(result.qd_score))
+    # EGPS breeding alone with no mutation: every child lies in the box between two training views.
+    bred = map_elites.Params(
+        line_probability=jnp.float32(0.0),
+        breeding=map_elites.egps.Params(mutation_probs=jnp.array([0.0, 1.0, 0.0], jnp.float32)),
+    )
+    result = explore(jax.random.key(1), toy_score, INITIAL, config=CONFIG, params=bred)
+    origins = np.asarray(result.population.origin)
+    low, high = origins[:8].min(axis=0), origins[:8].max(axis=0)
+    assert np.all((origins[8:] >= low - 1e-5) & (origins[8:] <= high + 1e-5))
+    assert len({tuple(np.round(o, 5)) for o in origins[8:]} - train) > 0  # new poses, not copies

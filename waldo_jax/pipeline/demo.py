@@ -34,7 +34,7 @@ from waldo_jax import io
 from waldo_jax.cameras import look_at
 from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.metrics import image_psnr
+from waldo_jax.metrics import image_psnr, masked_psnr
 from waldo_jax.nerf.config import TrainConfig
 from waldo_jax.nerf.runs import train_run
 from waldo_jax.nerf.trained import TrainedField
@@ -47,6 +47,7 @@ from waldo_jax.procedural import (
     RoomCameraConfig,
     held_out_scene,
     room_scene,
+    waldo_mask,
     waldo_surface_seen,
     waldo_visibility_batch,
 )
@@ -161,8 +162,10 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             f"{m['best_psnr_mean']:.1f} | {m['top_psnr_mean']:.1f} | {m['seconds']:.1f} |"
         )
         cells = [
-            f"{v:.0%}, {p:.1f} dB, {c:.1f} dB"
-            for v, p, c in zip(m["best_visible_per_seed"], m["best_psnr_per_seed"], m["closeup_psnr_per_seed"])
+            f"{v:.0%}, {p:.1f} dB, Waldo {_db(w)}, {c:.1f} dB"
+            for v, p, w, c in zip(
+                m["best_visible_per_seed"], m["best_psnr_per_seed"], m["waldo_psnr_per_seed"], m["closeup_psnr_per_seed"]
+            )
         ]
         seed_rows.append(f"| {method.upper()} | " + " | ".join(cells) + " |")
     nerf = summary["nerf"]
@@ -197,7 +200,8 @@ def _report(out: Path, summary: Dict[str, Any]) -> str:
             "gain over the best training view.",
             "",
             "Each seed's best view: Waldo's visible share (exact), the PSNR of the NeRF's render against the "
-            "analytic truth at the demo's resolution, and on the close-up of Waldo from there (below):",
+            "analytic truth at the demo's resolution, over the whole view and over Waldo's own pixels (his mask from "
+            "the room's geometry), and on the close-up of Waldo from there (below):",
             "",
             "| method | " + " | ".join(f"seed {k}" for k in seeds) + " |",
             "|---|" + "---|" * len(seeds),
@@ -321,11 +325,12 @@ def closeup_cameras(room, c2w: np.ndarray, intrinsics: Intrinsics):
 
 
 def _closeups(source: Source, best_c2w: np.ndarray, views: int):
-    """Close-ups of Waldo from each best view [P, 4, 4] by the NeRF and by the truth: (nerf, truth, zoom)."""
+    """Close-ups of Waldo from each best view [P, 4, 4] by the NeRF and by the truth, and Waldo's pixels in
+    them: (nerf, truth, mask [P, H, W], zoom)."""
     cameras, zoomed, zoom = closeup_cameras(source.room, best_c2w, source.intrinsics)
     nerf = render_in(with_intrinsics(source.render, zoomed), cameras, views)
     truth = render_in(with_intrinsics(source.truth_render, zoomed), cameras, views)
-    return nerf, truth, zoom
+    return nerf, truth, waldo_mask(source.room, cameras, zoomed), zoom
 
 
 def _method_stats(run, results: Dict[str, Any], source: Source):
@@ -335,10 +340,14 @@ def _method_stats(run, results: Dict[str, Any], source: Source):
     best_c2w = jnp.asarray(np.stack([np.asarray(r.top_c2w[0]) for r in run.results]))
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
-    best_psnr = image_psnr(render_in(source.render, best_c2w, views), render_in(source.truth_render, best_c2w, views))
+    best_nerf = render_in(source.render, best_c2w, views)
+    best_truth = render_in(source.truth_render, best_c2w, views)
+    best_psnr = image_psnr(best_nerf, best_truth)
+    waldo_psnr = masked_psnr(best_nerf, best_truth, waldo_mask(source.room, best_c2w, source.intrinsics))
     top_psnr = image_psnr(run.top_images, run.top_truth)
-    nerf, truth, zoom = _closeups(source, np.asarray(best_c2w), views)
+    nerf, truth, mask, zoom = _closeups(source, np.asarray(best_c2w), views)
     closeup_psnr = image_psnr(nerf, truth)
+    closeup_waldo_psnr = masked_psnr(nerf, truth, mask)
     return {
         "cvir_mean": results.get("cvir_mean", results["cvir"]),
         "cvir_std": results.get("cvir_std", 0.0),
@@ -355,6 +364,9 @@ def _method_stats(run, results: Dict[str, Any], source: Source):
         "found_seeds": int(np.sum(visible >= FOUND_VISIBILITY)),
         "best_psnr_mean": float(np.mean(best_psnr)),
         "best_psnr_per_seed": best_psnr.tolist(),
+        "waldo_psnr_mean": float(np.nanmean(waldo_psnr)) if np.isfinite(waldo_psnr).any() else None,
+        "waldo_psnr_per_seed": [float(v) if np.isfinite(v) else None for v in waldo_psnr],
+        "closeup_waldo_psnr_per_seed": [float(v) if np.isfinite(v) else None for v in closeup_waldo_psnr],
         "top_psnr_mean": float(np.mean(top_psnr)),
         "top_psnr": top_psnr.tolist(),
         "closeup_zoom": zoom,
@@ -388,6 +400,11 @@ def _run_methods(out: Path, source: Source, criterion, settings: DemoSettings, s
     return runs, methods, closeups
 
 
+def _db(value) -> str:
+    """A PSNR for a label or table cell: "21.3 dB", or "n/a" where Waldo has no pixel."""
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:.1f} dB"
+
+
 def closeup_sheet(methods: Dict[str, Any], closeups: Dict[str, Any], seeds) -> np.ndarray:
     """uint8 sheet of Waldo's close-ups, one column per seed.
 
@@ -408,13 +425,15 @@ def closeup_sheet(methods: Dict[str, Any], closeups: Dict[str, Any], seeds) -> n
             raise ValueError(f"{method}: {len(nerf)} and {len(truth)} close-ups for {len(seeds)} seeds")
         images += list(nerf) + list(truth)
         labels += [f"seed {k} {v:.0%}" for k, v in zip(seeds, m["best_visible_per_seed"], strict=True)]
-        labels += [f"{p:.1f} dB" for p in m["closeup_psnr_per_seed"]]
+        labels += [
+            f"{p:.1f} dB, Waldo {_db(w)}" for p, w in zip(m["closeup_psnr_per_seed"], m["closeup_waldo_psnr_per_seed"])
+        ]
         titles += [f"{method.upper()} (NeRF) x{m['closeup_zoom']:.1f}", f"{method.upper()} (truth)"]
     caption = (
         "Waldo close-ups: each seed's best view, turned from its camera centre onto Waldo and zoomed (the zoom "
         f"after the method) so that he fills about {CLOSEUP_FILL:.0%} of the height; "
         f"NeRF tiles: the seed and Waldo's visible share in that best view (found: >= {FOUND_VISIBILITY:.0%}); "
-        "truth tiles: the NeRF's PSNR against it"
+        "truth tiles: the NeRF's PSNR against it, over the whole close-up and over Waldo's own pixels"
     )
     return io.contact_sheet(images, columns=len(seeds), labels=labels, row_titles=titles, caption=caption)
 

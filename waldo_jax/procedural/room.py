@@ -18,6 +18,7 @@ __all__ = [
     "WaldoRoom",
     "make_room",
     "room_field",
+    "waldo_field",
     "room_sdf",
     "ROOM_HALF",
     "WALL_HEIGHT",
@@ -203,6 +204,16 @@ def room_field(room: WaldoRoom, x: Array, d: Array) -> Tuple[Array, Array]:
     normal = normal / jnp.sqrt(jnp.sum(normal**2) + 1e-12)
     shade = 0.5 + 0.5 * jnp.maximum(jnp.dot(normal, jnp.asarray(LIGHT_DIR, jnp.float32)), 0.0)
     return sigma, jnp.clip(_albedo(room, nearest, x) * shade, 0.0, 1.0)
+
+
+def waldo_field(room: WaldoRoom, x: Array, d: Array) -> Tuple[Array, Array]:
+    """`room_field`'s density with colour (1, 1, 1) on Waldo's primitives and (0, 0, 0) elsewhere: rendered
+    on a black background, a pixel's value is the share of its ray's weight that lands on Waldo (his mask)."""
+    del d
+    distances = _all_sdf(room, x)  # [K]
+    nearest = jnp.argmin(distances)
+    sigma = DENSITY * jax.nn.sigmoid(-distances[nearest] / SURFACE_WIDTH)
+    return sigma, jnp.broadcast_to(room.is_waldo[nearest].astype(jnp.float32), (3,))
 
 
 # ---------------------------------------------------------------------------------------------

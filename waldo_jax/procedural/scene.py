@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.procedural.cameras import RoomCameraConfig, training_cameras
-from waldo_jax.procedural.room import BACKGROUND, WaldoRoom, make_room, room_field
+from waldo_jax.procedural.room import BACKGROUND, WaldoRoom, make_room, room_field, waldo_field
 from waldo_jax.render import RenderConfig, render_views
 from waldo_jax.types import Intrinsics, Scene
 
-__all__ = ["room_render_config", "room_scene", "held_out_scene"]
+__all__ = ["room_render_config", "room_scene", "held_out_scene", "waldo_mask"]
 
 
 def room_render_config(room: WaldoRoom, num_samples: int = 128, **kwargs):
@@ -92,3 +92,12 @@ def held_out_scene(
         split="test",
         file_names=tuple(f"test_{i:03d}.png" for i in range(len(c2w))),
     )
+
+
+def waldo_mask(room: WaldoRoom, c2w, intrinsics: Intrinsics, num_samples: int = 128) -> np.ndarray:
+    """Waldo's pixels in views c2w [P, 4, 4]: float32 [P, H, W] in [0, 1], the share of each pixel's ray
+    weight that lands on Waldo (`room.waldo_field` rendered on black, as the room's views are rendered);
+    > 0.5 where the pixel shows him."""
+    config = room_render_config(room, num_samples=num_samples).replace(background=jnp.zeros(3, jnp.float32))
+    rendered = render_views(waldo_field, room, jnp.asarray(c2w, jnp.float32), intrinsics, config).rgb
+    return np.asarray(rendered[..., 0], np.float32)

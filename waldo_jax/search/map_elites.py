@@ -6,12 +6,15 @@ starts from the scored training views (`init`); each epoch `ask` first files the
 children into it (reading their poses and fitness from the population, so a `+refine` method's refined
 children are filed where they really are), then draws `children_per_epoch` children: two elites per
 child, chosen among the filled cells with weights ((h - rank) / h) ** `elite_bias` (h filled cells,
-rank 0 the best; `elite_bias` 0 is MAP-Elites' uniform choice), and the Iso+LineDD operator (Vassiliades
-& Mouret, 2018) on (origin, look-at point):
+rank 0 the best; `elite_bias` 0 is MAP-Elites' uniform choice), the better one first, then one of two
+variation operators:
 
-    child = x1 + iso_sigma * r * N(0, I) + line_sigma * (x2 - x1) * N(0, 1)
+  * with probability `line_probability`, Iso+LineDD (Vassiliades & Mouret, 2018) on (origin, look-at
+    point): x1 + iso_sigma * r * N(0, I) + line_sigma * (x2 - x1) * N(0, 1), r the training cameras'
+    median distance to the focus, the first parent's up: steps out of and between cells;
+  * else the paper's EGPS breeding of the two elites (`egps.breed`: crossover, then mutation by
+    +-nabla_scale times their difference): a child between two good views of different cells.
 
-with r the training cameras' median distance to the focus; the child keeps its first parent's up.
 The population holds every view, so the archive is an index into it: `archive.archive_of` of the final
 population is the archive the method ends with (tested), and `explore` reports it for every method.
 As QDax's `MapElitesRepertoire` and emitters, written here on the population (docs/design.md,
@@ -27,12 +30,23 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from waldo_jax.search import egps
 from waldo_jax.search.archive import Archive, ViewGrid, archive_of, merge
 from waldo_jax.search.method import SearchMethod, check_options
 from waldo_jax.search.population import Population, draw_index, uniform_rows
 from waldo_jax.types import Array, Pose, PRNGKey
 
-__all__ = ["Params", "Config", "MapElitesState", "elite_weights", "init", "ask", "METHOD"]
+__all__ = [
+    "NUM_UNIFORMS",
+    "NUM_NORMALS",
+    "Params",
+    "Config",
+    "MapElitesState",
+    "elite_weights",
+    "init",
+    "ask",
+    "METHOD",
+]
 
 
 @flax.struct.dataclass
@@ -40,15 +54,24 @@ class Params:
     """Numeric hyper-parameters of MAP-Elites (a pytree: a sweep can vmap over them).
 
     Attributes:
-      iso_sigma: float32 [], the isotropic Gaussian step per coordinate of origin and look-at point,
-        in units of the training cameras' median distance to the focus.
-      line_sigma: float32 [], the spread of the step along the line from the first parent to the second.
       elite_bias: float32 [], exponent of the rank weights of the filled cells (0: uniform, as MAP-Elites).
+      line_probability: float32 [], the share of children made by Iso+LineDD (the rest by EGPS breeding).
+      iso_sigma: float32 [], Iso+LineDD's isotropic Gaussian step per coordinate of origin and look-at
+        point, in units of the training cameras' median distance to the focus.
+      line_sigma: float32 [], Iso+LineDD's spread along the line from the first parent to the second.
+      breeding: `egps.Params`, the EGPS operators' (mutation probabilities, nabla scale).
     """
 
+    elite_bias: Array = flax.struct.field(default_factory=lambda: jnp.asarray(1.0, jnp.float32))
+    line_probability: Array = flax.struct.field(default_factory=lambda: jnp.asarray(0.5, jnp.float32))
     iso_sigma: Array = flax.struct.field(default_factory=lambda: jnp.asarray(0.1, jnp.float32))
     line_sigma: Array = flax.struct.field(default_factory=lambda: jnp.asarray(0.2, jnp.float32))
-    elite_bias: Array = flax.struct.field(default_factory=lambda: jnp.asarray(1.0, jnp.float32))
+    breeding: egps.Params = flax.struct.field(default_factory=egps.Params)
+
+
+# Uniform numbers one child consumes: 2 elites, 1 operator choice, 12 for EGPS breeding; and 7 normals.
+NUM_UNIFORMS = 15
+NUM_NORMALS = 7
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,13 +141,21 @@ def elite_weights(archive: Archive, elite_bias: Array) -> Array:
     return jnp.where(filled, jnp.power(jnp.maximum(relative, 1e-30), elite_bias), 0.0)
 
 
-def _child(u: Array, z: Array, poses: Pose, slots: Array, weights: Array, scale: Array, params: Params) -> Pose:
-    """One child from 2 uniforms u (the parents' cells) and 7 normals z (6 isotropic, 1 along the line)."""
-    first, second = slots[draw_index(u[0], weights)], slots[draw_index(u[1], weights)]
-    x1 = jnp.concatenate([poses.origin[first], poses.target[first]])
-    x2 = jnp.concatenate([poses.origin[second], poses.target[second]])
+def _child(u: Array, z: Array, poses: Pose, archive: Archive, weights: Array, scale: Array, params: Params) -> Pose:
+    """One child from NUM_UNIFORMS uniforms u and NUM_NORMALS normals z (the module docstring)."""
+    a, b = draw_index(u[0], weights), draw_index(u[1], weights)
+    first_better = archive.fitness[a] >= archive.fitness[b]
+    first = jnp.where(first_better, archive.slot[a], archive.slot[b])
+    second = jnp.where(first_better, archive.slot[b], archive.slot[a])
+    pick = lambda slot: jax.tree.map(lambda x: x[slot], poses)  # noqa: E731
+    parent1, parent2 = pick(first), pick(second)
+    x1 = jnp.concatenate([parent1.origin, parent1.target])
+    x2 = jnp.concatenate([parent2.origin, parent2.target])
     x = x1 + params.iso_sigma * scale * z[:6] + params.line_sigma * (x2 - x1) * z[6]
-    return Pose(origin=x[:3], target=x[3:], up=poses.up[first])
+    line = Pose(origin=x[:3], target=x[3:], up=parent1.up)
+    bred = egps.breed(u[3:15], parent1, parent2, params.breeding)
+    use_line = u[2] < params.line_probability
+    return jax.tree.map(lambda p, q: jnp.where(use_line, p, q), line, bred)
 
 
 def ask(
@@ -152,10 +183,10 @@ def ask(
     archive = _file_last_epoch(population, state.archive, epoch, n, config.grid)
     weights = elite_weights(archive, params.elite_bias)
     uniform_key, normal_key = jax.random.split(key)
-    uniforms = uniform_rows(uniform_key, n, 2)
-    normals = jax.random.normal(normal_key, (n * 7,)).reshape(n, 7)
+    uniforms = uniform_rows(uniform_key, n, NUM_UNIFORMS)
+    normals = jax.random.normal(normal_key, (n * NUM_NORMALS,)).reshape(n, NUM_NORMALS)
     children = jax.vmap(_child, in_axes=(0, 0, None, None, None, None, None))(
-        uniforms, normals, population.poses, archive.slot, weights, population.frame.radius, params
+        uniforms, normals, population.poses, archive, weights, population.frame.radius, params
     )
     can_breed = jnp.any(archive.filled)
     return children, jnp.broadcast_to(can_breed, (n,)), population, MapElitesState(archive=archive)
