@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from waldo_jax.cameras import look_at, project_points
+from waldo_jax.cameras import look_at
 from waldo_jax.criteria import finder
 from waldo_jax.criteria.base import CriterionContext, CriterionError, make_criterion
 from waldo_jax.procedural import (
+    waldo_reference,
     make_room,
     room_field,
     room_render_config,
     waldo_coverage,
     waldo_visibility,
-    waldo_visibility_batch,
 )
 from waldo_jax.render import render_views
 from waldo_jax.types import Intrinsics
@@ -149,27 +149,9 @@ def room_views(room, key, n, intrinsics):
     return jax.vmap(look_at, in_axes=(0, 0, None))(origins, looks, UP)
 
 
-def waldo_crop(room, distance=1.6, height=0.5, resolution=128):
-    """A crop of Waldo from a close render where he is fully visible: of the cameras on a ring of
-    `distance` around him at `height`, looking at his centre, the one the oracle says sees most of him."""
-    angle = jnp.linspace(0.0, 2 * jnp.pi, 120, endpoint=False)
-    centre = room.waldo_center
-    origins = jnp.stack(
-        [centre[0] + distance * jnp.cos(angle), jnp.full_like(angle, height), centre[2] + distance * jnp.sin(angle)], -1
-    )
-    c2w = jax.vmap(look_at, in_axes=(0, None, None))(origins, centre, UP)
-    intrinsics = Intrinsics.from_fov(resolution, resolution, np.radians(60.0))
-    visible = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
-    best = int(np.argmax(visible))
-    assert visible[best] > 0.95, "no camera of the ring sees all of Waldo"
-    image = np.asarray(
-        render_views(room_field, room, c2w[best : best + 1], intrinsics, room_render_config(room, num_samples=128)).rgb[
-            0
-        ]
-    )
-    uv, _ = project_points(c2w[best], intrinsics, room.waldo_points)
-    (x0, y0), (x1, y1) = np.floor(np.min(uv, 0)).astype(int), np.ceil(np.max(uv, 0)).astype(int)
-    return image[max(y0, 0) : y1, max(x0, 0) : x1]
+def waldo_crop(room):
+    """A crop of Waldo from a close render where he is fully visible (`procedural.waldo_reference`)."""
+    return waldo_reference(room)
 
 
 @pytest.mark.slow

@@ -103,7 +103,14 @@ class Intrinsics:
 
     @classmethod
     def from_fov(cls, width: int, height: int, fov_x: float) -> "Intrinsics":
-        """Square-pixel pinhole from a horizontal field of view in radians."""
+        """Square-pixel pinhole from a horizontal field of view in radians.
+
+        Raises:
+          ValueError: `fov_x` is not in (0, pi) (e.g. degrees passed as radians: 60 rad would give a negative
+            focal length and a mirrored camera).
+        """
+        if not 0.0 < float(fov_x) < np.pi:
+            raise ValueError(f"fov_x must be in (0, pi) radians, got {fov_x!r} (degrees? use np.radians)")
         fx = 0.5 * width / np.tan(0.5 * fov_x)
         return cls.create(width, height, fx)
 

@@ -28,6 +28,7 @@ from waldo_jax.procedural.room import room_field as room_field
 from waldo_jax.procedural.room import room_sdf as room_sdf
 from waldo_jax.procedural.scene import held_out_scene as held_out_scene
 from waldo_jax.procedural.scene import waldo_mask as waldo_mask
+from waldo_jax.procedural.scene import waldo_reference as waldo_reference
 from waldo_jax.procedural.scene import room_render_config as room_render_config
 from waldo_jax.procedural.scene import room_scene as room_scene
 
@@ -38,6 +39,7 @@ __all__ = [
     "WaldoRoom",
     "held_out_scene",
     "waldo_mask",
+    "waldo_reference",
     "make_room",
     "room_field",
     "room_render_config",

@@ -5,14 +5,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import look_at
-from waldo_jax.procedural.visibility import waldo_visibility_batch
+from waldo_jax.procedural.visibility import waldo_samples_seen, waldo_visibility_batch
 from waldo_jax.procedural.room import WaldoRoom, room_sdf
 from waldo_jax.types import Array, Intrinsics, PRNGKey
 
@@ -33,6 +33,15 @@ class RoomCameraConfig:
       oversample: candidate cameras drawn per kept camera.
       min_clearance: a camera is kept only if its centre lies at least this far (metres) outside every
         solid (a band that reaches into the clutter would otherwise put cameras inside boxes).
+      cover_views: how many of the views are chosen to see Waldo's surface (0: none; every view is then
+        chosen by its place on the band). Their candidates come from the same band but look at points
+        around Waldo (`cover_aim` x his size from his centre), so that a frame or a crate cuts him; of
+        those that see at most `max_visibility` of him, the greedy choice takes each time the one that
+        sees the most surface still seen by fewer than `cover_depth` chosen views.
+      cover_depth: views a surface sample needs before it stops counting (2: seen from two places).
+      cover_aim: the half-width of the box of aim points around Waldo's centre, in units of his size.
+      cover_band: None: the covering cameras' candidates stand on the band; (min, max): on a ring around
+        Waldo at these horizontal distances from him, in units of his size (closer: he fills more pixels).
     """
 
     band_radius: Tuple[float, float] = (2.9, 3.4)
@@ -43,6 +52,10 @@ class RoomCameraConfig:
     max_visibility: float = 0.5
     oversample: int = 6
     min_clearance: float = 0.15
+    cover_views: int = 0
+    cover_depth: int = 2
+    cover_aim: float = 0.6
+    cover_band: Optional[Tuple[float, float]] = None
 
 
 def training_cameras(
@@ -79,14 +92,64 @@ def training_cameras(
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
     clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
     keep = np.flatnonzero((visibility <= config.max_visibility) & (clearance >= config.min_clearance))
-    if len(keep) < num_views:
+    if len(keep) < num_views - config.cover_views:
         raise ValueError(
             f"only {len(keep)} of {n} candidate cameras see Waldo at most {config.max_visibility:.0%} from free "
-            f"space; ask for fewer than {num_views} views or raise oversample"
+            f"space; ask for fewer than {num_views - config.cover_views} views or raise oversample"
         )
+    spread = num_views - config.cover_views
     # Spread the kept cameras over the whole band rather than taking the first ones in angle.
-    chosen = keep[np.round(np.linspace(0, len(keep) - 1, num_views)).astype(int)]
-    return np.asarray(c2w)[chosen].astype(np.float32)
+    chosen = keep[np.round(np.linspace(0, len(keep) - 1, spread)).astype(int)] if spread > 0 else keep[:0]
+    spread_c2w = np.asarray(c2w)[chosen].astype(np.float32)
+    if config.cover_views == 0:
+        return spread_c2w
+    covering = _covering_cameras(jax.random.fold_in(key, 1), room, intrinsics, config, spread_c2w)
+    return np.concatenate([spread_c2w, covering]).astype(np.float32)
+
+
+def _covering_cameras(
+    key: PRNGKey, room: WaldoRoom, intrinsics: Intrinsics, config: RoomCameraConfig, chosen: np.ndarray
+) -> np.ndarray:
+    """`config.cover_views` cameras chosen greedily to see Waldo's surface (`RoomCameraConfig.cover_views`),
+    counting what the `chosen` cameras [V, 4, 4] see already. float32 [cover_views, 4, 4]."""
+    n = config.cover_views * config.oversample * 4
+    scale = float(room.waldo_scale)
+    low = np.asarray(room.waldo_center) - config.cover_aim * scale
+    k_place, k_aim = jax.random.split(key)
+    band = config.band_radius if config.cover_band is None else tuple(scale * r for r in config.cover_band)
+    places = _candidates(
+        k_place,
+        n,
+        np.float32(band),
+        np.float32(config.band_height),
+        np.float32(config.target_radius),
+        np.float32(config.target_height),
+    )[:, :3, 3]
+    if config.cover_band is not None:  # the ring is about Waldo, not the room's centre
+        places = places + jnp.asarray(room.waldo_base, jnp.float32) * jnp.array([1.0, 0.0, 1.0])
+    aims = jnp.asarray(low, jnp.float32) + 2 * config.cover_aim * scale * jax.random.uniform(k_aim, (n, 3))
+    c2w = jax.vmap(look_at, in_axes=(0, 0, None))(places, aims, jnp.array([0.0, 1.0, 0.0]))
+    visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
+    clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
+    usable = (visibility <= config.max_visibility) & (visibility > 0.0) & (clearance >= config.min_clearance)
+    if int(usable.sum()) < config.cover_views:
+        raise ValueError(
+            f"only {int(usable.sum())} of {n} cameras aimed near Waldo see at most {config.max_visibility:.0%} of "
+            f"him from free space; ask for fewer than {config.cover_views} covering views"
+        )
+    seen = np.asarray(waldo_samples_seen(room, c2w, intrinsics))  # [n, M]
+    area = np.asarray(room.waldo_areas, np.float64)
+    counts = np.asarray(waldo_samples_seen(room, jnp.asarray(chosen), intrinsics)).sum(0) if len(chosen) else 0
+    counts = np.zeros(len(area)) + counts
+    picked = []
+    for _ in range(config.cover_views):
+        gain = (seen * (counts < config.cover_depth)) @ area  # [n]
+        gain = np.where(usable, gain, -1.0)
+        gain[picked] = -1.0
+        best = int(np.argmax(gain))  # the first on ties: deterministic
+        picked.append(best)
+        counts = counts + seen[best]
+    return np.asarray(c2w)[picked]
 
 
 @functools.partial(jax.jit, static_argnames="n")

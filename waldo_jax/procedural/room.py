@@ -5,7 +5,7 @@ radiance field `room_field(room, x, d)` from signed distance functions (docs/des
 from __future__ import annotations
 
 import dataclasses
-from typing import Tuple
+from typing import Optional, Tuple
 
 import flax.struct
 import jax
@@ -67,6 +67,8 @@ class WaldoRoom:
       waldo_normals: float32 [M, 3], their outward unit normals.
       waldo_areas: float32 [M], the surface area each sample stands for.
       waldo_base: float32 [3], the point on the floor where Waldo stands.
+      waldo_scale: float32 [], his size (and his pen's) over the default's (1: about 1 m tall).
+      stripe_width: float32 [], the width of his red and white stripes in metres (5 cm at size 1).
       num_boxes, num_spheres: how many rows are boxes and spheres (static).
       seed: the seed the room was built from (static).
     """
@@ -81,6 +83,8 @@ class WaldoRoom:
     waldo_normals: Array
     waldo_areas: Array
     waldo_base: Array
+    waldo_scale: Array
+    stripe_width: Array
     num_boxes: int = flax.struct.field(pytree_node=False, default=0)
     num_spheres: int = flax.struct.field(pytree_node=False, default=0)
     seed: int = flax.struct.field(pytree_node=False, default=0)
@@ -88,7 +92,7 @@ class WaldoRoom:
     @property
     def waldo_center(self) -> Array:
         """Centre of Waldo's figure (half his height above `waldo_base`)."""
-        return self.waldo_base + jnp.array([0.0, 0.5, 0.0])
+        return self.waldo_base + jnp.array([0.0, 0.5, 0.0]) * self.waldo_scale
 
     @property
     def aabb(self) -> np.ndarray:
@@ -175,7 +179,7 @@ def _albedo(room: WaldoRoom, index: Array, p: Array) -> Array:
     base = room.color[index]
     checker = (jnp.floor(p[0] / 0.5) + jnp.floor(p[2] / 0.5)) % 2.0
     checker_color = base * (0.72 + 0.28 * checker)
-    stripe = jnp.floor((p[1] - room.waldo_base[1]) / STRIPE_WIDTH) % 2.0
+    stripe = jnp.floor((p[1] - room.waldo_base[1]) / room.stripe_width) % 2.0
     stripes_color = jnp.where(stripe < 0.5, jnp.array(WALDO_RED), jnp.array(WALDO_WHITE))
     return jnp.select(
         [room.pattern[index] == PATTERN_CHECKER, room.pattern[index] == PATTERN_STRIPES],
@@ -253,16 +257,20 @@ class _Builder:
             getattr(self, name).append(value)
 
 
-def _waldo_parts(base: np.ndarray):
-    """Waldo's primitives (kind, centre, size, colour, pattern), standing at `base` (about 1 m tall)."""
+def _waldo_parts(base: np.ndarray, scale: float = 1.0):
+    """Waldo's primitives (kind, centre, size, colour, pattern), standing at `base` (about `scale` m tall)."""
     x, y, z = base
     skin = (0.96, 0.78, 0.64)
+    parts = [
+        (KIND_CYLINDER, 0.15, (0.085, 0.15), (0.15, 0.22, 0.62), PATTERN_PLAIN),  # legs
+        (KIND_CYLINDER, 0.475, (0.12, 0.175), WALDO_RED, PATTERN_STRIPES),  # jumper
+        (KIND_SPHERE, 0.74, (0.1,), skin, PATTERN_PLAIN),  # head
+        (KIND_CYLINDER, 0.875, (0.075, 0.055), WALDO_RED, PATTERN_STRIPES),  # hat
+        (KIND_SPHERE, 0.96, (0.04,), WALDO_WHITE, PATTERN_PLAIN),  # bobble
+    ]
     return [
-        (KIND_CYLINDER, (x, y + 0.15, z), (0.085, 0.15), (0.15, 0.22, 0.62), PATTERN_PLAIN),  # legs
-        (KIND_CYLINDER, (x, y + 0.475, z), (0.12, 0.175), WALDO_RED, PATTERN_STRIPES),  # jumper
-        (KIND_SPHERE, (x, y + 0.74, z), (0.1,), skin, PATTERN_PLAIN),  # head
-        (KIND_CYLINDER, (x, y + 0.875, z), (0.075, 0.055), WALDO_RED, PATTERN_STRIPES),  # hat
-        (KIND_SPHERE, (x, y + 0.96, z), (0.04,), WALDO_WHITE, PATTERN_PLAIN),  # bobble
+        (kind, (x, y + scale * height, z), tuple(scale * v for v in size), colour, pattern)
+        for kind, height, size, colour, pattern in parts
     ]
 
 
@@ -324,21 +332,22 @@ def _waldo_base(key) -> np.ndarray:
     return np.array([radius * np.cos(angle), 0.0, radius * np.sin(angle)])
 
 
-def _add_crates(b: _Builder, key, base: np.ndarray, num_crates: int) -> None:
-    """A pen of `num_crates` crates around `base`, with gaps between them."""
+def _add_crates(b: _Builder, key, base: np.ndarray, num_crates: int, scale: float = 1.0) -> None:
+    """A pen of `num_crates` crates around `base`, with gaps between them (sized with Waldo: `scale`)."""
     uc = np.asarray(jax.random.uniform(key, (max(num_crates, 1), 4)), np.float64)
     start = 2 * np.pi * uc[0, 0]
     for i in range(num_crates):
         a = start + 2 * np.pi * (i + 0.2 * (uc[i, 1] - 0.5)) / num_crates
-        dist = 0.5 + 0.08 * uc[i, 2]
-        half_w = 0.2 + 0.06 * uc[i, 3]
-        height = 0.85 + 0.3 * uc[i, 2]
+        dist = scale * (0.5 + 0.08 * uc[i, 2])
+        half_w = scale * (0.2 + 0.06 * uc[i, 3])
+        height = scale * (0.85 + 0.3 * uc[i, 2])
         centre = base + np.array([dist * np.cos(a), height / 2, dist * np.sin(a)])
         b.add(KIND_BOX, centre, (half_w, height / 2, half_w), _PALETTE[(i * 3) % len(_PALETTE)] * 0.8 + 0.1)
 
 
-def _add_clutter(b: _Builder, key, base: np.ndarray, num_clutter: int) -> None:
-    """`num_clutter` boxes, spheres (on posts) and cylinders on a ring away from Waldo's pen and the camera band."""
+def _add_clutter(b: _Builder, key, base: np.ndarray, num_clutter: int, clearance: float = 1.25) -> None:
+    """`num_clutter` boxes, spheres (on posts) and cylinders on a ring away from Waldo's pen (`clearance` m
+    from him) and the camera band."""
     uk = np.asarray(jax.random.uniform(key, (num_clutter, 6)), np.float64)
     for i in range(num_clutter):
         kind = (KIND_BOX, KIND_SPHERE, KIND_CYLINDER)[i % 3]
@@ -347,7 +356,7 @@ def _add_clutter(b: _Builder, key, base: np.ndarray, num_clutter: int) -> None:
             r = 2.3 * np.sqrt(v[0])
             a = 2 * np.pi * v[1]
             xz = np.array([r * np.cos(a), r * np.sin(a)])
-            if np.linalg.norm(xz - base[[0, 2]]) > 1.25:
+            if np.linalg.norm(xz - base[[0, 2]]) > clearance:
                 break
         colour = _PALETTE[int(v[2] * len(_PALETTE)) % len(_PALETTE)]
         s = 0.18 + 0.3 * v[3]
@@ -401,7 +410,13 @@ def _waldo_surface(waldo_parts, arrays: dict):
     return points[on_surface], normals[on_surface], areas[on_surface]
 
 
-def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> WaldoRoom:
+def make_room(
+    seed: int = 0,
+    num_clutter: int = 12,
+    num_crates: int = 4,
+    waldo_scale: float = 1.0,
+    stripe_width: Optional[float] = None,
+) -> WaldoRoom:
     """Builds the seeded room.
 
     Args:
@@ -409,21 +424,29 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
       num_clutter: coloured primitives scattered over the room (the primitive count, and so the
         array shapes, depend only on this and `num_crates`).
       num_crates: crates in the pen around Waldo.
+      waldo_scale: Waldo's size and his pen's over the default's (1: about 1 m tall in the 8 m room); the
+        rest of the room and where things stand do not change with it.
+      stripe_width: his stripes' width in metres (default: 5 cm times `waldo_scale`).
 
     Returns:
       A `WaldoRoom`.
     """
+    if not 0.25 <= waldo_scale <= 2.0:
+        raise ValueError(f"waldo_scale must be in [0.25, 2], got {waldo_scale!r}")
+    stripe_width = STRIPE_WIDTH * waldo_scale if stripe_width is None else stripe_width
+    if not 0.005 <= stripe_width <= 1.0:
+        raise ValueError(f"stripe_width must be in [0.005, 1] metres, got {stripe_width!r}")
     key = jax.random.key(seed)
     k_waldo, k_crates, k_clutter = jax.random.split(key, 3)
     b = _Builder()
     _add_floor_and_walls(b)
     # Waldo stands off-centre, in a pen of crates with gaps between them.
     base = _waldo_base(k_waldo)
-    waldo_parts = _waldo_parts(base)
+    waldo_parts = _waldo_parts(base, waldo_scale)
     for kind, centre, size, colour, pattern in waldo_parts:
         b.add(kind, centre, size, colour, pattern, waldo=True)
-    _add_crates(b, k_crates, base, num_crates)
-    _add_clutter(b, k_clutter, base, num_clutter)
+    _add_crates(b, k_crates, base, num_crates, waldo_scale)
+    _add_clutter(b, k_clutter, base, num_clutter, 1.25 * max(waldo_scale, 1.0))
 
     arrays = _primitive_arrays(b)
     points, normals, areas = _waldo_surface(waldo_parts, arrays)
@@ -432,6 +455,8 @@ def make_room(seed: int = 0, num_clutter: int = 12, num_crates: int = 4) -> Wald
         waldo_normals=jnp.asarray(normals, jnp.float32),
         waldo_areas=jnp.asarray(areas, jnp.float32),
         waldo_base=jnp.asarray(base, jnp.float32),
+        waldo_scale=jnp.float32(waldo_scale),
+        stripe_width=jnp.float32(stripe_width),
         num_boxes=int(np.sum(arrays["kind"] == KIND_BOX)),
         num_spheres=int(np.sum(arrays["kind"] == KIND_SPHERE)),
         seed=int(seed),

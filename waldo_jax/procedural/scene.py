@@ -9,12 +9,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.cameras import look_at, project_points
 from waldo_jax.procedural.cameras import RoomCameraConfig, training_cameras
+from waldo_jax.procedural.visibility import waldo_visibility_batch
 from waldo_jax.procedural.room import BACKGROUND, WaldoRoom, make_room, room_field, waldo_field
 from waldo_jax.render import RenderConfig, render_views
 from waldo_jax.types import Intrinsics, Scene
 
-__all__ = ["room_render_config", "room_scene", "held_out_scene", "waldo_mask"]
+__all__ = ["room_render_config", "room_scene", "held_out_scene", "waldo_mask", "waldo_reference"]
 
 
 def room_render_config(room: WaldoRoom, num_samples: int = 128, **kwargs):
@@ -101,3 +103,34 @@ def waldo_mask(room: WaldoRoom, c2w, intrinsics: Intrinsics, num_samples: int = 
     config = room_render_config(room, num_samples=num_samples).replace(background=jnp.zeros(3, jnp.float32))
     rendered = render_views(waldo_field, room, jnp.asarray(c2w, jnp.float32), intrinsics, config).rgb
     return np.asarray(rendered[..., 0], np.float32)
+
+
+def waldo_reference(room: WaldoRoom, distance: float = 1.6, height: float = 0.5, resolution: int = 128) -> np.ndarray:
+    """A reference image of Waldo (as a user would hold one): a crop of him from a close render where he is
+    fully visible, float32 [h, w, 3].
+
+    Of 120 cameras on a ring of `distance` x his size around him at `height` x his size, looking at his
+    centre, the one the oracle says sees most of him renders the room at `resolution`^2 (60 degrees); the
+    crop is the bounding box of his surface samples in that view.
+
+    Raises:
+      ValueError: no camera of the ring sees more than 95 % of him.
+    """
+    scale = float(room.waldo_scale)
+    angle = jnp.linspace(0.0, 2 * jnp.pi, 120, endpoint=False)
+    centre = room.waldo_center
+    ring = distance * scale
+    origins = jnp.stack(
+        [centre[0] + ring * jnp.cos(angle), jnp.full_like(angle, height * scale), centre[2] + ring * jnp.sin(angle)], -1
+    )
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(origins, centre, jnp.array([0.0, 1.0, 0.0]))
+    intrinsics = Intrinsics.from_fov(resolution, resolution, np.radians(60.0))
+    visible = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
+    best = int(np.argmax(visible))
+    if visible[best] <= 0.95:
+        raise ValueError(f"no camera of the ring around Waldo sees all of him (at most {visible[best]:.0%})")
+    config = room_render_config(room, num_samples=128)
+    image = np.asarray(render_views(room_field, room, c2w[best : best + 1], intrinsics, config).rgb[0])
+    uv, _ = project_points(c2w[best], intrinsics, room.waldo_points)
+    (x0, y0), (x1, y1) = np.floor(np.min(uv, 0)).astype(int), np.ceil(np.max(uv, 0)).astype(int)
+    return image[max(y0, 0) : y1, max(x0, 0) : x1].astype(np.float32)

@@ -23,6 +23,7 @@ __all__ = [
     "waldo_view",
     "waldo_visibility_batch",
     "waldo_surface_seen",
+    "waldo_samples_seen",
 ]
 
 # A view shows Waldo "whole" (found) when at least this fraction of him is in frame and unoccluded: the
@@ -108,6 +109,14 @@ def _waldo_solid_angles(
     (`_samples_seen` summed)."""
     seen, weight = _samples_seen(room, c2w, intrinsics, near, softness)
     return jnp.sum(seen * weight), jnp.sum(weight)
+
+
+@jax.jit
+def waldo_samples_seen(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
+    """bool [P, M]: which of Waldo's M surface samples each camera c2w [P, 4, 4] sees (facing it, in frame,
+    unoccluded; exact), as `waldo_surface_seen` counts them."""
+    seen = jax.vmap(lambda c: _samples_seen(room, c, intrinsics, 0.05))(jnp.asarray(c2w, jnp.float32))
+    return (seen[0] > 0.0) & (seen[1] > 0.0)
 
 
 @jax.jit

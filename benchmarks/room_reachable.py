@@ -1,0 +1,112 @@
+"""Reachable, not only found: the best visible share of Waldo any camera of the search space reaches, per room,
+beside what each method reaches at the low budget.
+
+For each room seed (the demo's room first), the room is built as `waldo demo` builds it (its settings: Waldo's
+size, the training cameras) and its analytic source explored with `waldo_visible` (exact: the visible fraction
+of Waldo) by GRS, PIBS, EGPS and MAP-Elites, K seeds each. The reachable best is a dense exact search: `--samples`
+camera centres uniform in the box of the training cameras' centres (where GRS draws; the other methods start
+from the same cameras), each aimed at Waldo (`paper_cells.reachable_visibility`: occlusion depends on the centre
+alone, so aiming at him is the best a camera there can do, up to the frame). Per method and room: each seed's best
+visible share, its gap to the reachable best, and the seeds within `--tolerance` (0.03) of it.
+
+  python benchmarks/room_reachable.py --out benchmarks/results/room_reachable_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
+import numpy as np  # noqa: E402
+
+from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from paper_cells import reachable_visibility  # noqa: E402
+from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
+from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
+from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS, room_scenes  # noqa: E402
+from waldo_jax.search import ExploreConfig  # noqa: E402
+
+METHODS = ("grs", "pibs", "egps", "map-elites")
+
+
+def room_rows(seed: int, args) -> list:
+    settings = SETTINGS["full"]
+    scene, room, _ = room_scenes(seed, settings)
+    source = procedural_source(seed, settings.resolution, settings.views, scene=scene, room=room)
+    reach = reachable_visibility(source, args.samples, 0.9)
+    criterion = make_criterion("waldo_visible", CriterionContext(room=room, source=source.spec))
+    rows = []
+    for method in args.methods.split(","):
+        run = run_explore(source, criterion, ExploreConfig(method=method, budget="low"), seed=0, seeds=args.seeds)
+        best = [float(r.metrics.best[-1]) for r in run.results]
+        gaps = [reach["best"] - b for b in best]
+        rows.append(
+            {
+                "room": seed,
+                "method": method,
+                "reachable": reach,
+                "best_visible": best,
+                "gap": gaps,
+                "within_tolerance": int(sum(g <= args.tolerance for g in gaps)),
+                "seeds": args.seeds,
+            }
+        )
+        print(
+            f"[reachable] room {seed} {method}: reachable {reach['best']:.3f}, best {np.mean(best):.3f}, "
+            f"within {args.tolerance}: {rows[-1]['within_tolerance']}/{args.seeds}",
+            file=sys.stderr,
+            flush=True,
+        )
+    return rows
+
+
+def table(rows: list, tolerance: float) -> str:
+    lines = [
+        f"| room | reachable best visible share | method | best visible share (mean over seeds) | seeds within "
+        f"{tolerance:g} of the reachable |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['room']} | {r['reachable']['best']:.3f} | {r['method']} | {np.mean(r['best_visible']):.3f} | "
+            f"{r['within_tolerance']} / {r['seeds']} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rooms", default=f"{DEMO_ROOM_SEED},0,2,3,4,5,6,7", help="room seeds, the demo's first")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--seeds", type=int, default=8)
+    parser.add_argument("--samples", type=int, default=32768, help="camera centres of the dense search")
+    parser.add_argument("--tolerance", type=float, default=0.03)
+    parser.add_argument("--load-threshold", type=float, default=1.0)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    refuse_existing_out(args.out)
+    quiet = wait_for_quiet(args.load_threshold)
+    result = header("room_reachable")
+    result["settings"] = vars(args)
+    rows = [row for seed in args.rooms.split(",") for row in room_rows(int(seed), args)]
+    egps = [r for r in rows if r["method"] == "egps"]
+    within = sum(r["within_tolerance"] for r in egps)
+    total = sum(r["seeds"] for r in egps)
+    result.update(
+        {
+            "rows": rows,
+            "egps_within_tolerance": [within, total],
+            "egps_within_share": within / max(total, 1),
+            "table": table(rows, args.tolerance),
+        }
+    )
+    print(result["table"], file=sys.stderr)
+    emit_with_load(result, args.out, quiet, args.load_threshold)
+
+
+if __name__ == "__main__":
+    main()
