@@ -123,8 +123,7 @@ def waldo_samples_seen(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> A
 def waldo_surface_seen(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
     """The share of Waldo's surface area that at least one of the cameras c2w [P, 4, 4] sees (facing it,
     in frame, unoccluded; exact): what a field trained on those views can know of him. In [0, 1]."""
-    seen = jax.vmap(lambda c: _samples_seen(room, c, intrinsics, 0.05))(jnp.asarray(c2w, jnp.float32))
-    by_any = jnp.any((seen[0] > 0.0) & (seen[1] > 0.0), axis=0)  # [M]
+    by_any = jnp.any(waldo_samples_seen(room, c2w, intrinsics), axis=0)  # [M]
     return jnp.sum(jnp.where(by_any, room.waldo_areas, 0.0)) / jnp.sum(room.waldo_areas)
 
 
