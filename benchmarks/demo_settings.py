@@ -75,6 +75,25 @@ SETTINGS = {
         "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
     },
     "scale15_stripes15": {"waldo_scale": 1.5, "stripe_width": 0.15},
+    "scale15_stripes15_close16_steps2500": {
+        "waldo_scale": 1.5,
+        "stripe_width": 0.15,
+        "train_steps": 2500,
+        "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
+    },
+    "scale15_stripes15_close16_steps1500_s14": {
+        "waldo_scale": 1.5,
+        "stripe_width": 0.15,
+        "train_steps": 1500,
+        "samples_per_batch": 2**14,
+        "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
+    },
+    "scale15_stripes15_close16_steps1500": {
+        "waldo_scale": 1.5,
+        "stripe_width": 0.15,
+        "train_steps": 1500,
+        "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
+    },
     "scale15_stripes15_close16_nmax1_T18": {
         "waldo_scale": 1.5,
         "stripe_width": 0.15,

@@ -15,6 +15,7 @@ from waldo_jax.pipeline import load_source
 from waldo_jax.pipeline.splat_sources import SPLAT_GRADIENT_COST
 from waldo_jax.scenes import load_scene
 from waldo_jax.splats.io import load_splat_model, read_cameras_json, write_cameras_json
+from waldo_jax.types import Intrinsics
 
 TINY = ["--resolution", "24", "--epochs", "2", "--children-per-epoch", "6", "--top-k", "4", "--quiet"]
 
@@ -222,6 +223,10 @@ def test_splat_errors_are_one_line(tmp_path, capsys):
         ),
         (["render", str(cloud), "--out", str(tmp_path / "c")], "needs --poses"),
         (
+            ["explore", "procedural", "--up", "0,0,1", "--out", str(tmp_path / "e")],
+            "--up/--orbit place the ring of views of a splat scene without cameras",
+        ),
+        (
             ["train", "procedural", "--model", "splat", "--preset", "quality", "--out", str(tmp_path / "d")],
             "for NeRF training only",
         ),
@@ -232,3 +237,36 @@ def test_splat_errors_are_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0], (argv, err)
         assert not (tmp_path / argv[-1]).exists()
+
+
+@pytest.mark.parametrize("up", ["0,0,0", "1,2", "x,y,z"])
+def test_a_bad_up_is_refused_before_anything_loads(tmp_path, capsys, up):
+    assert main(["explore", "procedural", "--up", up, "--out", str(tmp_path / "a")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--up" in err[0] and not (tmp_path / "a").exists(), err
+
+
+def test_up_and_orbit_are_refused_where_cameras_fix_the_views(tmp_path, capsys):
+    """A reference-layout folder with cameras.json: its cameras are the training views, a ring is not made."""
+    donut = require_donut()
+    folder = tmp_path / "model"
+    (folder / "point_cloud" / "iteration_7").mkdir(parents=True)
+    shutil.copy(donut, folder / "point_cloud" / "iteration_7" / "point_cloud.ply")
+    c2w = np.eye(4, dtype=np.float32)[None].copy()
+    c2w[0, 2, 3] = 0.5
+    write_cameras_json(folder / "cameras.json", c2w, Intrinsics.from_fov(32, 32, 1.0), ["a"])
+    capsys.readouterr()
+    argv = ["explore", str(folder), "--orbit", "surround", "--criterion", "colorfulness", "--out", str(tmp_path / "o")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "fix its training views" in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
+def test_scene_info_of_the_donut_prints_its_up_and_layout(capsys):
+    assert main(["scene", "info", str(require_donut()), "--json", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["splats"] == 45624 and summary["cameras"] is None
+    up = np.asarray(summary["upright"]["up"])
+    assert up[2] >= np.cos(np.radians(10.0)), summary["upright"]  # the iced side, +z
+    assert summary["upright"]["layout"] == "object"

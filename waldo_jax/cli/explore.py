@@ -20,7 +20,13 @@ from typing import Optional
 
 from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
-from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
+from waldo_jax.cli.flags import (
+    add_criterion_arguments,
+    add_splat_pose_arguments,
+    criterion_before_source,
+    criterion_from_args,
+    splat_pose_options,
+)
 from waldo_jax.cli.shots import add_shot_arguments, shot_separation, view_grid
 from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
@@ -44,13 +50,7 @@ def add_command(subparsers) -> None:
         metavar="SOURCE",
         help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)",
     )
-    p.add_argument(
-        "--cameras",
-        default=None,
-        metavar="FILE",
-        help="splat scenes: a transforms.json-like file of training poses (default: the model's "
-        "cameras.json, else a ring of 24 views around the splats)",
-    )
+    add_splat_pose_arguments(p)
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help=f"one of {method_names()}")
     p.add_argument(
@@ -184,7 +184,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
         criterion.smooth()  # a criterion gradient steps cannot follow, refused before the source loads too
     with Progress(args.quiet) as progress:  # on a terminal's stderr; the epochs print their own lines
         progress.phase(f"loading {args.source}")
-        source = load_source(args.source, args.resolution, args.views, args.cameras)
+        source = load_source(args.source, args.resolution, args.views, **splat_pose_options(args))
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
     if method.differentiable:

@@ -14,8 +14,53 @@ from typing import Optional
 from waldo_jax.criteria import CRITERIA, Criterion, CriterionContext
 from waldo_jax.criteria.combine import build_criterion, spec_names
 from waldo_jax.io import read_image
+from waldo_jax.splats.upright import LAYOUTS, parse_up
 
-__all__ = ["add_criterion_arguments", "criterion_before_source", "criterion_from_args"]
+__all__ = [
+    "add_criterion_arguments",
+    "criterion_before_source",
+    "criterion_from_args",
+    "add_splat_pose_arguments",
+    "splat_pose_options",
+]
+
+
+def _up_argument(text: str):
+    try:
+        return parse_up(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--up ")) from None
+
+
+def add_splat_pose_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--cameras`, `--up` and `--orbit`: where a splat scene's training views come from."""
+    parser.add_argument(
+        "--cameras",
+        default=None,
+        metavar="PATH",
+        help="splat scenes: the training poses from a transforms.json-like file, a COLMAP model or a "
+        "nerfstudio run (default: the model's own cameras, else a ring of 24 views around the splats)",
+    )
+    parser.add_argument(
+        "--up",
+        type=_up_argument,
+        default=None,
+        metavar="X,Y,Z",
+        help="splat scenes without cameras: the scene's up for the ring of views (default: read from the "
+        "splats, see `waldo scene info`)",
+    )
+    parser.add_argument(
+        "--orbit",
+        choices=("auto", *LAYOUTS),
+        default="auto",
+        help="splat scenes without cameras: orbit the splats from outside (object) or stand inside them "
+        "(surround); auto decides by which ring sees more of them",
+    )
+
+
+def splat_pose_options(args: argparse.Namespace) -> dict:
+    """The keyword arguments of `load_source` that `add_splat_pose_arguments` set."""
+    return {"cameras": args.cameras, "up": args.up, "orbit": None if args.orbit == "auto" else args.orbit}
 
 
 def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[str] = None) -> None:

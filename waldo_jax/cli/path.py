@@ -20,7 +20,13 @@ from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
 from waldo_jax.cli.conventions import Progress, add_quiet
-from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
+from waldo_jax.cli.flags import (
+    add_criterion_arguments,
+    add_splat_pose_arguments,
+    criterion_before_source,
+    criterion_from_args,
+    splat_pose_options,
+)
 from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
 from waldo_jax.pipeline import INITIAL_MODES, load_source
 from waldo_jax.pipeline.path_run import (
@@ -53,13 +59,7 @@ def add_command(subparsers) -> None:
         metavar="SOURCE",
         help="procedural, procedural:SEED, a RUN_DIR of waldo train, or a splat scene (.ply or 3DGS folder)",
     )
-    p.add_argument(
-        "--cameras",
-        default=None,
-        metavar="FILE",
-        help="splat scenes: a transforms.json-like file of training poses (default: the model's "
-        "cameras.json, else a ring of 24 views around the splats)",
-    )
+    add_splat_pose_arguments(p)
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help="egps or evosax:NAME (e.g. evosax:CMA_ES)")
     p.add_argument("--keyframes", type=int, default=4, help="keyframes K of the path")
@@ -218,12 +218,12 @@ def cmd_path(args: argparse.Namespace) -> int:
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     with Progress(args.quiet) as progress:  # phases on a terminal's stderr: loading, compiling, searching...
         progress.phase(f"loading {args.source}")
-        source = load_source(args.source, args.resolution, args.views, args.cameras)
+        source = load_source(args.source, args.resolution, args.views, **splat_pose_options(args))
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
         video = (
             source
             if args.video_resolution is None
-            else load_source(args.source, args.video_resolution, args.views, args.cameras)
+            else load_source(args.source, args.video_resolution, args.views, **splat_pose_options(args))
         )
         if criterion is None:  # a poses criterion: the room's oracles need the source
             criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)

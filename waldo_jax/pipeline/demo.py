@@ -102,6 +102,7 @@ class DemoSettings:
       waldo_scale: Waldo's size, with his pen's, in the room (`procedural.make_room`).
       stripe_width: his stripes' width in metres (None: 5 cm times `waldo_scale`).
       hash_table_log2: the hash grid's table size T = 2**hash_table_log2 per level (None: the fast preset's).
+      samples_per_batch: field samples per training step (None: the fast preset's 2**15).
       search_renders: also run EGPS scored by the `waldo` finder on the NeRF's renders (`RENDERS_KEY`); it
         renders every view it scores (settings.seeds x the low budget), the others render only their top-k.
     """
@@ -119,6 +120,7 @@ class DemoSettings:
     waldo_scale: float = 1.0
     stripe_width: Optional[float] = None
     hash_table_log2: Optional[int] = None
+    samples_per_batch: Optional[int] = None
     search_renders: bool = False
 
 
@@ -147,6 +149,8 @@ def room_train_config(scene: Scene, settings: DemoSettings) -> TrainConfig:
     """The room NeRF's training config: the fast preset with `settings.train_steps`, its render step and
     the hash grid's finest resolution scaled by `settings.finest_resolution_scale` (at least 32)."""
     overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
+    if settings.samples_per_batch is not None:
+        overrides["samples_per_batch"] = settings.samples_per_batch
     config = TrainConfig.preset("fast", scene, steps=settings.train_steps, **overrides)
     hashgrid = config.field.hashgrid
     n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))

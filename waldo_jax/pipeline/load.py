@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Optional
 
+import numpy as np
+
 from waldo_jax.pipeline.sources import (
     DEFAULT_PROCEDURAL_VIEWS,
     Source,
@@ -18,14 +20,21 @@ __all__ = ["load_source"]
 
 
 def load_source(
-    spec: str, resolution: Optional[int] = None, views: Optional[int] = None, cameras: Optional[str] = None
+    spec: str,
+    resolution: Optional[int] = None,
+    views: Optional[int] = None,
+    cameras: Optional[str] = None,
+    up: Optional[np.ndarray] = None,
+    orbit: Optional[str] = None,
 ) -> Source:
     """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
     (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
 
     `views` (default `DEFAULT_PROCEDURAL_VIEWS`) is for the procedural room only: a run's training
     views are those it was trained on, and passing `views` with a run is an error, not ignored.
-    `cameras` (a transforms.json-like poses file) gives a splat scene its training poses.
+    `cameras` (a transforms.json-like poses file, a COLMAP model or a nerfstudio run) gives a splat
+    scene its training poses; `up` and `orbit` place the ring of views of a splat scene without cameras
+    (`splat_source`).
 
     Raises:
       SourceError: a bad spec, a missing run directory, a bad checkpoint, `views` with a run,
@@ -35,10 +44,12 @@ def load_source(
     splat = seed is None and is_splat_spec(spec)
     if cameras is not None and not splat:
         raise SourceError(f"--cameras gives a splat scene its poses; {spec} has its own")
+    if (up is not None or orbit is not None) and not splat:
+        raise SourceError(f"--up/--orbit place the ring of views of a splat scene without cameras; {spec} has its own")
     if seed is not None:
         return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
     if views is not None:
         raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was trained on")
     if splat:
-        return splat_source(spec, resolution, cameras)
+        return splat_source(spec, resolution, cameras, up=up, orbit=orbit)
     return run_source(spec, resolution)

@@ -9,8 +9,10 @@ SOURCE may be
     scene it was fitted to: its real images are then the training views, as for NeRF runs).
 
 The pose space (the training views a search starts from) comes from, in this order: `cameras` (a
-transforms.json-like file, `--cameras`), the model's `cameras.json`, or a ring of `RING_VIEWS` views
-around the splats' robust bounds looking at their centre (`ring_cameras`; said in `Source.info`).
+transforms.json-like file, a COLMAP model or a nerfstudio run, `--cameras`), the cameras that come
+with the model (`waldo_jax.splats.cameras.find_splat_cameras`: its `cameras.json`, a nerfstudio run, a
+COLMAP model), or a ring of `RING_VIEWS` views around the splats' robust bounds looking at their centre
+(`ring_cameras`; said in `Source.info`).
 Without real images, the training views' "images" are the splats' own renders at those poses.
 
 The renderer is `waldo_jax.splats.render`, with `max_pairs` calibrated on the training views
@@ -31,12 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import look_at
-from waldo_jax.errors import WaldoError, check_resolution
+from waldo_jax.errors import SceneFormatError, WaldoError, check_resolution
 from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
+from waldo_jax.splats.formats import find_splat_file, splat_format
+from waldo_jax.splats.cameras import read_camera_source
 from waldo_jax.splats.io import SplatModel, load_splat_model
 from waldo_jax.splats.model import Splats
 from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splats
+from waldo_jax.splats.upright import FORMAT_UP, Upright, UprightConfig, estimate_upright, ring_origins
 from waldo_jax.splats.runs import TRAIN_JSON
 from waldo_jax.types import Array, Intrinsics
 
@@ -44,6 +49,7 @@ __all__ = [
     "is_splat_spec",
     "splat_source",
     "ring_cameras",
+    "splat_upright",
     "calibrate_max_pairs",
     "splat_renderer",
     "SPLAT_RESOLUTION",
@@ -66,14 +72,20 @@ _PAIRS_QUANTUM = 4096
 
 
 def is_splat_spec(spec: str) -> bool:
-    """True when SOURCE names a splat scene: a `.ply` path, or a folder with `point_cloud/` or
-    `point_cloud.ply` (and no NeRF `checkpoint.ckpt`)."""
+    """True when SOURCE names a splat scene: a `.ply`, `.splat`, `.spz` or `.sog` path, a file of a splat
+    format by its content (`splat_format`), or a folder with `point_cloud/`, `point_cloud.ply` or one
+    splat file (and no NeRF `checkpoint.ckpt`)."""
     path = Path(spec)
-    if path.suffix.lower() == ".ply":
+    if path.suffix.lower() in (".ply", ".splat", ".spz", ".sog") or splat_format(path) is not None:
         return True
     if not path.is_dir() or (path / "checkpoint.ckpt").exists():
         return False
-    return (path / "point_cloud").is_dir() or (path / "point_cloud.ply").is_file()
+    if (path / "point_cloud").is_dir() or (path / "point_cloud.ply").is_file():
+        return True
+    try:
+        return find_splat_file(path) is not None
+    except SceneFormatError:
+        return True  # several splat files: load_splat_model says so
 
 
 def robust_bounds(means: np.ndarray, valid: np.ndarray, quantile: float = 0.02) -> Tuple[np.ndarray, np.ndarray]:
@@ -90,13 +102,16 @@ def ring_cameras(
     count: int = RING_VIEWS,
     up: Optional[np.ndarray] = None,
     elevation_deg: float = RING_ELEVATION_DEG,
+    upright: Optional[Upright] = None,
 ) -> Tuple[np.ndarray, dict]:
-    """`count` cameras on a ring around the splats' robust bounds, looking at their centre.
+    """`count` cameras on a ring, looking at the centre of the splats' robust bounds.
 
-    The ring's axis is `up`, or, without it, the direction in which the splats' means vary least
-    (a scene's ground or a flat object's axis; sign: its largest component positive). The cameras sit
-    `elevation_deg` above the ring's plane, far enough that the bounds' sphere fills the narrower field
-    of view with a 10 % margin.
+    The ring's axis is `upright.up`, else `up`, else the direction in which the splats' means vary least
+    (sign: its largest component positive; `estimate_upright` decides better). For an object (the
+    default) the cameras sit `elevation_deg` above the ring's plane, far enough that the bounds' sphere
+    fills the narrower field of view with a 10 % margin; for a surrounding scene (`upright.layout`
+    "surround") they stand inside, `UprightConfig.inside_radius` x the bounds' radius from the centre at
+    its height, looking across it.
 
     Returns:
       (c2w float32 [count, 4, 4] OpenGL, a description for `Source.info`).
@@ -104,33 +119,30 @@ def ring_cameras(
     low, high = robust_bounds(means, valid)
     centre = 0.5 * (low + high)
     radius = max(0.5 * float(np.linalg.norm(high - low)), 1e-6)
-    if up is None:
+    if upright is not None:
+        up = upright.up
+    elif up is None:
         points = np.asarray(means, np.float64)[np.asarray(valid, bool)]
         points = points[np.all((points >= low) & (points <= high), axis=1)]
         _, vectors = np.linalg.eigh(np.cov((points - points.mean(0)).T))
         up = vectors[:, 0]
         up = up * np.sign(up[np.argmax(np.abs(up))])
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    half_fov = 0.5 * min(
-        2 * math.atan(0.5 * intrinsics.width / float(intrinsics.fx)),
-        2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)),
-    )
-    distance = 1.1 * radius / math.sin(half_fov)
-    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    side /= np.linalg.norm(side)
-    forward = np.cross(up, side)
-    angles = 2 * np.pi * np.arange(count) / count
-    elevation = math.radians(elevation_deg)
-    directions = (
-        math.cos(elevation) * (np.cos(angles)[:, None] * side + np.sin(angles)[:, None] * forward)
-        + math.sin(elevation) * up
-    )
-    origins = centre + distance * directions
+    inside = upright is not None and upright.layout == "surround"
+    if inside:
+        distance, elevation_deg = UprightConfig().inside_radius * radius, 0.0
+    else:
+        half_fov = 0.5 * min(
+            2 * math.atan(0.5 * intrinsics.width / float(intrinsics.fx)),
+            2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy)),
+        )
+        distance = 1.1 * radius / math.sin(half_fov)
+    origins = ring_origins(centre, up, distance, count, elevation_deg)
     c2w = jax.vmap(look_at, in_axes=(0, None, None))(
         jnp.asarray(origins, jnp.float32), jnp.asarray(centre, jnp.float32), jnp.asarray(up, jnp.float32)
     )
     info = {
-        "poses": "ring",
+        "poses": "ring inside" if inside else "ring",
         "views": int(count),
         "centre": centre.tolist(),
         "up": up.tolist(),
@@ -139,7 +151,29 @@ def ring_cameras(
         "bounds_quantiles": [0.02, 0.98],
         "bounds": [low.tolist(), high.tolist()],
     }
+    if upright is not None:
+        info["upright"] = upright.as_json()
     return np.asarray(c2w, np.float32), info
+
+
+def splat_upright(
+    model: SplatModel, up: Optional[np.ndarray] = None, orbit: Optional[str] = None, seed: int = 0
+) -> Upright:
+    """The up and layout of a splat model (`waldo_jax.splats.upright.estimate_upright` with the file
+    family's axis prior; `up`/`orbit` given by `--up`/`--orbit` are kept)."""
+    s = model.splats
+    valid = np.asarray(s.valid)
+    return estimate_upright(
+        jax.random.key(seed),
+        np.asarray(s.means)[valid],
+        np.asarray(jax.nn.sigmoid(s.logits))[valid],
+        np.asarray(s.log_scales)[valid],
+        np.asarray(s.quats)[valid],
+        # Every format is read in the frame of the 3DGS PLY it was made from (`waldo_jax.splats.formats`).
+        format_up=FORMAT_UP["3dgs-ply"],
+        up=up,
+        layout=None if orbit in (None, "auto") else orbit,
+    )
 
 
 _count_pairs = jax.jit(count_pairs, static_argnames=("config",))
@@ -253,18 +287,24 @@ def splat_source(
     cameras: Optional[str] = None,
     config: Optional[SplatRenderConfig] = None,
     images: bool = True,
+    up: Optional[np.ndarray] = None,
+    orbit: Optional[str] = None,
 ):
     """A splat scene (`.ply`, reference-layout folder or splat run) as a `Source`.
 
     Args:
       spec: the SOURCE string.
       resolution: longer side of the renders (default: the cameras' own, at most SPLAT_RESOLUTION).
-      cameras: a transforms.json-like poses file giving the training poses (and intrinsics), or None.
+      cameras: a transforms.json-like poses file, a COLMAP model (folder, images.bin/.txt) or a
+        nerfstudio run (folder, config.yml) giving the training poses (and intrinsics), or None.
       config: renderer settings (default `SplatRenderConfig()`; `max_pairs` calibrated here).
       images: read (or, without photos, render) the training views' images; False leaves them None.
+      up: the scene's up [3] for a ring of views (`--up`; default: `splat_upright` decides).
+      orbit: "object", "surround" or "auto"/None (`--orbit`): orbit the splats or stand inside them.
 
     Raises:
-      WaldoError (SceneFormatError, SourceError, ...): the file or folder cannot be read.
+      WaldoError (SceneFormatError, SourceError, ...): the file or folder cannot be read, or `up`/`orbit`
+        are given for a scene whose cameras fix its poses.
     """
     path = Path(spec)
     if not path.exists():
@@ -285,7 +325,19 @@ def splat_source(
     names: Tuple[str, ...]
     if resolution is not None:
         check_resolution(resolution)
-    if cameras is not None:
+    if (up is not None or orbit not in (None, "auto")) and (cameras is not None or model.cameras is not None):
+        given = "--cameras" if cameras is not None else "its own cameras"
+        raise SourceError(
+            f"--up/--orbit place a ring of views around a scene without cameras; {spec} has {given}, "
+            "which fix its training views"
+        )
+    # --cameras: a COLMAP model or a nerfstudio run (`read_camera_source`), else a poses file.
+    other = read_camera_source(cameras) if cameras is not None else None
+    if other is not None:
+        c2w, names = other[0].c2w, other[0].names
+        intrinsics = other[0].shared_intrinsics or other[0].intrinsics[0]
+        info["poses"] = f"--cameras {cameras}: {other[1]}"
+    elif cameras is not None:
         default = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
         c2w, intrinsics, files = read_poses_file(cameras, default)
         names = tuple(f or f"pose_{i:04d}" for i, f in enumerate(files))
@@ -293,14 +345,15 @@ def splat_source(
     elif model.cameras is not None:
         c2w, names = model.cameras.c2w, model.cameras.names
         intrinsics = model.cameras.shared_intrinsics or model.cameras.intrinsics[0]
-        info["poses"] = "cameras.json" + (
+        # `model.source` ends "with N cameras from <where>" (`find_splat_cameras`' description).
+        info["poses"] = model.source.rpartition(" cameras from ")[2] + (
             "" if model.cameras.shared_intrinsics else " (cameras of several sizes: the first camera's intrinsics)"
         )
     else:
         intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
-        c2w, ring = ring_cameras(means, valid, intrinsics)
+        c2w, ring = ring_cameras(means, valid, intrinsics, upright=splat_upright(model, up, orbit))
         names = tuple(f"ring_{i:02d}" for i in range(len(c2w)))
-        info["poses"] = "ring"
+        info["poses"] = ring["poses"]
         info["ring"] = ring
     side = min(max(intrinsics.width, intrinsics.height), SPLAT_RESOLUTION) if resolution is None else resolution
     intrinsics = intrinsics.with_max_side(int(side))

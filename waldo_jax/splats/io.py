@@ -34,6 +34,7 @@ from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError, check
 from waldo_jax.io import atomic_file, write_json
 from waldo_jax.scenes.common import check_rigid
 from waldo_jax.scenes.ply import PlyElement, PlyHeader, read_ply_header
+from waldo_jax.splats.formats import find_splat_file, read_splat_file, splat_format
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 from waldo_jax.types import Intrinsics
 
@@ -93,8 +94,8 @@ def _splat_layout(path: Path, header: PlyHeader, vertex: PlyElement) -> Tuple[Li
     if "packed_position" in types or header.element("chunk") is not None:
         raise SceneFormatError(
             path,
-            "a compressed splat PLY (SuperSplat / gsplat 'ply_compressed'): not supported, "
-            "export the uncompressed reference layout",
+            "a compressed splat PLY (SuperSplat / gsplat 'ply_compressed'): not the reference layout, "
+            "read it with load_splat_model or waldo_jax.splats.formats.read_compressed_ply",
         )
     rest = {int(m.group(1)): name for name in types if (m := _REST.fullmatch(name))}
     splat_only = set(_DC) | {"opacity"} | set(_SCALES) | set(_ROTS)
@@ -308,12 +309,15 @@ def write_splat_ply(path: str | os.PathLike, splats: Splats, normals: bool = Tru
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SplatCameras:
-    """The cameras of a reference `cameras.json`, in waldo_jax's conventions.
+    """The cameras of a reference `cameras.json` (or a COLMAP model, a nerfstudio run:
+    `waldo_jax.splats.cameras`), in waldo_jax's conventions.
 
     Attributes:
       c2w: float32 [N, 4, 4] camera-to-world matrices, OpenGL axes (x right, y up, z backward).
-      intrinsics: N pinhole cameras, principal point at the image centre (cx = width / 2).
-      names: N image names (`img_name`, usually without extension).
+      intrinsics: N pinhole cameras; from cameras.json with the principal point at the image centre
+        (cx = width / 2), from the other layouts where their files put it.
+      names: N image names (cameras.json's `img_name`, usually without extension; the image names or
+        file paths of the other layouts).
     """
 
     c2w: np.ndarray
@@ -500,7 +504,7 @@ class SplatModel:
 
     Attributes:
       splats: the splats.
-      cameras: the cameras of its cameras.json, or None when there is none.
+      cameras: the cameras that come with it (`waldo_jax.splats.cameras.find_splat_cameras`), or None.
       ply_path: the PLY read.
       iteration: N of `point_cloud/iteration_N/`, or None outside that layout.
       source: where the scene came from, in words.
@@ -542,11 +546,14 @@ def _find_ply(folder: Path) -> Tuple[Path, Optional[int]]:
             return found[max(found)], max(found)
     if (folder / "point_cloud.ply").is_file():
         return folder / "point_cloud.ply", _iteration_of(folder / "point_cloud.ply")
+    other = find_splat_file(folder)  # a .splat, .spz, .sog, compressed PLY or SOG meta.json
+    if other is not None:
+        return other, None
     holds = "; its point_cloud/ holds no iteration_<N>/point_cloud.ply" if iterations is not None else ""
     raise SceneFormatError(
         folder,
         "no splat scene here: looked for point_cloud/iteration_<N>/point_cloud.ply (the "
-        f"reference 3DGS layout) and point_cloud.ply{holds}",
+        f"reference 3DGS layout), one file of another splat format and point_cloud.ply{holds}",
     )
 
 
@@ -557,11 +564,14 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
     in `point_cloud/iteration_N/`); a folder in the reference layout (`point_cloud/iteration_N/
     point_cloud.ply`, the highest N taken numerically, `cameras.json` at the root); its
     `point_cloud/` folder; or a folder holding `point_cloud.ply` directly. A scene without a
-    cameras.json has `cameras` None.
+    camera file has `cameras` None (cameras.json, else a nerfstudio run, else a COLMAP model:
+    `waldo_jax.splats.cameras.find_splat_cameras`).
+    A file (or a folder's one file) of another splat format in
+    `waldo_jax.splats.formats.FORMATS` (.splat, .spz, SOG, compressed PLY) loads too, `source` naming it.
 
     Raises:
       SceneFormatError: no such path, a folder in no such layout (listing what was looked for), or
-        a malformed PLY or cameras.json (see `read_splat_ply`, `read_cameras_json`).
+        a malformed PLY or camera file (see `read_splat_ply`, `find_splat_cameras`).
     """
     path = Path(path).expanduser()
     if not path.exists():
@@ -575,15 +585,21 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
         ply, iteration = _find_ply(path)
     else:
         ply, iteration = path, _iteration_of(path)
-    splats = read_splat_ply(ply)
-    cameras_path = _cameras_beside(ply)
-    cameras = read_cameras_json(cameras_path) if cameras_path is not None else None
+    fmt = splat_format(ply)
+    if fmt is None and ply.suffix.lower() == ".ply":
+        fmt = "ply"  # a malformed PLY: read_splat_ply says what is wrong with it
+    splat_file = None if fmt == "ply" else read_splat_file(ply)  # unknown: an error listing the formats
+    splats = read_splat_ply(ply) if splat_file is None else splat_file.splats
+    from waldo_jax.splats.cameras import find_splat_cameras  # here: that module imports this one
+
+    found = find_splat_cameras(ply)  # cameras.json, a nerfstudio run, a COLMAP model
+    cameras = None if found is None else found[0]
     if iteration is not None:
         source = f"3DGS model {ply.parent.parent.parent}, iteration {iteration}"
     else:
-        source = f"splat PLY {ply}"
-    if cameras_path is not None:
-        source += f", with {len(cameras)} cameras from {cameras_path.name}"
+        source = f"splat PLY {ply}" if splat_file is None else f"{splat_file.details}: {ply}"
+    if found is not None:
+        source += f", with {len(cameras)} cameras from {found[1]}"
     return SplatModel(splats, cameras, ply, iteration, source)
 
 

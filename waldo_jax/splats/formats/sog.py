@@ -1,0 +1,198 @@
+"""PlayCanvas SOG. Reference: playcanvas/splat-transform src/lib/readers/read-sog.ts (version 2),
+read-sog-v1.ts (version 1, meta without "version"), src/lib/writers/write-sog.ts. Texel i (row-major)
+of each WebP image holds splat i. Means: 16 bits split over means_l / means_u, a lerp between the
+meta's mins and maxs of sign(x) ln(|x| + 1). Quats: three bytes of the smaller components times
+sqrt(2), the alpha byte 252 + the index (w x y z) of the largest. Version 2: scales and sh0 index
+256-entry codebooks, sh0's alpha is sigmoid(opacity) * 255; shN is a palette of `count` centroids
+(16-bit labels in shN_labels' r g), a centroid's coefficient j in texel (label % 64 * K' + j,
+label // 64) of shN_centroids, whose r g b index the shN codebook. Version 1: lerps between mins and
+maxs instead of codebooks (sh0's alpha a logit), shN's band from the centroid image's width.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from waldo_jax.errors import SceneFormatError, check_input_file
+from waldo_jax.splats.formats.common import _finish, _opacity_logits
+from waldo_jax.splats.model import Splats, sh_coefficients
+
+_SOG_BANDS_V1 = {192: 1, 512: 2, 960: 3}
+
+
+class _SogFiles:
+    """The files of a SOG: the members of a `.sog` zip, or the files beside its meta.json."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.zip = None
+        if path.suffix.lower() != ".json":
+            try:
+                self.zip = zipfile.ZipFile(path)
+            except (OSError, zipfile.BadZipFile, ValueError) as e:
+                raise SceneFormatError(path, f"not a readable .sog zip ({e})") from None
+
+    def read(self, name: str) -> bytes:
+        try:
+            if self.zip is not None:
+                return self.zip.read(name)
+            target = self.path.parent / name
+            if not target.resolve().is_relative_to(self.path.parent.resolve()):
+                raise SceneFormatError(self.path, f"SOG file {name!r} lies outside the SOG's folder")
+            return target.read_bytes()
+        except KeyError:
+            raise SceneFormatError(self.path, f"the SOG lacks its file {name!r}") from None
+        except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as e:
+            raise SceneFormatError(self.path, f"cannot read the SOG's file {name!r} ({e})") from None
+
+    def image(self, name: str) -> np.ndarray:
+        """The RGBA texels of WebP image `name`, uint8 [height, width, 4]."""
+        from PIL import Image
+
+        try:
+            with Image.open(io.BytesIO(self.read(name))) as image:
+                return np.asarray(image.convert("RGBA"))
+        except (OSError, ValueError, Image.DecompressionBombError) as e:
+            raise SceneFormatError(self.path, f"the SOG's image {name!r} cannot be decoded ({e})") from None
+
+    def texels(self, name: str, count: int) -> np.ndarray:
+        """The first `count` texels of image `name` in row-major order, uint8 [count, 4]."""
+        texels = self.image(name).reshape(-1, 4)
+        if len(texels) < count:
+            raise SceneFormatError(self.path, f"the SOG's image {name!r} has {len(texels)} texels for {count} splats")
+        return texels[:count]
+
+
+def _inverse_log(v: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        return np.sign(v) * (np.exp(np.abs(v)) - 1.0)
+
+
+def _sog_field(meta: dict, key: str, path: Path):
+    value = meta.get(key)
+    if not isinstance(value, dict) or not isinstance(value.get("files"), list):
+        raise SceneFormatError(path, f"SOG meta.json: '{key}' must be an object with a 'files' list")
+    return value
+
+
+def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        array = np.zeros(0)
+    if array.ndim != 1 or (count is not None and len(array) != count) or not np.all(np.isfinite(array)):
+        raise SceneFormatError(path, f"SOG meta.json: {what} must be {count or 'a list of'} finite numbers")
+    return array
+
+
+def _sog(path: Path):
+    files = _SogFiles(path)
+    try:
+        meta = json.loads(files.read("meta.json" if files.zip is not None else path.name).decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise SceneFormatError(path, f"SOG meta.json is not JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise SceneFormatError(path, "SOG meta.json must hold a JSON object")
+    version = meta.get("version", 1)
+    if version not in (1, 2):
+        raise SceneFormatError(path, f"SOG version {version!r} is not read (versions 1 and 2 are)")
+    means_meta = _sog_field(meta, "means", path)
+    count = meta.get("count") if version == 2 else (means_meta.get("shape") or [None])[0]
+    if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
+        raise SceneFormatError(path, f"SOG meta.json: no positive splat count (got {count!r})")
+    mins, maxs = (_numbers(path, means_meta.get(k), 3, f"means.{k}") for k in ("mins", "maxs"))
+    names = means_meta["files"]
+    if len(names) < 2:
+        raise SceneFormatError(path, "SOG meta.json: means needs two files (means_l, means_u)")
+    lo, hi = files.texels(names[0], count), files.texels(names[1], count)
+    quantised = lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]
+    span = np.where(maxs - mins == 0, 1.0, maxs - mins)
+    means = _inverse_log(mins + span * quantised / 65535.0)
+    q = files.texels(_sog_field(meta, "quats", path)["files"][0], count)
+    tag = q[:, 3].astype(np.int64)
+    abc = (q[:, :3] / 255.0 * 2.0 - 1.0) / math.sqrt(2.0)
+    largest = np.clip(tag - 252, 0, 3)
+    others = np.array([[i for i in range(4) if i != skip] for skip in range(4)])[largest]
+    quats = np.zeros((count, 4))
+    quats[np.arange(count)[:, None], others] = abc
+    quats[np.arange(count), largest] = np.sqrt(np.maximum(0.0, 1.0 - np.sum(abc * abc, -1)))
+    quats[(tag < 252) | (tag > 255)] = (1.0, 0.0, 0.0, 0.0)
+    scales_meta, sh0_meta = _sog_field(meta, "scales", path), _sog_field(meta, "sh0", path)
+    s = files.texels(scales_meta["files"][0], count)[:, :3]
+    c = files.texels(sh0_meta["files"][0], count)
+    if version == 2:
+        scale_book = _numbers(path, scales_meta.get("codebook"), 256, "scales.codebook")
+        colour_book = _numbers(path, sh0_meta.get("codebook"), 256, "sh0.codebook")
+        log_scales, dc = scale_book[s], colour_book[c[:, :3]]
+        logits = _opacity_logits(c[:, 3] / 255.0)
+    else:
+        s_lo, s_hi = (_numbers(path, scales_meta.get(k), 3, f"scales.{k}") for k in ("mins", "maxs"))
+        c_lo, c_hi = (_numbers(path, sh0_meta.get(k), 4, f"sh0.{k}") for k in ("mins", "maxs"))
+        log_scales = s_lo + (s_hi - s_lo) * s / 255.0
+        lerped = c_lo + (c_hi - c_lo) * c / 255.0
+        dc, logits = lerped[:, :3], lerped[:, 3]
+    sh_all = dc[:, None, :]
+    degree = 0
+    if isinstance(meta.get("shN"), dict):
+        sh_all, degree = _sog_rest(path, files, meta["shN"], version, count, sh_all)
+    splats = _finish(path, "the SOG", means, log_scales, quats, logits, sh_all)
+    return splats, f"SOG version {version}, {count} splats, SH degree {degree}", {"version": version}
+
+
+def _sog_rest(path: Path, files: _SogFiles, shn: dict, version: int, count: int, sh_dc: np.ndarray):
+    """sh [N, K, 3] with the SOG's palette of SH rest appended to the DC term, and the degree."""
+    names = shn.get("files")
+    if not isinstance(names, list) or len(names) < 2:
+        raise SceneFormatError(path, "SOG meta.json: shN needs two files (centroids, labels)")
+    grid = files.image(names[0])
+    height, width = grid.shape[:2]
+    if version == 2:
+        degree = shn.get("bands")
+        if degree not in (1, 2, 3):
+            raise SceneFormatError(path, f"SOG meta.json: shN.bands must be 1, 2 or 3, got {degree!r}")
+        book = _numbers(path, shn.get("codebook"), 256, "shN.codebook")
+        palette = shn.get("count")
+        if isinstance(palette, bool) or not isinstance(palette, int) or palette < 0:
+            raise SceneFormatError(path, f"SOG meta.json: shN.count must be a count, got {palette!r}")
+    else:
+        degree = _SOG_BANDS_V1.get(width)
+        if degree is None:
+            raise SceneFormatError(path, f"SOG shN centroid image is {width} wide: no SH degree (192, 512 or 960)")
+        low, high = (float(_numbers(path, [shn.get(k)], 1, f"shN.{k}")[0]) for k in ("mins", "maxs"))
+        book = low + (high - low) * np.arange(256) / 255.0
+    coefficients = sh_coefficients(degree) - 1
+    if width != 64 * coefficients:
+        raise SceneFormatError(path, f"SOG shN centroid image is {width} wide, expected {64 * coefficients}")
+    if version == 1:
+        palette = (width // coefficients) * height
+    labels_rgba = files.texels(names[1], count)
+    labels = labels_rgba[:, 0].astype(np.int64) | (labels_rgba[:, 1].astype(np.int64) << 8)
+    cols = (labels % 64)[:, None] * coefficients + np.arange(coefficients)[None, :]  # [N, K']
+    rows = np.minimum(labels // 64, height - 1)[:, None]
+    texels = grid[rows, np.minimum(cols, width - 1), :3]  # [N, K', 3]
+    rest = book[texels]
+    rest[(labels >= palette) | (labels // 64 >= height)] = 0.0
+    return np.concatenate([sh_dc, rest], 1), degree
+
+
+def read_sog(path: str | os.PathLike) -> Splats:
+    """Reads a PlayCanvas SOG scene: a bundled `.sog` zip, or a `meta.json` with its WebP images beside it.
+
+    Versions 1 (no "version" in meta.json) and 2 (codebooks), as splat-transform reads them. Images are
+    decoded with Pillow (its WebP support is needed); streamed SOG (`lod-meta.json`) is not read.
+
+    Raises:
+      SceneFormatError: (naming the file) a meta.json that is no JSON or lacks a field, a missing or
+        undecodable image, an image with fewer texels than splats, a wrong centroid image width.
+    """
+    path = check_input_file(path, "SOG file")
+    return _sog(path)[0]
