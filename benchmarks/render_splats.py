@@ -264,7 +264,7 @@ def measure_cell(splats: Splats, count: int, size: int, population: int, args, b
     max_pairs = calibrate(splats, c2w, intrinsics, base)
     calibration_s = time.perf_counter() - start
     config = dataclasses.replace(base, max_pairs=max_pairs)
-    pose_chunk = min(config.pose_chunk or default_pose_chunk(intrinsics, config), population)
+    pose_chunk = min(config.pose_chunk or default_pose_chunk(intrinsics, config, splats=splats.count), population)
     compiled, compile_s, call_args = compile_render(splats, c2w, intrinsics, config, background)
     output, first_s, times = time_calls(lambda: compiled(*call_args), args.repeats, args.max_seconds_per_cell)
     stats = jax.device_get(output.stats)
@@ -447,7 +447,7 @@ def measure_stages(
     intrinsics = synthetic_camera(size, args.fov_deg)
     c2w = synthetic_poses(population, args.fov_deg)
     config = dataclasses.replace(base, max_pairs=max_pairs)
-    pose_chunk = min(config.pose_chunk or default_pose_chunk(intrinsics, config), population)
+    pose_chunk = min(config.pose_chunk or default_pose_chunk(intrinsics, config, splats=splats.count), population)
     fns = stage_functions(splats, c2w, intrinsics, config, pose_chunk, render)
     times = timed_alternately(fns, args.repeats)
     project_s = times["project"][0]
@@ -655,7 +655,7 @@ def scene_part(pair: ScenePair, args) -> dict:
                 "mean_pairs_per_view": float(np.mean(stats.pairs)),
                 "pair_overflow": overflow,
                 "lossy_pixels": int(np.sum(stats.lossy_pixels)),
-                "pose_chunk": min(default_pose_chunk(camera, splat_config), population),
+                "pose_chunk": min(default_pose_chunk(camera, splat_config, splats=splats.count), population),
             },
             "nerf": {
                 "views_per_s": population / nerf_best,

@@ -555,15 +555,19 @@ def data_sha256_file() -> str:
 
 # ---------------------------------------------------------------------------------------------- driver
 
-DEMO_SETTINGS_RUNS = ("demo_settings_base_cpu_loaded.json", "demo_settings_nmax_cpu_loaded.json")
+DEMO_SETTINGS_RUNS = (
+    "demo_settings_base_cpu_loaded.json",
+    "demo_settings_nmax_cpu_loaded.json",
+    "demo_settings_steps_cpu_loaded.json",
+)
 
 
 def demo_waldo_pixels_table() -> str:
     """Waldo's own pixels in the demo's NeRF under other settings (`benchmarks/demo_settings.py`)."""
     lines = [
-        "| setting | Waldo size | stripes | covering views | N_max x | T | held-out | Waldo's surface seen "
+        "| setting | steps | Waldo size | stripes | covering views | N_max x | T | held-out | Waldo's surface seen "
         "| EGPS found | EGPS Waldo-pixel PSNR (mean, best seed) | seeds >= 20 dB | demo time |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name in DEMO_SETTINGS_RUNS:
         for row in _json(name)["rows"]:
@@ -571,7 +575,9 @@ def demo_waldo_pixels_table() -> str:
             waldo = [v for v in e["waldo_psnr_per_seed"] if v is not None]
             camera = o.get("camera", {})
             lines.append(
-                f"| {row['name']} | x{o.get('waldo_scale', 1.0):g} | {100 * o.get('stripe_width', 0.05):.0f} cm | "
+                f"| {row['name']} | {o.get('train_steps', 500)}"
+                + (f" ({o['samples_per_batch']} samples)" if "samples_per_batch" in o else "")
+                + f" | x{o.get('waldo_scale', 1.0):g} | {100 * o.get('stripe_width', 0.05):.0f} cm | "
                 f"{camera.get('cover_views', 0)} | {o.get('finest_resolution_scale', 0.5):g} | "
                 f"2^{o.get('hash_table_log2', 16)} | {row['psnr_test']:.2f} dB | {row['waldo_surface_seen']:.0%} | "
                 f"{e['found_seeds']}/{len(e['waldo_psnr_per_seed'])} | "
@@ -579,8 +585,9 @@ def demo_waldo_pixels_table() -> str:
                 f"{e['waldo_psnr_20db_seeds']} | {row['seconds']['total']:.0f} s |"
             )
     return "\n".join(lines) + (
-        "\n\nThe demo's full settings otherwise (48 training views at 64 px, 500 steps, renders at twice the "
-        "training step, 8 seeds at the low budget, `waldo_found`); stripes 5 cm x Waldo's size unless given; "
+        "\n\nThe demo's former full settings otherwise (48 training views at 64 px, 2^15 samples per step, renders "
+        "at twice the training step, 8 seeds at the low budget, `waldo_found`); `waldo demo` now uses "
+        "scale15_stripes15_close16_steps2500; stripes 5 cm x Waldo's size unless given; "
         "covering views on a ring 1.2 to 2.2 x his size from him. Times with other benchmarks on the same 2 cores. "
         "From " + ", ".join(f"`benchmarks/results/{n}`" for n in DEMO_SETTINGS_RUNS) + "."
     )

@@ -30,7 +30,14 @@ from waldo_jax.cameras import look_at
 from waldo_jax.pipeline.splat_sources import calibrate_max_pairs
 from waldo_jax.splats.io import read_splat_ply
 from waldo_jax.splats.model import make_splats
-from waldo_jax.splats.render import SplatRenderConfig, count_pairs, project, render_splats, render_view
+from waldo_jax.splats.render import (
+    SplatRenderConfig,
+    count_pairs,
+    depth_order,
+    project,
+    render_splats,
+    render_view,
+)
 from waldo_jax.types import Intrinsics
 
 # A 30 x 21 image (4 x 3 tiles of 8, the last column and row cut) with an off-centre principal point
@@ -384,6 +391,54 @@ def test_overflow_hidden_far_splats_are_not_lossy():
     out = render(_splats(_wall_scene()), np.stack([WALL_POSE, WALL_POSE]), config=SMALL)
     assert int(out.stats.pair_overflow[0]) > 0
     assert int(out.stats.lossy_pixels[0]) == 0  # every pixel stopped at its 4th splat of the 13 or 14 kept
+
+
+def test_tile_capacity_keeps_the_chunks_every_pixel_needs():
+    """The wall: every pixel stops at its 4th splat, so with chunks of 2 each tile needs 2 chunks of its
+    40. With `tile_chunks` 2 the image is the reference's and nothing is lossy; with 1 every pixel is."""
+    scene, poses = _wall_scene(), np.stack([WALL_POSE, WALL_POSE])
+    base = dataclasses.replace(CONFIG, chunk=2)
+    full = render(_splats(scene), poses, config=base)
+    assert int(full.stats.needed_chunks[0]) == 2 and int(full.stats.tile_dropped[0]) == 0
+    capped = render(_splats(scene), poses, config=dataclasses.replace(base, tile_chunks=2))
+    rgb, _, _ = _reference(scene, WALL_POSE)
+    assert np.max(np.abs(np.asarray(capped.rgb[0]) - rgb)) <= MAX_TOL
+    assert int(capped.stats.tile_dropped[0]) == 12 * (40 - 4) and int(capped.stats.lossy_pixels[0]) == 0
+    short = render(_splats(scene), poses, config=dataclasses.replace(base, tile_chunks=1))
+    assert int(short.stats.lossy_pixels[0]) == W * H  # transmittance 0.05^2 after 2 splats: none had stopped
+    assert np.max(np.abs(np.asarray(short.rgb[0]) - rgb)) > 1e-3
+
+
+def test_tile_capacity_at_the_needed_chunks_changes_nothing():
+    """A random stack: capped at `needed_chunks` the image equals the uncapped one; one chunk fewer,
+    the pixels that change are within those counted lossy."""
+    scene = _overflow_scene(5)
+    splats, poses = _splats(scene), np.stack([POSE_A, POSE_A])
+    base = dataclasses.replace(CONFIG, chunk=4)
+    full = render(splats, poses, config=base)
+    needed = int(full.stats.needed_chunks[0])
+    assert needed >= 2, needed  # the case is what it should be
+    capped = render(splats, poses, config=dataclasses.replace(base, tile_chunks=needed))
+    np.testing.assert_allclose(np.asarray(capped.rgb), np.asarray(full.rgb), atol=1e-6)
+    assert int(capped.stats.lossy_pixels[0]) == 0
+    fewer = render(splats, poses, config=dataclasses.replace(base, tile_chunks=needed - 1))
+    changed = np.max(np.abs(np.asarray(fewer.rgb[0]) - np.asarray(full.rgb[0])), axis=-1) > 1e-6
+    lossy = int(fewer.stats.lossy_pixels[0])
+    assert lossy > 0 and int(fewer.stats.tile_dropped[0]) > 0
+    assert int(changed.sum()) <= lossy
+
+
+@pytest.mark.parametrize("n", [1, 7, 4096, 70_000])
+def test_depth_order_is_the_stable_argsort(n):
+    """The CPU's radix passes of single-operand sorts give argsort's permutation: ties kept in index
+    order (-0 and +0 too), infinities last, negative numbers first."""
+    key = jax.random.key(n)
+    x = jax.random.uniform(key, (n,), minval=-3.0, maxval=3.0)
+    x = jnp.where(jnp.arange(n) % 5 == 0, jnp.round(x), x)  # ties
+    x = jnp.where(jnp.arange(n) % 11 == 3, jnp.inf, x).at[0].set(-0.0)
+    expected = np.argsort(np.asarray(x), kind="stable")
+    np.testing.assert_array_equal(np.asarray(jax.jit(depth_order)(x)), expected)
+    np.testing.assert_array_equal(np.asarray(depth_order(x, backend="gpu")), expected)
 
 
 # ---------------------------------------------------------------------------------------------

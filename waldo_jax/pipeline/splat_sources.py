@@ -51,6 +51,7 @@ __all__ = [
     "ring_cameras",
     "splat_upright",
     "calibrate_max_pairs",
+    "calibrate_tile_chunks",
     "splat_renderer",
     "SPLAT_RESOLUTION",
     "RING_VIEWS",
@@ -68,6 +69,7 @@ RING_FOV_DEG = 50.0
 # forward-mode gradient: 11.5; benchmarks/results/gradient_cost_splats_cpu.json).
 SPLAT_GRADIENT_COST = 6
 _PAIRS_MARGIN = 1.5  # max_pairs = this x the most pairs a training view needs (searches go closer)
+_CHUNKS_MARGIN = 1.5  # tile_chunks = this x the most chunks a training view's tile needs, + 1
 _PAIRS_QUANTUM = 4096
 
 
@@ -189,6 +191,30 @@ def calibrate_max_pairs(
     return max(_PAIRS_QUANTUM, int(math.ceil(margin * needed / _PAIRS_QUANTUM)) * _PAIRS_QUANTUM)
 
 
+_render_stats = jax.jit(render_splats, static_argnames=("config",))
+
+
+def calibrate_tile_chunks(
+    splats: Splats, c2w: np.ndarray, intrinsics: Intrinsics, config: SplatRenderConfig, margin: float = _CHUNKS_MARGIN
+) -> Tuple[Optional[int], np.ndarray, int]:
+    """`tile_chunks` for views like `c2w`, from their exact renders (no tile capacity).
+
+    A tile's depth-ordered list only counts until every pixel's transmittance falls below the stop; the
+    chunks after that are work without effect (a million splats at 128 px stack thousands deep per
+    tile and stop after a few hundred). The capacity is `margin` x the most chunks a tile of these views
+    needed, + 1, and None when that would not be fewer chunk slots than `config` has without it.
+
+    Returns:
+      (tile_chunks or None, the exact renders rgb float32 [P, H, W, 3], the most chunks needed).
+    """
+    out = _render_stats(splats, jnp.asarray(c2w, jnp.float32), intrinsics, config=config)
+    needed = int(np.max(np.asarray(out.stats.needed_chunks)))
+    tiles_x, tiles_y = config.tiles(intrinsics)
+    chunks = int(math.ceil(margin * needed)) + 1
+    saves = tiles_x * tiles_y * chunks < config.chunk_slots(intrinsics)
+    return (chunks if saves else None), np.asarray(out.rgb, np.float32), needed
+
+
 # ---------------------------------------------------------------------------------------------
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
@@ -240,8 +266,10 @@ def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c
         "tile_size": config.tile_size,
         "chunk": config.chunk,
         "near": config.near,
+        "tile_chunks": config.tile_chunks,
         "note": "a view over max_pairs drops its farthest splats' pairs (counted here; "
-        "the renderer's SplatStats count the pixels that could change)",
+        "the renderer's SplatStats count the pixels that could change); with tile_chunks, each tile "
+        "composites its nearest tile_chunks x chunk splats (calibrated on the training views' exact renders)",
     }
 
 
@@ -361,9 +389,15 @@ def splat_source(
     config = SplatRenderConfig(**{**config.__dict__, "background": tuple(float(v) for v in background)})
     max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config)
     config = SplatRenderConfig(**{**config.__dict__, "max_pairs": max_pairs})
+    tile_chunks, exact_renders, needed_chunks = calibrate_tile_chunks(splats, c2w, intrinsics, config)
+    config = SplatRenderConfig(**{**config.__dict__, "tile_chunks": tile_chunks})
     info["renderer"] = {
         "max_pairs": max_pairs,
         "calibrated_on": f"the training views (x{_PAIRS_MARGIN:g})",
+        "tile_chunks": tile_chunks,
+        "tile_chunks_calibration": f"the training views' exact renders needed at most {needed_chunks} chunks "
+        f"per tile before every pixel stopped; x{_CHUNKS_MARGIN:g} + 1"
+        + ("" if tile_chunks is not None else ": no fewer than every chunk, so no capacity"),
         "tile_size": config.tile_size,
         "chunk": config.chunk,
         "near": config.near,
@@ -385,7 +419,7 @@ def splat_source(
             train_images, note = _run_images(record, names, intrinsics)
     if images and train_images is None:
         # No photos come with a splat file: its training views are its own renders there.
-        train_images = np.asarray(render(jnp.asarray(c2w)), np.float32)
+        train_images = exact_renders
         info["train_images"] = "renders at the training poses" + (f" ({note})" if record is not None else "")
         note = ""
     name = folder.name if path.is_dir() else path.stem
