@@ -11,9 +11,7 @@ import struct
 import numpy as np
 import pytest
 
-from conftest import _missing
 from consumer_parsers import ns_nerfstudio_dataparser
-from waldo_jax import paths
 from waldo_jax.cameras import project_points
 from waldo_jax.errors import SceneFormatError
 from waldo_jax.scenes.colmap import (
@@ -31,15 +29,7 @@ from waldo_jax.splats.cameras import find_splat_cameras, read_camera_source, rea
 from waldo_jax.splats.io import load_splat_model, read_splat_ply, write_cameras_json, write_splat_ply
 from waldo_jax.splats.model import make_splats
 from waldo_jax.types import Intrinsics
-
-
-def _require_data(relpath: str):
-    """`$WALDO_DATA/<relpath>`, skipping (failing under WALDO_REQUIRE_DATA=1) when absent."""
-    data = paths.data_dir()
-    path = None if data is None else data / relpath
-    if path is None or not path.exists():
-        _missing(f"data file {relpath!r} ({path or 'WALDO_DATA unset and no ../shared'})")
-    return path
+from test_splat_io import _require_data
 
 
 def _rotation(axis, angle: float) -> np.ndarray:

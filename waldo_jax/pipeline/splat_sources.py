@@ -210,7 +210,7 @@ def calibrate_tile_chunks(
     out = _render_stats(splats, jnp.asarray(c2w, jnp.float32), intrinsics, config=config)
     needed = int(np.max(np.asarray(out.stats.needed_chunks)))
     tiles_x, tiles_y = config.tiles(intrinsics)
-    chunks = int(math.ceil(margin * needed)) + 1
+    chunks = int(math.ceil(margin * max(needed, 1))) + 1
     saves = tiles_x * tiles_y * chunks < config.chunk_slots(intrinsics)
     return (chunks if saves else None), np.asarray(out.rgb, np.float32), needed
 

@@ -540,7 +540,7 @@ def render_view(
         max_tile_count=jnp.max(counts).astype(jnp.int32),
         lossy_pixels=lossy.astype(jnp.int32),
         tile_dropped=jnp.sum(jnp.maximum(counts - config.chunk * tile_chunks, 0)).astype(jnp.int32),
-        needed_chunks=jnp.max(needed).astype(jnp.int32),
+        needed_chunks=jnp.maximum(jnp.max(needed), 0).astype(jnp.int32),  # segment_max of none: int32 min
     )
 
     def image(a):  # [T, S, ...] -> [H, W, ...]

@@ -35,6 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.splats.render import quat_to_rotmat
+
 __all__ = [
     "UprightConfig",
     "Upright",
@@ -180,16 +182,7 @@ def _contact_share(points, n, d, inliers, tolerance: float, diagonal: float, gri
 def _flat_normals(log_scales: np.ndarray, quats: np.ndarray, flat_ratio: float) -> Tuple[np.ndarray, np.ndarray]:
     """(normals [N, 3], flat [N] bool): each splat's axis of smallest scale, and whether it is flat."""
     q = quats / np.maximum(np.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    # Columns of the rotation matrix (w, x, y, z): the splat's axes in the world.
-    columns = np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], -1),
-            np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], -1),
-            np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        1,
-    )  # [N, 3 axes, 3]
+    columns = np.swapaxes(np.asarray(quat_to_rotmat(jnp.asarray(q, jnp.float32)), np.float64), 1, 2)  # [N, axis, 3]
     order = np.argsort(log_scales, axis=-1)
     smallest = order[:, 0]
     normals = columns[np.arange(len(q)), smallest]
