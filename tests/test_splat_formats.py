@@ -152,8 +152,8 @@ def test_compressed_ply_decodes_to_hand_computed_values(tmp_path):
     colour = (255 << 24) | (0 << 16) | (51 << 8) | 255
     scale = (0 << 21) | (1023 << 11) | 2047
     lines = ["ply", "format binary_little_endian 1.0", "element chunk 1"]
-    lines += [f"property float {p}" for p in F._CHUNK_BOUNDS + F._CHUNK_COLOURS]
-    lines += ["element vertex 1"] + [f"property uint {p}" for p in F._PACKED]
+    lines += [f"property float {p}" for p in F.CHUNK_BOUNDS + F.CHUNK_COLOURS]
+    lines += ["element vertex 1"] + [f"property uint {p}" for p in F.PACKED]
     lines += ["element sh 1"] + [f"property uchar f_rest_{i}" for i in range(9)]
     data = ("\n".join(lines) + "\nend_header\n").encode() + struct.pack("<18f", *bounds)
     data += struct.pack("<4I", position, rotation, scale, colour) + bytes([0, 255, 128, 0, 0, 0, 0, 0, 64])
@@ -347,7 +347,7 @@ def test_sh_sign_table_matches_the_basis_under_axis_flips():
     d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     for system in range(1, 9):
         flips = F.spz_axis_flips(system)
-        means, quats, sh = F._flip_axes(np.zeros((1, 3)), np.zeros((1, 4)), np.ones((1, 16, 3)), flips)
+        means, quats, sh = F.flip_axes(np.zeros((1, 3)), np.zeros((1, 4)), np.ones((1, 16, 3)), flips)
         expected = np.asarray(sh_basis(d * jnp.asarray(flips), 3) / sh_basis(d, 3))
         np.testing.assert_allclose(expected, np.broadcast_to(sh[0, :, 0], expected.shape), rtol=1e-4)
     assert F.spz_axis_flips(4) == (1.0, -1.0, -1.0) and F.spz_axis_flips(6) == (1.0, 1.0, 1.0)
@@ -487,8 +487,8 @@ BROKEN = {
     "compressed cut": ("x.ply", lambda t: F.write_compressed_ply(t / "c.ply", _random_splats(20, 1)).read_bytes()[:-9],
                        r"truncated or malformed compressed PLY data"),
     "chunk count": ("x.ply", lambda t: b"ply\nformat binary_little_endian 1.0\nelement chunk 2\n"
-                    + b"".join(f"property float {p}\n".encode() for p in F._CHUNK_BOUNDS)
-                    + b"element vertex 3\n" + b"".join(f"property uint {p}\n".encode() for p in F._PACKED)
+                    + b"".join(f"property float {p}\n".encode() for p in F.CHUNK_BOUNDS)
+                    + b"element vertex 3\n" + b"".join(f"property uint {p}\n".encode() for p in F.PACKED)
                     + b"end_header\n" + bytes(2 * 48 + 3 * 16), r"3 splats need 1 chunks of 256, the file has 2"),
     "sog image": ("x.sog", lambda t: _sog_zip(t, lambda m, f: f.pop("quats.webp")),
                   r"the SOG lacks its file 'quats\.webp'"),

@@ -156,7 +156,7 @@ def angle_deg(a, b) -> float:
 
 def _estimate(scene: Scene, rotation=None, **kwargs):
     means, opacity, log_scales, quats = scene.arrays(rotation)
-    return estimate_upright(jax.random.key(0), means, opacity, log_scales, quats, **kwargs)
+    return estimate_upright(jax.random.key(0), means, opacity, (log_scales, quats), **kwargs)
 
 
 @pytest.mark.parametrize(
@@ -254,8 +254,7 @@ def test_donut_up_is_its_iced_side():
         jax.random.key(0),
         np.asarray(s.means)[valid],
         np.asarray(jax.nn.sigmoid(s.logits))[valid],
-        np.asarray(s.log_scales)[valid],
-        np.asarray(s.quats)[valid],
+        (np.asarray(s.log_scales)[valid], np.asarray(s.quats)[valid]),
         FORMAT_UP["3dgs-ply"],
     )
     assert angle_deg(result.up, TRUE_UP) <= 10.0, result.reason

@@ -169,8 +169,7 @@ def splat_upright(
         jax.random.key(seed),
         np.asarray(s.means)[valid],
         np.asarray(jax.nn.sigmoid(s.logits))[valid],
-        np.asarray(s.log_scales)[valid],
-        np.asarray(s.quats)[valid],
+        (np.asarray(s.log_scales)[valid], np.asarray(s.quats)[valid]),
         # Every format is read in the frame of the 3DGS PLY it was made from (`waldo_jax.splats.formats`).
         format_up=FORMAT_UP["3dgs-ply"],
         up=up,

@@ -42,7 +42,7 @@ from waldo_jax.scenes.colmap import (
 )
 from waldo_jax.scenes.common import check_rigid, intrinsics_problem, natural_key, number, read_json
 from waldo_jax.scenes.tool_frames import nerfstudio_applied, nerfstudio_pose_transform, read_dataparser_transform
-from waldo_jax.splats.io import MAX_CAMERA_SIDE, SplatCameras, _cameras_beside, _iteration_of, read_cameras_json
+from waldo_jax.splats.cameras_json import MAX_CAMERA_SIDE, SplatCameras, cameras_beside, iteration_of, read_cameras_json
 from waldo_jax.types import Intrinsics
 
 __all__ = [
@@ -400,7 +400,7 @@ def find_splat_cameras(ply_or_folder: str | os.PathLike) -> Optional[Tuple[Splat
     """
     path = Path(ply_or_folder)
     base = path if path.is_dir() else path.parent
-    json_path = base / "cameras.json" if path.is_dir() else _cameras_beside(path)
+    json_path = base / "cameras.json" if path.is_dir() else cameras_beside(path)
     if json_path is not None and json_path.is_file():
         return read_cameras_json(json_path), json_path.name
     run = _nerfstudio_run_near(base)
@@ -411,7 +411,7 @@ def find_splat_cameras(ply_or_folder: str | os.PathLike) -> Optional[Tuple[Splat
             # Found by looking around, not asked for: the splats still load, from a ring of views.
             warnings.warn(f"{error}; its cameras are not read", stacklevel=2)
     folders = [base]
-    if not path.is_dir() and _iteration_of(path) is not None:
+    if not path.is_dir() and iteration_of(path) is not None:
         folders.append(path.parent.parent.parent)
     for folder in folders:
         found = find_colmap_model(folder)

@@ -275,8 +275,7 @@ def estimate_upright(
     key,
     means: np.ndarray,
     weights: np.ndarray,
-    log_scales: Optional[np.ndarray] = None,
-    quats: Optional[np.ndarray] = None,
+    shapes: Optional[Tuple[np.ndarray, np.ndarray]] = None,
     format_up: Optional[Tuple[Tuple[float, float, float], str]] = None,
     up: Optional[np.ndarray] = None,
     layout: Optional[str] = None,
@@ -288,7 +287,7 @@ def estimate_upright(
       key: a JAX PRNG key (the RANSAC triples and the sample of means).
       means: [N, 3] splat centres (valid rows only).
       weights: [N] opacities (sigmoid of the logits).
-      log_scales, quats: [N, 3], [N, 4] (w first), for the flat splats' normals; None skips that check.
+      shapes: (log_scales [N, 3], quats [N, 4] w first), for the flat splats' normals; None skips that check.
       format_up: (up [3], why) the file family's usual up (`FORMAT_UP`), or None.
       up: a given up (`--up`): taken as is (rule "given").
       layout: a given layout (`--orbit`), one of `LAYOUTS`, or None to decide.
@@ -316,9 +315,7 @@ def estimate_upright(
         up = _unit(np.asarray(up, np.float64))
         rule, reason = "given", "given (--up)"
     else:
-        up, rule, reason, plane = _decide_up(
-            key, points, w, keep, log_scales, quats, format_up, diagonal, config, details
-        )
+        up, rule, reason, plane = _decide_up(key, points, w, keep, shapes, format_up, diagonal, config, details)
     if layout is not None:
         layout_name, layout_reason = layout, "given (--orbit)"
     else:
@@ -327,7 +324,79 @@ def estimate_upright(
     return Upright(up, rule, reason, layout_name, layout_reason, plane, details)
 
 
-def _decide_up(key, points, w, keep, log_scales, quats, format_up, diagonal, config: UprightConfig, details: dict):
+def _refine_plane(points, w, n, d0, tolerance: float):
+    """A plane (normal n, offset d0) refitted twice by weighted least squares to its inliers."""
+    for _ in range(2):
+        d = points @ n - d0
+        inl = np.abs(d) <= tolerance
+        if inl.sum() < 3:
+            break
+        q = points[inl]
+        qc = np.average(q, axis=0, weights=w[inl])
+        _, vectors = np.linalg.eigh(np.cov((q - qc).T, aweights=w[inl]))
+        n = vectors[:, 0] * np.sign(np.dot(vectors[:, 0], n) or 1.0)
+        d0 = float(np.dot(n, qc))
+    return n, d0
+
+
+def _plane_figures(points, w, plane, scale, flat_splats, config: UprightConfig) -> Optional[dict]:
+    """What a candidate support plane holds: its share of the opacity, the share of the rest on its
+    upper side, the mass's height over its extent, its contact share and its flat splats' agreement;
+    None when it holds fewer than 3 splats or nothing stands above it."""
+    (n, d0), (tolerance, diagonal), (flat, flat_normals) = plane, scale, flat_splats
+    d = points @ n - d0
+    inl = np.abs(d) <= tolerance
+    share = float(w[inl].sum()) / float(w.sum())
+    mass = d > tolerance
+    below_mass = d < -tolerance
+    one_side = float(w[mass].sum()) / max(float(w[mass | below_mass].sum()), 1e-30)
+    if inl.sum() < 3 or not mass.any():
+        return None
+    height = float(np.quantile(d[mass], 0.95))
+    q = points[inl] - points[inl].mean(0)
+    in_plane = q - np.outer(q @ n, n)
+    extent = 2.0 * float(np.quantile(np.linalg.norm(in_plane, axis=-1), 0.95))
+    ratio = height / max(extent, 1e-30)
+    contact = _contact_share(points, n, d, inl, tolerance, diagonal, config.contact_grid)
+    agreement = None
+    if flat is not None and flat[inl].sum() >= max(10, 0.2 * inl.sum()):
+        agreement = float(np.median(np.abs(flat_normals[inl & flat] @ n)))
+    return {
+        "normal": n.round(6).tolist(),
+        "share": share,
+        "one_side_share": one_side,
+        "height_ratio": ratio,
+        "flat_normal_agreement": agreement,
+        "contact_share": contact,
+    }
+
+
+def _rounded(figures: dict) -> dict:
+    """`figures` with its shares and ratios rounded to 4 digits, for the details written out."""
+    return {k: v if isinstance(v, list) or v is None else round(v, 4) for k, v in figures.items()}
+
+
+def _plane_rejection(figures: dict, config: UprightConfig) -> Optional[str]:
+    """Why a candidate plane is no support (the first rule it fails), or None."""
+    share, one_side, ratio = figures["share"], figures["one_side_share"], figures["height_ratio"]
+    contact, agreement = figures["contact_share"], figures["flat_normal_agreement"]
+    if share < config.min_plane_share:
+        return f"holds {100 * share:.1f} % of the opacity"
+    if one_side < config.one_side_share:
+        return f"only {100 * one_side:.0f} % of the rest on one side"
+    if ratio < config.min_height_ratio:
+        return f"the mass stands {ratio:.2f} x its extent over it (a face, not a support)"
+    if contact > config.max_contact_share:
+        return (
+            f"the mass rests on {100 * contact:.0f} % of it (an object's own face, which its body "
+            "continues under; a support carries its load on a part)"
+        )
+    if agreement is not None and agreement < config.min_normal_agreement:
+        return f"its flat splats' normals agree only {agreement:.2f} (median |cos|)"
+    return None
+
+
+def _decide_up(key, points, w, keep, shapes, format_up, diagonal, config: UprightConfig, details: dict):
     sample_key, trial_key = jax.random.split(key)
     m = min(config.sample, len(points))
     chosen = np.asarray(jax.random.choice(sample_key, len(points), (m,), replace=False))
@@ -344,70 +413,25 @@ def _decide_up(key, points, w, keep, log_scales, quats, format_up, diagonal, con
     side_share = np.maximum(above, below) / np.maximum(off, 1e-30)
     candidates = np.flatnonzero((on >= config.min_plane_share * total) & (side_share >= config.one_side_share))
     flat_normals = flat = None
-    if log_scales is not None and quats is not None:
+    if shapes is not None:
         flat_normals, flat = _flat_normals(
-            np.asarray(log_scales, np.float64)[keep], np.asarray(quats, np.float64)[keep], config.flat_ratio
+            np.asarray(shapes[0], np.float64)[keep], np.asarray(shapes[1], np.float64)[keep], config.flat_ratio
         )
     rejected = []
     prior = None if format_up is None else (_unit(np.asarray(format_up[0], np.float64)), format_up[1])
     accepted = []
     # The best-supported planes first; each is refined by a least-squares fit to its inliers.
     for t in candidates[np.argsort(-on[candidates])][:16]:
-        n = normals[t] * (1.0 if above[t] >= below[t] else -1.0)
-        d0 = offsets[t] * (1.0 if above[t] >= below[t] else -1.0)
-        for _ in range(2):
-            d = points @ n - d0
-            inl = np.abs(d) <= tolerance
-            if inl.sum() < 3:
-                break
-            q = points[inl]
-            qc = np.average(q, axis=0, weights=w[inl])
-            _, vectors = np.linalg.eigh(np.cov((q - qc).T, aweights=w[inl]))
-            n = vectors[:, 0] * np.sign(np.dot(vectors[:, 0], n) or 1.0)
-            d0 = float(np.dot(n, qc))
-        d = points @ n - d0
-        inl = np.abs(d) <= tolerance
-        share = float(w[inl].sum()) / float(w.sum())
-        mass = d > tolerance
-        below_mass = d < -tolerance
-        one_side = float(w[mass].sum()) / max(float(w[mass | below_mass].sum()), 1e-30)
-        if inl.sum() < 3 or not mass.any():
+        sign = 1.0 if above[t] >= below[t] else -1.0
+        n, d0 = _refine_plane(points, w, normals[t] * sign, offsets[t] * sign, tolerance)
+        figures = _plane_figures(points, w, (n, d0), (tolerance, diagonal), (flat, flat_normals), config)
+        if figures is None:
             continue
-        height = float(np.quantile(d[mass], 0.95))
-        q = points[inl] - points[inl].mean(0)
-        in_plane = q - np.outer(q @ n, n)
-        extent = 2.0 * float(np.quantile(np.linalg.norm(in_plane, axis=-1), 0.95))
-        ratio = height / max(extent, 1e-30)
-        contact = _contact_share(points, n, d, inl, tolerance, diagonal, config.contact_grid)
-        agreement = None
-        if flat is not None and flat[inl].sum() >= max(10, 0.2 * inl.sum()):
-            agreement = float(np.median(np.abs(flat_normals[inl & flat] @ n)))
-        figures = {
-            "normal": n.round(6).tolist(),
-            "share": round(share, 4),
-            "one_side_share": round(one_side, 4),
-            "height_ratio": round(ratio, 4),
-            "flat_normal_agreement": None if agreement is None else round(agreement, 4),
-            "contact_share": round(contact, 4),
-        }
-        why = None
-        if share < config.min_plane_share:
-            why = f"holds {100 * share:.1f} % of the opacity"
-        elif one_side < config.one_side_share:
-            why = f"only {100 * one_side:.0f} % of the rest on one side"
-        elif ratio < config.min_height_ratio:
-            why = f"the mass stands {ratio:.2f} x its extent over it (a face, not a support)"
-        elif contact > config.max_contact_share:
-            why = (
-                f"the mass rests on {100 * contact:.0f} % of it (an object's own face, which its body "
-                "continues under; a support carries its load on a part)"
-            )
-        elif agreement is not None and agreement < config.min_normal_agreement:
-            why = f"its flat splats' normals agree only {agreement:.2f} (median |cos|)"
+        why = _plane_rejection(figures, config)
         if why:
-            rejected.append({**figures, "rejected": why})
+            rejected.append({**_rounded(figures), "rejected": why})
             continue
-        accepted.append((share, n, d0, figures))
+        accepted.append((figures["share"], n, d0, _rounded(figures)))
     details["planes_rejected"] = rejected[:4]
     if accepted:
         # The largest accepted plane; where a format prior exists, a plane along it is preferred
@@ -431,6 +455,11 @@ def _decide_up(key, points, w, keep, log_scales, quats, format_up, diagonal, con
         )
         return n, "support plane", reason, (n * d0, n)
 
+    return _principal_up(points, w, prior, config, details)
+
+
+def _principal_up(points, w, prior, config: UprightConfig, details: dict):
+    """With no support plane: the principal axis the format prior agrees with, else the flattest direction."""
     centred = points - np.average(points, axis=0, weights=w)
     values, vectors = np.linalg.eigh(np.cov(centred.T, aweights=w))  # ascending variances
     details["principal_variances"] = values.round(8).tolist()

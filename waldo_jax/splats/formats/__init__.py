@@ -13,7 +13,7 @@ colour = SH_C0 f_dc + 0.5. Formats (`FORMATS` names them; `splat_format` tells o
 glTF `KHR_gaussian_splatting` is not read. Coordinates are taken as stored, in the frame of the PLY the
 file was made from (see docs/splats.md, "Formats", for the SPZ axes). Stored bytes are u; quantised
 opacities end at 0 and 1, whose logits are infinite: the end bytes decode to the middle of their
-rounding interval instead (`common._opacity_logits`).
+rounding interval instead (`common.opacity_logits`).
 
 One module per format (`dot_splat`, `spz`, `compressed_ply`, `sog`, each citing its reference), their
 shared helpers in `common`; this package tells the formats apart and reads any of them.
@@ -36,21 +36,22 @@ import numpy as np
 from waldo_jax.errors import SceneFormatError, check_input_file
 from waldo_jax.scenes.ply import parse_ply_header
 from waldo_jax.splats.formats.common import SH_C0 as SH_C0
-from waldo_jax.splats.formats.compressed_ply import _CHUNK_BOUNDS as _CHUNK_BOUNDS
-from waldo_jax.splats.formats.compressed_ply import _CHUNK_COLOURS as _CHUNK_COLOURS
-from waldo_jax.splats.formats.compressed_ply import _PACKED as _PACKED
-from waldo_jax.splats.formats.compressed_ply import _compressed_ply
+from waldo_jax.splats.formats.compressed_ply import CHUNK_BOUNDS as CHUNK_BOUNDS
+from waldo_jax.splats.formats.compressed_ply import CHUNK_COLOURS as CHUNK_COLOURS
+from waldo_jax.splats.formats.compressed_ply import PACKED as PACKED
+from waldo_jax.splats.formats.compressed_ply import decode_compressed_ply
 from waldo_jax.splats.formats.compressed_ply import morton_order as morton_order
 from waldo_jax.splats.formats.compressed_ply import read_compressed_ply as read_compressed_ply
 from waldo_jax.splats.formats.compressed_ply import write_compressed_ply as write_compressed_ply
-from waldo_jax.splats.formats.dot_splat import _dot_splat
+from waldo_jax.splats.formats.dot_splat import decode_dot_splat
+from waldo_jax.splats.formats.ply import read_splat_ply as read_splat_ply
 from waldo_jax.splats.formats.dot_splat import importance_order as importance_order
 from waldo_jax.splats.formats.dot_splat import read_antimatter_splat as read_antimatter_splat
 from waldo_jax.splats.formats.dot_splat import write_antimatter_splat as write_antimatter_splat
-from waldo_jax.splats.formats.sog import _sog
+from waldo_jax.splats.formats.sog import decode_sog
 from waldo_jax.splats.formats.sog import read_sog as read_sog
-from waldo_jax.splats.formats.spz import _flip_axes as _flip_axes
-from waldo_jax.splats.formats.spz import _spz
+from waldo_jax.splats.formats.spz import flip_axes as flip_axes
+from waldo_jax.splats.formats.spz import decode_spz
 from waldo_jax.splats.formats.spz import read_spz as read_spz
 from waldo_jax.splats.formats.spz import spz_axis_flips as spz_axis_flips
 from waldo_jax.splats.formats.spz import write_spz as write_spz
@@ -205,10 +206,13 @@ def read_splat_file(path: str | os.PathLike) -> SplatFile:
             path, f"not a splat file of any format read here (formats read: {_READ}; glTF is not read)"
         )
     if fmt == "ply":
-        from waldo_jax.splats.io import read_splat_ply  # io imports this package
-
         splats = read_splat_ply(path)
         return SplatFile(splats, fmt, path, f"splat PLY, SH degree {splats.sh_degree}", {})
-    reader = {"compressed_ply": _compressed_ply, "splat": _dot_splat, "spz": _spz, "sog": _sog}[fmt]
+    reader = {
+        "compressed_ply": decode_compressed_ply,
+        "splat": decode_dot_splat,
+        "spz": decode_spz,
+        "sog": decode_sog,
+    }[fmt]
     splats, details, extras = reader(path)
     return SplatFile(splats, fmt, path, details, extras)

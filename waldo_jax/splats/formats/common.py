@@ -3,7 +3,7 @@
 Every reader returns `Splats` in the reference layout's raw parameters (`waldo_jax.splats.model`):
 means, log-scales, quaternions w first, opacity logits, sh [N, K, 3] with sh[:, 0] = f_dc and
 colour = SH_C0 f_dc + 0.5. Stored bytes are u; quantised opacities end at 0 and 1, whose logits are
-infinite: the end bytes decode to the middle of their rounding interval instead (`_opacity_logits`).
+infinite: the end bytes decode to the middle of their rounding interval instead (`opacity_logits`).
 Rounding follows the SPZ reference's toUint8 (C's std::round, halves away from zero).
 """
 
@@ -20,29 +20,30 @@ from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coeffi
 SH_C0 = 0.28209479177387814
 
 
-def _round_half_away(x: np.ndarray) -> np.ndarray:
+def round_half_away(x: np.ndarray) -> np.ndarray:
     """C's std::round: halves away from zero (NumPy's round takes them to even)."""
     return np.sign(x) * np.floor(np.abs(x) + 0.5)
 
 
-def _to_uint8(x: np.ndarray) -> np.ndarray:
+def to_uint8(x: np.ndarray) -> np.ndarray:
     """The SPZ reference's toUint8: round half away from zero, clamp to 0..255."""
-    return np.clip(_round_half_away(np.asarray(x, np.float32)), 0, 255).astype(np.uint8)
+    return np.clip(round_half_away(np.asarray(x, np.float32)), 0, 255).astype(np.uint8)
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    """The logistic function in float32 (no overflow warning for large negative inputs)."""
     with np.errstate(over="ignore"):
         return (1.0 / (1.0 + np.exp(-np.asarray(x, np.float32)))).astype(np.float32)
 
 
-def _opacity_logits(fraction: np.ndarray) -> np.ndarray:
+def opacity_logits(fraction: np.ndarray) -> np.ndarray:
     """Logits of quantised opacities in [0, 1]; 0 and 1 (infinite logits) are moved a quarter byte inwards,
     the middle of the interval a round-to-nearest byte of 0 or 255 stands for."""
     p = np.clip(np.asarray(fraction, np.float64), 0.25 / 255, 1.0 - 0.25 / 255)
     return np.log(p / (1.0 - p)).astype(np.float32)
 
 
-def _valid_rows(path: Path, splats: Splats) -> Dict[str, np.ndarray]:
+def valid_rows(path: Path, splats: Splats) -> Dict[str, np.ndarray]:
     """The valid rows of `splats` as float32 NumPy arrays; a WaldoError for none or non-finite ones."""
     rows = np.flatnonzero(np.asarray(splats.valid, bool))
     if len(rows) == 0:
@@ -62,7 +63,7 @@ def _valid_rows(path: Path, splats: Splats) -> Dict[str, np.ndarray]:
     return arrays
 
 
-def _finish(path: Path, what: str, means, log_scales, quats, logits, sh) -> Splats:
+def finish_splats(path: Path, what: str, means, log_scales, quats, logits, sh) -> Splats:
     """`Splats` from decoded arrays; a SceneFormatError when any value is not finite."""
     arrays = {"means": means, "log_scales": log_scales, "quats": quats, "logits": logits, "sh": sh}
     n = len(means)
@@ -74,20 +75,22 @@ def _finish(path: Path, what: str, means, log_scales, quats, logits, sh) -> Spla
     return make_splats(**arrays)
 
 
-def _read_file(path: Path, what: str) -> bytes:
+def read_splat_bytes(path: Path, what: str) -> bytes:
+    """The bytes of `path`; a SceneFormatError naming the file (and `what` it should be) when unreadable."""
     try:
         return Path(path).read_bytes()
     except OSError as e:
         raise SceneFormatError(path, f"cannot read this {what} ({e.strerror or e})") from None
 
 
-def _rest_from_channel_major(rest: np.ndarray, n: int) -> np.ndarray:
+def rest_from_channel_major(rest: np.ndarray, n: int) -> np.ndarray:
     """[N, 3 (K - 1)] f_rest columns, channel-major as in a PLY, to [N, K - 1, 3]."""
     k1 = rest.shape[1] // 3
     return rest.reshape(n, 3, k1).transpose(0, 2, 1)
 
 
-def _sh_degree_of_rest(path: Path, count: int, what: str) -> int:
+def sh_degree_of_rest(path: Path, count: int, what: str) -> int:
+    """The SH degree whose higher-order coefficients number `count` floats; a SceneFormatError otherwise."""
     for degree in range(MAX_SH_DEGREE + 1):
         if 3 * (sh_coefficients(degree) - 1) == count:
             return degree

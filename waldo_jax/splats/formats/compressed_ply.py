@@ -20,21 +20,21 @@ from waldo_jax.io import write_bytes
 from waldo_jax.scenes.ply import PlyHeader, parse_ply_header
 from waldo_jax.splats.formats.common import (
     SH_C0,
-    _finish,
-    _opacity_logits,
-    _read_file,
-    _rest_from_channel_major,
-    _sh_degree_of_rest,
-    _sigmoid,
-    _valid_rows,
+    finish_splats,
+    opacity_logits,
+    read_splat_bytes,
+    rest_from_channel_major,
+    sh_degree_of_rest,
+    sigmoid,
+    valid_rows,
 )
 from waldo_jax.splats.model import Splats
 
 _CHUNK = 256
-_CHUNK_BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
-_CHUNK_BOUNDS += ["min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
-_CHUNK_COLOURS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
-_PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+CHUNK_BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
+CHUNK_BOUNDS += ["min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
+CHUNK_COLOURS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
+PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 _TRIPLE = (("x", 21, 11), ("y", 11, 10), ("z", 0, 11))  # axis, shift, bits of an 11-10-11 field
 
 
@@ -86,8 +86,9 @@ def _lerp(low, high, t):
     return low * (1.0 - t) + high * t
 
 
-def _compressed_ply(path: Path):
-    raw = _read_file(path, "compressed PLY")
+def decode_compressed_ply(path: Path):
+    """(Splats, details line, extras) of a PlayCanvas / SuperSplat compressed PLY (see the module's layout)."""
+    raw = read_splat_bytes(path, "compressed PLY")
     header: PlyHeader = parse_ply_header(raw, path)
     chunk, vertex, sh = header.element("chunk"), header.element("vertex"), header.element("sh")
     if header.format != "binary_little_endian":
@@ -95,9 +96,9 @@ def _compressed_ply(path: Path):
     if chunk is None or vertex is None:
         raise SceneFormatError(path, "a compressed splat PLY needs a 'chunk' and a 'vertex' element")
     ctypes, vtypes = dict(chunk.properties), dict(vertex.properties)
-    has_colours = all(k in ctypes for k in _CHUNK_COLOURS)
-    missing = [k for k in _CHUNK_BOUNDS if ctypes.get(k) not in ("float", "float32")]
-    missing += [k for k in _PACKED if vtypes.get(k) not in ("uint", "uint32")]
+    has_colours = all(k in ctypes for k in CHUNK_COLOURS)
+    missing = [k for k in CHUNK_BOUNDS if ctypes.get(k) not in ("float", "float32")]
+    missing += [k for k in PACKED if vtypes.get(k) not in ("uint", "uint32")]
     if missing:
         raise SceneFormatError(
             path, f"compressed PLY: missing or mistyped properties {', '.join(missing[:4])} (float chunk bounds, "
@@ -109,7 +110,7 @@ def _compressed_ply(path: Path):
     if chunk.count != -(-n // _CHUNK):
         raise SceneFormatError(path, f"{n} splats need {-(-n // _CHUNK)} chunks of 256, the file has {chunk.count}")
     rest_names = [p for p, _ in sh.properties] if sh is not None else []
-    degree = _sh_degree_of_rest(path, len(rest_names), "sh properties")
+    degree = sh_degree_of_rest(path, len(rest_names), "sh properties")
     if sh is not None and (sh.count != n or any(t not in ("uchar", "uint8") for _, t in sh.properties)):
         raise SceneFormatError(path, f"the 'sh' element must hold {n} rows of uchar f_rest_*")
     try:
@@ -122,7 +123,7 @@ def _compressed_ply(path: Path):
         raise SceneFormatError(path, f"truncated or malformed compressed PLY data ({e})") from None
     c, v = tables["chunk"], tables["vertex"]
     of = np.arange(n) // _CHUNK
-    bounds = {k: c[k].astype(np.float64)[of] for k in _CHUNK_BOUNDS + (_CHUNK_COLOURS if has_colours else [])}
+    bounds = {k: c[k].astype(np.float64)[of] for k in CHUNK_BOUNDS + (CHUNK_COLOURS if has_colours else [])}
     pos, scl = v["packed_position"], v["packed_scale"]
     means = np.stack([_lerp(bounds[f"min_{a}"], bounds[f"max_{a}"], _unorm(pos, s, b)) for a, s, b in _TRIPLE], -1)
     log_scales = np.stack(
@@ -143,14 +144,14 @@ def _compressed_ply(path: Path):
     if degree:
         u = np.stack([tables["sh"][name] for name in rest_names], -1)
         unit = np.where(u == 0, 0.0, np.where(u == 255, 1.0, (u + 0.5) / 256.0))
-        sh_all = np.concatenate([sh_all, _rest_from_channel_major((unit - 0.5) * 8.0, n)], 1)
-    splats = _finish(
+        sh_all = np.concatenate([sh_all, rest_from_channel_major((unit - 0.5) * 8.0, n)], 1)
+    splats = finish_splats(
         path,
         "the compressed PLY",
         means=means,
         log_scales=log_scales,
         quats=quats,
-        logits=_opacity_logits(_unorm(col, 0, 8)),
+        logits=opacity_logits(_unorm(col, 0, 8)),
         sh=sh_all,
     )
     return splats, f"compressed PLY, {n} splats in {chunk.count} chunks, SH degree {degree}", {}
@@ -167,7 +168,7 @@ def read_compressed_ply(path: str | os.PathLike) -> Splats:
         match ceil(N / 256), an SH count of no degree, data shorter than the header promises.
     """
     path = check_input_file(path, "compressed PLY")
-    return _compressed_ply(path)[0]
+    return decode_compressed_ply(path)[0]
 
 
 def write_compressed_ply(path: str | os.PathLike, splats: Splats) -> Path:
@@ -179,7 +180,7 @@ def write_compressed_ply(path: str | os.PathLike, splats: Splats) -> Path:
     trunc((v / 8 + 1/2) 256) clamped to 0..255.
     """
     path = Path(path)
-    a = _valid_rows(path, splats)
+    a = valid_rows(path, splats)
     order = morton_order(a["means"])
     means, log_scales = a["means"][order].astype(np.float64), a["log_scales"][order].astype(np.float64)
     colours = (a["sh"][order, 0, :] * np.float32(SH_C0) + np.float32(0.5)).astype(np.float32).astype(np.float64)
@@ -216,7 +217,7 @@ def write_compressed_ply(path: str | os.PathLike, splats: Splats) -> Path:
     for i in range(4):
         packed = _pack_unorm(unit[:, i] * (math.sqrt(2.0) * 0.5) + 0.5, 10)
         rotation = np.where(largest != i, (rotation << 10) | packed, rotation)
-    opacity = _sigmoid(a["logits"][order]).astype(np.float64)
+    opacity = sigmoid(a["logits"][order]).astype(np.float64)
     colour = (_pack_unorm(c[:, 0], 8) << 24) | (_pack_unorm(c[:, 1], 8) << 16) | (_pack_unorm(c[:, 2], 8) << 8)
     colour |= _pack_unorm(opacity, 8)
     vertex = np.stack([pack111011(p), rotation.astype(np.uint32), pack111011(s), colour], -1).astype("<u4")
@@ -224,8 +225,8 @@ def write_compressed_ply(path: str | os.PathLike, splats: Splats) -> Path:
     rest = a["sh"][order, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)).astype(np.float64)
     sh_bytes = np.clip(np.trunc((rest / 8 + 0.5) * 256), 0, 255).astype(np.uint8)
     lines = ["ply", "format binary_little_endian 1.0", "comment written by waldo_jax", f"element chunk {chunks}"]
-    lines += [f"property float {p}" for p in _CHUNK_BOUNDS + _CHUNK_COLOURS]
-    lines += [f"element vertex {n}"] + [f"property uint {p}" for p in _PACKED]
+    lines += [f"property float {p}" for p in CHUNK_BOUNDS + CHUNK_COLOURS]
+    lines += [f"element vertex {n}"] + [f"property uint {p}" for p in PACKED]
     if k > 1:
         lines += [f"element sh {n}"] + [f"property uchar f_rest_{i}" for i in range(3 * (k - 1))]
     data = ("\n".join(lines) + "\nend_header\n").encode("ascii") + bounds.tobytes() + vertex.tobytes()

@@ -12,7 +12,7 @@ import numpy as np
 
 from waldo_jax.errors import SceneFormatError, check_input_file
 from waldo_jax.io import write_bytes
-from waldo_jax.splats.formats.common import SH_C0, _finish, _opacity_logits, _read_file, _sigmoid, _valid_rows
+from waldo_jax.splats.formats.common import SH_C0, finish_splats, opacity_logits, read_splat_bytes, sigmoid, valid_rows
 from waldo_jax.splats.model import Splats
 
 
@@ -27,8 +27,9 @@ def importance_order(splats: Splats) -> np.ndarray:
     return rows[np.argsort(key, kind="stable")]
 
 
-def _dot_splat(path: Path):
-    raw = _read_file(path, ".splat file")
+def decode_dot_splat(path: Path):
+    """(Splats, details line, extras) of an antimatter15 `.splat` file: 32-byte rows, SH degree 0."""
+    raw = read_splat_bytes(path, ".splat file")
     if not raw or len(raw) % 32:
         raise SceneFormatError(path, f"not a .splat file: {len(raw)} bytes is no whole number of 32-byte splats")
     n = len(raw) // 32
@@ -45,13 +46,13 @@ def _dot_splat(path: Path):
     quats = (u8[:, 28:32].astype(np.float32) - 128.0) / 128.0
     zero = np.sum(quats * quats, -1) == 0
     quats[zero] = (1.0, 0.0, 0.0, 0.0)
-    splats = _finish(
+    splats = finish_splats(
         path,
         "the .splat file",
         means=floats[:, :3],
         log_scales=np.log(floats[:, 3:6]),
         quats=quats,
-        logits=_opacity_logits(u8[:, 27] / 255.0),
+        logits=opacity_logits(u8[:, 27] / 255.0),
         sh=((u8[:, 24:27] / 255.0 - 0.5) / SH_C0)[:, None, :],
     )
     return splats, f"antimatter15 .splat, {n} splats, SH degree 0", {}
@@ -69,7 +70,7 @@ def read_antimatter_splat(path: str | os.PathLike) -> Splats:
       SceneFormatError: (naming the file) a size that is no multiple of 32, or an implausible row.
     """
     path = check_input_file(path, ".splat file")
-    return _dot_splat(path)[0]
+    return decode_dot_splat(path)[0]
 
 
 def write_antimatter_splat(path: str | os.PathLike, splats: Splats) -> Path:
@@ -79,10 +80,10 @@ def write_antimatter_splat(path: str | os.PathLike, splats: Splats) -> Path:
     `importance_order`, RGBA and quaternion bytes truncated, not rounded.
     """
     path = Path(path)
-    arrays = _valid_rows(path, splats)
+    arrays = valid_rows(path, splats)
     order = np.argsort(np.argsort(np.flatnonzero(np.asarray(splats.valid, bool))))  # row -> position in arrays
     rows = order[importance_order(splats)]
-    colour = np.concatenate([SH_C0 * arrays["sh"][:, 0, :] + 0.5, _sigmoid(arrays["logits"])[:, None]], -1)
+    colour = np.concatenate([SH_C0 * arrays["sh"][:, 0, :] + 0.5, sigmoid(arrays["logits"])[:, None]], -1)
     quats = arrays["quats"] / np.linalg.norm(arrays["quats"], axis=-1, keepdims=True)
     table = np.zeros((len(rows), 32), np.uint8)
     table[:, :12] = arrays["means"][rows].astype("<f4").view(np.uint8)

@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 
 from waldo_jax.errors import SceneFormatError, check_input_file
-from waldo_jax.splats.formats.common import _finish, _opacity_logits
+from waldo_jax.splats.formats.common import finish_splats, opacity_logits
 from waldo_jax.splats.model import Splats, sh_coefficients
 
 _SOG_BANDS_V1 = {192: 1, 512: 2, 960: 3}
@@ -94,7 +94,8 @@ def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
     return array
 
 
-def _sog(path: Path):
+def decode_sog(path: Path):
+    """(Splats, details line, extras) of a SOG scene: a bundled `.sog` or a `meta.json` beside its WebP images."""
     files = _SogFiles(path)
     try:
         meta = json.loads(files.read("meta.json" if files.zip is not None else path.name).decode("utf-8"))
@@ -133,7 +134,7 @@ def _sog(path: Path):
         scale_book = _numbers(path, scales_meta.get("codebook"), 256, "scales.codebook")
         colour_book = _numbers(path, sh0_meta.get("codebook"), 256, "sh0.codebook")
         log_scales, dc = scale_book[s], colour_book[c[:, :3]]
-        logits = _opacity_logits(c[:, 3] / 255.0)
+        logits = opacity_logits(c[:, 3] / 255.0)
     else:
         s_lo, s_hi = (_numbers(path, scales_meta.get(k), 3, f"scales.{k}") for k in ("mins", "maxs"))
         c_lo, c_hi = (_numbers(path, sh0_meta.get(k), 4, f"sh0.{k}") for k in ("mins", "maxs"))
@@ -144,7 +145,7 @@ def _sog(path: Path):
     degree = 0
     if isinstance(meta.get("shN"), dict):
         sh_all, degree = _sog_rest(path, files, meta["shN"], version, count, sh_all)
-    splats = _finish(path, "the SOG", means, log_scales, quats, logits, sh_all)
+    splats = finish_splats(path, "the SOG", means, log_scales, quats, logits, sh_all)
     return splats, f"SOG version {version}, {count} splats, SH degree {degree}", {"version": version}
 
 
@@ -195,4 +196,4 @@ def read_sog(path: str | os.PathLike) -> Splats:
         undecodable image, an image with fewer texels than splats, a wrong centroid image width.
     """
     path = check_input_file(path, "SOG file")
-    return _sog(path)[0]
+    return decode_sog(path)[0]

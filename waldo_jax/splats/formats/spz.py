@@ -21,13 +21,13 @@ import numpy as np
 from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
 from waldo_jax.io import write_bytes
 from waldo_jax.splats.formats.common import (
-    _finish,
-    _opacity_logits,
-    _read_file,
-    _round_half_away,
-    _sigmoid,
-    _to_uint8,
-    _valid_rows,
+    finish_splats,
+    opacity_logits,
+    read_splat_bytes,
+    round_half_away,
+    sigmoid,
+    to_uint8,
+    valid_rows,
 )
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, sh_coefficients
 
@@ -56,7 +56,7 @@ def spz_axis_flips(coordinate_system: int) -> Tuple[float, float, float]:
     return (1.0 if bits & 1 else -1.0, -1.0 if bits & 2 else 1.0, 1.0 if bits & 4 else -1.0)
 
 
-def _flip_axes(means, quats_wxyz, sh, flips) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def flip_axes(means, quats_wxyz, sh, flips) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Means, quaternions and SH with axes negated by `flips` (sx, sy, sz), a reflection or rotation."""
     s = np.asarray(flips, np.float32)
     quat_sign = np.array([1.0, s[1] * s[2], s[0] * s[2], s[0] * s[1]], np.float32)
@@ -182,8 +182,9 @@ def _spz_sections(path: Path, raw: bytes):
     return header, sections, extensions
 
 
-def _spz(path: Path):
-    header, (pos, alpha, colour, scale, rot, sh), extensions = _spz_sections(path, _read_file(path, "SPZ file"))
+def decode_spz(path: Path):
+    """(Splats, details line, extras) of an SPZ file, versions 1-4, axes turned to waldo_jax's RDF frame."""
+    header, (pos, alpha, colour, scale, rot, sh), extensions = _spz_sections(path, read_splat_bytes(path, "SPZ file"))
     n, version, degree = header["count"], header["version"], header["degree"]
     if version == 1:
         means = np.frombuffer(pos, "<f2").reshape(n, 3).astype(np.float32)
@@ -210,14 +211,14 @@ def _spz(path: Path):
             raise SceneFormatError(
                 path, f"SPZ data stored in coordinate system {stored} (a 90-degree-rotated family): not read"
             )
-        means, quats, sh_all = _flip_axes(means, quats, sh_all, spz_axis_flips(stored))
-    splats = _finish(
+        means, quats, sh_all = flip_axes(means, quats, sh_all, spz_axis_flips(stored))
+    splats = finish_splats(
         path,
         "the SPZ file",
         means=means,
         log_scales=np.frombuffer(scale, np.uint8).reshape(n, 3) / np.float32(16) - np.float32(10),
         quats=quats,
-        logits=_opacity_logits(np.frombuffer(alpha, np.uint8) / 255.0),
+        logits=opacity_logits(np.frombuffer(alpha, np.uint8) / 255.0),
         sh=sh_all,
     )
     antialiased = bool(header["flags"] & 1)
@@ -249,7 +250,7 @@ def read_spz(path: str | os.PathLike) -> Splats:
         stream, a size that disagrees with the header, non-finite decoded values.
     """
     path = check_input_file(path, "SPZ file")
-    return _spz(path)[0]
+    return decode_spz(path)[0]
 
 
 def write_spz(
@@ -280,9 +281,9 @@ def write_spz(
         raise ValueError(f"SPZ version must be 2, 3 or 4, got {version!r}")
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError(f"SPZ SH bits must lie in 1..8, got {sh1_bits} and {sh_rest_bits}")
-    a = _valid_rows(path, splats)
+    a = valid_rows(path, splats)
     n, k = a["sh"].shape[:2]
-    fixed = _round_half_away(a["means"] * np.float32(1 << 12)).astype(np.int64)
+    fixed = round_half_away(a["means"] * np.float32(1 << 12)).astype(np.int64)
     if np.any(np.abs(fixed) >= 1 << 23):
         raise WaldoError(f"{path}: SPZ positions must lie within +-2048 (24-bit fixed point); these reach further")
     positions = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], -1).astype(np.uint8)
@@ -292,16 +293,16 @@ def write_spz(
     else:
         unit = quats / np.sqrt(np.sum(quats * quats, -1, keepdims=True))
         unit = unit * np.where(unit[:, 3:] < 0, np.float32(-127.5), np.float32(127.5)) + np.float32(127.5)
-        rotations = _to_uint8(unit[:, :3])
+        rotations = to_uint8(unit[:, :3])
     rest = a["sh"][:, 1:, :]
-    q = (_round_half_away(rest * np.float32(128)) + 128).astype(np.int64)
+    q = (round_half_away(rest * np.float32(128)) + 128).astype(np.int64)
     bucket = np.where(np.arange(k - 1) < 3, 1 << (8 - sh1_bits), 1 << (8 - sh_rest_bits))[None, :, None]
     q = np.clip(np.trunc((q + bucket // 2) / bucket).astype(np.int64) * bucket, 0, 255).astype(np.uint8)
     sections = [
         positions.tobytes(),
-        _to_uint8(_sigmoid(a["logits"]) * np.float32(255)).tobytes(),
-        _to_uint8(a["sh"][:, 0, :] * (_SPZ_COLOUR_SCALE * np.float32(255)) + np.float32(127.5)).tobytes(),
-        _to_uint8((a["log_scales"] + np.float32(10)) * np.float32(16)).tobytes(),
+        to_uint8(sigmoid(a["logits"]) * np.float32(255)).tobytes(),
+        to_uint8(a["sh"][:, 0, :] * (_SPZ_COLOUR_SCALE * np.float32(255)) + np.float32(127.5)).tobytes(),
+        to_uint8((a["log_scales"] + np.float32(10)) * np.float32(16)).tobytes(),
         rotations.tobytes(),
         q.tobytes(),
     ]
