@@ -271,3 +271,39 @@ def test_chromium_draws_the_served_page_and_the_export(donut_viewer, donut_explo
         assert share >= 0.05, f"{name}: only {share:.1%} of the pixels are drawn"
         orange = np.mean(np.all(np.abs(image.astype(int) - (255, 120, 0)) < 60, axis=-1))
         assert orange > 1e-4, f"{name}: no top-k frustum (orange) drawn"
+
+
+@pytest.mark.browser
+@pytest.mark.slow
+def test_a_click_through_viser_moves_the_browsers_camera(donut_viewer, tmp_path):
+    """A real client (headless Chromium on the served page): `select` (a frustum's click handler) moves the
+    camera the browser reports back onto the clicked view."""
+    if _chromium() is None:
+        pytest.skip("no chromium / chromium-browser on PATH (Debian: apt-get install chromium)")
+    viewer, _ = donut_viewer
+    known = set(viewer.server.get_clients())
+    flags = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+    flags += [f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600", "--remote-debugging-port=0"]
+    # --remote-debugging-port keeps headless Chromium running on the page until it is terminated.
+    browser = subprocess.Popen([_chromium(), *flags, viewer.url], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        client, deadline = None, time.monotonic() + 120
+        while client is None and time.monotonic() < deadline:
+            fresh = [c for i, c in viewer.server.get_clients().items() if i not in known]
+            client = next((c for c in fresh if c.camera.update_timestamp > 0), None)
+            time.sleep(0.2)
+        assert client is not None, "the browser never connected and reported its camera"
+        target = viewer.frustums["/topk/00"].c2w[:3, 3]
+        assert not np.allclose(client.camera.position, target, atol=1e-3)
+        clicked = time.time()
+        viewer.select("/topk/00", [client])
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if client.camera.update_timestamp > clicked and np.allclose(client.camera.position, target, atol=1e-3):
+                break
+            time.sleep(0.1)
+        np.testing.assert_allclose(client.camera.position, target, atol=1e-3)
+        assert client.camera.update_timestamp > clicked  # the browser itself reported the new camera
+    finally:
+        browser.terminate()
+        browser.wait(timeout=30)
