@@ -4,3 +4,10 @@ from waldo_jax import _xla_flags  # noqa: F401  (must run before JAX starts its 
 from waldo_jax.version import package_version as _package_version
 
 __version__ = _package_version()
+
+
+def view(path, port: int = 0, host: str = "127.0.0.1", height: int = 600):
+    """Shows PATH (a `waldo explore` output or a SOURCE) in 3D; see `waldo_jax.viewer.view` (needs viser)."""
+    from waldo_jax.viewer import view as _view
+
+    return _view(path, port=port, host=host, height=height)

@@ -10,6 +10,7 @@ Commands:
   waldo demo [--out DIR] [--quick]                     the room end to end: train, search, report (`demo`)
   waldo score --criterion NAME IMAGE... [--json]        score image files with a criterion (`score`)
   waldo weights convert SRC DST                        criterion weights to the native .npz format (`weights`)
+  waldo view PATH [--port N] [--export FILE.html]      a scene and a search in 3D in the browser (`view`)
   waldo --version                                      prints `waldo X.Y.Z` (`waldo_jax.version`)
 
 Each command module has `add_command(subparsers)`, which registers its parser with the function that
@@ -29,7 +30,7 @@ import sys
 import warnings
 from typing import List, Optional
 
-from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, weights
+from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, view, weights
 from waldo_jax.cli.conventions import Parser
 from waldo_jax.errors import WaldoError, check_seed
 from waldo_jax.version import package_version
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
     commands.required = True
-    for command in (scene, train, explore, path, score, weights, demo, render):
+    for command in (scene, train, explore, path, score, weights, demo, render, view):
         command.add_command(commands)
     return parser
 

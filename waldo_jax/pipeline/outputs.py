@@ -4,6 +4,8 @@ results.json      the run: method, criterion (its description, and criterion_cap
                   are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
                   scores_train, scores_generated (generation order), cvir and mcvir (the paper's), topk
                   [{score, c2w, image, view, ...}] (the k best different shots, `min_separation` apart),
+                  train_c2w and generated_c2w (every scored pose as a 4x4 camera-to-world, in the
+                  scores' order: what `waldo view` draws),
                   dcvir, shots_beating_train, paper_topk (the paper's top-k) and paper_topk_shots, archive
                   (grid, frame, coverage, QD-score, elites), epochs (per-epoch best and mean-top-N), seconds;
                   with several seeds also per_seed and the mean / std of CVIR, mCVIR and dCVIR
@@ -120,6 +122,8 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "scores_train": _floats(run.scores_train),
         "scores_generated": _floats(scores_generated),
         "generated_epochs": [int(e) for e in epochs_generated],
+        "train_c2w": np.round(np.asarray(source.train_c2w, np.float64), 6).tolist(),
+        "generated_c2w": np.round(np.asarray(population.c2w, np.float64)[slots], 6).tolist(),
         "cvir": _float(result.cvir),
         "mcvir": _float(result.mcvir),
         "min_separation": config.min_separation,

@@ -1,0 +1,84 @@
+"""`waldo view PATH [--port N] [--host H] [--export FILE.html]`: a scene and a search in 3D, in the browser.
+
+PATH is an output folder of `waldo explore` (its results.json) or a SOURCE (a splat scene, `procedural[:SEED]`);
+see `waldo_jax.viewer`. Without --export it serves the viewer (viser) until Ctrl-C (or --seconds) and prints
+its URL; with --export it writes a self-contained HTML snapshot instead and serves nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from waldo_jax.cli.conventions import Progress, add_quiet
+from waldo_jax.errors import WaldoError
+
+__all__ = ["add_command", "cmd_view"]
+
+
+def add_command(subparsers) -> None:
+    """Registers `view` on an argparse subparsers object (function as `handler`)."""
+    p = subparsers.add_parser(
+        "view",
+        help="see a scene and a search in 3D in the browser (viser): splats, cameras, views by score",
+        description="Serve an interactive 3D viewer of PATH: the scene (Gaussian splats, or the procedural room "
+        "as points), the training cameras and the search's views as frustums coloured by score, the top-k "
+        "highlighted; click a camera to fly there and see its rank and score. Needs viser (the `view` extra).",
+    )
+    p.add_argument("path", metavar="PATH", help="an output folder of waldo explore, or a SOURCE (splats, procedural)")
+    p.add_argument("--port", type=int, default=8080, help="port to serve on (the next free one if taken; 0: any)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
+    p.add_argument("--export", metavar="FILE.html", default=None, help="write a self-contained HTML snapshot")
+    p.add_argument("--force", action="store_true", help="with --export: overwrite an existing FILE.html")
+    p.add_argument("--seconds", type=float, default=None, help="stop serving after this long (default: Ctrl-C)")
+    add_quiet(p, "progress (the loading phase)")
+    p.set_defaults(handler=cmd_view)
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Refuses bad flags before anything is loaded, served or written."""
+    if not 0 <= args.port <= 65535:
+        raise WaldoError(f"--port {args.port}: expected 0 .. 65535")
+    if args.seconds is not None and not args.seconds > 0:
+        raise WaldoError(f"--seconds {args.seconds}: expected a positive number")
+    if args.export is not None:
+        target = Path(args.export)
+        if target.suffix.lower() not in (".html", ".htm"):
+            raise WaldoError(f"--export {args.export}: expected a file name ending in .html")
+        if not target.parent.is_dir():
+            raise WaldoError(f"--export {args.export}: no such folder {target.parent}")
+        if target.is_dir() or (target.exists() and not args.force):
+            raise WaldoError(f"--export {args.export}: exists (--force overwrites it)")
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """`waldo view`: serves PATH until interrupted, or writes the --export snapshot."""
+    from waldo_jax.viewer import load_view_scene
+    from waldo_jax.viewer.server import export_html, import_viser, serve
+
+    _check(args)
+    import_viser()  # a missing viser is one line before the scene loads
+    with Progress(args.quiet) as progress:
+        progress.phase(f"loading {args.path}")
+        scene = load_view_scene(args.path)
+    for note in scene.notes:
+        print(f"waldo: note: {note}")
+    if args.export is not None:
+        size, seconds = export_html(scene, Path(args.export))
+        print(f"wrote {args.export} ({size / 1e6:.1f} MB, {len(scene.frustums)} cameras) in {seconds:.1f} s")
+        return 0
+    start = time.perf_counter()
+    viewer = serve(scene, host=args.host, port=args.port)
+    print(
+        f"waldo view: {viewer.url} ({len(scene.frustums)} cameras, ready in {time.perf_counter() - start:.1f} s); "
+        "Ctrl-C stops it",
+        flush=True,
+    )
+    try:
+        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    finally:
+        viewer.stop()
+    return 0
