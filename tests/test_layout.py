@@ -12,7 +12,8 @@ and never sideways into another package of its layer:
               splats (3D Gaussian splats: files, the tile renderer, fitting, splat runs)
   5 criteria  what scores a view
   6 pipeline  sources, experiments (source + criterion + method), their files, the demo
-  7 cli       one module per command
+  7 viewer    the 3D viewer (viser) of runs and scenes
+  8 cli       one module per command
 """
 
 from __future__ import annotations
@@ -46,9 +47,10 @@ LAYERS = {
     "waldo_jax.splats": 4,
     "waldo_jax.criteria": 5,
     "waldo_jax.pipeline": 6,
-    "waldo_jax.cli": 7,
-    "waldo_jax": 8,
-    "waldo_jax.__main__": 8,
+    "waldo_jax.viewer": 7,
+    "waldo_jax.cli": 8,
+    "waldo_jax": 9,
+    "waldo_jax.__main__": 9,
 }
 
 
