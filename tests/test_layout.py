@@ -4,7 +4,7 @@ Layers, bottom to top; a module may import from a lower layer or from its own pa
 and never sideways into another package of its layer:
 
   0 core      types, errors, _xla_flags, version
-  1 base      paths, io, cameras, metrics
+  1 base      paths, environment, io, cameras, metrics
   2 data      scenes (one module per format), weights; search (poses and scores only: no renderer,
               no criterion)
   3 render    the volume integral, occupancy marching, the marched renderer, sharding
@@ -35,6 +35,7 @@ LAYERS = {
     "waldo_jax._xla_flags": 0,
     "waldo_jax.version": 0,
     "waldo_jax.paths": 1,
+    "waldo_jax.environment": 1,
     "waldo_jax.io": 1,
     "waldo_jax.cameras": 1,
     "waldo_jax.metrics": 1,

@@ -1,7 +1,14 @@
 """waldo_jax: exploring NeRF scene spaces in JAX ("Finding Waldo", Skartados, Yucel et al., MMSys'24)."""
 
-from waldo_jax import _xla_flags  # noqa: F401  (must run before JAX starts its CPU backend)
-from waldo_jax.version import package_version as _package_version
+from waldo_jax import environment as _environment
+
+# The environment variables waldo_jax, JAX and XLA read, checked before JAX starts (one line naming a bad one).
+_environment.install_excepthook()
+_environment.check_environment()
+_environment.import_jax()
+
+from waldo_jax import _xla_flags  # noqa: E402, F401  (must run before JAX starts its CPU backend)
+from waldo_jax.version import package_version as _package_version  # noqa: E402
 
 __version__ = _package_version()
 

@@ -35,6 +35,9 @@ __all__ = [
     "check_input_file",
     "check_float32",
     "check_int",
+    "MemoryBudgetError",
+    "host_memory_bytes",
+    "check_memory",
 ]
 
 # The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
@@ -166,3 +169,44 @@ def check_input_file(path: str | os.PathLike, what: str = "file") -> Path:
     if not os.access(path, os.R_OK):
         raise WaldoError(f"{path}: cannot read this {what} (permission denied)")
     return path
+
+
+class MemoryBudgetError(WaldoError, MemoryError):
+    """Work set by input (a count read from a flag or a file) whose memory this machine does not have:
+    the message names the input, the amount and the memory it would take."""
+
+
+def host_memory_bytes() -> int:
+    """Memory this process can still take on the host: Linux's MemAvailable (and a cgroup's limit less its
+    use, where lower), else the physical memory; 0 where neither can be read (no check then)."""
+    available = []
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    available.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit.isdigit():
+            available.append(int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text().strip()))
+    except (OSError, ValueError):
+        pass
+    if not available:
+        try:
+            available.append(int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")))
+        except (AttributeError, ValueError, OSError):
+            return 0
+    return max(min(available), 0)
+
+
+def check_memory(need: float, what: str, hint: str) -> None:
+    """Raises MemoryBudgetError when `need` bytes (what `what` would allocate) exceed the host memory at
+    hand (`host_memory_bytes`); `hint` says which input to change."""
+    available = host_memory_bytes()
+    if available and need > available:
+        raise MemoryBudgetError(
+            f"{what} would take {need / 2**30:,.1f} GiB, more than the {available / 2**30:.1f} GiB this "
+            f"machine has free; {hint}"
+        )

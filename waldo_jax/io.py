@@ -19,7 +19,7 @@ import secrets
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator, List, Optional, Sequence
+from typing import Any, BinaryIO, Callable, Iterator, List, Optional, Sequence
 
 import imageio.v3 as iio
 import numpy as np
@@ -41,6 +41,11 @@ __all__ = [
     "discard_unfinished",
     "stale_files",
     "write_json",
+    "MAX_JSON_DEPTH",
+    "MAX_JSON_BYTES",
+    "json_depth",
+    "parse_json",
+    "read_json_file",
     "write_transforms",
     "read_image",
 ]
@@ -293,6 +298,76 @@ def stale_files(folder: str | os.PathLike, pattern: str, keep: Sequence[str]) ->
     return sorted(
         p for p in Path(folder).iterdir() if p.is_file() and re.fullmatch(pattern, p.name) and p.name not in keep
     )
+
+
+# Bounds of every JSON file read (scenes, poses, cameras, results, checkpoint headers): nothing waldo_jax
+# or the tools it reads writes nests deeper than a few levels or holds more than some MB of JSON; a
+# deeper file would exhaust Python's recursion, a larger one the machine's memory.
+MAX_JSON_DEPTH = 64
+MAX_JSON_BYTES = 512 * 2**20
+_JSON_STRING = re.compile(rb'"(?:[^"\\\n]|\\.)*"')
+_DEPTH_CHUNK = 1 << 24
+
+
+def json_depth(raw: bytes) -> int:
+    """The deepest nesting of arrays and objects in JSON text `raw` (brackets inside strings not counted)."""
+    stripped = _JSON_STRING.sub(b'""', raw)
+    deepest, depth = 0, 0
+    for start in range(0, len(stripped), _DEPTH_CHUNK):
+        chunk = np.frombuffer(stripped[start : start + _DEPTH_CHUNK], np.uint8)
+        step = np.zeros(len(chunk), np.int32)
+        step[(chunk == ord("[")) | (chunk == ord("{"))] = 1
+        step[(chunk == ord("]")) | (chunk == ord("}"))] = -1
+        levels = depth + np.cumsum(step)
+        if len(levels):
+            deepest, depth = max(deepest, int(levels.max())), int(levels[-1])
+    return deepest
+
+
+def parse_json(
+    raw: str | bytes,
+    path: str | os.PathLike,
+    what: str = "JSON file",
+    error: Optional[Callable[[str], Exception]] = None,
+) -> Any:
+    """Parses JSON text read from `path`, refusing text over MAX_JSON_BYTES, nesting deeper than
+    MAX_JSON_DEPTH, bytes that are not UTF-8 and malformed JSON: `error(problem)` is raised (default: a
+    WaldoError naming `path`), so each reader keeps its own error type."""
+
+    def fail(problem: str) -> Exception:
+        return WaldoError(f"{path}: {problem}") if error is None else error(problem)
+
+    data = raw.encode("utf-8", "surrogatepass") if isinstance(raw, str) else bytes(raw)
+    if len(data) > MAX_JSON_BYTES:
+        raise fail(f"{what} of {len(data) / 2**20:.0f} MiB (at most {MAX_JSON_BYTES // 2**20} MiB)")
+    depth = json_depth(data)
+    if depth > MAX_JSON_DEPTH:
+        raise fail(f"{what} nests {depth} levels deep (at most {MAX_JSON_DEPTH})")
+    try:
+        return json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise fail(f"{what} is not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise fail(f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    except RecursionError:  # pragma: no cover - the depth bound keeps the parser far from the limit
+        raise fail(f"{what} nests too deep to parse") from None
+
+
+def read_json_file(
+    path: str | os.PathLike, what: str = "JSON file", error: Optional[Callable[[str], Exception]] = None
+) -> Any:
+    """`parse_json` of the file at `path`, its size checked before it is read."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            problem = f"{what} of {size / 2**20:.0f} MiB (at most {MAX_JSON_BYTES // 2**20} MiB)"
+            raise WaldoError(f"{path}: {problem}") if error is None else error(problem)
+        raw = path.read_bytes()
+    except OSError as e:
+        problem = f"cannot read this {what} ({e.strerror or e})"
+        raise (WaldoError(f"{path}: {problem}") if error is None else error(problem)) from None
+    return parse_json(raw, path, what, error)
 
 
 def _json_ready(obj: Any) -> Any:

@@ -11,11 +11,11 @@ SOURCE is `procedural[:SEED]` or a run directory. See `waldo_jax.search.path_sea
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from pathlib import Path
 
+from waldo_jax.io import read_json_file
 from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
@@ -203,8 +203,8 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
 def _dataparser(path: str):
     file = check_input_file(Path(path), "--nerfstudio-transforms file")
     try:
-        return read_dataparser_transform(json.loads(file.read_text(encoding="utf-8")))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, ValueError) as e:
+        return read_dataparser_transform(read_json_file(file, "dataparser transforms file"))
+    except ValueError as e:
         raise WaldoError(f"{path}: {e}") from None
 
 

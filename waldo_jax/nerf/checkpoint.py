@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.errors import MAX_RESOLUTION, DataNotFoundError, SceneFormatError, WaldoError, check_input_file
-from waldo_jax.io import atomic_file
+from waldo_jax.io import atomic_file, parse_json
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError
 from waldo_jax.nerf.field import init_field
 from waldo_jax.nerf.samplers import make_sampler
@@ -267,10 +267,12 @@ def _read_header(path: Path, raw: bytes) -> Tuple[Dict[str, Any], int]:
         raise CheckpointError(
             path, f"truncated checkpoint ({len(raw)} bytes, the header alone needs {start + header_length})"
         )
-    try:
-        header = json.loads(raw[start : start + header_length].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise CheckpointError(path, f"corrupt checkpoint (unreadable header: {e})") from None
+    header = parse_json(
+        raw[start : start + header_length],
+        path,
+        "checkpoint header",
+        lambda problem: CheckpointError(path, f"corrupt checkpoint (unreadable header: {problem})"),
+    )
     if not isinstance(header, dict):
         raise CheckpointError(path, "corrupt checkpoint (header is not a JSON object)")
     return header, start + header_length

@@ -23,7 +23,16 @@ import numpy as np
 
 from waldo_jax.criteria import Criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.search import ExploreConfig, Initial, RefineConfig, Result, explore, explore_seeds, get_method
+from waldo_jax.search import (
+    ExploreConfig,
+    Initial,
+    RefineConfig,
+    Result,
+    explore,
+    explore_seeds,
+    get_method,
+    search_memory,
+)
 from waldo_jax.pipeline.sources import Source
 
 __all__ = [
@@ -39,6 +48,7 @@ __all__ = [
     "seed_keys",
     "generated_slots",
     "check_epoch_memory",
+    "check_search_memory",
     "memory_bytes",
     "EPOCH_BYTES_PER_PIXEL",
 ]
@@ -77,6 +87,21 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
             f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
             f"more than the {available / 2**30:.1f} GiB at hand; at most --seeds {max(available // per_seed, 0)} "
             "here (or a lower --resolution)"
+        )
+
+
+def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, config: ExploreConfig, objective, progress):
+    """Refuses a search whose compiled program needs more memory than the device has (XLA's analysis of
+    the whole scan: the population of every epoch, the renders and the criterion's activations), before
+    it runs; the compile is the one the run reuses."""
+    keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
+    need = search_memory(keys, score_fn, initial, config=config, objective_fn=objective, progress=progress)
+    available = memory_bytes()
+    if need is not None and need > available:
+        raise WaldoError(
+            f"--epochs {config.epochs} x --children-per-epoch {config.children_per_epoch} x --seeds {seeds}: "
+            f"the compiled search needs {need / 2**30:,.1f} GiB (XLA's own analysis), more than the "
+            f"{available / 2**30:.1f} GiB at hand; fewer epochs, children or seeds, or a lower --resolution"
         )
 
 
@@ -255,6 +280,7 @@ def run_explore(
     scores, initial_used = initial_scores(source, criterion, initial)
     start_init = Initial(c2w=source.train_c2w, scores=scores)
     score_fn = score_function(source, criterion)
+    check_search_memory(seed, seeds, score_fn, start_init, config, objective, progress)
     if seeds == 1:
         results = [
             jax.device_get(

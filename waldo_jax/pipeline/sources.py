@@ -394,6 +394,13 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
         "train_steps": checkpoint.info.get("steps"),
     }
     info.update(export_info(record.format, record.metadata, record.aabb, record.path))
+    if field.occupancy is not None and not bool(np.any(np.asarray(field.occupancy.bitfield))):
+        info["degenerate"] = "the occupancy grid is empty: every render is the background alone"
+        warnings.warn(
+            f"{run_dir}: the run's occupancy grid marks no cell occupied, so every render is the background "
+            "alone (the field learned no density above the grid's threshold); train it again",
+            stacklevel=2,
+        )
     room, truth = None, None
     if record.format == "procedural":
         seed = int(record.metadata.get("seed", 0))

@@ -23,8 +23,8 @@ The renderer is `waldo_jax.splats.render`, with `max_pairs` calibrated on the tr
 from __future__ import annotations
 
 import functools
-import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.io import read_json_file
 from waldo_jax.cameras import look_at
 from waldo_jax.errors import SceneFormatError, WaldoError, check_resolution
 from waldo_jax.pipeline.sources import Source, SourceError, resize_images
@@ -280,10 +281,7 @@ def _read_train_json(folder: Path) -> Optional[dict]:
     path = folder / TRAIN_JSON
     if not path.is_file():
         return None
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise WaldoError(f"{path}: cannot read the splat run's record ({e})") from None
+    return read_json_file(path, "splat run record")
 
 
 def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
@@ -306,6 +304,27 @@ def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[n
         return None, f"{scene_path} no longer has the training image {missing[0]!r}"
     images = scene.images[[by_name[name] for name in names]]
     return resize_images(images, intrinsics.width, intrinsics.height), ""
+
+
+# A splat below this opacity adds less than one 8-bit step to any pixel: a scene of only such splats
+# renders the background alone.
+MIN_VISIBLE_OPACITY = 1.0 / 255.0
+
+
+def _flag_transparent(spec: str, splats: Splats, info: Dict[str, Any]) -> None:
+    """Warns, and flags `info["degenerate"]`, when no valid splat is opaque enough to show (every render
+    would be the background alone)."""
+    valid = np.asarray(splats.valid, bool)
+    opacity = np.asarray(jax.nn.sigmoid(splats.logits))[valid] if valid.any() else np.zeros(0)
+    if opacity.size and float(opacity.max()) >= MIN_VISIBLE_OPACITY:
+        return
+    highest = f"{float(opacity.max()):.2g}" if opacity.size else "none"
+    why = (
+        f"all {int(valid.sum())} splats are transparent (highest opacity {highest}, under 1/255): every "
+        "render is the background alone"
+    )
+    info["degenerate"] = why
+    warnings.warn(f"{spec}: {why}", stacklevel=3)
 
 
 def splat_source(
@@ -349,6 +368,7 @@ def splat_source(
         "iteration": model.iteration,
         "model": model.source,
     }
+    _flag_transparent(spec, splats, info)
     names: Tuple[str, ...]
     if resolution is not None:
         check_resolution(resolution)

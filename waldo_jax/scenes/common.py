@@ -12,7 +12,6 @@ See docs/design.md, "Scenes".
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -22,6 +21,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from waldo_jax.io import read_json_file
 from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, NumberError, SceneFormatError, WaldoError, check_float32
 from waldo_jax.types import Intrinsics
 
@@ -87,16 +87,7 @@ class SceneArgumentError(WaldoError, ValueError):
 
 def read_json(path: Path) -> Dict[str, Any]:
     """Parses a JSON object, turning every failure into a `SceneFormatError` naming the file."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise SceneFormatError(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from None
-    except OSError as e:
-        raise SceneFormatError(path, f"cannot read file ({e.strerror or e})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise SceneFormatError(path, f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    data = read_json_file(path, "JSON file", lambda problem: SceneFormatError(path, problem))
     if not isinstance(data, dict):
         raise SceneFormatError(path, f"expected a JSON object at the top level, got {type(data).__name__}")
     return data

@@ -16,7 +16,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import SceneFormatError, check_memory
 
 __all__ = ["IMAGE_EXTENSIONS", "image_size", "load_images", "resolve_image"]
 
@@ -104,6 +104,11 @@ def load_images(
     """
     full = image_size(paths[0])
     size = _target_size(*full, factor)
+    check_memory(
+        4.0 * len(paths) * size[0] * size[1] * 3,
+        f"{len(paths)} images of {size[0]}x{size[1]} (as {paths[0].parent}/{paths[0].name}, float32 RGB)",
+        "load fewer (load_scene's max_images) or smaller ones (--downscale)",
+    )
     images = np.empty((len(paths), size[1], size[0], 3), np.float32)
 
     def read(i: int) -> Optional[np.ndarray]:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.io import read_json_file
 from waldo_jax.scenes.camera_paths import is_camera_path, read_camera_path
 from waldo_jax.errors import (
     MAX_RESOLUTION,
@@ -125,14 +125,7 @@ def read_poses_file(
     if not os.path.lexists(path):
         raise SceneFormatError(path, "no such poses file")
     check_input_file(path, "poses file")
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SceneFormatError(path, "no such poses file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise SceneFormatError(path, f"cannot read poses file ({e})") from None
-    except json.JSONDecodeError as e:
-        raise SceneFormatError(path, f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
+    meta = read_json_file(path, "poses file", lambda problem: SceneFormatError(path, problem))
     if not isinstance(meta, dict):
         raise SceneFormatError(path, "expected a JSON object with a 'frames' list")
     if isinstance(meta.get("frames"), list):

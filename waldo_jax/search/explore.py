@@ -51,6 +51,7 @@ __all__ = [
     "explore",
     "explore_loop",
     "explore_seeds",
+    "search_memory",
 ]
 
 # Total images (training + generated) of the paper's budgets, inclusive bounds.
@@ -627,6 +628,47 @@ def explore(
         config=config,
         progress=bool(progress),
     )
+
+
+def search_memory(
+    key: PRNGKey,
+    score_fn: Callable[[Array], Array],
+    initial: Initial,
+    method: Union[str, SearchMethod, None] = None,
+    config: Optional[ExploreConfig] = None,
+    params=None,
+    objective_fn: Optional[Callable[[Array], Array]] = None,
+    progress: bool = False,
+) -> Optional[int]:
+    """Bytes the compiled search needs: its arguments, outputs and temporaries by XLA's own analysis of
+    the program `explore` (one key) or `explore_seeds` (keys [K]) would run, with the same arguments.
+
+    It compiles that program without running it; the compile is cached, so the run that follows with the
+    same arguments does not compile again. None where the backend gives no analysis.
+    """
+    search_method, method_config, config, params, start, objective = _prepare(
+        initial, method, config, params, objective_fn
+    )
+    jitted = _search_jit if jnp.ndim(key) == 0 else _search_seeds_jit
+    compiled = jitted.lower(
+        key,
+        _as_partial(score_fn),
+        objective,
+        start,
+        params,
+        method=search_method,
+        method_config=method_config,
+        config=config,
+        progress=bool(progress),
+    ).compile()
+    try:
+        analysis = compiled.memory_analysis()
+    except (NotImplementedError, RuntimeError):  # pragma: no cover - backends without the analysis
+        return None
+    if analysis is None:
+        return None
+    parts = ("argument_size_in_bytes", "output_size_in_bytes", "temp_size_in_bytes")
+    return int(sum(max(int(getattr(analysis, name, 0) or 0), 0) for name in parts))
 
 
 def explore_loop(

@@ -10,7 +10,6 @@ and z columns negated. The reference layout puts it at the model root, beside
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import re
@@ -21,7 +20,7 @@ from typing import Any, Optional, Sequence, Tuple
 import numpy as np
 
 from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, check_input_file
-from waldo_jax.io import write_json
+from waldo_jax.io import read_json_file, write_json
 from waldo_jax.scenes.common import check_rigid
 from waldo_jax.types import Intrinsics
 
@@ -131,14 +130,7 @@ def read_cameras_json(path: str | os.PathLike) -> SplatCameras:
         finite or below MIN_FOCAL, a non-finite or non-rigid pose, an origin beyond MAX_COORDINATE.
     """
     path = check_input_file(path, "cameras file")
-    try:
-        entries = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as e:
-        raise SceneFormatError(path, f"cannot read the cameras file ({e})") from None
-    except json.JSONDecodeError as e:
-        raise SceneFormatError(path, f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}") from None
-    except RecursionError:
-        raise SceneFormatError(path, "JSON nested too deeply") from None
+    entries = read_json_file(path, "cameras file", lambda problem: SceneFormatError(path, problem))
     if not isinstance(entries, list) or not entries:
         raise SceneFormatError(path, "expected a non-empty JSON list of cameras (3DGS cameras.json)")
     poses, intrinsics, names = [], [], []

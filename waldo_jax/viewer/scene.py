@@ -13,13 +13,13 @@ Poses are OpenGL camera-to-world [4, 4] (x right, y up, z backwards), as everywh
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.io import read_json_file
 from waldo_jax.errors import WaldoError
 
 __all__ = ["Frustum", "SplatCloud", "ViewScene", "ViewerError", "load_view_scene", "room_points", "splat_cloud"]
@@ -176,12 +176,12 @@ def _intrinsics_of(out: Path, results: Dict[str, Any]) -> Tuple[float, float]:
     width, height = (results.get("resolution") or [1, 1])[:2]
     aspect = float(width) / float(height) if height else 1.0
     try:
-        poses = json.loads((out / "poses.json").read_text())
+        poses = read_json_file(out / "poses.json", "poses file")
         if "fl_y" in poses and "h" in poses:
             return 2 * math.atan(0.5 * float(poses["h"]) / float(poses["fl_y"])), aspect
         if "camera_angle_x" in poses:
             return 2 * math.atan(math.tan(0.5 * float(poses["camera_angle_x"])) / aspect), aspect
-    except (OSError, ValueError, KeyError, TypeError):
+    except (WaldoError, ValueError, KeyError, TypeError):
         pass
     return math.radians(DEFAULT_FOV_Y_DEG), aspect
 
@@ -234,10 +234,9 @@ def _ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
 
 def _explore_scene(out: Path) -> ViewScene:
     """The `ViewScene` of an explore output folder."""
-    try:
-        results = json.loads((out / "results.json").read_text())
-    except ValueError as e:
-        raise ViewerError(f"{out / 'results.json'}: not valid JSON ({e})") from None
+    results = read_json_file(
+        out / "results.json", "results file", lambda problem: ViewerError(f"{out / 'results.json'}: {problem}")
+    )
     if not isinstance(results, dict) or "topk" not in results or "source" not in results:
         raise ViewerError(f"{out / 'results.json'}: not the results of `waldo explore` (no topk / source)")
     notes: List[str] = []

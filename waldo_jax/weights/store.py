@@ -23,7 +23,7 @@ import numpy as np
 
 from waldo_jax import paths
 from waldo_jax.errors import DataNotFoundError, WaldoError
-from waldo_jax.io import atomic_file
+from waldo_jax.io import atomic_file, parse_json
 
 __all__ = [
     "NATIVE_FORMAT_VERSION",
@@ -169,7 +169,9 @@ def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Di
         raise WeightsError(f"{path}: not a readable weights archive ({type(exc).__name__}: {exc})") from None
     if _META_KEY not in flat:
         raise WeightsError(f"{path}: not a waldo weights archive (no {_META_KEY} record)")
-    record = json.loads(flat.pop(_META_KEY).tobytes().decode())
+    record = parse_json(flat.pop(_META_KEY).tobytes(), path, "weights record", WeightsError)
+    if not isinstance(record, dict):
+        raise WeightsError(f"{path}: its {_META_KEY} record is not a JSON object")
     if record.get("format_version") != NATIVE_FORMAT_VERSION:
         raise WeightsError(
             f"{path}: weights format version {record.get('format_version')!r}, this waldo_jax "

@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import gzip
 import io
-import json
 import os
 import zipfile
 import zlib
@@ -33,7 +32,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError, check_input_file
+from waldo_jax.io import parse_json
+from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
 from waldo_jax.scenes.ply import parse_ply_header
 from waldo_jax.splats.formats.common import SH_C0 as SH_C0
 from waldo_jax.splats.formats.compressed_ply import CHUNK_BOUNDS as CHUNK_BOUNDS
@@ -110,8 +110,8 @@ class SplatFile:
 
 def _is_sog_meta(data: bytes) -> bool:
     try:
-        meta = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError):
+        meta = parse_json(data, "meta.json")
+    except WaldoError:
         return False
     return isinstance(meta, dict) and all(k in meta for k in ("means", "scales", "quats", "sh0"))
 

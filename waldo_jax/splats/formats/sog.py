@@ -12,7 +12,6 @@ maxs instead of codebooks (sh0's alpha a logit), shN's band from the centroid im
 from __future__ import annotations
 
 import io
-import json
 import math
 import os
 import zipfile
@@ -22,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from waldo_jax.io import parse_json
 from waldo_jax.errors import SceneFormatError, check_input_file
 from waldo_jax.splats.formats.common import finish_splats, opacity_logits
 from waldo_jax.splats.model import Splats, sh_coefficients
@@ -97,10 +97,8 @@ def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
 def decode_sog(path: Path):
     """(Splats, details line, extras) of a SOG scene: a bundled `.sog` or a `meta.json` beside its WebP images."""
     files = _SogFiles(path)
-    try:
-        meta = json.loads(files.read("meta.json" if files.zip is not None else path.name).decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as e:
-        raise SceneFormatError(path, f"SOG meta.json is not JSON ({e})") from None
+    raw = files.read("meta.json" if files.zip is not None else path.name)
+    meta = parse_json(raw, path, "SOG meta.json", lambda problem: SceneFormatError(path, f"SOG meta.json: {problem}"))
     if not isinstance(meta, dict):
         raise SceneFormatError(path, "SOG meta.json must hold a JSON object")
     version = meta.get("version", 1)

@@ -1,0 +1,213 @@
+"""Bad input by kind (issue [5/5]): structured files bounded in depth, work and memory set by input
+estimated before it runs, degenerate fields flagged. One case per kind and entry point; the environment
+variables have their own file (tests/test_environment.py).
+
+Each CLI case runs `waldo_jax.cli.main` in-process and checks the one-line error, exit status 1 and that
+nothing was created.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import warnings
+
+import numpy as np
+import pytest
+from test_bad_input import _snapshot, _write_run, _write_scene
+
+import waldo_jax.errors as errors
+import waldo_jax.pipeline.experiment as experiment
+from waldo_jax.cli import main
+from waldo_jax.io import MAX_JSON_DEPTH, json_depth, parse_json
+from waldo_jax.splats.io import write_splat_ply
+from waldo_jax.splats.model import make_splats
+
+DEEP = 100_000  # the issue's transforms.json nesting
+
+
+def _deep(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+def _cli_refuses(argv, expected, capsys, folder):
+    before = _snapshot(folder)
+    listing = sorted(os.listdir(folder))
+    status = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert status == 1, err
+    lines = [line for line in err.splitlines() if not line.startswith("waldo: warning:")]
+    assert len(lines) == 1 and lines[0].startswith("waldo: error: "), err
+    assert expected in lines[0], lines[0]
+    assert "Traceback" not in err
+    assert _snapshot(folder) == before and sorted(os.listdir(folder)) == listing
+
+
+def _tiny_splats(opacity_logit: float = 2.0, n: int = 64):
+    rng = np.random.default_rng(0)
+    return make_splats(
+        means=rng.normal(size=(n, 3)).astype(np.float32),
+        log_scales=np.full((n, 3), -3.0, np.float32),
+        quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
+        logits=np.full((n,), opacity_logit, np.float32),
+        sh=rng.normal(size=(n, 1, 3)).astype(np.float32),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Structured files: depth and size bounded.
+
+
+def _brute_depth(value) -> int:
+    if isinstance(value, list):
+        return 1 + max((_brute_depth(v) for v in value), default=0)
+    if isinstance(value, dict):
+        return 1 + max((_brute_depth(v) for v in value.values()), default=0)
+    return 0
+
+
+def _random_json(rng: random.Random, depth: int):
+    kind = rng.random()
+    if depth == 0 or kind < 0.3:
+        return rng.choice(['a "quoted" [bracket', "}{", "\\", "plain", 3, None, True, "\u00e9[\n]"])
+    if kind < 0.65:
+        return [_random_json(rng, depth - 1) for _ in range(rng.randint(0, 3))]
+    return {f"k{i}[": _random_json(rng, depth - 1) for i in range(rng.randint(0, 3))}
+
+
+def test_json_depth_agrees_with_a_brute_force_count():
+    rng = random.Random(0)
+    for _ in range(300):
+        value = _random_json(rng, rng.randint(0, 8))
+        text = json.dumps(value, ensure_ascii=rng.random() < 0.5)
+        assert json_depth(text.encode()) == _brute_depth(value), text
+
+
+def test_parse_json_refuses_deep_and_large_text_by_name(monkeypatch):
+    with pytest.raises(errors.WaldoError, match=f"f.json: JSON file nests {DEEP} levels deep"):
+        parse_json(_deep(DEEP), "f.json")
+    assert parse_json(_deep(MAX_JSON_DEPTH), "f.json") is not None
+    monkeypatch.setattr("waldo_jax.io.MAX_JSON_BYTES", 10)
+    with pytest.raises(errors.WaldoError, match="at most 0 MiB"):
+        parse_json("[" + " " * 20 + "]", "f.json")
+
+
+@pytest.mark.parametrize(
+    "argv", [["scene", "info", "{tmp}/scene"], ["train", "{tmp}/scene", "--steps", "1", "--out", "{tmp}/new"]]
+)
+def test_a_deep_transforms_json_is_one_line(tmp_path, capsys, argv):
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "transforms.json").write_text('{"frames": ' + _deep(DEEP) + "}")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    _cli_refuses(argv, f"levels deep (at most {MAX_JSON_DEPTH})", capsys, tmp_path)
+
+
+def test_a_deep_poses_file_is_one_line(tmp_path, capsys):
+    (tmp_path / "poses.json").write_text('{"w": 16, "h": 16, "frames": ' + _deep(DEEP) + "}")
+    argv = ["render", "procedural", "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "new")]
+    _cli_refuses(argv, "poses.json: poses file nests", capsys, tmp_path)
+
+
+def test_a_deep_cameras_json_beside_splats_is_one_line(tmp_path, capsys):
+    write_splat_ply(tmp_path / "point_cloud.ply", _tiny_splats())
+    (tmp_path / "cameras.json").write_text(_deep(DEEP))
+    argv = ["scene", "info", str(tmp_path / "point_cloud.ply")]
+    _cli_refuses(argv, "cameras.json: cameras file nests", capsys, tmp_path)
+
+
+def test_a_deep_sog_meta_is_not_taken_for_a_sog_scene(tmp_path, capsys):
+    (tmp_path / "meta.json").write_text('{"means": ' + _deep(DEEP) + "}")
+    _cli_refuses(["scene", "info", str(tmp_path / "meta.json")], "meta.json", capsys, tmp_path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Work and memory set by input: estimated before anything runs.
+
+
+def test_images_that_cannot_fit_are_refused_before_they_load(tmp_path, capsys, monkeypatch):
+    _write_scene(tmp_path / "scene")  # 8 images of 16x16: 24 KiB as float32
+    monkeypatch.setattr(errors, "host_memory_bytes", lambda: 10_000)
+    _cli_refuses(
+        ["train", str(tmp_path / "scene"), "--out", str(tmp_path / "new"), "--steps", "1"],
+        "images of 16x16",
+        capsys,
+        tmp_path,
+    )
+
+
+def test_a_search_that_cannot_fit_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
+    """XLA's analysis of the compiled search against the memory at hand (here made small)."""
+    monkeypatch.setattr(experiment, "memory_bytes", lambda: 50_000)
+    monkeypatch.setattr(experiment, "check_epoch_memory", lambda *a: None)  # the per-epoch rule of thumb: aside
+    argv = ["explore", "procedural", "--resolution", "16", "--out", str(tmp_path / "new"), "--quiet"]
+    _cli_refuses(argv, "the compiled search needs", capsys, tmp_path)
+
+
+@pytest.mark.slow
+def test_the_issues_hundred_million_epochs_are_one_line(tmp_path, capsys):
+    argv = [
+        "explore",
+        "procedural",
+        "--epochs",
+        "100000000",
+        "--children-per-epoch",
+        "1",
+        "--budget",
+        "high",
+        "--resolution",
+        "16",
+        "--out",
+        str(tmp_path / "new"),
+        "--quiet",
+    ]
+    _cli_refuses(argv, "--epochs 100000000", capsys, tmp_path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Degenerate fields: a warning line and a flag in the results.
+
+
+def test_all_transparent_splats_warn_and_are_flagged(tmp_path):
+    from waldo_jax.pipeline.splat_sources import splat_source
+
+    write_splat_ply(tmp_path / "point_cloud.ply", _tiny_splats(opacity_logit=-20.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        source = splat_source(str(tmp_path / "point_cloud.ply"), resolution=16)
+    assert "transparent" in source.info["degenerate"]
+    assert any("every render is the background alone" in str(w.message) for w in caught)
+
+
+def test_visible_splats_are_not_flagged(tmp_path):
+    from waldo_jax.pipeline.splat_sources import splat_source
+
+    write_splat_ply(tmp_path / "point_cloud.ply", _tiny_splats())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        source = splat_source(str(tmp_path / "point_cloud.ply"), resolution=16)
+    assert "degenerate" not in source.info
+
+
+def test_a_run_with_an_empty_occupancy_grid_warns_and_is_flagged(tmp_path):
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
+    from waldo_jax.nerf.samplers import make_sampler
+    from waldo_jax.pipeline.sources import run_source
+
+    _write_scene(tmp_path / "scene")
+    _write_run(tmp_path / "run")
+    checkpoint = load_checkpoint(tmp_path / "run")
+    config = dataclasses.replace(checkpoint.config, sampler="occupancy")
+    grid = make_sampler(config).init(jax.random.key(0), checkpoint.params)
+    empty = grid.replace(bitfield=jnp.zeros_like(grid.bitfield), density=jnp.zeros_like(grid.density))
+    save_checkpoint(tmp_path / "run" / CHECKPOINT_NAME, checkpoint.params, config, checkpoint.scene, empty)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        source = run_source(str(tmp_path / "run"), resolution=16)
+    assert "occupancy grid is empty" in source.info["degenerate"]
+    assert any("marks no cell occupied" in str(w.message) for w in caught)

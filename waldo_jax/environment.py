@@ -1,0 +1,245 @@
+"""The environment variables that waldo_jax, JAX and XLA read, checked before JAX starts.
+
+A bad value of one of them otherwise ends a run far from its cause: JAX raises a ValueError while it is
+imported (`JAX_DEFAULT_MATMUL_PRECISION=banana`, `JAX_ENABLE_X64=banana`), XLA aborts the process with
+no Python error at all when `XLA_FLAGS` names a flag it does not know, and a bad
+`XLA_PYTHON_CLIENT_MEM_FRACTION` is read only when a GPU starts. `check_environment` reads them all
+first and raises `EnvironmentVariableError`, one line naming the variable, its value and what it takes:
+
+  * waldo_jax's own: `WALDO_DATA`, `WALDO_WEIGHTS` (existing folders when set), `WALDO_REQUIRE_DATA`,
+    `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words);
+  * XLA's: `XLA_FLAGS` (each `--name` or `--name=value`, every name one this jaxlib knows: the flag
+    names are read from its shared library, `xla_flag_known`), `XLA_PYTHON_CLIENT_PREALLOCATE`,
+    `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
+    `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
+  * JAX's: `JAX_PLATFORMS` (names from the known platforms) and every `JAX_*` configuration variable,
+    which JAX itself checks when it is imported: `import_jax` turns its refusal into the same one line.
+
+`waldo_jax/__init__.py` runs `check_environment` and `import_jax` first of all; the `waldo` command
+prints the error as one line and exits 1 (`install_excepthook`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import mmap
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Callable, Dict, List, Mapping, Optional, Tuple
+
+from waldo_jax.errors import WaldoError
+
+__all__ = [
+    "EnvironmentVariableError",
+    "VARIABLES",
+    "environment_problems",
+    "check_environment",
+    "import_jax",
+    "xla_flag_known",
+    "install_excepthook",
+]
+
+_ON = ("1", "true", "yes", "on")
+_OFF = ("0", "false", "no", "off")
+# JAX's platform names (`JAX_PLATFORMS`, comma-separated, tried in order).
+_PLATFORMS = ("cpu", "gpu", "cuda", "rocm", "tpu", "metal", "neuron", "interpreter")
+_ALLOCATORS = ("default", "platform", "bfc", "cuda_async")
+_XLA_TOKEN = re.compile(r"--([A-Za-z0-9_]+)(=.*)?")
+_CUDA_DEVICE = re.compile(r"(-?\d+|GPU-[0-9A-Fa-f-]+|MIG-[0-9A-Za-z/-]+)")
+# Flags known without reading jaxlib: those waldo_jax adds itself (`waldo_jax._xla_flags`).
+_KNOWN_XLA_FLAGS = {
+    "xla_cpu_experimental_ynn_fusion_type",
+    "xla_gpu_deterministic_ops",
+    "xla_gpu_exclude_nondeterministic_ops",
+    "xla_cpu_use_fusion_emitters",
+    "xla_force_host_platform_device_count",
+}
+
+
+class EnvironmentVariableError(WaldoError, ValueError):
+    """An environment variable with a value waldo_jax, JAX or XLA cannot use (named in the message)."""
+
+
+def _switch(value: str) -> Optional[str]:
+    if value.strip().lower() in _ON + _OFF:
+        return None
+    return f"expected one of {', '.join(_ON + _OFF)}"
+
+
+def _folder(value: str) -> Optional[str]:
+    path = Path(value).expanduser()
+    if not path.exists():
+        return "no such folder"
+    return None if path.is_dir() else "not a folder"
+
+
+def _fraction(value: str) -> Optional[str]:
+    try:
+        x = float(value)
+    except ValueError:
+        return "expected a number in (0, 1]"
+    return None if 0.0 < x <= 1.0 else "expected a number in (0, 1]"
+
+
+def _level(value: str, top: int) -> Optional[str]:
+    v = value.strip()
+    return None if v.lstrip("-").isdigit() and 0 <= int(v) <= top else f"expected an integer 0..{top}"
+
+
+def _platforms(value: str) -> Optional[str]:
+    names = [p.strip().lower() for p in value.split(",") if p.strip()]
+    unknown = [p for p in names if p not in _PLATFORMS]
+    if not names or unknown:
+        return f"unknown platform {', '.join(unknown) or repr(value)} (known: {', '.join(_PLATFORMS)})"
+    return None
+
+
+def _cuda_devices(value: str) -> Optional[str]:
+    items = [v.strip() for v in value.split(",")]
+    if value.strip() == "" or all(_CUDA_DEVICE.fullmatch(v) for v in items):
+        return None
+    return "expected comma-separated device indices or GPU-/MIG- UUIDs"
+
+
+def _xla_flags(value: str) -> Optional[str]:
+    tokens = value.split()
+    bad = [t for t in tokens if not _XLA_TOKEN.fullmatch(t)]
+    if bad:
+        return f"{bad[0]!r} is not --name or --name=value"
+    unknown = [t for t in tokens if not xla_flag_known(_XLA_TOKEN.fullmatch(t).group(1))]
+    if unknown:
+        return f"{unknown[0]} is no flag this jaxlib knows: XLA would abort the process"
+    return None
+
+
+# name -> (check of a set value: None or the problem, what it takes)
+VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
+    "WALDO_DATA": (_folder, "the data folder, ../shared's layout"),
+    "WALDO_WEIGHTS": (_folder, "the weights folder"),
+    "WALDO_REQUIRE_DATA": (_switch, "a missing data file fails instead of skipping"),
+    "WALDO_DETERMINISTIC": (_switch, "deterministic GPU kernels, default on"),
+    "WALDO_FAST_COMPILE": (_switch, "faster XLA:CPU compiles, default off"),
+    "XLA_FLAGS": (_xla_flags, "XLA's flags"),
+    "XLA_PYTHON_CLIENT_PREALLOCATE": (_switch, "preallocate GPU memory"),
+    "XLA_PYTHON_CLIENT_MEM_FRACTION": (_fraction, "the share of GPU memory to preallocate"),
+    "XLA_PYTHON_CLIENT_ALLOCATOR": (
+        lambda v: None if v.strip() in _ALLOCATORS else f"expected one of {', '.join(_ALLOCATORS)}",
+        "the GPU allocator",
+    ),
+    "TF_CPP_MIN_LOG_LEVEL": (lambda v: _level(v, 3), "XLA's log level"),
+    "TF_CPP_MAX_VLOG_LEVEL": (lambda v: _level(v, 10), "XLA's verbose log level"),
+    "CUDA_VISIBLE_DEVICES": (_cuda_devices, "the GPUs JAX may use"),
+    "JAX_PLATFORMS": (_platforms, "the backends JAX may start"),
+}
+
+
+def environment_problems(environ: Optional[Mapping[str, str]] = None) -> List[str]:
+    """One line per variable of `VARIABLES` set to a value it cannot take (`NAME=VALUE: why`)."""
+    environ = os.environ if environ is None else environ
+    problems = []
+    for name, (check, what) in VARIABLES.items():
+        value = environ.get(name)
+        if value is None or (value.strip() == "" and name != "CUDA_VISIBLE_DEVICES"):
+            continue
+        why = check(value)
+        if why:
+            shown = value if len(value) <= 80 else value[:77] + "..."
+            problems.append(f"{name}={shown} ({what}): {why}")
+    return problems
+
+
+def check_environment(environ: Optional[Mapping[str, str]] = None) -> None:
+    """Raises `EnvironmentVariableError` naming the first bad variable (see the module docstring)."""
+    problems = environment_problems(environ)
+    if problems:
+        more = f" (and {len(problems) - 1} more: {'; '.join(problems[1:])})" if len(problems) > 1 else ""
+        raise EnvironmentVariableError(f"environment variable {problems[0]}{more}")
+
+
+def import_jax():
+    """Imports JAX; a refusal of one of its `JAX_*` variables becomes an `EnvironmentVariableError`
+    naming that variable (JAX reads and checks them all on import)."""
+    try:
+        import jax
+    except (ValueError, TypeError) as e:
+        message = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        named = [
+            n for n in sorted(os.environ) if n.startswith("JAX_") and (n in message or n.lower() in message.lower())
+        ]
+        where = f"environment variable {named[0]}={os.environ[named[0]]}: " if named else ""
+        set_ = ", ".join(n for n in sorted(os.environ) if n.startswith("JAX_"))
+        raise EnvironmentVariableError(
+            f"{where}JAX refuses it ({message[:200]})" + ("" if named else f"; JAX variables set: {set_ or 'none'}")
+        ) from None
+    return jax
+
+
+def _jaxlib_libraries() -> List[Path]:
+    """jaxlib's shared libraries and those of installed JAX plugins (CUDA, ROCm)."""
+    found = []
+    for package in ("jaxlib", "jax_plugins"):
+        spec = importlib.util.find_spec(package)
+        for folder in (spec.submodule_search_locations or []) if spec else []:
+            found += [p for p in Path(folder).rglob("*.so") if p.stat().st_size > 10_000_000]
+    return sorted(found)
+
+
+def _cache_file() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "waldo_jax" / "xla_flags.json"
+
+
+def xla_flag_known(name: str) -> bool:
+    """Whether `name` (without `--`) is an XLA flag of the installed jaxlib: its name is a string in
+    one of jaxlib's shared libraries (where XLA registers its flags). Answers are cached per library
+    set; True where no library can be read (nothing to check against)."""
+    if name in _KNOWN_XLA_FLAGS:
+        return True
+    libraries = _jaxlib_libraries()
+    if not libraries:
+        return True
+    stamp = hashlib.sha1(repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries]).encode())
+    key = stamp.hexdigest()[:16]
+    cache = _cache_file()
+    try:
+        known = json.loads(cache.read_text()) if cache.is_file() and cache.stat().st_size < 1_000_000 else {}
+        known = known if isinstance(known, dict) and known.get("key") == key else {"key": key}
+    except (OSError, ValueError):
+        known = {"key": key}
+    if isinstance(known.get(name), bool):
+        return known[name]
+    needle = name.encode() + b"\x00"
+    answer = False
+    try:
+        for library in libraries:
+            with open(library, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                if m.find(needle) >= 0:
+                    answer = True
+                    break
+    except (OSError, ValueError):
+        return True
+    known[name] = answer
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(known))
+    except OSError:
+        pass
+    return answer
+
+
+def install_excepthook() -> None:
+    """Uncaught `EnvironmentVariableError`s print as one line (`waldo: error: ...`), exit status 1."""
+    previous = sys.excepthook
+
+    def hook(kind, value, traceback):
+        if isinstance(value, EnvironmentVariableError):
+            print(f"waldo: error: {value}", file=sys.stderr)
+            return
+        previous(kind, value, traceback)
+
+    if getattr(sys.excepthook, "__name__", "") != "hook" or sys.excepthook.__module__ != __name__:
+        sys.excepthook = hook
