@@ -302,7 +302,10 @@ def working_tree_bytes() -> int:
 
 
 def is_ignored(path: Path) -> bool:
-    return subprocess.run(["git", "check-ignore", "-q", str(path)], cwd=REPO, capture_output=True).returncode == 0
+    """Whether git ignores the folder `path`, made or not yet: a trailing slash tells git it is a folder, so
+    that a pattern for folders (`.whl/`) matches it before it exists (as on a fresh clone)."""
+    folder = str(path).rstrip("/") + "/"
+    return subprocess.run(["git", "check-ignore", "-q", folder], cwd=REPO, capture_output=True).returncode == 0
 
 
 def read_json(path: Path):

@@ -306,3 +306,28 @@ def _processes_naming(text: str) -> list:
         except OSError:  # the process ended meanwhile
             continue
     return found
+
+
+def test_pack_works_from_a_fresh_clone(tmp_path):
+    """On a fresh clone neither .device/ nor .whl/ exists yet: both still count as ignored (the folder
+    patterns of .gitignore), so --pack into .device/data with the default wheel folder is accepted."""
+    data = data_dir()
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "--quiet", str(BENCHMARKS.parent), str(clone)], check=True, timeout=300)
+    assert not (clone / ".whl").exists() and not (clone / ".device").exists()
+    probe = (
+        "import sys; sys.path.insert(0, 'benchmarks'); import device_check as d; "
+        "print(*(d.is_ignored(d.REPO / p) for p in ('.whl', '.device/data', 'waldo_jax')))"
+    )
+    ignored = subprocess.run([sys.executable, "-c", probe], cwd=clone, capture_output=True, text=True, timeout=120)
+    assert ignored.stdout.split() == ["True", "True", "False"], ignored.stderr
+    script = str(clone / "benchmarks" / "device_check.py")
+    packed = subprocess.run(
+        [sys.executable, script, "--pack", ".device/data", "--smoke", "--no-wheels", "--data-from", str(data)],
+        cwd=clone,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert packed.returncode == 0, packed.stderr[-3000:]
+    assert (clone / ".device" / "data" / device_check.MANIFEST).is_file()
