@@ -8,8 +8,10 @@ A camera-less splat file holds no gravity. Its up is read from the scene itself,
    mass over the plane against the plane's own extent, so an object's flat face -- a guitar's top --
    is not taken for the floor it stands on), touched by the mass just above it on only a part of its
    extent (an object's flat top or bottom has its body all along it; a table or floor carries its load
-   on feet, bases and walls), and, where the plane's splats are flat, their own normals
-   agreeing with it. Up is its normal, toward the mass.
+   on feet, bases and walls), as wide as the mass it carries (`max_overhang`: a small flat patch on an
+   object's side has all of the object on one side of it and overhanging it, as every tangent plane of
+   a convex body does; a floor or table reaches under what stands on it), and, where the plane's splats
+   are flat, their own normals agreeing with it. Up is its normal, toward the mass.
 2. **The format's axis convention**, when it agrees with a well-defined principal axis of the means
    (within `axis_prior_deg`): the reference 3DGS / COLMAP frames usually have y down, so a tall object
    standing along -y keeps -y as its up.
@@ -68,6 +70,7 @@ class UprightConfig:
     flat_ratio: float = 0.3  # a splat is flat when its smallest scale / its middle one is below this
     min_normal_agreement: float = 0.7  # median |cos| of flat inliers' normals with the plane's
     max_contact_share: float = 0.6  # of the plane's cells, at most this share under the mass just above it
+    max_overhang: float = 1.5  # the mass's extent along the plane / the plane's own extent, at most
     contact_grid: int = 24
     axis_prior_deg: float = 20.0
     distinct_axis_ratio: float = 1.5  # an axis is well defined when its variance differs this much from its neighbour's
@@ -357,6 +360,9 @@ def _plane_figures(points, w, plane, scale, flat_splats, config: UprightConfig) 
     in_plane = q - np.outer(q @ n, n)
     extent = 2.0 * float(np.quantile(np.linalg.norm(in_plane, axis=-1), 0.95))
     ratio = height / max(extent, 1e-30)
+    above = points[mass] - points[inl].mean(0)
+    above_in_plane = above - np.outer(above @ n, n)
+    overhang = 2.0 * float(np.quantile(np.linalg.norm(above_in_plane, axis=-1), 0.95)) / max(extent, 1e-30)
     contact = _contact_share(points, n, d, inl, tolerance, diagonal, config.contact_grid)
     agreement = None
     if flat is not None and flat[inl].sum() >= max(10, 0.2 * inl.sum()):
@@ -368,6 +374,7 @@ def _plane_figures(points, w, plane, scale, flat_splats, config: UprightConfig) 
         "height_ratio": ratio,
         "flat_normal_agreement": agreement,
         "contact_share": contact,
+        "overhang": overhang,
     }
 
 
@@ -390,6 +397,11 @@ def _plane_rejection(figures: dict, config: UprightConfig) -> Optional[str]:
         return (
             f"the mass rests on {100 * contact:.0f} % of it (an object's own face, which its body "
             "continues under; a support carries its load on a part)"
+        )
+    if figures["overhang"] > config.max_overhang:
+        return (
+            f"the mass reaches {figures['overhang']:.1f} x its extent along it (a patch of an object's side, "
+            "not a support under it)"
         )
     if agreement is not None and agreement < config.min_normal_agreement:
         return f"its flat splats' normals agree only {agreement:.2f} (median |cos|)"
