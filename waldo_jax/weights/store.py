@@ -169,7 +169,9 @@ def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Di
         raise WeightsError(f"{path}: not a readable weights archive ({type(exc).__name__}: {exc})") from None
     if _META_KEY not in flat:
         raise WeightsError(f"{path}: not a waldo weights archive (no {_META_KEY} record)")
-    record = parse_json(flat.pop(_META_KEY).tobytes(), path, "weights record", WeightsError)
+    record = parse_json(
+        flat.pop(_META_KEY).tobytes(), path, "weights record", lambda problem: WeightsError(f"{path}: {problem}")
+    )
     if not isinstance(record, dict):
         raise WeightsError(f"{path}: its {_META_KEY} record is not a JSON object")
     if record.get("format_version") != NATIVE_FORMAT_VERSION:
