@@ -139,6 +139,7 @@ def test_images_that_cannot_fit_are_refused_before_they_load(tmp_path, capsys, m
 def test_a_search_that_cannot_fit_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
     """XLA's analysis of the compiled search against the memory at hand (here made small)."""
     monkeypatch.setattr(experiment, "memory_bytes", lambda: 50_000)
+    monkeypatch.setattr(experiment, "host_memory_bytes", lambda: 50_000)
     monkeypatch.setattr(experiment, "check_epoch_memory", lambda *a: None)  # the per-epoch rule of thumb: aside
     argv = ["explore", "procedural", "--resolution", "16", "--out", str(tmp_path / "new"), "--quiet"]
     _cli_refuses(argv, "the compiled search needs", capsys, tmp_path)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.criteria import Criterion
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import WaldoError, host_memory_bytes
 from waldo_jax.search import (
     ExploreConfig,
     Initial,
@@ -96,8 +96,10 @@ def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, confi
     it runs; the compile is the one the run reuses."""
     keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
     need = search_memory(keys, score_fn, initial, config=config, objective_fn=objective, progress=progress)
-    available = memory_bytes()
-    if need is not None and need > available:
+    # XLA's figure is what the program may take at once: set against the memory free now (the host's
+    # on a CPU, not `memory_bytes`' half of it, a rule of thumb for the epoch's working set).
+    available = memory_bytes() if jax.devices()[0].platform != "cpu" else host_memory_bytes()
+    if need is not None and available and need > available:
         raise WaldoError(
             f"--epochs {config.epochs} x --children-per-epoch {config.children_per_epoch} x --seeds {seeds}: "
             f"the compiled search needs {need / 2**30:,.1f} GiB (XLA's own analysis), more than the "
