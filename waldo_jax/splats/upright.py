@@ -165,7 +165,12 @@ def _plane_trials(key, points, weights, tolerance, trials: int):
 def _contact_share(points, n, d, inliers, tolerance: float, diagonal: float, grid: int) -> float:
     """The share of the plane's occupied cells (a `grid`^2 map of its inliers in its own coordinates)
     under which the mass continues in the slab just above it (`tolerance` to 5 % of `diagonal`)."""
-    u = _unit(np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    # The map's axes are the inliers' own principal directions in the plane, so that the share does not
+    # depend on how the scene is turned in the world.
+    q = points[inliers] - points[inliers].mean(0)
+    q = q - np.outer(q @ n, n)
+    _, vectors = np.linalg.eigh(q.T @ q)
+    u = _unit(vectors[:, 2] - n * np.dot(vectors[:, 2], n))
     v = np.cross(n, u)
     plane_uv = np.stack([points[inliers] @ u, points[inliers] @ v], -1)
     low, high = plane_uv.min(0), plane_uv.max(0)
