@@ -307,3 +307,32 @@ def test_a_click_through_viser_moves_the_browsers_camera(donut_viewer, tmp_path)
     finally:
         browser.terminate()
         browser.wait(timeout=30)
+
+
+def test_a_nerf_run_is_drawn_as_its_opaque_cells_with_its_cameras(tmp_path, monkeypatch):
+    """A `waldo train` run: points at the grid cells the field makes at least half opaque (checked against
+    the field itself), inside its box, the same on a second load, and its training cameras."""
+    import jax
+    import jax.numpy as jnp
+    from test_bad_input import _write_run, _write_scene
+
+    import waldo_jax.viewer.scene as scene_module
+    from waldo_jax.nerf.checkpoint import load_checkpoint
+    from waldo_jax.nerf.field import make_field_batch
+
+    _write_scene(tmp_path / "scene")
+    _write_run(tmp_path / "run")
+    monkeypatch.setattr(scene_module, "NERF_OPACITY", 0.01)  # the untrained field is faint
+    view = load_view_scene(str(tmp_path / "run"))
+    xyz, rgb = view.points
+    assert len(view.frustums) == 8 and all(f.kind == "train" for f in view.frustums)
+    assert xyz.shape[1] == 3 and rgb.shape == xyz.shape and 0 < len(xyz) <= scene_module.MAX_ROOM_POINTS
+    np.testing.assert_array_equal(xyz, load_view_scene(str(tmp_path / "run")).points[0])  # deterministic
+    checkpoint = load_checkpoint(tmp_path / "run")
+    low, high = np.asarray(checkpoint.scene.aabb) if checkpoint.scene.aabb is not None else checkpoint.config.field.aabb
+    assert np.all(xyz >= low - 1e-5) and np.all(xyz <= high + 1e-5)
+    sigma, _ = jax.jit(make_field_batch(checkpoint.config.field))(
+        checkpoint.params, jnp.asarray(xyz), jnp.ones_like(jnp.asarray(xyz))
+    )
+    cell = float(np.min(np.asarray(high) - np.asarray(low))) / scene_module.NERF_GRID
+    assert np.all(1.0 - np.exp(-np.asarray(sigma) * cell) >= 0.01 - 1e-6)

@@ -22,10 +22,23 @@ import numpy as np
 from waldo_jax.io import read_json_file
 from waldo_jax.errors import WaldoError
 
-__all__ = ["Frustum", "SplatCloud", "ViewScene", "ViewerError", "load_view_scene", "room_points", "splat_cloud"]
+__all__ = [
+    "Frustum",
+    "SplatCloud",
+    "ViewScene",
+    "ViewerError",
+    "load_view_scene",
+    "nerf_points",
+    "room_points",
+    "splat_cloud",
+]
 
 DEFAULT_FOV_Y_DEG = 50.0
 MAX_ROOM_POINTS = 60_000
+# A NeRF as points (`nerf_points`): its density on a grid of this many cells a side, a cell kept where it
+# is at least this opaque across its width.
+NERF_GRID = 96
+NERF_OPACITY = 0.5
 
 
 class ViewerError(WaldoError, ValueError):
@@ -161,6 +174,63 @@ def room_points(room, count: int = MAX_ROOM_POINTS, seed: int = 0) -> Tuple[np.n
     return xyz.astype(np.float32), np.asarray(rgb, np.float32)
 
 
+def nerf_points(
+    field, cameras: np.ndarray, count: int = MAX_ROOM_POINTS, resolution: int = NERF_GRID, chunk: int = 1 << 16
+) -> Tuple[np.ndarray, np.ndarray]:
+    """A trained NeRF as points: (xyz [P, 3], rgb [P, 3]), P <= count, from its density on a grid.
+
+    The field's density is read at the centres of a `resolution`^3 grid over its box; a cell is kept where
+    its opacity across the cell, 1 - exp(-sigma * cell), is at least `NERF_OPACITY` (the most opaque
+    `count` of them where more are), coloured by the field seen from the training cameras' mean centre.
+    Deterministic (no random draws).
+
+    Args:
+      field: a `waldo_jax.nerf.trained.TrainedField`.
+      cameras: float [N, 4, 4] training camera-to-world matrices (for the viewing direction of the colours).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from waldo_jax.nerf.field import make_field_batch
+
+    low, high = np.asarray(field.aabb, np.float64)
+    axes = [np.linspace(lo, hi, resolution, endpoint=False) + (hi - lo) / (2 * resolution) for lo, hi in zip(low, high)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    eye = np.mean(np.asarray(cameras, np.float64)[:, :3, 3], axis=0) if len(cameras) else high + (high - low)
+    batch = jax.jit(make_field_batch(field.config.field))
+    sigma, rgb = [], []
+    for start in range(0, len(grid), chunk):
+        xs = grid[start : start + chunk]
+        pad = chunk - len(xs)
+        xs_padded = np.concatenate([xs, np.repeat(xs[-1:], pad, 0)]) if pad else xs
+        s, c = batch(field.params, jnp.asarray(xs_padded), jnp.asarray(xs_padded - eye.astype(np.float32)))
+        sigma.append(np.asarray(s)[: len(xs)])
+        rgb.append(np.asarray(c)[: len(xs)])
+    sigma, rgb = np.concatenate(sigma), np.concatenate(rgb)
+    cell = float(np.min(high - low)) / resolution
+    opacity = 1.0 - np.exp(-np.nan_to_num(sigma, nan=0.0) * cell)
+    keep = np.flatnonzero(opacity >= NERF_OPACITY)
+    keep = keep[np.argsort(-opacity[keep], kind="stable")[:count]]
+    keep.sort()
+    return grid[keep], np.clip(rgb[keep], 0.0, 1.0).astype(np.float32)
+
+
+def _run_geometry(spec: str, notes: List[str]):
+    """(None, points, train_c2w, names, fov_y, aspect) of a `waldo train` / `waldo demo` run folder."""
+    from waldo_jax.nerf.checkpoint import load_checkpoint
+    from waldo_jax.nerf.trained import TrainedField
+
+    checkpoint = load_checkpoint(spec)
+    record = checkpoint.scene
+    c2w = np.asarray(record.c2w, np.float64)
+    points = nerf_points(TrainedField.from_checkpoint(checkpoint), c2w)
+    if not len(points[0]):
+        notes.append(f"{spec}: no cell of the field is opaque (opacity >= {NERF_OPACITY:g} across a cell): no points")
+    intrinsics = record.intrinsics
+    fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
+    return None, points, c2w, tuple(record.file_names), fov_y, intrinsics.width / intrinsics.height
+
+
 def _ranks(scores: List[Optional[float]], direction: str) -> List[Optional[int]]:
     """1-based ranks of the finite scores (best first under `direction`); None for the others."""
     finite = [(s, i) for i, s in enumerate(scores) if s is not None and math.isfinite(s)]
@@ -209,11 +279,11 @@ def _source_geometry(spec: str, notes: List[str]):
             first = model.cameras.shared_intrinsics or model.cameras.intrinsics[0]
             fov_y, aspect = 2 * math.atan(0.5 * first.height / float(first.fy)), first.width / first.height
         return splat_cloud(model.splats), None, c2w, names, fov_y, aspect
-    if Path(spec).is_dir():
-        notes.append(f"{spec}: a NeRF run has no geometry in the viewer yet (only its cameras are drawn)")
-        return None, None, None, (), None, None
+    if Path(spec).is_dir() and (Path(spec) / "checkpoint.ckpt").is_file():
+        return _run_geometry(spec, notes)
     raise ViewerError(
-        f"PATH {spec!r} is neither an output folder of `waldo explore` (results.json), a splat scene "
+        f"PATH {spec!r} is neither an output folder of `waldo explore` (results.json), a run of `waldo train` "
+        "(checkpoint.ckpt), a splat scene "
         "(a .ply / .splat / .spz, a 3DGS folder) nor procedural[:SEED]"
     )
 
@@ -334,17 +404,12 @@ def load_view_scene(path: str) -> ViewScene:
     folder = Path(text)
     if folder.is_dir() and (folder / "results.json").is_file():
         return _explore_scene(folder)
-    if folder.is_dir() and (folder / "checkpoint.ckpt").exists():
-        notes: List[str] = [f"{text}: a NeRF run has no geometry in the viewer yet; explore it and view the output"]
-        return ViewScene(
-            text, f"NeRF run {text}", None, None, (), math.radians(DEFAULT_FOV_Y_DEG), 1.0, notes=tuple(notes)
-        )
     from waldo_jax.pipeline.splat_sources import is_splat_spec
 
-    if folder.is_dir() and not is_splat_spec(text):
+    if folder.is_dir() and not is_splat_spec(text) and not (folder / "checkpoint.ckpt").is_file():
         raise ViewerError(
             f"PATH {text!r} is a folder but neither an output of `waldo explore` (no results.json) nor a scene "
-            "(a 3DGS model folder)"
+            "(a 3DGS model folder, a `waldo train` run)"
         )
     notes = []
     splats, points, c2w, names, fov_y, aspect = _source_geometry(text, notes)
