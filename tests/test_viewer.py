@@ -336,3 +336,80 @@ def test_a_nerf_run_is_drawn_as_its_opaque_cells_with_its_cameras(tmp_path, monk
     )
     cell = float(np.min(np.asarray(high) - np.asarray(low))) / scene_module.NERF_GRID
     assert np.all(1.0 - np.exp(-np.asarray(sigma) * cell) >= 0.01 - 1e-6)
+
+
+def test_a_browser_camera_turns_back_into_the_pose_it_came_from():
+    from waldo_jax.viewer.live import opengl_c2w
+    from waldo_jax.viewer.server import opencv_pose
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        w, x, y, z = q / np.linalg.norm(q)
+        rotation = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = rotation, rng.normal(size=3)
+        np.testing.assert_allclose(opengl_c2w(*opencv_pose(c2w)), c2w, atol=1e-9)
+
+
+def test_render_this_view_is_the_sources_render(tmp_path):
+    """ "Render this view" on a SOURCE: the image in the panel is the source's own render of that pose."""
+    import jax.numpy as jnp
+
+    from waldo_jax.pipeline import load_source
+
+    view = load_view_scene("procedural:0")
+    viewer = serve(view, port=0)
+    try:
+        c2w = view.frustums[3].c2w
+        image = viewer.render_view(c2w)
+        source = load_source("procedural:0", resolution=128)
+        expected = np.asarray(source.render(jnp.asarray(c2w[None], jnp.float32)))[0]
+        np.testing.assert_allclose(image, np.clip(expected, 0, 1), atol=1e-6)
+        assert viewer.live_image is not None and "rendered at" in viewer.live_panel.content
+        with pytest.raises(Exception, match="no criterion"):
+            viewer.live.score(c2w)  # a SOURCE alone has no criterion: the button is not offered
+    finally:
+        viewer.stop()
+
+
+def test_score_this_view_gives_the_searchs_own_score_and_rank(donut_viewer, donut_explore):
+    """ "Score this view" at the best shot's pose: the run's criterion gives the score the search gave it,
+    ranked first among the search's views."""
+    viewer, _ = donut_viewer
+    _, results = donut_explore
+    best = next(f for f in viewer.scene.frustums if f.topk_rank == 1)
+    value, rank = viewer.score_view(best.c2w)
+    assert value == pytest.approx(best.score, rel=1e-4, abs=1e-6)
+    assert rank is not None and rank <= 2  # ties with itself among the scored views
+    assert results["criterion"] in viewer.live_panel.content and "rank" in viewer.live_panel.content
+
+
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg writes the MP4 in a subprocess
+def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
+    """A `waldo path` output: one frustum per frame (with its frame score), the path's line, and the frame
+    slider / play button moving the cameras frame by frame."""
+    from test_search_path import CLI_TINY
+
+    out = tmp_path / "path"
+    assert main(["path", "procedural:1", "--out", str(out), "--quiet", *CLI_TINY]) == 0
+    results = json.loads((out / "results.json").read_text())
+    view = load_view_scene(str(out))
+    frames = [f for f in view.frustums if f.kind == "path"]
+    assert view.camera_path is not None and len(frames) == len(view.camera_path) == 8
+    assert [f.score for f in frames] == pytest.approx(results["found"]["frame_scores"])
+    viewer = serve(view, port=0)
+    try:
+        assert viewer.frame_slider is not None and viewer.frame_slider.max == 7
+        shown = viewer.show_frame(5, clients=[])
+        assert shown.name == "/path/0005" and viewer.selected is shown
+        np.testing.assert_allclose(shown.c2w, view.camera_path[5])
+        assert "path frame 5" in viewer.panel.content
+    finally:
+        viewer.stop()

@@ -66,7 +66,8 @@ class Frustum:
 
     Attributes:
       name: its scene-graph name ("/train/003", "/views/0042", "/topk/01").
-      kind: "train", "view" (a view the search generated) or "topk" (one of the k best different shots).
+      kind: "train", "view" (a view the search generated), "topk" (one of the k best different shots) or
+        "path" (a frame of a camera path).
       c2w: float64 [4, 4] OpenGL camera-to-world.
       score: the criterion's score (None: not scored or failed).
       rank: 1-based rank of its score among all scored views, best first (None without a score).
@@ -96,6 +97,11 @@ class ViewScene:
       fov_y: vertical field of view in radians. aspect: width / height.
       criterion, direction: the run's criterion and its direction ("max"/"min"; "" for a SOURCE).
       notes: what is not shown, and why (one line each).
+      source: the SOURCE that renders it (an explore's source, or the SOURCE given; "" for none).
+      resolution: (width, height) of the run's renders, or None (a SOURCE's own).
+      scores: the search's scores, training views first (for the rank of a view scored in the viewer).
+      camera_path: a `waldo path` output's camera path, float [F, 4, 4] OpenGL c2w per frame, or None; path_fps
+        its frame rate.
     """
 
     path: str
@@ -108,6 +114,11 @@ class ViewScene:
     criterion: str = ""
     direction: str = ""
     notes: Tuple[str, ...] = ()
+    source: str = ""
+    resolution: Optional[Tuple[int, int]] = None
+    scores: Tuple[Optional[float], ...] = ()
+    camera_path: Optional[np.ndarray] = None
+    path_fps: float = 12.0
 
     def extent(self) -> float:
         """A length for the scene's size: the diagonal of the cameras' (or the geometry's) box."""
@@ -384,8 +395,68 @@ def _explore_scene(out: Path) -> ViewScene:
         )
     criterion = str(results.get("criterion", ""))
     title = f"{str(results.get('method', '')).upper()} on {spec}, {criterion}"
+    resolution = results.get("resolution")
     return ViewScene(
-        str(out), title, splats, points, tuple(frustums), fov_y, aspect or 1.0, criterion, direction, tuple(notes)
+        str(out),
+        title,
+        splats,
+        points,
+        tuple(frustums),
+        fov_y,
+        aspect or 1.0,
+        criterion,
+        direction,
+        tuple(notes),
+        source=spec,
+        resolution=tuple(int(v) for v in resolution[:2]) if resolution else None,
+        scores=tuple(scores_train + scores_generated),
+    )
+
+
+def _path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
+    """The `ViewScene` of a `waldo path` output folder: the scene, its training views and the camera path
+    (poses.json, one camera per frame, each with its frame's score)."""
+    from waldo_jax.scenes import read_poses_file
+    from waldo_jax.types import Intrinsics
+
+    notes: List[str] = []
+    spec = str(results["source"])
+    splats = points = train_c2w = None
+    names: Tuple[str, ...] = ()
+    try:
+        splats, points, train_c2w, names, _, _ = _source_geometry(spec, notes)
+    except WaldoError as e:
+        notes.append(f"the scene's geometry is not drawn: {e}")
+    size = (results.get("video") or {}).get("frame_size") or [64, 64]
+    c2w, intrinsics, _ = read_poses_file(out / "poses.json", Intrinsics.from_fov(int(size[0]), int(size[1]), 0.9))
+    c2w = np.asarray(c2w, np.float64)
+    scores = list(((results.get("found") or {}).get("frame_scores")) or [])
+    scores = (scores + [None] * len(c2w))[: len(c2w)]
+    direction = str(results.get("direction", "max"))
+    ranks = _ranks(scores, direction)
+    frustums = [
+        Frustum(f"/train/{i:04d}", "train", m, None, None, None, f"training view {names[i] if i < len(names) else i}")
+        for i, m in enumerate(() if train_c2w is None else train_c2w)
+    ]
+    frustums += [
+        Frustum(f"/path/{i:04d}", "path", m, scores[i], ranks[i], None, f"path frame {i}") for i, m in enumerate(c2w)
+    ]
+    criterion = str(results.get("criterion", ""))
+    fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
+    return ViewScene(
+        str(out),
+        f"camera path ({str(results.get('method', '')).upper()}) on {spec}, {criterion}",
+        splats,
+        points,
+        tuple(frustums),
+        fov_y,
+        intrinsics.width / intrinsics.height,
+        criterion,
+        direction,
+        tuple(notes),
+        source=spec,
+        camera_path=c2w,
+        path_fps=float((results.get("video") or {}).get("fps") or 12.0),
     )
 
 
@@ -403,6 +474,13 @@ def load_view_scene(path: str) -> ViewScene:
         raise ViewerError(f"PATH {text!r}: no such file or folder")
     folder = Path(text)
     if folder.is_dir() and (folder / "results.json").is_file():
+        results = read_json_file(
+            folder / "results.json",
+            "results file",
+            lambda problem: ViewerError(f"{folder / 'results.json'}: {problem}"),
+        )
+        if isinstance(results, dict) and "limits" in results and "found" in results and "source" in results:
+            return _path_scene(folder, results)
         return _explore_scene(folder)
     from waldo_jax.pipeline.splat_sources import is_splat_spec
 
@@ -421,4 +499,6 @@ def load_view_scene(path: str) -> ViewScene:
         for i, m in enumerate(() if c2w is None else c2w)
     )
     fov_y = math.radians(DEFAULT_FOV_Y_DEG) if fov_y is None else fov_y
-    return ViewScene(text, f"scene {text}", splats, points, frustums, fov_y, aspect or 1.0, notes=tuple(notes))
+    return ViewScene(
+        text, f"scene {text}", splats, points, frustums, fov_y, aspect or 1.0, notes=tuple(notes), source=text
+    )

@@ -1,10 +1,12 @@
 """A `ViewScene` in the browser, on viser (the viewer nerfstudio and gsplat use): `Viewer`, `serve`, `export_html`.
 
 The scene graph: `/scene/splats` (Gaussian splats) or `/scene/points` (a point cloud), one camera frustum per
-`Frustum` under `/train`, `/views` and `/topk`, coloured by score (viridis, the best yellow; grey when unscored),
-the top-k larger and orange. Clicking a frustum (`Viewer.select`) moves the client's camera onto it and shows its
-rank, score and, for the top-k, its image in the panel. viser is imported here only, so `import waldo_jax` does
-not need it (the `view` extra installs it).
+`Frustum` under `/train`, `/views`, `/topk` and `/path`, coloured by score (viridis, the best yellow; grey when
+unscored), the top-k larger and orange, a camera path's line `/path/line`. Clicking a frustum (`Viewer.select`)
+moves the client's camera onto it and shows its rank, score and, for the top-k, its image in the panel; a camera
+path has a frame slider and a play button (`Viewer.show_frame`, `Viewer.play_path`); "Render this view" and
+"Score this view" render and score the browser's camera (`waldo_jax.viewer.live`). viser is imported here
+only, so `import waldo_jax` does not need it (the `view` extra installs it).
 
 viser's frustums and client cameras follow OpenCV (x right, y down, z forward); our poses are OpenGL (y up,
 z backwards): R_cv = R_gl diag(1, -1, -1).
@@ -21,12 +23,15 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.errors import WaldoError
+from waldo_jax.viewer.live import LiveView, opengl_c2w
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene
 
 __all__ = ["Viewer", "export_html", "import_viser", "serve"]
 
 TOPK_COLOR = (255, 120, 0)
 UNSCORED_COLOR = (150, 150, 150)
+PATH_COLOR = (220, 40, 40)
 FRUSTUM_SHARE = 0.02  # a frustum's depth over the scene's extent
 TOPK_SCALE = 1.8  # the top-k's frustums over the others'
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
@@ -105,6 +110,8 @@ class Viewer:
     Attributes:
       server: the `viser.ViserServer`. scene: the `ViewScene`. handles: frustum node name -> its viser handle.
       panel: the GUI Markdown that `select` writes. selected: the last selected `Frustum` (None at first).
+      live: the `LiveView` behind "Render this view" and "Score this view"; live_panel its GUI Markdown (for a
+        scene with a SOURCE) and live_image the last image rendered there (None before).
       url: the address to open.
     """
 
@@ -118,6 +125,8 @@ class Viewer:
         self.selected: Optional[Frustum] = None
         self._scored = sum(1 for f in scene.frustums if f.rank is not None and f.kind != "topk")
         self._image = None
+        self.live_image = None
+        self.live = LiveView(scene.source, scene.criterion, scene.resolution, scene.scores, scene.direction or "max")
         self._build()
 
     @property
@@ -157,7 +166,7 @@ class Viewer:
                 api.add_label(f"{frustum.name}/label", f"#{frustum.topk_rank}")
         gui = self.server.gui
         gui.add_markdown(f"**waldo view**: {scene.title}")
-        counts = {k: sum(1 for f in scene.frustums if f.kind == k) for k in ("train", "view", "topk")}
+        counts = {k: sum(1 for f in scene.frustums if f.kind == k) for k in ("train", "view", "topk", "path")}
         gui.add_markdown(
             f"{counts['train']} training views, {counts['view']} searched views, {counts['topk']} top-k shots "
             "(orange); colour: score, yellow best. Click a camera."
@@ -169,6 +178,84 @@ class Viewer:
         if best is not None:
             button = gui.add_button("Go to the best shot")
             button.on_click(lambda event, name=best.name: self.select(name, [event.client]))
+        self._add_live_controls()
+        self._add_path_controls()
+
+    def _add_path_controls(self) -> None:
+        """A camera path (a `waldo path` output): its line, a frame slider that moves the cameras along it and
+        a button that plays it at its frame rate."""
+        path = self.scene.camera_path
+        self.frame_slider = None
+        if path is None or not len(path):
+            return
+        self.server.scene.add_spline_catmull_rom(
+            "/path/line",
+            points=np.asarray(path[:, :3, 3], np.float64),
+            color=PATH_COLOR,
+            thickness=3.0,
+            thickness_units="screen",
+        )
+        gui = self.server.gui
+        gui.add_markdown(f"camera path: {len(path)} frames at {self.scene.path_fps:g} fps")
+        self.frame_slider = gui.add_slider("path frame", min=0, max=max(len(path) - 1, 1), step=1, initial_value=0)
+        self.frame_slider.on_update(
+            lambda event: self.show_frame(int(self.frame_slider.value), [event.client] if event.client else None)
+        )
+        gui.add_button("Play the path").on_click(lambda event: self.play_path([event.client]))
+
+    def show_frame(self, index: int, clients=None) -> Frustum:
+        """Shows frame `index` of the camera path in the panel and moves `clients`' cameras onto it (default:
+        every connected client)."""
+        clients = list(self.server.get_clients().values()) if clients is None else clients
+        return self.select(f"/path/{int(index):04d}", clients)
+
+    def play_path(self, clients=None) -> None:
+        """Moves the cameras along the whole path at its frame rate (in a background thread)."""
+        import threading
+
+        def run():
+            for index in range(len(self.scene.camera_path)):
+                self.show_frame(index, clients)
+                time.sleep(1.0 / max(self.scene.path_fps, 1e-3))
+
+        threading.Thread(target=run, daemon=True).start()
+
+    def _add_live_controls(self) -> None:
+        """Adds the buttons "Render this view" (the run's renderer at the browser's camera) and, for an explore
+        output, "Score this view" (its criterion, and the rank the score would have had)."""
+        gui = self.server.gui
+        self.live_panel = gui.add_markdown("")
+        if not self.scene.source:
+            return
+        gui.add_button("Render this view").on_click(lambda event: self._on_live(event.client, score=False))
+        if self.scene.criterion:
+            gui.add_button("Score this view").on_click(lambda event: self._on_live(event.client, score=True))
+
+    def _on_live(self, client, score: bool) -> None:
+        c2w = opengl_c2w(client.camera.wxyz, client.camera.position)
+        try:
+            self.render_view(c2w) if not score else self.score_view(c2w)
+        except WaldoError as e:  # shown in the panel: a viewer keeps serving
+            self.live_panel.content = f"*{e}*"
+
+    def render_view(self, c2w: np.ndarray) -> np.ndarray:
+        """Renders OpenGL c2w [4, 4] with the scene's SOURCE (`LiveView`) and shows the image in the panel."""
+        self.live_panel.content = "*rendering (the first render loads the source and compiles) ...*"
+        image = self.live.render(c2w)
+        if self.live_image is not None:
+            self.live_image.remove()
+        self.live_image = self.server.gui.add_image(image, label="this view")
+        self.live_panel.content = f"**this view**, rendered at {image.shape[1]}x{image.shape[0]}"
+        return image
+
+    def score_view(self, c2w: np.ndarray) -> Tuple[float, Optional[int]]:
+        """Scores OpenGL c2w [4, 4] with the run's criterion and shows the score and its rank in the panel."""
+        self.live_panel.content = "*scoring (the first score loads the source and the criterion) ...*"
+        value, rank = self.live.score(c2w)
+        where = f"rank {rank} of {len(self.live.scores) + 1}" if rank is not None else "no finite score"
+        shown = f"{self.scene.criterion} {value:.4g}"
+        self.live_panel.content = f"**this view**: {shown} ({where} among the search's views)"
+        return value, rank
 
     def _frame_initial_camera(self) -> None:
         """A new client looks at the scene's centre from behind the best shot (else the first camera), pulled back;
