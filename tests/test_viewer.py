@@ -51,7 +51,8 @@ def donut_viewer(donut_explore):
 
 
 def _expected_cameras(results):
-    return results["n_train"] + results["n_generated"] + len(results["topk"])
+    """Training views, generated views, the top-k shots and the archive's elites (one per filled cell)."""
+    return results["n_train"] + results["n_generated"] + len(results["topk"]) + results["archive"]["cells_filled"]
 
 
 def test_import_waldo_jax_does_not_need_viser():
@@ -79,6 +80,7 @@ def test_scene_graph_holds_a_frustum_per_camera(donut_viewer, donut_explore):
     assert sum(n.startswith("/train/") for n in names) == results["n_train"]
     assert sum(n.startswith("/views/") for n in names) == results["n_generated"]
     assert sum(n.startswith("/topk/") for n in names) == len(results["topk"])
+    assert sum(n.startswith("/archive/") for n in names) == results["archive"]["cells_filled"]
     assert viewer.scene.splats is not None and len(viewer.scene.splats.centers) > 1000
     # The frustums sit at the poses of results.json (OpenGL c2w -> viser's OpenCV: same position).
     best = viewer.handles["/topk/00"]
@@ -413,3 +415,19 @@ def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
         assert "path frame 5" in viewer.panel.content
     finally:
         viewer.stop()
+
+
+def test_the_archive_elites_are_drawn_at_the_views_they_hold(donut_explore):
+    """An explore output's view archive: one purple frustum per filled cell, at the pose of its elite's
+    population slot (training views, then generated ones)."""
+    out, results = donut_explore
+    view = load_view_scene(str(out))
+    elites = [f for f in view.frustums if f.kind == "elite"]
+    assert len(elites) == results["archive"]["cells_filled"] > 0
+    slots = np.concatenate(
+        [np.asarray(results["train_c2w"]).reshape(-1, 4, 4), np.asarray(results["generated_c2w"]).reshape(-1, 4, 4)]
+    )
+    for frustum, elite in zip(elites, results["archive"]["elites"]):
+        assert frustum.name == f"/archive/{elite['cell']:03d}"
+        np.testing.assert_allclose(frustum.c2w, slots[elite["slot"]], atol=1e-6)
+        assert frustum.score == pytest.approx(elite["score"])

@@ -28,6 +28,7 @@ __all__ = [
     "ViewScene",
     "ViewerError",
     "load_view_scene",
+    "archive_frustums",
     "nerf_points",
     "room_points",
     "splat_cloud",
@@ -66,8 +67,8 @@ class Frustum:
 
     Attributes:
       name: its scene-graph name ("/train/003", "/views/0042", "/topk/01").
-      kind: "train", "view" (a view the search generated), "topk" (one of the k best different shots) or
-        "path" (a frame of a camera path).
+      kind: "train", "view" (a view the search generated), "topk" (one of the k best different shots),
+        "elite" (the best view of a cell of the explore's view archive) or "path" (a frame of a camera path).
       c2w: float64 [4, 4] OpenGL camera-to-world.
       score: the criterion's score (None: not scored or failed).
       rank: 1-based rank of its score among all scored views, best first (None without a score).
@@ -313,6 +314,30 @@ def _ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
     return np.asarray(c2w, np.float64), tuple(f"ring_{i:02d}" for i in range(len(c2w)))
 
 
+def archive_frustums(results: Dict[str, Any], poses: np.ndarray) -> List[Frustum]:
+    """The elites of an explore's view archive (`results["archive"]["elites"]`: the best view of each
+    (azimuth, elevation, distance) cell) as frustums of kind "elite", at the pose of the view each holds.
+
+    Args:
+      results: the explore's results.json.
+      poses: float [C, 4, 4] the poses of its population slots (training views, then generated ones).
+    """
+    elites = ((results.get("archive") or {}).get("elites")) or []
+    frustums = []
+    for elite in elites:
+        slot = elite.get("slot")
+        if not isinstance(slot, int) or not 0 <= slot < len(poses):
+            continue
+        label = (
+            f"archive cell {elite['cell']}: azimuth {elite.get('azimuth', float('nan')):.0f} deg, elevation "
+            f"{elite.get('elevation', float('nan')):.0f} deg, distance band {elite.get('distance_band')}"
+        )
+        frustums.append(
+            Frustum(f"/archive/{int(elite['cell']):03d}", "elite", poses[slot], elite.get("score"), None, None, label)
+        )
+    return frustums
+
+
 def _explore_scene(out: Path) -> ViewScene:
     """The `ViewScene` of an explore output folder."""
     results = read_json_file(
@@ -372,6 +397,9 @@ def _explore_scene(out: Path) -> ViewScene:
                         f"paper top-k #{entry['rank'] + 1}",
                     )
                 )
+    if generated is not None:  # the archive's elites name population slots: training views, then generated ones
+        slots = [f.c2w for f in frustums if f.kind in ("train", "view")]
+        frustums += archive_frustums(results, np.asarray(slots, np.float64).reshape(-1, 4, 4))
     all_scores = [s for s in scores_train + scores_generated if s is not None]
     for entry in results["topk"]:
         rank = int(entry["rank"])

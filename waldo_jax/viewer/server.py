@@ -32,8 +32,10 @@ __all__ = ["Viewer", "export_html", "import_viser", "serve"]
 TOPK_COLOR = (255, 120, 0)
 UNSCORED_COLOR = (150, 150, 150)
 PATH_COLOR = (220, 40, 40)
+ELITE_COLOR = (150, 60, 200)
 FRUSTUM_SHARE = 0.02  # a frustum's depth over the scene's extent
 TOPK_SCALE = 1.8  # the top-k's frustums over the others'
+ELITE_SCALE = 1.3  # an archive elite's frustum over the view it holds (drawn around it)
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 
 
@@ -76,6 +78,8 @@ def score_colors(frustums: Tuple[Frustum, ...], direction: str) -> List[Tuple[in
     for frustum, score in zip(frustums, scores):
         if frustum.kind == "topk":
             colors.append(TOPK_COLOR)
+        elif frustum.kind == "elite":
+            colors.append(ELITE_COLOR)
         elif not math.isfinite(score):
             colors.append(UNSCORED_COLOR)
         else:
@@ -154,7 +158,7 @@ class Viewer:
                 frustum.name,
                 fov=scene.fov_y,
                 aspect=scene.aspect,
-                scale=depth * (TOPK_SCALE if big else 1.0),
+                scale=depth * (TOPK_SCALE if big else ELITE_SCALE if frustum.kind == "elite" else 1.0),
                 thickness=depth * (0.04 if big else 0.02),
                 color=color,
                 wxyz=wxyz,
@@ -166,10 +170,11 @@ class Viewer:
                 api.add_label(f"{frustum.name}/label", f"#{frustum.topk_rank}")
         gui = self.server.gui
         gui.add_markdown(f"**waldo view**: {scene.title}")
-        counts = {k: sum(1 for f in scene.frustums if f.kind == k) for k in ("train", "view", "topk", "path")}
+        counts = {k: sum(1 for f in scene.frustums if f.kind == k) for k in ("train", "view", "topk", "elite", "path")}
         gui.add_markdown(
             f"{counts['train']} training views, {counts['view']} searched views, {counts['topk']} top-k shots "
-            "(orange); colour: score, yellow best. Click a camera."
+            f"(orange), {counts['elite']} archive elites (purple, under /archive); colour: score, yellow best. "
+            "Click a camera."
         )
         for note in scene.notes:
             gui.add_markdown(f"*{note}*")
