@@ -124,6 +124,7 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "generated_epochs": [int(e) for e in epochs_generated],
         "train_c2w": np.round(np.asarray(source.train_c2w, np.float64), 6).tolist(),
         "generated_c2w": np.round(np.asarray(population.c2w, np.float64)[slots], 6).tolist(),
+        "generated_slots": [int(s) for s in slots],
         "cvir": _float(result.cvir),
         "mcvir": _float(result.mcvir),
         "min_separation": config.min_separation,

@@ -314,26 +314,34 @@ def _ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
     return np.asarray(c2w, np.float64), tuple(f"ring_{i:02d}" for i in range(len(c2w)))
 
 
-def archive_frustums(results: Dict[str, Any], poses: np.ndarray) -> List[Frustum]:
+def archive_frustums(results: Dict[str, Any], train_c2w: np.ndarray, generated_c2w: np.ndarray) -> List[Frustum]:
     """The elites of an explore's view archive (`results["archive"]["elites"]`: the best view of each
     (azimuth, elevation, distance) cell) as frustums of kind "elite", at the pose of the view each holds.
 
+    An elite names a population slot: a training view below `n_train`, else a generated view, found through
+    results.json's `generated_slots` (the slots of `generated_c2w`; masked slots hold no view). Outputs
+    without `generated_slots` have no elites drawn.
+
     Args:
       results: the explore's results.json.
-      poses: float [C, 4, 4] the poses of its population slots (training views, then generated ones).
+      train_c2w, generated_c2w: float [N, 4, 4] and [G, 4, 4] its training and generated poses.
     """
     elites = ((results.get("archive") or {}).get("elites")) or []
+    if "generated_slots" not in results:
+        return []
+    pose_of = {i: m for i, m in enumerate(train_c2w)}
+    pose_of.update({int(s): m for s, m in zip(results["generated_slots"], generated_c2w)})
     frustums = []
     for elite in elites:
         slot = elite.get("slot")
-        if not isinstance(slot, int) or not 0 <= slot < len(poses):
+        if not isinstance(slot, int) or slot not in pose_of:
             continue
         label = (
             f"archive cell {elite['cell']}: azimuth {elite.get('azimuth', float('nan')):.0f} deg, elevation "
             f"{elite.get('elevation', float('nan')):.0f} deg, distance band {elite.get('distance_band')}"
         )
         frustums.append(
-            Frustum(f"/archive/{int(elite['cell']):03d}", "elite", poses[slot], elite.get("score"), None, None, label)
+            Frustum(f"/archive/{int(elite['cell']):03d}", "elite", pose_of[slot], elite.get("score"), None, None, label)
         )
     return frustums
 
@@ -397,9 +405,8 @@ def _explore_scene(out: Path) -> ViewScene:
                         f"paper top-k #{entry['rank'] + 1}",
                     )
                 )
-    if generated is not None:  # the archive's elites name population slots: training views, then generated ones
-        slots = [f.c2w for f in frustums if f.kind in ("train", "view")]
-        frustums += archive_frustums(results, np.asarray(slots, np.float64).reshape(-1, 4, 4))
+    if generated is not None and train_c2w is not None:
+        frustums += archive_frustums(results, train_c2w, np.asarray(generated, np.float64).reshape(-1, 4, 4))
     all_scores = [s for s in scores_train + scores_generated if s is not None]
     for entry in results["topk"]:
         rank = int(entry["rank"])
