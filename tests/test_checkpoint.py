@@ -355,3 +355,21 @@ def test_non_finite_field_parameters_are_refused_naming_the_file(tmp_path):
         r"\(1 arrays, e.g. \['hash'\]\)",
     ):
         ckpt.load_checkpoint(path)
+
+
+def test_a_run_of_the_demo_room_rebuilds_that_room_not_the_default(tmp_path):
+    """`waldo demo` trains on a room with a larger Waldo and wider stripes than `make_room(seed)`: its
+    checkpoint records them, and `run_source` (`waldo explore RUN`) rebuilds that room for its oracle."""
+    from waldo_jax.pipeline.sources import run_source
+    from waldo_jax.procedural import make_room, room_scene
+
+    room = make_room(1, waldo_scale=1.5, stripe_width=0.15)
+    scene, _ = room_scene(1, num_views=2, resolution=8, num_samples=16, room=room)
+    run = tmp_path / "run"
+    run.mkdir()
+    ckpt.save_checkpoint(run / ckpt.CHECKPOINT_NAME, init_field(jax.random.key(0), FIELD), _config(), scene)
+    source = run_source(str(run))
+    assert source.info["procedural_seed"] == 1
+    for name in ("center", "size", "waldo_points", "waldo_scale", "stripe_width"):
+        np.testing.assert_array_equal(getattr(source.room, name), getattr(room, name), err_msg=name)
+    assert not np.array_equal(make_room(1).waldo_points, room.waldo_points)  # the default room differs

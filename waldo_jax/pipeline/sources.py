@@ -30,7 +30,7 @@ from waldo_jax.errors import WaldoError, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.trained import TrainedField, render_setup
-from waldo_jax.procedural import make_room, room_field, room_render_config, room_scene
+from waldo_jax.procedural import make_room, room_field, room_from_metadata, room_render_config, room_scene
 from waldo_jax.render import render_views
 from waldo_jax.render.marched import render_marched
 from waldo_jax.scenes import load_scene
@@ -404,7 +404,7 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     room, truth = None, None
     if record.format == "procedural":
         seed = int(record.metadata.get("seed", 0))
-        room = make_room(seed)
+        room = room_from_metadata(record.metadata)  # the demo's room has a larger Waldo than make_room(seed)
         truth = room_renderer(room, intrinsics)
         info["procedural_seed"] = seed
         # The room's training images are its analytic renders: make them again at this size.

@@ -5,7 +5,8 @@ striped Waldo figure in a pen of crates. Densities come from signed distance fun
 trained and `waldo_jax.render` renders it like any other field:
   * `make_room(seed) -> WaldoRoom`, the geometry and the field's params; `room_field(room, x, d)`;
   * `training_cameras(key, room, ...)`: views that see Waldo at most partly; `room_scene(seed, ...)`:
-    those views rendered as a `waldo_jax.types.Scene`;
+    those views rendered as a `waldo_jax.types.Scene` (its metadata rebuild the room:
+    `room_from_metadata`);
   * `waldo_visibility`, `waldo_coverage(room, c2w, intrinsics)`, both at once `waldo_view`: exact
     oracles from the geometry; `FOUND_VISIBILITY` (0.9), the share of Waldo a view must show to find him.
 Modules, bottom to top: `room` (geometry and field), `visibility` (the oracles), `cameras`, `scene`.
@@ -31,6 +32,7 @@ from waldo_jax.procedural.scene import waldo_mask as waldo_mask
 from waldo_jax.procedural.scene import waldo_reference as waldo_reference
 from waldo_jax.procedural.scene import room_render_config as room_render_config
 from waldo_jax.procedural.scene import room_scene as room_scene
+from waldo_jax.procedural.scene import room_from_metadata as room_from_metadata
 
 __all__ = [
     "DENSITY",
@@ -42,6 +44,7 @@ __all__ = [
     "waldo_reference",
     "make_room",
     "room_field",
+    "room_from_metadata",
     "room_render_config",
     "room_scene",
     "room_sdf",

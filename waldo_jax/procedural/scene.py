@@ -70,9 +70,24 @@ def room_scene(
             "seed": int(seed),
             "num_samples": int(num_samples),
             "max_visibility": float(camera_config.max_visibility),
+            "waldo_scale": float(room.waldo_scale),
+            "stripe_width": float(room.stripe_width),
         },
     )
     return scene, room
+
+
+def room_from_metadata(metadata: dict) -> WaldoRoom:
+    """The room a procedural scene's `metadata` (as `room_scene` writes it, and a checkpoint keeps it)
+    was rendered from: its seed, Waldo's size and his stripes' width (a run written before the last two
+    were recorded has the default room's)."""
+    waldo_scale = float(metadata.get("waldo_scale", 1.0))
+    stripe_width = metadata.get("stripe_width")
+    return make_room(
+        int(metadata.get("seed", 0)),
+        waldo_scale=waldo_scale,
+        stripe_width=None if stripe_width is None else float(stripe_width),
+    )
 
 
 def held_out_scene(
