@@ -30,7 +30,7 @@ from waldo_jax.errors import WaldoError, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.trained import TrainedField, render_setup
-from waldo_jax.procedural import make_room, room_field, room_from_metadata, room_render_config, room_scene
+from waldo_jax.procedural import room_field, room_from_metadata, room_render_config, room_scene
 from waldo_jax.render import render_views
 from waldo_jax.render.marched import render_marched
 from waldo_jax.scenes import load_scene
