@@ -20,7 +20,16 @@ from waldo_jax.scenes import read_poses_file
 from waldo_jax.scenes.camera_paths import from_ngp, instant_ngp_camera_path, nerfstudio_camera_path, to_ngp
 from waldo_jax.search import ExploreConfig, Initial, explore
 from waldo_jax.search.path import catmull_rom, path_c2w, path_motion, sample_path, straight_path
-from waldo_jax.search.path_search import PathConfig, path_limits, search_path, search_path_loop, search_path_seeds
+from waldo_jax.search.path_search import (
+    EVOSAX_STD_INIT,
+    PathConfig,
+    default_params,
+    path_limits,
+    path_method,
+    search_path,
+    search_path_loop,
+    search_path_seeds,
+)
 from waldo_jax.types import Intrinsics, Pose
 
 TINY = PathConfig(keyframes=3, frames=8, epochs=2, initial_paths=6, paths_per_epoch=6)
@@ -104,9 +113,10 @@ def room():
     return source, jax.tree_util.Partial(frame_fn), scores, path_limits(source.train_c2w)
 
 
-def test_same_seed_same_path_scan_equals_loop(room):
+@pytest.mark.parametrize("method", ["egps", "evosax:CMA_ES"])
+def test_same_seed_same_path_scan_equals_loop(room, method):
     source, frame_fn, scores, limits = room
-    args = (frame_fn, source.train_c2w, scores, source.train_c2w, limits, TINY)
+    args = (frame_fn, source.train_c2w, scores, source.train_c2w, limits, dataclasses.replace(TINY, method=method))
     a = search_path(jax.random.key(3), *args)
     b = search_path(jax.random.key(3), *args)
     loop = search_path_loop(jax.random.key(3), *args)
@@ -119,6 +129,21 @@ def test_same_seed_same_path_scan_equals_loop(room):
     np.testing.assert_allclose(loop.population.score, a.population.score, rtol=1e-5)
     assert not np.array_equal(other.population.keyframes.origin, a.population.keyframes.origin)
     assert a.population.epoch.tolist() == [0] * 6 + [1] * 6 + [2] * 6
+
+
+def test_a_path_method_is_resolved_once_into_a_hashable_protocol_object():
+    egps_method, cma = path_method("egps"), path_method("evosax:CMA_ES")
+    assert cma is path_method("evosax:CMA_ES")  # one object per name: compilations are shared
+    assert len({egps_method, cma, path_method("egps")}) == 2  # hashable, usable as a static argument
+    assert (egps_method.name, cma.name) == ("egps", "evosax:CMA_ES")
+    assert egps_method.init(None, None, None, None, None, None) == ()  # stateless: no state, no key used
+    assert cma.init_fn is not None and cma.tell_fn is not None
+    assert float(default_params(PathConfig(method="evosax:CMA_ES")).std_init) == np.float32(EVOSAX_STD_INIT)
+    assert float(default_params(PathConfig()).rank_bias) == float(egps_method.default_params().rank_bias)
+    with pytest.raises(ValueError, match="egps or evosax:NAME"):
+        path_method("pibs")
+    with pytest.raises(ValueError, match="unknown evosax strategy"):
+        PathConfig(method="evosax:Nope")
 
 
 @pytest.mark.parametrize("method", ["egps", "evosax:CMA_ES"])

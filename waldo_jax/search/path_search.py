@@ -20,12 +20,15 @@ nearest anchors (from rank-biased random starts, jittered by `jitter` scene exte
     {-nabla, 0, +nabla} with nabla = 0.1 x the parents' gap);
   * "evosax:NAME": any evosax strategy on the keyframe vector [K x 9], normalised by the training
     poses as `waldo_jax.search.strategy` does for one pose.
+Each is a `PathMethod` (init / ask / tell), resolved from its name once by `path_method` and passed to
+the jitted search as a static argument, as `explore` takes a `SearchMethod`.
 The budget counts rendered (scored) frames: F x (initial_paths + epochs x paths_per_epoch).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Callable, Optional, Tuple, Union
 
@@ -54,6 +57,8 @@ __all__ = [
     "search_path_loop",
     "search_path_seeds",
     "check_method",
+    "PathMethod",
+    "path_method",
     "default_params",
     "EVOSAX_STD_INIT",
 ]
@@ -67,16 +72,8 @@ Budget = Union[str, Tuple[int, int]]
 
 def check_method(method: str) -> str:
     """`method` if the path search knows it ("egps" or "evosax:NAME"), else a ValueError naming the choices."""
-    if method == "egps":
-        return method
-    if method.startswith(evosax_strategy.PREFIX):
-        name = method[len(evosax_strategy.PREFIX) :]
-        if name not in evosax_strategy.strategy_names():
-            raise ValueError(
-                f"unknown evosax strategy {name!r}; choose one of {', '.join(evosax_strategy.strategy_names())}"
-            )
-        return method
-    raise ValueError(f"path search method must be egps or evosax:NAME, got {method!r}")
+    path_method(method)
+    return method
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,7 +374,72 @@ def _write(population: PathPopulation, keyframes: Pose, score, frame_scores, vio
 
 
 # ---------------------------------------------------------------------------------------------
-# The methods: EGPS on keyframes, evosax on keyframe vectors.
+# The methods: EGPS on keyframes, evosax on keyframe vectors, each a `PathMethod`.
+
+
+@dataclasses.dataclass(frozen=True)
+class PathMethod:
+    """One path-search method, resolved from its name once at the edge (`path_method`) and passed to the
+    jitted search as a static argument (hashable), as `waldo_jax.search.SearchMethod` is to `explore`.
+
+    A method draws each epoch's children from the population and may carry a state across epochs (an
+    evosax strategy's search distribution); a stateless one (EGPS) has no `init_fn` / `tell_fn`, its
+    state is `()`, and `init` does not use its key.
+
+    Attributes:
+      name: "egps" or "evosax:NAME".
+      params_fn: () -> the method's default numeric parameters (a pytree).
+      ask_fn: stateless: (key, population, params, config) -> (children, child_mask); with a state:
+        (key, population, state, params, config) -> (children, child_mask, state').
+      init_fn: (key, population, train, limits, params, config) -> state, after the initial paths.
+      tell_fn: (key, state, selection, params, config) -> state', `selection` [P] of the epoch's children.
+    """
+
+    name: str
+    params_fn: Callable[[], Any]
+    ask_fn: Callable[..., Any]
+    init_fn: Optional[Callable[..., Any]] = None
+    tell_fn: Optional[Callable[..., Any]] = None
+
+    def default_params(self) -> Any:
+        """The method's default numeric parameters."""
+        return self.params_fn()
+
+    def init(self, key, population, train, limits, params, config) -> Any:
+        """The state before epoch 1 (`()` for a stateless method)."""
+        return () if self.init_fn is None else self.init_fn(key, population, train, limits, params, config)
+
+    def ask(self, key, population, state, params, config) -> Tuple[Pose, Array, Any]:
+        """One epoch's (children: `Pose` [P, K, 3], child_mask: bool [P], state')."""
+        if self.init_fn is None:
+            children, mask = self.ask_fn(key, population, params, config)
+            return children, mask, state
+        return self.ask_fn(key, population, state, params, config)
+
+    def tell(self, key, state, selection, params, config) -> Any:
+        """The state after the children's `selection` [P] is known (unchanged for a stateless method)."""
+        return state if self.tell_fn is None else self.tell_fn(key, state, selection, params, config)
+
+
+def _egps_child(u: Array, keyframes: Pose, selection: Array, weights: Array, params: egps.Params, k: int) -> Pose:
+    parent1, parent2 = egps.select_parents(u[:2], weights, selection)
+    pick = lambda i: jax.tree.map(lambda x: x[i], keyframes)  # noqa: E731
+    return jax.vmap(egps.breed, in_axes=(0, 0, 0, None))(u[2:].reshape(k, 12), pick(parent1), pick(parent2), params)
+
+
+def _egps_ask(key, population: PathPopulation, params: egps.Params, config: PathConfig) -> Tuple[Pose, Array]:
+    """EGPS children [P, K, 3]: every keyframe bred from the same two rank-biased parent paths."""
+    n, k = config.paths_per_epoch, config.keyframes
+    selection = population.selection
+    weights, can_breed = egps.parent_weights(selection, params.rank_bias)
+    u = uniform_rows(key, n, 2 + 12 * k)
+    children = jax.vmap(_egps_child, in_axes=(0, None, None, None, None, None))(
+        u, population.keyframes, selection, weights, params, k
+    )
+    return children, jnp.broadcast_to(can_breed, (n,))
+
+
+_EGPS = PathMethod(name="egps", params_fn=egps.Params, ask_fn=_egps_ask)
 
 
 @flax.struct.dataclass
@@ -397,8 +459,7 @@ def _scaling(train: Pose, limits: PathLimits, k: int) -> Tuple[Array, Array]:
     return jnp.tile(shift, k), jnp.tile(jnp.maximum(spread, floor), k)
 
 
-def _strategy(config: PathConfig):
-    name = config.method[len(evosax_strategy.PREFIX) :]
+def _strategy(name: str, config: PathConfig):
     return evosax_strategy.make_strategy(name, config.paths_per_epoch, config.keyframes * evosax_strategy.POSE_DIM)
 
 
@@ -406,10 +467,9 @@ def _flat(keyframes: Pose) -> Array:
     return evosax_strategy.to_vector(keyframes).reshape(*keyframes.origin.shape[:-2], -1)
 
 
-def _start(key, population: PathPopulation, train: Pose, limits: PathLimits, params, config: PathConfig):
-    if config.method == "egps":
-        return ()
-    strategy = _strategy(config)
+def _evosax_init(name: str, key, population: PathPopulation, train: Pose, limits: PathLimits, params, config):
+    """The strategy `name`'s state, started from the best initial paths (repeated to P)."""
+    strategy = _strategy(name, config)
     shift, scale = _scaling(train, limits, config.keyframes)
     n, m = config.paths_per_epoch, config.initial_paths
     order = jax.lax.top_k(population.selection[:m], min(n, m))[1]
@@ -424,33 +484,20 @@ def _start(key, population: PathPopulation, train: Pose, limits: PathLimits, par
     return _EvosaxState(strategy=es_state, asked=jnp.zeros_like(start), shift=shift, scale=scale)
 
 
-def _egps_child(u: Array, keyframes: Pose, selection: Array, weights: Array, params: egps.Params, k: int) -> Pose:
-    parent1, parent2 = egps.select_parents(u[:2], weights, selection)
-    pick = lambda i: jax.tree.map(lambda x: x[i], keyframes)  # noqa: E731
-    return jax.vmap(egps.breed, in_axes=(0, 0, 0, None))(u[2:].reshape(k, 12), pick(parent1), pick(parent2), params)
-
-
-def _ask(key, population: PathPopulation, state, params, config: PathConfig):
+def _evosax_ask(name: str, key, population: PathPopulation, state: _EvosaxState, params, config: PathConfig):
+    """The strategy's P asked keyframe vectors as paths (all real)."""
+    del population
     n, k = config.paths_per_epoch, config.keyframes
-    if config.method == "egps":
-        selection = population.selection
-        weights, can_breed = egps.parent_weights(selection, params.rank_bias)
-        u = uniform_rows(key, n, 2 + 12 * k)
-        children = jax.vmap(_egps_child, in_axes=(0, None, None, None, None, None))(
-            u, population.keyframes, selection, weights, params, k
-        )
-        return children, jnp.broadcast_to(can_breed, (n,)), state
-    strategy = _strategy(config)
+    strategy = _strategy(name, config)
     asked, es_state = strategy.ask(key, state.strategy, evosax_strategy.strategy_params(strategy, params))
     asked = jnp.asarray(asked, jnp.float32)
     vectors = (state.shift + state.scale * asked).reshape(n, k, evosax_strategy.POSE_DIM)
     return evosax_strategy.to_pose(vectors), jnp.ones(n, bool), state.replace(strategy=es_state, asked=asked)
 
 
-def _tell(key, state, selection: Array, params, config: PathConfig):
-    if config.method == "egps":
-        return state
-    strategy = _strategy(config)
+def _evosax_tell(name: str, key, state: _EvosaxState, selection: Array, params, config: PathConfig):
+    """The state after the asked paths' selection is told back (negated: evosax minimises)."""
+    strategy = _strategy(name, config)
     loss = jnp.where(jnp.isfinite(selection), -selection, evosax_strategy.WORST)
     es_state, _ = strategy.tell(
         key, state.asked, loss, state.strategy, evosax_strategy.strategy_params(strategy, params)
@@ -464,19 +511,52 @@ def _tell(key, state, selection: Array, params, config: PathConfig):
 EVOSAX_STD_INIT = 0.3
 
 
+def _evosax_params() -> evosax_strategy.Params:
+    return evosax_strategy.Params(std_init=jnp.asarray(EVOSAX_STD_INIT, jnp.float32))
+
+
+@functools.lru_cache(maxsize=None)
+def _evosax_method(name: str) -> PathMethod:
+    """The path method "evosax:<name>" (one object per name: equal and hashed by identity of its bound
+    functions, so its compilations are reused)."""
+    return PathMethod(
+        name=evosax_strategy.PREFIX + name,
+        params_fn=_evosax_params,
+        ask_fn=functools.partial(_evosax_ask, name),
+        init_fn=functools.partial(_evosax_init, name),
+        tell_fn=functools.partial(_evosax_tell, name),
+    )
+
+
+def path_method(method: str) -> PathMethod:
+    """The `PathMethod` called `method` ("egps" or "evosax:NAME"): where the name is read, once.
+
+    Raises:
+      ValueError: an unknown method or evosax strategy (the message names the choices).
+    """
+    if method == "egps":
+        return _EGPS
+    if isinstance(method, str) and method.startswith(evosax_strategy.PREFIX):
+        name = method[len(evosax_strategy.PREFIX) :]
+        if name not in evosax_strategy.strategy_names():
+            raise ValueError(
+                f"unknown evosax strategy {name!r}; choose one of {', '.join(evosax_strategy.strategy_names())}"
+            )
+        return _evosax_method(name)
+    raise ValueError(f"path search method must be egps or evosax:NAME, got {method!r}")
+
+
 def default_params(config: PathConfig):
     """The method's default numeric parameters: `egps.Params()`, or `strategy.Params` with
     `EVOSAX_STD_INIT`."""
-    if config.method == "egps":
-        return egps.Params()
-    return evosax_strategy.Params(std_init=jnp.asarray(EVOSAX_STD_INIT, jnp.float32))
+    return path_method(config.method).default_params()
 
 
 # ---------------------------------------------------------------------------------------------
 # The search.
 
 
-def _init(key, frame_fn, anchors: Pose, anchor_fitness, train: Pose, limits: PathLimits, params, config: PathConfig):
+def _init(key, frame_fn, anchors, anchor_fitness, train: Pose, limits: PathLimits, params, method, config: PathConfig):
     c, f, k, m = config.capacity(), config.frames, config.keyframes, config.initial_paths
     empty = PathPopulation(
         keyframes=Pose(*(jnp.zeros((c, k, 3), jnp.float32) for _ in range(3))),
@@ -491,18 +571,18 @@ def _init(key, frame_fn, anchors: Pose, anchor_fitness, train: Pose, limits: Pat
     paths = initial_paths(start_key, anchors, anchor_fitness, train, limits, config)
     score, frame_scores, violation = _evaluate(frame_fn, paths, limits, config)
     population = _write(empty, paths, score, frame_scores, violation, jnp.ones(m, bool), 0, 0)
-    return population, _start(state_key, population, train, limits, params, config)
+    return population, method.init(state_key, population, train, limits, params, config)
 
 
-def _epoch(key, frame_fn, carry, epoch, train: Pose, limits: PathLimits, params, config: PathConfig):
+def _epoch(key, frame_fn, carry, epoch, train: Pose, limits: PathLimits, params, method, config: PathConfig):
     population, state = carry
     ask_key, tell_key = jax.random.split(jax.random.fold_in(key, epoch))
-    children, mask, state = _ask(ask_key, population, state, params, config)
+    children, mask, state = method.ask(ask_key, population, state, params, config)
     score, frame_scores, violation = _evaluate(frame_fn, children, limits, config)
     n = config.paths_per_epoch
     offset = config.initial_paths + (epoch - 1) * n
     population = _write(population, children, score, frame_scores, violation, mask, epoch, offset)
-    state = _tell(tell_key, state, jax.lax.dynamic_slice_in_dim(population.selection, offset, n), params, config)
+    state = method.tell(tell_key, state, jax.lax.dynamic_slice_in_dim(population.selection, offset, n), params, config)
     return population, state
 
 
@@ -529,28 +609,30 @@ def _finish(population: PathPopulation, curve: Array, config: PathConfig) -> Pat
     )
 
 
-def _search(key, frame_fn, anchors, anchor_fitness, train, limits, params, config: PathConfig) -> PathResult:
-    carry = _init(key, frame_fn, anchors, anchor_fitness, train, limits, params, config)
+def _search(key, frame_fn, anchors, anchor_fitness, train, limits, params, method, config: PathConfig) -> PathResult:
+    carry = _init(key, frame_fn, anchors, anchor_fitness, train, limits, params, method, config)
     first = _best_so_far(carry[0])
 
     def body(carry, epoch):
-        carry = _epoch(key, frame_fn, carry, epoch, train, limits, params, config)
+        carry = _epoch(key, frame_fn, carry, epoch, train, limits, params, method, config)
         return carry, _best_so_far(carry[0])
 
     (population, _), curve = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
     return _finish(population, jnp.concatenate([first[None], curve]), config)
 
 
-_search_jit = jax.jit(_search, static_argnames=("config",))
+# The method and the config are static: the jitted code calls the method, never reads its name.
+_search_jit = jax.jit(_search, static_argnames=("method", "config"))
 
 
-def _search_seeds(keys, frame_fn, anchors, anchor_fitness, train, limits, params, config: PathConfig) -> PathResult:
-    return jax.vmap(lambda key: _search(key, frame_fn, anchors, anchor_fitness, train, limits, params, config))(keys)
+def _search_seeds(keys, frame_fn, anchors, anchor_fitness, train, limits, params, method, config) -> PathResult:
+    search = lambda key: _search(key, frame_fn, anchors, anchor_fitness, train, limits, params, method, config)  # noqa: E731
+    return jax.vmap(search)(keys)
 
 
-_search_seeds_jit = jax.jit(_search_seeds, static_argnames=("config",))
-_init_jit = jax.jit(_init, static_argnames=("config",))
-_epoch_jit = jax.jit(_epoch, static_argnames=("config",))
+_search_seeds_jit = jax.jit(_search_seeds, static_argnames=("method", "config"))
+_init_jit = jax.jit(_init, static_argnames=("method", "config"))
+_epoch_jit = jax.jit(_epoch, static_argnames=("method", "config"))
 _finish_jit = jax.jit(_finish, static_argnames=("config",))
 
 
@@ -579,8 +661,9 @@ def _prepare(frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, par
     anchors = training_poses(anchor_c2w, focus)
     sign = direction_sign(config.direction)
     fitness = jnp.asarray(np.where(np.isfinite(anchor_scores), sign * anchor_scores, -np.inf), jnp.float32)
-    params = default_params(config) if params is None else params
-    return frame_fn, anchors, fitness, train, limits, params, config
+    method = path_method(config.method)
+    params = method.default_params() if params is None else params
+    return frame_fn, anchors, fitness, train, limits, params, method, config
 
 
 def search_path(
@@ -605,10 +688,10 @@ def search_path(
       config: `PathConfig`.
       params: the method's numeric parameters (default `default_params`).
     """
-    frame_fn, anchors, fitness, train, limits, params, config = _prepare(
+    frame_fn, anchors, fitness, train, limits, params, method, config = _prepare(
         frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
     )
-    return _search_jit(key, frame_fn, anchors, fitness, train, limits, params, config=config)
+    return _search_jit(key, frame_fn, anchors, fitness, train, limits, params, method=method, config=config)
 
 
 def search_path_seeds(
@@ -622,10 +705,10 @@ def search_path_seeds(
     params=None,
 ) -> PathResult:
     """`search_path` for a batch of keys [S], vmapped in one compiled call (leaves gain a leading [S])."""
-    frame_fn, anchors, fitness, train, limits, params, config = _prepare(
+    frame_fn, anchors, fitness, train, limits, params, method, config = _prepare(
         frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
     )
-    return _search_seeds_jit(keys, frame_fn, anchors, fitness, train, limits, params, config=config)
+    return _search_seeds_jit(keys, frame_fn, anchors, fitness, train, limits, params, method=method, config=config)
 
 
 def search_path_loop(
@@ -640,12 +723,12 @@ def search_path_loop(
 ) -> PathResult:
     """`search_path` as a Python loop over jitted epochs (same result): to inspect between epochs, and
     the reference the scan is tested against."""
-    frame_fn, anchors, fitness, train, limits, params, config = _prepare(
+    frame_fn, anchors, fitness, train, limits, params, method, config = _prepare(
         frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
     )
-    carry = _init_jit(key, frame_fn, anchors, fitness, train, limits, params, config=config)
+    carry = _init_jit(key, frame_fn, anchors, fitness, train, limits, params, method=method, config=config)
     curve = [_best_so_far(carry[0])]
     for epoch in range(1, config.epochs + 1):
-        carry = _epoch_jit(key, frame_fn, carry, jnp.int32(epoch), train, limits, params, config=config)
+        carry = _epoch_jit(key, frame_fn, carry, jnp.int32(epoch), train, limits, params, method=method, config=config)
         curve.append(_best_so_far(carry[0]))
     return _finish_jit(carry[0], jnp.stack(curve), config=config)
