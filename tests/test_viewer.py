@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
+import types
 import urllib.request
 from collections import Counter
 
@@ -193,6 +194,11 @@ class _Scripts(html.parser.HTMLParser):
 
 def _embedded_messages(page: str) -> Counter:
     """The message types of the viser scene embedded in an exported page."""
+    return Counter(message.get("type") for message in _embedded_scene(page))
+
+
+def _embedded_scene(page: str) -> list:
+    """The messages of the viser scene embedded in an exported page."""
     import msgspec
     import zstandard
 
@@ -201,7 +207,7 @@ def _embedded_messages(page: str) -> Counter:
     inner = zstandard.ZstdDecompressor().decompress(raw[8:], max_output_size=int.from_bytes(raw[:8], "little"))
     length = int.from_bytes(inner[:8], "little")
     recording = msgspec.msgpack.decode(inner[8 : 8 + length])
-    return Counter(message.get("type") for _, message in recording["messages"])
+    return [message for _, message in recording["messages"]]
 
 
 def test_export_writes_a_self_contained_page_with_the_frustums(donut_explore, tmp_path, capsys):
@@ -222,6 +228,12 @@ def test_export_writes_a_self_contained_page_with_the_frustums(donut_explore, tm
     messages = _embedded_messages(page)
     assert messages["CameraFrustumMessage"] == _expected_cameras(results)
     assert messages["GaussianSplatsMessage"] == 1
+    # The top-k shots' thumbnails: on their frustums in the scene, and in the page's shots panel.
+    topk = [m for m in _embedded_scene(page) if m.get("type") == "CameraFrustumMessage" and "/topk/" in m["name"]]
+    assert len(topk) == len(results["topk"]) and all(len(m["props"]["_image_data"] or b"") > 100 for m in topk)
+    gallery = page.split('<details id="waldo-shots"', 1)[1].split("</details>", 1)[0]
+    assert gallery.count('src="data:image/jpeg;base64,') == len(results["topk"])
+    assert f"#1 {results['topk'][0]['score']:.4g}" in gallery
     assert not any(attrs.get("src", "").startswith("http") for attrs, _ in parser.scripts)  # nothing fetched
     assert main(["view", str(out), "--export", str(target)]) == 1  # exists: --force overwrites
     assert "--force" in capsys.readouterr().err
@@ -311,33 +323,70 @@ def test_a_click_through_viser_moves_the_browsers_camera(donut_viewer, tmp_path)
         browser.wait(timeout=30)
 
 
-def test_a_nerf_run_is_drawn_as_its_opaque_cells_with_its_cameras(tmp_path, monkeypatch):
-    """A `waldo train` run: points at the grid cells the field makes at least half opaque (checked against
-    the field itself), inside its box, the same on a second load, and its training cameras."""
+def _half_occupied_run(folder):
+    """A NeRF run folder of an untrained tiny field whose occupancy grid marks only the x > 0 half of its box."""
     import jax
-    import jax.numpy as jnp
-    from test_bad_input import _write_run, _write_scene
 
-    import waldo_jax.viewer.scene as scene_module
+    from test_bad_input import _write_scene
+
+    from waldo_jax.nerf import HashGridConfig, NGPFieldConfig, init_field
+    from waldo_jax.nerf.checkpoint import save_checkpoint
+    from waldo_jax.nerf.config import TrainConfig
+    from waldo_jax.nerf.samplers import make_sampler
+    from waldo_jax.scenes import load_scene
+
+    _write_scene(folder / "scene")
+    scene = load_scene(folder / "scene")
+    field = NGPFieldConfig(
+        aabb=tuple(map(tuple, scene.aabb.tolist())),
+        hashgrid=HashGridConfig(L=2, T=2**8, F=2, N_min=4, N_max=8),
+        density_hidden=(8,),
+        color_hidden=(8,),
+    )
+    config = TrainConfig(field=field, steps=1, sampler="occupancy", occupancy_resolution=8, num_samples=8)
+    params = init_field(jax.random.key(0), field)
+    grid = make_sampler(config).init(jax.random.key(1), params)
+    x_index = np.arange(grid.bitfield.shape[1]) % grid.resolution  # cells run x fastest
+    grid = grid.replace(bitfield=np.broadcast_to(x_index >= grid.resolution // 2, grid.bitfield.shape).copy())
+    run = folder / "run"
+    run.mkdir()
+    save_checkpoint(run / "checkpoint.ckpt", params, config, scene, occupancy=grid)
+    return run
+
+
+def test_a_nerf_run_is_drawn_as_points_of_its_dense_occupied_cells(tmp_path, monkeypatch):
+    """A `waldo train` run: points only in the occupancy grid's occupied cells (here the x > 0 half), each where
+    the field makes a cell at least MIN_ALPHA opaque (checked against the field itself), the same points on a
+    second load, and its training cameras."""
+    import jax.numpy as jnp
+
+    import waldo_jax.viewer.nerf_points as module
     from waldo_jax.nerf.checkpoint import load_checkpoint
     from waldo_jax.nerf.field import make_field_batch
+    from waldo_jax.nerf.samplers import make_sampler
 
-    _write_scene(tmp_path / "scene")
-    _write_run(tmp_path / "run")
-    monkeypatch.setattr(scene_module, "NERF_OPACITY", 0.01)  # the untrained field is faint
-    view = load_view_scene(str(tmp_path / "run"))
+    run = _half_occupied_run(tmp_path)
+    checkpoint = load_checkpoint(run)
+    every, _ = module.nerf_points(checkpoint, count=10**6, min_alpha=0.0)
+    low, high = make_sampler(checkpoint.config).view_grid(checkpoint.occupancy).base_aabb
+    centre = 0.5 * (low[0] + high[0])
+    assert len(every) > 1000 and np.all(every[:, 0] > centre - 1e-6)  # the occupied half only
+    field = make_field_batch(checkpoint.config.field)
+    sigma = np.asarray(field(checkpoint.params, jnp.asarray(every), jnp.asarray(every))[0])
+    cell = float(np.max(high - low)) / module.DENSITY_GRID
+    threshold = float(np.median(1.0 - np.exp(-sigma * cell)))  # keeps about half of them
+    monkeypatch.setattr(module, "MIN_ALPHA", threshold)
+    view = load_view_scene(str(run))
     xyz, rgb = view.points
+    assert 0.3 * len(every) < len(xyz) < 0.7 * len(every) and rgb.shape == xyz.shape
+    assert np.all((rgb >= 0) & (rgb <= 1)) and len(xyz) <= module.MAX_POINTS
+    kept = np.asarray(field(checkpoint.params, jnp.asarray(xyz), jnp.asarray(xyz))[0])
+    assert np.all(1.0 - np.exp(-kept * cell) >= threshold - 1e-6)  # every point is that opaque
+    np.testing.assert_array_equal(xyz, load_view_scene(str(run)).points[0])  # deterministic
+    few, _ = module.nerf_points(checkpoint, count=500, min_alpha=threshold)
+    assert len(few) == 500  # bounded
     assert len(view.frustums) == 8 and all(f.kind == "train" for f in view.frustums)
-    assert xyz.shape[1] == 3 and rgb.shape == xyz.shape and 0 < len(xyz) <= scene_module.MAX_ROOM_POINTS
-    np.testing.assert_array_equal(xyz, load_view_scene(str(tmp_path / "run")).points[0])  # deterministic
-    checkpoint = load_checkpoint(tmp_path / "run")
-    low, high = np.asarray(checkpoint.scene.aabb) if checkpoint.scene.aabb is not None else checkpoint.config.field.aabb
-    assert np.all(xyz >= low - 1e-5) and np.all(xyz <= high + 1e-5)
-    sigma, _ = jax.jit(make_field_batch(checkpoint.config.field))(
-        checkpoint.params, jnp.asarray(xyz), jnp.ones_like(jnp.asarray(xyz))
-    )
-    cell = float(np.min(np.asarray(high) - np.asarray(low))) / scene_module.NERF_GRID
-    assert np.all(1.0 - np.exp(-np.asarray(sigma) * cell) >= 0.01 - 1e-6)
+    assert any("points of its density" in note for note in view.notes)
 
 
 def test_a_browser_camera_turns_back_into_the_pose_it_came_from():
@@ -410,11 +459,34 @@ def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
     try:
         assert viewer.frame_slider is not None and viewer.frame_slider.max == 7
         shown = viewer.show_frame(5, clients=[])
-        assert shown.name == "/path/0005" and viewer.selected is shown
+        assert shown.name == "/path/0005" and viewer.selected is shown and viewer.frame_slider.value == 5
         np.testing.assert_allclose(shown.c2w, view.camera_path[5])
         assert "path frame 5" in viewer.panel.content
+        # One browser drags the slider: every connected browser's camera follows.
+        dragging, watching = _Client(), _Client()
+        viewer.server.get_clients = lambda: {1: dragging, 2: watching}
+        viewer.frame_slider._impl.value = 3  # what the browser's drag sets, then its update event
+        for callback in viewer.frame_slider._impl.update_cb:
+            callback(types.SimpleNamespace(client=dragging, client_id=1, target=viewer.frame_slider))
+        for client in (dragging, watching):
+            np.testing.assert_allclose(client.camera.position, view.camera_path[3][:3, 3], atol=1e-6)
+        viewer.play_path(fps=200).join(timeout=30)  # the slider follows the play
+        assert viewer.frame_slider.value == 7 and viewer.selected.name == "/path/0007"
+        np.testing.assert_allclose(watching.camera.position, view.camera_path[7][:3, 3], atol=1e-6)
+        written = viewer.export_path()  # "Export this path": the path itself, in `waldo path`'s formats
     finally:
         viewer.stop()
+    assert [p.name for p in written] == ["camera_path.json", "instant_ngp_path.json"]
+    ours, theirs = (json.loads((folder / "camera_path.json").read_text()) for folder in (written[0].parent, out))
+    for key in ("render_width", "render_height", "fps", "seconds"):
+        assert ours[key] == theirs[key]
+    for name, key in (("camera_path", "camera_to_world"), ("keyframes", "matrix"), ("camera_path", "fov")):
+        # The path's own frames (read back from poses.json: equal up to its rounding).
+        np.testing.assert_allclose([f[key] for f in ours[name]], [f[key] for f in theirs[name]], atol=1e-6)
+    ours, theirs = (json.loads((folder / "instant_ngp_path.json").read_text()) for folder in (written[0].parent, out))
+    assert len(ours["path"]) == len(theirs["path"]) and ours["duration_seconds"] == theirs["duration_seconds"]
+    for key in ("R", "T", "fov", "timestamp"):
+        np.testing.assert_allclose([k[key] for k in ours["path"]], [k[key] for k in theirs["path"]], atol=1e-6)
 
 
 def test_the_archive_elites_are_drawn_at_the_views_they_hold(donut_explore):
@@ -431,3 +503,125 @@ def test_the_archive_elites_are_drawn_at_the_views_they_hold(donut_explore):
         slot = elite["slot"]
         np.testing.assert_allclose(frustum.c2w, train[slot] if slot < len(train) else generated[slot], atol=1e-6)
         assert frustum.score == pytest.approx(elite["score"])
+
+
+def _demo_folder(donut_explore, folder, settings=None):
+    """A `waldo demo`-shaped folder: summary.json (room seed 0, `settings`) and two method folders (copies of the
+    donut explore; a demo's are explores of its NeRF) without a nerf/ run."""
+    out, results = donut_explore
+    folder.mkdir()
+    for method in ("egps", "grs"):
+        shutil.copytree(out, folder / method)
+    summary = {"room_seed": 0, "criterion": results["criterion"], "settings": settings or {}}
+    summary["methods"] = {"egps": {}, "grs": {}}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    return folder
+
+
+def test_a_demo_output_shows_every_methods_shots_over_its_room(donut_explore, tmp_path):
+    """`waldo view runs/demo-X`: the room as points, the training cameras, each method's top-k under
+    /topk/<method> in its own colour and panel folder (hiding one hides its frustums); a method's folder alone
+    draws the same room. A demo whose NeRF does not record its room takes it from summary.json for scoring."""
+    from waldo_jax.viewer.server import GROUP_COLORS
+
+    _, results = donut_explore
+    settings = {"waldo_scale": 1.5, "stripe_width": 0.15}
+    demo = _demo_folder(donut_explore, tmp_path / "demo", settings)
+    scene = load_view_scene(str(demo))
+    k = len(results["topk"])
+    names = {f.name for f in scene.frustums}
+    assert {f"/topk/{m}/{r:02d}" for m in ("egps", "grs") for r in range(k)} <= names
+    assert sum(f.kind == "train" for f in scene.frustums) == results["n_train"]
+    assert {f.group for f in scene.frustums if f.kind == "topk"} == {"egps", "grs"}
+    assert scene.splats is None and scene.points is not None and len(scene.points[0]) > 1000  # the room
+    assert scene.room_metadata == {"seed": 0, **settings} and "egps" in scene.notes[0]
+    method = load_view_scene(str(demo / "grs"))
+    assert method.splats is None and np.array_equal(method.points[0], scene.points[0])
+    assert method.room_metadata == scene.room_metadata and any("waldo demo" in n for n in method.notes)
+    viewer = serve(scene, port=0)
+    try:
+        assert len(viewer.frustum_handles()) == results["n_train"] + 2 * k
+        assert tuple(viewer.handles["/topk/egps/00"].color) == GROUP_COLORS[0]
+        assert tuple(viewer.handles["/topk/grs/00"].color) == GROUP_COLORS[1]
+        viewer.select("/topk/grs/00", [_Client()])
+        assert "GRS" in viewer.panel.content and "top-k different shot **#1**" in viewer.panel.content
+        viewer.show_group("grs", False)
+        assert not viewer.handles["/topk/grs/03"].visible and viewer.handles["/topk/egps/03"].visible
+        assert viewer.live.room_metadata == scene.room_metadata
+    finally:
+        viewer.stop()
+
+
+def test_a_relative_source_is_found_again_beside_the_output(tmp_path, monkeypatch):
+    """results.json names its SOURCE as given where the run started (`runs/demo/nerf`); viewed from elsewhere, the
+    viewer finds it relative to the output's parents, or by name beside the output folder."""
+    from waldo_jax.viewer.scene import resolve_source
+
+    (tmp_path / "runs" / "demo" / "nerf").mkdir(parents=True)
+    out = tmp_path / "runs" / "demo" / "egps"
+    out.mkdir()
+    monkeypatch.chdir(out)  # not where the run started
+    assert resolve_source("runs/demo/nerf", out) == str(tmp_path / "runs" / "demo" / "nerf")
+    assert resolve_source("moved/elsewhere/nerf", out) == str(tmp_path / "runs" / "demo" / "nerf")
+    assert resolve_source("procedural:3", out) == "procedural:3"
+    assert resolve_source("missing/run", out) == "missing/run"  # nothing found: as written (its error says so)
+
+
+def test_a_guarded_criterion_is_rebuilt_from_its_recorded_name(monkeypatch):
+    """ "Score this view" builds the run's criterion from its recorded name: a guarded one's guards come back."""
+    from waldo_jax.criteria import build_criterion
+    from waldo_jax.errors import WaldoError
+    from waldo_jax.viewer.live import LiveView, criterion_spec
+
+    guarded = build_criterion("colorfulness", guards=["opacity:0.9"])
+    spec, guards = criterion_spec(guarded.name)
+    assert (spec, guards) == ("colorfulness", ["opacity:0.9"])
+    assert build_criterion(spec, guards=guards).name == guarded.name
+    assert criterion_spec("colorfulness") == ("colorfulness", [])
+    with pytest.raises(WaldoError, match="not a guard"):
+        criterion_spec("colorfulness|opacity")
+    built = []
+
+    def score_function(source, criterion):  # what the viewer scores with, without rendering anything
+        built.append(criterion)
+        return lambda c2w: np.full(len(c2w), 0.5, np.float32)
+
+    monkeypatch.setattr("waldo_jax.pipeline.experiment.score_function", score_function)
+    live = LiveView("procedural:0", guarded.name, scores=(0.9, 0.1), direction="max")
+    live._source = types.SimpleNamespace(room=None, train_c2w=None)  # loading the room is not what is tested
+    assert live.score(np.eye(4)) == (0.5, 2)
+    assert [c.name for c in built] == [guarded.name]
+
+
+def test_export_path_writes_the_top_shots_as_keyframes(donut_explore, tmp_path):
+    """ "Export this path" on an explore output: its top-k shots in rank order as keyframes, written by `waldo
+    path`'s writers as camera_path.json and instant_ngp_path.json into a new viewer_path_NN (never over an
+    earlier one), read back by `waldo render --poses`'s reader, and listed in the panel."""
+    from waldo_jax.scenes.camera_paths import read_camera_path
+    from waldo_jax.types import Intrinsics
+    from waldo_jax.viewer.paths import FRAMES_PER_SHOT
+
+    out, results = donut_explore
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    (copy / "viewer_path_01").mkdir()  # an earlier export
+    (copy / "viewer_path_01" / "camera_path.json").write_text("{}")
+    viewer = serve(load_view_scene(str(copy)), port=0)
+    try:
+        written = viewer.export_path()
+        assert written == [
+            copy / "viewer_path_02" / "camera_path.json",
+            copy / "viewer_path_02" / "instant_ngp_path.json",
+        ]
+        assert (copy / "viewer_path_01" / "camera_path.json").read_text() == "{}"
+        assert all(str(p) in viewer.export_panel.content for p in written)
+        assert viewer.export_path()[0].parent.name == "viewer_path_03"
+    finally:
+        viewer.stop()
+    shots = np.stack([np.asarray(t["c2w"]) for t in sorted(results["topk"], key=lambda t: t["rank"])])
+    default = Intrinsics.create(8, 8, 8.0, 8.0)
+    for path in written:
+        frames, intrinsics = read_camera_path(json.loads(path.read_text()), default)
+        assert len(frames) == (len(shots) - 1) * FRAMES_PER_SHOT + 1
+        np.testing.assert_allclose(frames[::FRAMES_PER_SHOT], shots, atol=1e-5)  # the shots are the keyframes
+        assert (intrinsics.width, intrinsics.height) == tuple(results["resolution"])

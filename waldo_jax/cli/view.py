@@ -1,8 +1,9 @@
 """`waldo view PATH [--port N] [--host H] [--export FILE.html]`: a scene and a search in 3D, in the browser.
 
-PATH is an output folder of `waldo explore` (its results.json) or a SOURCE (a splat scene, `procedural[:SEED]`);
-see `waldo_jax.viewer`. Without --export it serves the viewer (viser) until Ctrl-C (or --seconds) and prints
-its URL; with --export it writes a self-contained HTML snapshot instead and serves nothing.
+PATH is an output folder of `waldo explore`, `waldo path` or `waldo demo`, or a SOURCE (a splat scene,
+`procedural[:SEED]`, a NeRF run); see `waldo_jax.viewer`. Without --export it serves the viewer (viser) until
+Ctrl-C (or --seconds) and prints its URL; with --export it writes a self-contained HTML snapshot instead and
+serves nothing.
 """
 
 from __future__ import annotations
@@ -22,11 +23,17 @@ def add_command(subparsers) -> None:
     p = subparsers.add_parser(
         "view",
         help="see a scene and a search in 3D in the browser (viser): splats, cameras, views by score",
-        description="Serve an interactive 3D viewer of PATH: the scene (Gaussian splats, or the procedural room "
-        "as points), the training cameras and the search's views as frustums coloured by score, the top-k "
-        "highlighted; click a camera to fly there and see its rank and score. Needs viser (the `view` extra).",
+        description="Serve an interactive 3D viewer of PATH: the scene (Gaussian splats; the procedural room or a "
+        "NeRF's density as points), the training cameras and the search's views as frustums coloured by score, the "
+        "top-k highlighted with their images (a demo: each method's in its colour); click a camera to fly there "
+        "and see its rank and score; render and score the current view; play a camera path; export the path "
+        "shown for nerfstudio / Instant-NGP. Needs viser (the `view` extra).",
     )
-    p.add_argument("path", metavar="PATH", help="an output folder of waldo explore, or a SOURCE (splats, procedural)")
+    p.add_argument(
+        "path",
+        metavar="PATH",
+        help="an output folder of waldo explore, path or demo, or a SOURCE (splats, procedural, a NeRF run)",
+    )
     p.add_argument("--port", type=int, default=8080, help="port to serve on (the next free one if taken; 0: any)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
     p.add_argument("--export", metavar="FILE.html", default=None, help="write a self-contained HTML snapshot")

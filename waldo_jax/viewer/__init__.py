@@ -4,8 +4,9 @@
     viewer = waldo_jax.view("runs/donut_explore")   # in a notebook: shows it inline; viewer.url in a browser
     viewer.stop()
 
-`scene` reads PATH (an explore output or a SOURCE) into a `ViewScene` without a browser library; `server` draws
-it with viser (imported only there; the `view` extra installs it).
+`load` reads PATH (an output of `waldo explore`, `waldo path` or `waldo demo`, or a SOURCE) into a `ViewScene`
+(`scene`, `demo`, `nerf_points`) without a browser library; `server` draws it with viser (imported only there; the
+`view` extra installs it); `live` renders and scores the browser's camera, `paths` exports the path shown.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from waldo_jax.viewer.scene import Frustum as Frustum
 from waldo_jax.viewer.scene import SplatCloud as SplatCloud
 from waldo_jax.viewer.scene import ViewerError as ViewerError
 from waldo_jax.viewer.scene import ViewScene as ViewScene
-from waldo_jax.viewer.scene import load_view_scene as load_view_scene
+from waldo_jax.viewer.load import load_view_scene as load_view_scene
 
 __all__ = ["Frustum", "SplatCloud", "ViewScene", "ViewerError", "load_view_scene", "view"]
 
@@ -26,7 +27,8 @@ def view(path: str, port: int = 0, host: str = "127.0.0.1", height: int = 600):
     `viewer.url` is the address, `viewer.stop()` ends it.
 
     Args:
-      path: an output folder of `waldo explore` (results.json), a splat scene or `procedural[:SEED]`.
+      path: an output folder of `waldo explore`, `waldo path` or `waldo demo`, a splat scene, a NeRF run or
+        `procedural[:SEED]`.
       port: the port to serve on (0: any free one).
       host: the address to listen on (127.0.0.1: this machine only).
       height: the IFrame's height in pixels.

@@ -2,9 +2,9 @@
 
 `LiveView` loads the SOURCE of what `waldo view` shows (an explore output's source, or the SOURCE given)
 the first time it is asked, at the run's resolution capped to `MAX_LIVE_SIDE` pixels a side (a render
-on demand must come back in seconds on a CPU), and builds the run's criterion by its name
-(`waldo_jax.criteria.combine.build_criterion`, with the source's room and training poses). A score is
-placed among the search's own scores: the rank it would have had.
+on demand must come back in seconds on a CPU), and builds the run's criterion from its recorded name
+(`criterion_spec`: a guarded `PRIMARY|GUARD>=T` back into `build_criterion`'s spec and guards, with the
+source's room and training poses). A score is placed among the search's own scores: the rank it would have had.
 
 Poses are OpenGL camera-to-world [4, 4], as everywhere in waldo_jax; `opengl_c2w` turns a browser
 camera (viser's OpenCV convention: wxyz and position) into one.
@@ -18,7 +18,7 @@ import numpy as np
 
 from waldo_jax.errors import WaldoError
 
-__all__ = ["MAX_LIVE_SIDE", "LiveView", "opengl_c2w"]
+__all__ = ["MAX_LIVE_SIDE", "LiveView", "criterion_spec", "opengl_c2w"]
 
 MAX_LIVE_SIDE = 128
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
@@ -41,6 +41,26 @@ def opengl_c2w(wxyz, position) -> np.ndarray:
     return c2w
 
 
+def criterion_spec(name: str) -> Tuple[str, List[str]]:
+    """(spec, guards) that `build_criterion` takes for a criterion's recorded name.
+
+    A guarded criterion is recorded as `PRIMARY|GUARD>=T|...` (`criteria.combine.constrained`, "<=" for a
+    "min" guard); its guards come back as `GUARD:T`, in order.
+
+    Raises:
+      WaldoError: a `|` part that is no `GUARD>=T` / `GUARD<=T`.
+    """
+    primary, *guarded = name.split("|")
+    guards = []
+    for part in guarded:
+        relation = ">=" if ">=" in part else "<=" if "<=" in part else None
+        if relation is None:
+            raise WaldoError(f"criterion {name!r}: {part!r} is not a guard GUARD>=T or GUARD<=T")
+        guard, _, threshold = part.partition(relation)
+        guards.append(f"{guard}:{threshold}")
+    return primary, guards
+
+
 class LiveView:
     """Renders and scores poses of one SOURCE with one criterion, loading both on first use.
 
@@ -50,6 +70,8 @@ class LiveView:
       resolution: (width, height) of the run's renders, or None (the source's own).
       scores: the search's scores (training views and generated ones), for the rank of a new score.
       direction: "max" or "min", the criterion's.
+      room_metadata: the procedural room's metadata (`procedural.room_from_metadata`) where the source's
+        checkpoint does not record it (a `waldo demo` run older than that record), else None.
     """
 
     def __init__(
@@ -59,8 +81,10 @@ class LiveView:
         resolution: Optional[Tuple[int, int]] = None,
         scores: Tuple[Optional[float], ...] = (),
         direction: str = "max",
+        room_metadata: Optional[dict] = None,
     ):
         self.spec, self.criterion_name, self.direction = spec, criterion, direction
+        self.room_metadata = room_metadata
         side = max(resolution) if resolution else MAX_LIVE_SIDE
         self.side = int(min(side, MAX_LIVE_SIDE))
         self.scores: List[float] = [float(s) for s in scores if s is not None and np.isfinite(s)]
@@ -97,8 +121,14 @@ class LiveView:
             from waldo_jax.pipeline.experiment import score_function
 
             source = self.source
-            context = CriterionContext(room=source.room, source=self.spec, train_c2w=source.train_c2w)
-            self._score_fn = score_function(source, build_criterion(self.criterion_name, context))
+            room = source.room
+            if self.room_metadata is not None:
+                from waldo_jax.procedural import room_from_metadata
+
+                room = room_from_metadata(self.room_metadata)
+            context = CriterionContext(room=room, source=self.spec, train_c2w=source.train_c2w)
+            spec, guards = criterion_spec(self.criterion_name)
+            self._score_fn = score_function(source, build_criterion(spec, context, guards))
         value = float(np.asarray(self._score_fn(jnp.asarray(np.asarray(c2w, np.float32)[None])))[0])
         if not np.isfinite(value):
             return value, None

@@ -1,11 +1,12 @@
 """What `waldo view` draws, read from disk without a browser library: a `ViewScene`.
 
-PATH is an output folder of `waldo explore` (its results.json) or a SOURCE (a splat scene, `procedural[:SEED]`).
-The scene's geometry comes from the SOURCE: a splat scene gives its Gaussians (`SplatCloud`: means, covariances
-from scales and rotations, colours from the SH DC term, opacities); the procedural room gives a point cloud of
-its surfaces (`room_points`). A NeRF run has no geometry here (a note says so). The cameras are `Frustum`s: the
-training views and every scored view of the search, with their scores, ranks among all scored views and, for
-the top-k different shots, their rank there and image.
+PATH is an output folder of `waldo explore` or `waldo path` (its results.json), of `waldo demo`
+(`viewer.demo`), or a SOURCE (a splat scene, `procedural[:SEED]`, a NeRF run). The scene's geometry comes from
+the SOURCE: a splat scene gives its Gaussians (`SplatCloud`: means, covariances from scales and rotations,
+colours from the SH DC term, opacities); the procedural room a point cloud of its surfaces (`room_points`); a
+NeRF run a point cloud of its density (`viewer.nerf_points`). The cameras are `Frustum`s: the training views
+and every scored view of the search, with their scores, ranks among all scored views and, for the top-k
+different shots, their rank there and image.
 
 Poses are OpenGL camera-to-world [4, 4] (x right, y up, z backwards), as everywhere in waldo_jax.
 """
@@ -27,19 +28,18 @@ __all__ = [
     "SplatCloud",
     "ViewScene",
     "ViewerError",
-    "load_view_scene",
     "archive_frustums",
-    "nerf_points",
+    "explore_scene",
+    "path_scene",
+    "ring_of",
+    "source_geometry",
+    "resolve_source",
     "room_points",
     "splat_cloud",
 ]
 
 DEFAULT_FOV_Y_DEG = 50.0
 MAX_ROOM_POINTS = 60_000
-# A NeRF as points (`nerf_points`): its density on a grid of this many cells a side, a cell kept where it
-# is at least this opaque across its width.
-NERF_GRID = 96
-NERF_OPACITY = 0.5
 
 
 class ViewerError(WaldoError, ValueError):
@@ -75,6 +75,7 @@ class Frustum:
       topk_rank: 1-based rank among the top-k different shots (None if not one of them).
       label: what it is, in words ("training view ring_03", "view 17, epoch 2").
       image: the PNG of its render on disk (the top-k's), or None.
+      group: the method whose shot it is in a `waldo demo` output ("egps", ...); "" elsewhere.
     """
 
     name: str
@@ -85,6 +86,7 @@ class Frustum:
     topk_rank: Optional[int]
     label: str
     image: Optional[Path] = None
+    group: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +105,10 @@ class ViewScene:
       scores: the search's scores, training views first (for the rank of a view scored in the viewer).
       camera_path: a `waldo path` output's camera path, float [F, 4, 4] OpenGL c2w per frame, or None; path_fps
         its frame rate.
+      source_info: results.json's `source_info` (Instant-NGP's frame of the scene, for exported paths).
+      room_metadata: the procedural room's metadata (`procedural.room_from_metadata`) for scoring, where the
+        source's checkpoint does not record it (a `waldo demo` run older than that record); None otherwise.
+      output: the output folder an exported camera path goes into (None for a SOURCE: nothing to export).
     """
 
     path: str
@@ -120,6 +126,9 @@ class ViewScene:
     scores: Tuple[Optional[float], ...] = ()
     camera_path: Optional[np.ndarray] = None
     path_fps: float = 12.0
+    source_info: Dict[str, Any] = dataclasses.field(default_factory=dict)
+    room_metadata: Optional[Dict[str, Any]] = None
+    output: Optional[Path] = None
 
     def extent(self) -> float:
         """A length for the scene's size: the diagonal of the cameras' (or the geometry's) box."""
@@ -186,58 +195,16 @@ def room_points(room, count: int = MAX_ROOM_POINTS, seed: int = 0) -> Tuple[np.n
     return xyz.astype(np.float32), np.asarray(rgb, np.float32)
 
 
-def nerf_points(
-    field, cameras: np.ndarray, count: int = MAX_ROOM_POINTS, resolution: int = NERF_GRID, chunk: int = 1 << 16
-) -> Tuple[np.ndarray, np.ndarray]:
-    """A trained NeRF as points: (xyz [P, 3], rgb [P, 3]), P <= count, from its density on a grid.
-
-    The field's density is read at the centres of a `resolution`^3 grid over its box; a cell is kept where
-    its opacity across the cell, 1 - exp(-sigma * cell), is at least `NERF_OPACITY` (the most opaque
-    `count` of them where more are), coloured by the field seen from the training cameras' mean centre.
-    Deterministic (no random draws).
-
-    Args:
-      field: a `waldo_jax.nerf.trained.TrainedField`.
-      cameras: float [N, 4, 4] training camera-to-world matrices (for the viewing direction of the colours).
-    """
-    import jax
-    import jax.numpy as jnp
-
-    from waldo_jax.nerf.field import make_field_batch
-
-    low, high = np.asarray(field.aabb, np.float64)
-    axes = [np.linspace(lo, hi, resolution, endpoint=False) + (hi - lo) / (2 * resolution) for lo, hi in zip(low, high)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-    eye = np.mean(np.asarray(cameras, np.float64)[:, :3, 3], axis=0) if len(cameras) else high + (high - low)
-    batch = jax.jit(make_field_batch(field.config.field))
-    sigma, rgb = [], []
-    for start in range(0, len(grid), chunk):
-        xs = grid[start : start + chunk]
-        pad = chunk - len(xs)
-        xs_padded = np.concatenate([xs, np.repeat(xs[-1:], pad, 0)]) if pad else xs
-        s, c = batch(field.params, jnp.asarray(xs_padded), jnp.asarray(xs_padded - eye.astype(np.float32)))
-        sigma.append(np.asarray(s)[: len(xs)])
-        rgb.append(np.asarray(c)[: len(xs)])
-    sigma, rgb = np.concatenate(sigma), np.concatenate(rgb)
-    cell = float(np.min(high - low)) / resolution
-    opacity = 1.0 - np.exp(-np.nan_to_num(sigma, nan=0.0) * cell)
-    keep = np.flatnonzero(opacity >= NERF_OPACITY)
-    keep = keep[np.argsort(-opacity[keep], kind="stable")[:count]]
-    keep.sort()
-    return grid[keep], np.clip(rgb[keep], 0.0, 1.0).astype(np.float32)
-
-
 def _run_geometry(spec: str, notes: List[str]):
     """(None, points, train_c2w, names, fov_y, aspect) of a `waldo train` / `waldo demo` run folder."""
     from waldo_jax.nerf.checkpoint import load_checkpoint
-    from waldo_jax.nerf.trained import TrainedField
+    from waldo_jax.viewer.nerf_points import density_note, nerf_points
 
     checkpoint = load_checkpoint(spec)
     record = checkpoint.scene
     c2w = np.asarray(record.c2w, np.float64)
-    points = nerf_points(TrainedField.from_checkpoint(checkpoint), c2w)
-    if not len(points[0]):
-        notes.append(f"{spec}: no cell of the field is opaque (opacity >= {NERF_OPACITY:g} across a cell): no points")
+    points = nerf_points(checkpoint)
+    notes.append(density_note(points[0]))
     intrinsics = record.intrinsics
     fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
     return None, points, c2w, tuple(record.file_names), fov_y, intrinsics.width / intrinsics.height
@@ -268,7 +235,7 @@ def _intrinsics_of(out: Path, results: Dict[str, Any]) -> Tuple[float, float]:
     return math.radians(DEFAULT_FOV_Y_DEG), aspect
 
 
-def _source_geometry(spec: str, notes: List[str]):
+def source_geometry(spec: str, notes: List[str]):
     """(splats, points, train_c2w or None, train names, fov_y or None, aspect or None) of a SOURCE string."""
     from waldo_jax.pipeline.sources import parse_procedural
     from waldo_jax.pipeline.splat_sources import is_splat_spec
@@ -300,7 +267,7 @@ def _source_geometry(spec: str, notes: List[str]):
     )
 
 
-def _ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
+def ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
     """The default ring of views of a splat scene without cameras (what `waldo explore` starts from)."""
     from waldo_jax.pipeline.splat_sources import RING_FOV_DEG, SPLAT_RESOLUTION, ring_cameras, splat_upright
     from waldo_jax.splats.io import load_splat_model
@@ -346,27 +313,55 @@ def archive_frustums(results: Dict[str, Any], train_c2w: np.ndarray, generated_c
     return frustums
 
 
-def _explore_scene(out: Path) -> ViewScene:
-    """The `ViewScene` of an explore output folder."""
+def resolve_source(spec: str, out: Path) -> str:
+    """The SOURCE a results.json names, found again: as written (procedural, absolute, or relative to the
+    working folder), else relative to one of the output folder's parents, else its last part beside the output
+    folder (`waldo demo --out runs/demo` writes `runs/demo/nerf` into its method folders `runs/demo/egps`, ...).
+    `spec` itself where none of these exists."""
+    from waldo_jax.pipeline.sources import parse_procedural
+
+    if not spec or parse_procedural(spec) is not None or Path(spec).exists() or Path(spec).is_absolute():
+        return spec
+    for folder in list(Path(out).resolve().parents)[:3]:
+        if (folder / spec).exists():
+            return str(folder / spec)
+    beside = Path(out).resolve().parent / Path(spec).name
+    return str(beside) if beside.exists() else spec
+
+
+def explore_scene(out: Path, geometry: bool = True, demo=None) -> ViewScene:
+    """The `ViewScene` of an explore output folder.
+
+    Args:
+      out: the folder (its results.json, poses.json, topk/).
+      geometry: False: the cameras only, no splats or points.
+      demo: the `viewer.demo.DemoRoom` of the `waldo demo` the folder is a method of (its room is drawn, and
+        scored with where its NeRF does not record it), or None.
+    """
+
     results = read_json_file(
         out / "results.json", "results file", lambda problem: ViewerError(f"{out / 'results.json'}: {problem}")
     )
     if not isinstance(results, dict) or "topk" not in results or "source" not in results:
         raise ViewerError(f"{out / 'results.json'}: not the results of `waldo explore` (no topk / source)")
     notes: List[str] = []
-    spec = str(results["source"])
+    spec = resolve_source(str(results["source"]), out)
     direction = str(results.get("direction", "max"))
     splats = points = None
     train_c2w, names, fov_y, aspect = None, (), None, None
     try:
-        splats, points, train_c2w, names, _, _ = _source_geometry(spec, notes)
+        if geometry and demo is not None:  # the room the demo's NeRF learnt, not the NeRF's density
+            points = room_points(demo.room, seed=demo.seed)
+            notes.append(f"a method folder of the `waldo demo` {out.resolve().parent}: its room is drawn")
+        elif geometry:
+            splats, points, train_c2w, names, _, _ = source_geometry(spec, notes)
     except WaldoError as e:
         notes.append(f"the scene's geometry is not drawn: {e}")
     fov_y, aspect = _intrinsics_of(out, results)
     if "train_c2w" in results:
         train_c2w = np.asarray(results["train_c2w"], np.float64).reshape(-1, 4, 4)
     elif train_c2w is None and splats is not None:
-        train_c2w, names = _ring_of(spec)
+        train_c2w, names = ring_of(spec)
         notes.append("results.json predates train_c2w: the training views are the default ring (--up/--orbit lost)")
     generated = results.get("generated_c2w")
     if generated is None:
@@ -445,21 +440,24 @@ def _explore_scene(out: Path) -> ViewScene:
         source=spec,
         resolution=tuple(int(v) for v in resolution[:2]) if resolution else None,
         scores=tuple(scores_train + scores_generated),
+        source_info=dict(results.get("source_info") or {}),
+        room_metadata=None if demo is None or demo.recorded else demo.metadata,
+        output=out,
     )
 
 
-def _path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
+def path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
     """The `ViewScene` of a `waldo path` output folder: the scene, its training views and the camera path
     (poses.json, one camera per frame, each with its frame's score)."""
     from waldo_jax.scenes import read_poses_file
     from waldo_jax.types import Intrinsics
 
     notes: List[str] = []
-    spec = str(results["source"])
+    spec = resolve_source(str(results["source"]), out)
     splats = points = train_c2w = None
     names: Tuple[str, ...] = ()
     try:
-        splats, points, train_c2w, names, _, _ = _source_geometry(spec, notes)
+        splats, points, train_c2w, names, _, _ = source_geometry(spec, notes)
     except WaldoError as e:
         notes.append(f"the scene's geometry is not drawn: {e}")
     size = (results.get("video") or {}).get("frame_size") or [64, 64]
@@ -490,50 +488,9 @@ def _path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
         direction,
         tuple(notes),
         source=spec,
+        resolution=(int(intrinsics.width), int(intrinsics.height)),
         camera_path=c2w,
         path_fps=float((results.get("video") or {}).get("fps") or 12.0),
-    )
-
-
-def load_view_scene(path: str) -> ViewScene:
-    """The `ViewScene` of PATH: an explore output folder (results.json) or a SOURCE.
-
-    Raises:
-      ViewerError (or another `WaldoError` of the file it reads): PATH is missing, or a folder that is neither
-        an explore output nor a scene, or a results.json that is not an explore's.
-    """
-    from waldo_jax.pipeline.sources import parse_procedural
-
-    text = str(path)
-    if parse_procedural(text) is None and not Path(text).exists():
-        raise ViewerError(f"PATH {text!r}: no such file or folder")
-    folder = Path(text)
-    if folder.is_dir() and (folder / "results.json").is_file():
-        results = read_json_file(
-            folder / "results.json",
-            "results file",
-            lambda problem: ViewerError(f"{folder / 'results.json'}: {problem}"),
-        )
-        if isinstance(results, dict) and "limits" in results and "found" in results and "source" in results:
-            return _path_scene(folder, results)
-        return _explore_scene(folder)
-    from waldo_jax.pipeline.splat_sources import is_splat_spec
-
-    if folder.is_dir() and not is_splat_spec(text) and not (folder / "checkpoint.ckpt").is_file():
-        raise ViewerError(
-            f"PATH {text!r} is a folder but neither an output of `waldo explore` (no results.json) nor a scene "
-            "(a 3DGS model folder, a `waldo train` run)"
-        )
-    notes = []
-    splats, points, c2w, names, fov_y, aspect = _source_geometry(text, notes)
-    if c2w is None and splats is not None:
-        c2w, names = _ring_of(text)
-        notes.append("the splats have no cameras: the training views drawn are `waldo explore`'s default ring")
-    frustums = tuple(
-        Frustum(f"/train/{i:04d}", "train", m, None, None, None, f"training view {names[i] if i < len(names) else i}")
-        for i, m in enumerate(() if c2w is None else c2w)
-    )
-    fov_y = math.radians(DEFAULT_FOV_Y_DEG) if fov_y is None else fov_y
-    return ViewScene(
-        text, f"scene {text}", splats, points, frustums, fov_y, aspect or 1.0, notes=tuple(notes), source=text
+        source_info=dict(results.get("source_info") or {}),
+        output=out,
     )

@@ -2,11 +2,13 @@
 
 The scene graph: `/scene/splats` (Gaussian splats) or `/scene/points` (a point cloud), one camera frustum per
 `Frustum` under `/train`, `/views`, `/topk` and `/path`, coloured by score (viridis, the best yellow; grey when
-unscored), the top-k larger and orange, a camera path's line `/path/line`. Clicking a frustum (`Viewer.select`)
+unscored), the top-k larger, orange (a demo: one colour per method, `/topk/<method>`, a panel folder each) and
+showing their image as a thumbnail, a camera path's line `/path/line`. Clicking a frustum (`Viewer.select`)
 moves the client's camera onto it and shows its rank, score and, for the top-k, its image in the panel; a camera
-path has a frame slider and a play button (`Viewer.show_frame`, `Viewer.play_path`); "Render this view" and
-"Score this view" render and score the browser's camera (`waldo_jax.viewer.live`). viser is imported here
-only, so `import waldo_jax` does not need it (the `view` extra installs it).
+path has a frame slider and a play button that move every client's camera (`Viewer.show_frame`,
+`Viewer.play_path`); "Render this view" and "Score this view" render and score the browser's camera
+(`waldo_jax.viewer.live`); "Export this path" writes the path shown (`waldo_jax.viewer.paths`). viser is
+imported here only, so `import waldo_jax` does not need it (the `view` extra installs it).
 
 viser's frustums and client cameras follow OpenCV (x right, y down, z forward); our poses are OpenGL (y up,
 z backwards): R_cv = R_gl diag(1, -1, -1).
@@ -25,17 +27,22 @@ import numpy as np
 
 from waldo_jax.errors import WaldoError
 from waldo_jax.viewer.live import LiveView, opengl_c2w
+from waldo_jax.viewer.paths import export_camera_path
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene
 
 __all__ = ["Viewer", "export_html", "import_viser", "serve"]
 
 TOPK_COLOR = (255, 120, 0)
+# A demo's methods' top-k, in the order of its method folders (the first orange, as a lone explore's).
+GROUP_COLORS = ((255, 120, 0), (0, 150, 255), (230, 0, 130), (0, 170, 70), (120, 80, 40), (0, 0, 0))
 UNSCORED_COLOR = (150, 150, 150)
 PATH_COLOR = (220, 40, 40)
 ELITE_COLOR = (150, 60, 200)
 FRUSTUM_SHARE = 0.02  # a frustum's depth over the scene's extent
 TOPK_SCALE = 1.8  # the top-k's frustums over the others'
 ELITE_SCALE = 1.3  # an archive elite's frustum over the view it holds (drawn around it)
+DEMO_LABELS = 3  # a demo labels each method's best shots up to this rank (all of them crowd the room)
+THUMBNAIL_SIDE = 96  # pixels on the longer side of a top-k's image on its frustum and in the export
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 
 
@@ -66,8 +73,14 @@ def opencv_pose(c2w: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return tf.SO3.from_matrix(rotation).wxyz, np.asarray(c2w, np.float64)[:3, 3]
 
 
+def groups_of(frustums) -> List[str]:
+    """The demo methods of the frustums ("" outside a demo), in order of first appearance."""
+    return list(dict.fromkeys(f.group for f in frustums if f.group))
+
+
 def score_colors(frustums: Tuple[Frustum, ...], direction: str) -> List[Tuple[int, int, int]]:
-    """An RGB colour per frustum: viridis over the finite scores (the best yellow), grey unscored, orange top-k."""
+    """An RGB colour per frustum: viridis over the finite scores (the best yellow), grey unscored, orange top-k
+    (a demo's: its method's colour of `GROUP_COLORS`)."""
     from matplotlib import colormaps
 
     scores = np.array([np.nan if f.score is None else f.score for f in frustums], np.float64)
@@ -75,8 +88,11 @@ def score_colors(frustums: Tuple[Frustum, ...], direction: str) -> List[Tuple[in
     colors: List[Tuple[int, int, int]] = []
     low, high = (float(np.min(scores[finite])), float(np.max(scores[finite]))) if finite.any() else (0.0, 1.0)
     viridis = colormaps["viridis"]
+    groups = groups_of(frustums)
     for frustum, score in zip(frustums, scores):
-        if frustum.kind == "topk":
+        if frustum.kind == "topk" and frustum.group:
+            colors.append(GROUP_COLORS[groups.index(frustum.group) % len(GROUP_COLORS)])
+        elif frustum.kind == "topk":
             colors.append(TOPK_COLOR)
         elif frustum.kind == "elite":
             colors.append(ELITE_COLOR)
@@ -88,6 +104,16 @@ def score_colors(frustums: Tuple[Frustum, ...], direction: str) -> List[Tuple[in
             rgba = viridis(float(t))
             colors.append(tuple(int(round(255 * c)) for c in rgba[:3]))
     return colors
+
+
+def thumbnail(path: Path, side: int = THUMBNAIL_SIDE) -> np.ndarray:
+    """The image at `path` as uint8 [h, w, 3], shrunk to at most `side` pixels on its longer side."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        image = image.convert("RGB")
+        image.thumbnail((side, side))
+        return np.asarray(image, np.uint8)
 
 
 def describe(frustum: Frustum, scene: ViewScene, scored: int) -> str:
@@ -116,6 +142,8 @@ class Viewer:
       panel: the GUI Markdown that `select` writes. selected: the last selected `Frustum` (None at first).
       live: the `LiveView` behind "Render this view" and "Score this view"; live_panel its GUI Markdown (for a
         scene with a SOURCE) and live_image the last image rendered there (None before).
+      export_panel: the GUI Markdown listing the camera paths "Export this path" wrote (None for a scene with
+        no output folder); exported: those files.
       url: the address to open.
     """
 
@@ -130,7 +158,11 @@ class Viewer:
         self._scored = sum(1 for f in scene.frustums if f.rank is not None and f.kind != "topk")
         self._image = None
         self.live_image = None
-        self.live = LiveView(scene.source, scene.criterion, scene.resolution, scene.scores, scene.direction or "max")
+        self._syncing = False
+        self.live = LiveView(
+            scene.source, scene.criterion, scene.resolution, scene.scores, scene.direction or "max", scene.room_metadata
+        )
+        self.exported: List[Path] = []
         self._build()
 
     @property
@@ -161,30 +193,39 @@ class Viewer:
                 scale=depth * (TOPK_SCALE if big else ELITE_SCALE if frustum.kind == "elite" else 1.0),
                 thickness=depth * (0.04 if big else 0.02),
                 color=color,
+                image=thumbnail(frustum.image) if big and frustum.image is not None else None,
+                format="jpeg",
                 wxyz=wxyz,
                 position=position,
             )
             handle.on_click(lambda event, name=frustum.name: self.select(name, [event.client]))
             self.handles[frustum.name] = handle
-            if big:
-                api.add_label(f"{frustum.name}/label", f"#{frustum.topk_rank}")
+            if big and (not frustum.group or (frustum.topk_rank or 0) <= DEMO_LABELS):
+                tag = f"{frustum.group.upper()} #{frustum.topk_rank}" if frustum.group else f"#{frustum.topk_rank}"
+                api.add_label(f"{frustum.name}/label", tag)
         gui = self.server.gui
         gui.add_markdown(f"**waldo view**: {scene.title}")
         counts = {k: sum(1 for f in scene.frustums if f.kind == k) for k in ("train", "view", "topk", "elite", "path")}
-        gui.add_markdown(
-            f"{counts['train']} training views, {counts['view']} searched views, {counts['topk']} top-k shots "
-            f"(orange), {counts['elite']} archive elites (purple, under /archive); colour: score, yellow best. "
-            "Click a camera."
-        )
+        groups = groups_of(scene.frustums)
+        if groups:  # a demo: its methods' shots only
+            shown = f"{counts['topk']} top-k shots of {len(groups)} methods (a colour each, see their folders)"
+        else:
+            shown = (
+                f"{counts['view']} searched views, {counts['topk']} top-k shots (orange), {counts['elite']} archive "
+                "elites (purple, under /archive)"
+            )
+        gui.add_markdown(f"{counts['train']} training views, {shown}; colour: score, yellow best. Click a camera.")
         for note in scene.notes:
             gui.add_markdown(f"*{note}*")
         self.panel = gui.add_markdown("*no camera selected*")
-        best = next((f for f in scene.frustums if f.topk_rank == 1), None)
+        best = next((f for f in scene.frustums if f.topk_rank == 1 and not f.group), None)
         if best is not None:
             button = gui.add_button("Go to the best shot")
             button.on_click(lambda event, name=best.name: self.select(name, [event.client]))
         self._add_live_controls()
         self._add_path_controls()
+        self._add_export_controls()
+        self._add_group_controls()
 
     def _add_path_controls(self) -> None:
         """A camera path (a `waldo path` output): its line, a frame slider that moves the cameras along it and
@@ -203,27 +244,94 @@ class Viewer:
         gui = self.server.gui
         gui.add_markdown(f"camera path: {len(path)} frames at {self.scene.path_fps:g} fps")
         self.frame_slider = gui.add_slider("path frame", min=0, max=max(len(path) - 1, 1), step=1, initial_value=0)
-        self.frame_slider.on_update(
-            lambda event: self.show_frame(int(self.frame_slider.value), [event.client] if event.client else None)
-        )
-        gui.add_button("Play the path").on_click(lambda event: self.play_path([event.client]))
+        # Every browser follows the slider (one viewer, one scene on screen), not only the one that moved it.
+        self.frame_slider.on_update(lambda event: self._syncing or self.show_frame(int(self.frame_slider.value)))
+        gui.add_button("Play the path").on_click(lambda event: self.play_path())
 
     def show_frame(self, index: int, clients=None) -> Frustum:
-        """Shows frame `index` of the camera path in the panel and moves `clients`' cameras onto it (default:
-        every connected client)."""
+        """Shows frame `index` of the camera path in the panel, sets the slider to it and moves `clients`'
+        cameras onto it (default: every connected client)."""
+        index = int(min(max(int(index), 0), len(self.scene.camera_path) - 1))
+        if self.frame_slider is not None and int(self.frame_slider.value) != index:
+            self._syncing = True  # the slider follows without calling back here
+            try:
+                self.frame_slider.value = index
+            finally:
+                self._syncing = False
         clients = list(self.server.get_clients().values()) if clients is None else clients
-        return self.select(f"/path/{int(index):04d}", clients)
+        return self.select(f"/path/{index:04d}", clients)
 
-    def play_path(self, clients=None) -> None:
-        """Moves the cameras along the whole path at its frame rate (in a background thread)."""
+    def play_path(self, clients=None, fps: Optional[float] = None):
+        """Moves the cameras (default: every connected client's) along the whole path at `fps` (default the path's
+        frame rate), the slider following, in a background thread; returns the thread."""
         import threading
+
+        delay = 1.0 / max(float(fps or self.scene.path_fps), 1e-3)
 
         def run():
             for index in range(len(self.scene.camera_path)):
                 self.show_frame(index, clients)
-                time.sleep(1.0 / max(self.scene.path_fps, 1e-3))
+                time.sleep(delay)
 
-        threading.Thread(target=run, daemon=True).start()
+        thread = threading.Thread(target=run, name="waldo-view-play", daemon=True)
+        thread.start()
+        return thread
+
+    def _add_export_controls(self) -> None:
+        """ "Export this path" (a camera path, or an explore's top-k shots as keyframes) and its panel, for a
+        scene with an output folder; a demo has one per method (`_add_group_controls`)."""
+        self.export_panel = None
+        scene = self.scene
+        own = scene.camera_path is not None or any(f.kind == "topk" and not f.group for f in scene.frustums)
+        if scene.output is None or not (own or groups_of(scene.frustums)):
+            return
+        if own:
+            what = "the camera path" if scene.camera_path is not None else "the top-k shots as a path"
+            button = self.server.gui.add_button("Export this path", hint=f"writes {what} for nerfstudio / Instant-NGP")
+            button.on_click(lambda event: self._on_export(""))
+        self.export_panel = self.server.gui.add_markdown("")
+
+    def _add_group_controls(self) -> None:
+        """A demo: a panel folder per method (its colour, shot count, best shot, show / hide, export)."""
+        for group in groups_of(self.scene.frustums):
+            shots = [f for f in self.scene.frustums if f.group == group]
+            color = GROUP_COLORS[groups_of(self.scene.frustums).index(group) % len(GROUP_COLORS)]
+            with self.server.gui.add_folder(group.upper()):
+                self.server.gui.add_markdown(
+                    f"<span style='color: rgb{color}'>&#9632;</span> {len(shots)} top-k shots under `/topk/{group}`"
+                )
+                best = min(shots, key=lambda f: f.topk_rank or 1 << 30)
+                self.server.gui.add_button(f"Go to {group.upper()}'s best shot").on_click(
+                    lambda event, name=best.name: self.select(name, [event.client])
+                )
+                shown = self.server.gui.add_checkbox("show", True)
+                shown.on_update(lambda event, group=group, box=shown: self.show_group(group, bool(box.value)))
+                self.server.gui.add_button(f"Export {group.upper()}'s shots as a path").on_click(
+                    lambda event, group=group: self._on_export(group)
+                )
+
+    def _on_export(self, group: str) -> None:
+        """The export buttons' handler: `export_path`, its error shown in the panel."""
+        try:
+            self.export_path(group)
+        except WaldoError as e:  # shown in the panel: a viewer keeps serving
+            self.export_panel.content = f"*{e}*"
+
+    def show_group(self, group: str, visible: bool) -> None:
+        """Shows or hides a demo method's top-k frustums."""
+        for frustum in self.scene.frustums:
+            if frustum.group == group:
+                self.handles[frustum.name].visible = visible
+
+    def export_path(self, group: str = "") -> List[Path]:
+        """Writes the path shown (a camera path; else the top-k shots of `group`, "" outside a demo) as
+        camera_path.json and instant_ngp_path.json in a new `viewer_path_NN` of the output folder
+        (`waldo_jax.viewer.paths`), lists them in the panel and returns them."""
+        written = export_camera_path(self.scene, group)
+        self.exported += written
+        if self.export_panel is not None:
+            self.export_panel.content = "wrote  \n" + "  \n".join(f"`{p}`" for p in self.exported)
+        return written
 
     def _add_live_controls(self) -> None:
         """Adds the buttons "Render this view" (the run's renderer at the browser's camera) and, for an explore
@@ -345,13 +453,53 @@ def serve(scene: ViewScene, host: str = "127.0.0.1", port: int = 8080) -> Viewer
     return Viewer(scene, host=host, port=port)
 
 
+def _jpeg_data_uri(image: np.ndarray) -> str:
+    """A `data:image/jpeg;base64,...` URI of uint8 [h, w, 3]."""
+    import base64
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="JPEG", quality=85)
+    return "data:image/jpeg;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+def shots_gallery(scene: ViewScene) -> str:
+    """HTML of the top-k shots' thumbnails (a demo: a row per method), each with its rank and score, in a
+    `<details id="waldo-shots">` fixed to the page's lower left corner; "" without top-k images."""
+    import html
+
+    shots = [f for f in scene.frustums if f.kind == "topk" and f.image is not None]
+    if not shots:
+        return ""
+    rows = []
+    for group in dict.fromkeys(f.group for f in shots):
+        cells = []
+        for f in sorted((f for f in shots if f.group == group), key=lambda f: f.topk_rank or 0):
+            score = "no score" if f.score is None else f"{f.score:.4g}"
+            cells.append(
+                f'<figure style="margin:0;text-align:center"><img src="{_jpeg_data_uri(thumbnail(f.image, 64))}" '
+                f'alt="{html.escape(f.label)}" title="{html.escape(f.label)}" style="display:block;height:48px">'
+                f"<figcaption>#{f.topk_rank} {score}</figcaption></figure>"
+            )
+        head = f"<div><b>{html.escape(group.upper())}</b></div>" if group else ""
+        rows.append(f'{head}<div style="display:flex;flex-wrap:wrap;gap:3px">{"".join(cells)}</div>')
+    title = html.escape(f"top-k shots ({scene.criterion or 'score'})")
+    return (
+        '<details id="waldo-shots" open style="position:fixed;left:8px;bottom:8px;z-index:1000;max-width:300px;'
+        "max-height:45%;overflow:auto;background:rgba(255,255,255,0.92);font:11px sans-serif;padding:4px 6px;"
+        f'border-radius:6px;box-shadow:0 1px 4px rgba(0,0,0,0.3)"><summary>{title}</summary>{"".join(rows)}</details>'
+    )
+
+
 def export_html(scene: ViewScene, path: Path) -> Tuple[int, float]:
     """Writes a self-contained HTML snapshot of `scene` to `path` (opens without a server).
 
-    viser's `scene.as_html()` embeds its web client and the serialized scene; a JSON block
-    `<script id="waldo-frustums" type="application/json">` adds every frustum's pose, score and rank for readers
-    of the file. The server it builds the scene on listens on an ephemeral 127.0.0.1 port and is stopped before
-    returning.
+    viser's `scene.as_html()` embeds its web client and the serialized scene (the top-k frustums show their
+    images); a JSON block `<script id="waldo-frustums" type="application/json">` adds every frustum's pose, score
+    and rank for readers of the file, and a panel `<details id="waldo-shots">` in the page's corner the top-k
+    shots' thumbnails with rank and score (`shots_gallery`). The server it builds the scene on listens on an
+    ephemeral 127.0.0.1 port and is stopped before returning.
 
     Returns:
       (bytes written, seconds taken).
@@ -379,6 +527,7 @@ def export_html(scene: ViewScene, path: Path) -> Tuple[int, float]:
     block = json.dumps({"title": scene.title, "criterion": scene.criterion, "frustums": data})
     block = block.replace("</", "<\\/")  # never closes the script element early
     page = page.replace("</head>", f'<script id="waldo-frustums" type="application/json">{block}</script></head>', 1)
+    page = page.replace("</body>", f"{shots_gallery(scene)}</body>", 1)
     path = Path(path)
     path.write_text(page, encoding="utf-8")
     return len(page.encode("utf-8")), time.perf_counter() - start
