@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +21,8 @@ BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 
 import device_check  # noqa: E402  (stdlib only: no JAX in the parent process)
+from device_steps import common, settings  # noqa: E402
+from device_steps import pack as device_pack  # noqa: E402
 
 SCRIPT = str(BENCHMARKS / "device_check.py")
 HEADER_KEYS = (
@@ -57,7 +60,9 @@ def smoke(tmp_path_factory):
     packed = check("--pack", root / "data", "--smoke", "--no-wheels", "--data-from", data)
     assert packed.returncode == 0, packed.stderr
     start = time.perf_counter()
-    run = check("--smoke", "--data", root / "data", "--out", root / "out", "--work", root / "work")
+    # The check bounds itself by its budget (1800 s under --smoke); a loaded 2-core CPU takes 800 s and more.
+    timeout = device_check.SMOKE_BUDGET_S + 300
+    run = check("--smoke", "--data", root / "data", "--out", root / "out", "--work", root / "work", timeout=timeout)
     seconds = time.perf_counter() - start
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     report = json.loads((root / "out" / "device_check.json").read_text())
@@ -96,11 +101,11 @@ def test_smoke_runs_every_step_and_writes_its_json(smoke):
     training = steps["training"]
     for key in ("ms_per_step", "field_fwd_bwd_ms", "step_over_field", "psnr_test", "steps", "downscale"):
         assert training[key] is not None, key
-    assert training["steps"] == device_check.SMOKE.train_steps and training["preset"] == "quality"
+    assert training["steps"] == settings.SMOKE.train_steps and training["preset"] == "quality"
     trained = steps["rendering"]["render_trained"]
     for key in ("rays_per_s", "evaluations_per_ray", "passes_per_view", "field_points_per_s", "render_efficiency"):
         assert trained[key] > 0, key
-    assert set(steps["rendering"]["batched_over_loop"]) == {str(r) for r in device_check.SMOKE.population_resolutions}
+    assert set(steps["rendering"]["batched_over_loop"]) == {str(r) for r in settings.SMOKE.population_resolutions}
     assert [run["seconds"]["search"] > 0 for run in steps["search"]["runs"]] == [True]
     assert steps["gradient"]["cases"][0]["gradient_finite"]
     splats = steps["splats"]
@@ -130,7 +135,7 @@ def test_smoke_determinism_compares_same_seed_runs_byte_for_byte(smoke):
 @pytest.mark.slow
 def test_pack_copies_the_fox_whole_and_records_its_size(smoke):
     root, report, _, _ = smoke
-    manifest = json.loads((root / "data" / device_check.MANIFEST).read_text())
+    manifest = json.loads((root / "data" / device_pack.MANIFEST).read_text())
     source = data_dir() / "scenes" / "fox"
     copied = root / "data" / "scenes" / "fox"
     assert sorted(p.relative_to(copied) for p in copied.rglob("*") if p.is_file()) == sorted(
@@ -140,7 +145,7 @@ def test_pack_copies_the_fox_whole_and_records_its_size(smoke):
     assert (root / "data" / "weights" / "csnet").is_dir()
     sizes = manifest["sizes_mib"]
     assert sizes["total"] == pytest.approx(sizes["working_tree"] + sizes["wheels"] + sizes["data"], abs=0.02)
-    assert sizes["total"] <= sizes["limit"] and set(manifest["left_out"]) == set(device_check.PACK_OPTIONAL)
+    assert sizes["total"] <= sizes["limit"] and set(manifest["left_out"]) == set(device_pack.PACK_OPTIONAL)
     assert report["pack"]["code_digest_at_pack"] == report["code_digest"] and report["code_matches_pack"] is True
 
 
@@ -156,9 +161,9 @@ def test_pack_refuses_what_would_not_fit_before_copying_anything(tmp_path):
 def test_pack_leaves_out_optional_data_that_does_not_fit(tmp_path):
     data = data_dir()
     # Room for the working tree and the required data, but not for the optional scenes.
-    tree = device_check.working_tree_bytes()
+    tree = device_pack.working_tree_bytes()
     required = sum(
-        src.stat().st_size for name in device_check.PACK_REQUIRED for src, _ in device_check.pack_sources(data, name)
+        src.stat().st_size for name in device_pack.PACK_REQUIRED for src, _ in device_pack.pack_sources(data, name)
     )
     limit = (tree + required) / 2**20 + 0.5
     result = check(
@@ -174,8 +179,8 @@ def test_pack_leaves_out_optional_data_that_does_not_fit(tmp_path):
         timeout=120,
     )
     assert result.returncode == 0, result.stderr
-    manifest = json.loads((tmp_path / "data" / device_check.MANIFEST).read_text())
-    assert set(manifest["items"]) == set(device_check.PACK_REQUIRED)
+    manifest = json.loads((tmp_path / "data" / device_pack.MANIFEST).read_text())
+    assert set(manifest["items"]) == set(device_pack.PACK_REQUIRED)
     assert all(
         "does not fit" in manifest["left_out"][name]
         for name in ("scenes/face", "scenes/garden")
@@ -222,8 +227,8 @@ def _alive(pid: int) -> bool:
 def test_a_command_past_its_time_box_is_killed_with_its_children(tmp_path):
     """The time box kills the command's whole process group (pytest-xdist workers, a CLI's children)."""
     log = open(tmp_path / "log", "ab", buffering=0)
-    ctx = device_check.Context(
-        settings=device_check.SMOKE,
+    ctx = common.Context(
+        settings=settings.SMOKE,
         smoke=True,
         data=tmp_path,
         work=tmp_path,
@@ -252,7 +257,7 @@ def test_a_command_past_its_time_box_is_killed_with_its_children(tmp_path):
 
 def test_time_left_by_a_step_goes_to_the_later_ones():
     deadline = time.monotonic() + 90.0
-    box = device_check.split_box(deadline, [1, 2])
+    box = common.split_box(deadline, [1, 2])
     assert box(0) == pytest.approx(30.0, abs=0.5) and box(1) == pytest.approx(90.0, abs=0.5)
 
 
@@ -310,13 +315,23 @@ def _processes_naming(text: str) -> list:
 
 def test_pack_works_from_a_fresh_clone(tmp_path):
     """On a fresh clone neither .device/ nor .whl/ exists yet: both still count as ignored (the folder
-    patterns of .gitignore), so --pack into .device/data with the default wheel folder is accepted."""
+    patterns of .gitignore), so --pack into .device/data with the default wheel folder is accepted.
+
+    The clone gets this tree's device-check code (device_check.py and device_steps/, committed or not),
+    so that the test checks the code under test rather than the last commit's."""
     data = data_dir()
     clone = tmp_path / "clone"
     subprocess.run(["git", "clone", "--quiet", str(BENCHMARKS.parent), str(clone)], check=True, timeout=300)
     assert not (clone / ".whl").exists() and not (clone / ".device").exists()
+    shutil.copy2(BENCHMARKS / "device_check.py", clone / "benchmarks" / "device_check.py")
+    shutil.rmtree(clone / "benchmarks" / "device_steps", ignore_errors=True)
+    shutil.copytree(
+        BENCHMARKS / "device_steps",
+        clone / "benchmarks" / "device_steps",
+        ignore=shutil.ignore_patterns("__pycache__"),
+    )
     probe = (
-        "import sys; sys.path.insert(0, 'benchmarks'); import device_check as d; "
+        "import sys; sys.path.insert(0, 'benchmarks'); import device_steps.pack as d; "
         "print(*(d.is_ignored(d.REPO / p) for p in ('.whl', '.device/data', 'waldo_jax')))"
     )
     ignored = subprocess.run([sys.executable, "-c", probe], cwd=clone, capture_output=True, text=True, timeout=120)
@@ -330,4 +345,4 @@ def test_pack_works_from_a_fresh_clone(tmp_path):
         timeout=600,
     )
     assert packed.returncode == 0, packed.stderr[-3000:]
-    assert (clone / ".device" / "data" / device_check.MANIFEST).is_file()
+    assert (clone / ".device" / "data" / device_pack.MANIFEST).is_file()
