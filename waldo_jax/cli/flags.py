@@ -110,6 +110,6 @@ def criterion_before_source(args: argparse.Namespace) -> Optional[Criterion]:
         folder or target image (naming the value or file).
     """
     names = spec_names(args.criterion, getattr(args, "guard", []) or [])
-    if any(CRITERIA[name].inputs == "poses" for name in names):
+    if any(not CRITERIA[name].needs.render for name in names):
         return None
     return criterion_from_args(args, source=args.source)

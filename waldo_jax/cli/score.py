@@ -63,9 +63,9 @@ def cmd_score(args: argparse.Namespace) -> int:
     if args.source is not None:
         return _score_source(args)
     criterion = criterion_from_args(args)
-    if criterion.inputs == "poses":
+    if not criterion.needs.render:
         raise WaldoError(f"criterion {criterion.name!r} scores camera poses of the procedural room, not image files")
-    images = [read_image(path, keep_alpha=criterion.inputs == "renders") for path in args.images]
+    images = [read_image(path, keep_alpha=criterion.needs.opacity) for path in args.images]
     scores = np.zeros(len(images), np.float64)
     score = jax.jit(criterion.score_images)
     by_shape: dict = {}

@@ -6,6 +6,8 @@ oracles `waldo_oracle` and `waldo_visible`, and `trust` (the training cameras' c
 `colorfulness`, `saliency` (CSNet), `iqa_cnn` (CNNIQA), `niqe`, `brisque`, `composition` and `waldo`
 (the finder, with `--target`) on images; `opacity` on renders. `build_criterion(spec, context, guards)`
 (in `combine`) adds `weighted:NAME=W,...` and `--guard` (`constrained`) on top of the registry.
+Every criterion scores `Views` (renders, poses, intrinsics) through `Criterion.evaluate`; what its
+kind of input needs is `criterion.needs` (`INPUT_NEEDS`).
 
 What each criterion scores, with its input, direction and range: see docs/design.md, section
 "Criteria > The registry".
@@ -26,6 +28,9 @@ from waldo_jax.criteria.base import Criterion as Criterion
 from waldo_jax.criteria.base import CriterionContext as CriterionContext
 from waldo_jax.criteria.base import CriterionError as CriterionError
 from waldo_jax.criteria.base import CriterionSpec as CriterionSpec
+from waldo_jax.criteria.base import INPUT_NEEDS as INPUT_NEEDS
+from waldo_jax.criteria.base import InputNeeds as InputNeeds
+from waldo_jax.criteria.base import Views as Views
 from waldo_jax.criteria.base import make_criterion as make_criterion
 from waldo_jax.criteria.base import register as register
 from waldo_jax.criteria.combine import build_criterion as build_criterion

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Iterable, NamedTuple, Optional, Tuple
 
 import flax.struct
 import jax
@@ -28,6 +28,12 @@ from waldo_jax.types import Array, Intrinsics
 
 __all__ = [
     "INPUTS",
+    "INPUT_NEEDS",
+    "InputNeeds",
+    "Views",
+    "combined_inputs",
+    "criterion_args",
+    "views_of_args",
     "Criterion",
     "CriterionContext",
     "CriterionError",
@@ -42,7 +48,65 @@ __all__ = [
     "with_opacity",
 ]
 
-INPUTS = ("images", "renders", "poses", "posed")
+
+class InputNeeds(NamedTuple):
+    """What a kind of criterion input needs of a view: `render` (the view rendered), `opacity` (its
+    renderer's opacity with the colour, rgba) and `pose` (its camera, c2w and intrinsics)."""
+
+    render: bool
+    opacity: bool
+    pose: bool
+
+
+# The one place that says what each kind of `Criterion.inputs` is; everything else asks `Criterion.needs`.
+INPUT_NEEDS: Dict[str, InputNeeds] = {
+    "images": InputNeeds(render=True, opacity=False, pose=False),
+    "renders": InputNeeds(render=True, opacity=True, pose=False),
+    "poses": InputNeeds(render=False, opacity=False, pose=True),
+    "posed": InputNeeds(render=True, opacity=True, pose=True),
+}
+INPUTS = tuple(INPUT_NEEDS)
+
+
+class Views(NamedTuple):
+    """P views of a scene, as a criterion scores them (a pytree: it passes through jit and vmap).
+
+    Attributes:
+      rgba: float32 [P, H, W, 4] renders (colour and opacity), or [P, H, W, 3] photographs (opacity 1);
+        None where only the poses are scored.
+      c2w: float32 [P, 4, 4] camera-to-world poses; None where only the pixels are scored.
+      intrinsics: the cameras' `Intrinsics` (with `c2w`), or None.
+    """
+
+    rgba: Optional[Array] = None
+    c2w: Optional[Array] = None
+    intrinsics: Optional[Intrinsics] = None
+
+
+def criterion_args(inputs: str, views: Views) -> tuple:
+    """The arguments after `params` that a criterion of these `inputs` takes from `views`: (images,),
+    (rgba,), (c2w, intrinsics) or (rgba, c2w, intrinsics)."""
+    needs = INPUT_NEEDS[inputs]
+    pixels = ()
+    if needs.render:
+        pixels = (with_opacity(views.rgba),) if needs.opacity else (views.rgba[..., :3],)
+    return pixels + ((views.c2w, views.intrinsics) if needs.pose else ())
+
+
+def views_of_args(inputs: str, args: tuple) -> Views:
+    """`Views` from the arguments a criterion of these `inputs` takes (the inverse of `criterion_args`)."""
+    needs = INPUT_NEEDS[inputs]
+    rgba = args[0] if needs.render else None
+    return Views(rgba, *args[int(needs.render) :]) if needs.pose else Views(rgba)
+
+
+def combined_inputs(kinds: Iterable[str]) -> str:
+    """The inputs of a combination of criteria with these `inputs`: "poses" when all score poses,
+    "posed" when some score poses and some views, else "renders" when any needs the opacity, else "images"."""
+    needs = [INPUT_NEEDS[kind] for kind in kinds]
+    render, pose = any(n.render for n in needs), any(n.pose for n in needs)
+    opacity = any(n.opacity for n in needs) or (render and pose)
+    return next(kind for kind, n in INPUT_NEEDS.items() if n == InputNeeds(render, opacity, pose))
 
 
 class CriterionError(WaldoError, ValueError):
@@ -58,9 +122,10 @@ class Criterion:
       name: registry name, e.g. "waldo_oracle".
       direction: "max" when higher scores are better, "min" when lower ones are.
       value_range: (low, high) of the scores (inf where unbounded), for plots and reports.
-      inputs: "images", "renders", "poses" or "posed" (see docs/design.md, "Criteria").
+      inputs: "images", "renders", "poses" or "posed" (`INPUT_NEEDS`; docs/design.md, "Criteria").
       apply: the pure function, `apply(params, images)`, `apply(params, rgba)`,
-        `apply(params, c2w, intrinsics)` or `apply(params, rgba, c2w, intrinsics)`.
+        `apply(params, c2w, intrinsics)` or `apply(params, rgba, c2w, intrinsics)` (`criterion_args`);
+        `evaluate(views)` calls it on any `Views`.
       description: one line for reports and `--help`.
       smooth_apply: a differentiable stand-in for `apply` (same params and inputs) that gradient
         refinement follows, or None when the criterion has none (`smooth` refuses it). For a
@@ -76,6 +141,19 @@ class Criterion:
     apply: Callable = flax.struct.field(pytree_node=False, default=None)
     description: str = flax.struct.field(pytree_node=False, default="")
     smooth_apply: Optional[Callable] = flax.struct.field(pytree_node=False, default=None)
+
+    @property
+    def needs(self) -> InputNeeds:
+        """What the criterion needs of a view (`INPUT_NEEDS` of its `inputs`)."""
+        return INPUT_NEEDS[self.inputs]
+
+    def evaluate(self, views: Views) -> Array:
+        """Scores [P] of `views` (traced: for use inside jit, vmap and grad)."""
+        return self.apply(self.params, *criterion_args(self.inputs, views))
+
+    def score_views(self, views: Views) -> Array:
+        """Scores [P] of `views`, as one compiled program per shape (for host code)."""
+        return jnp.asarray(_compiled(self.apply, self.params, *criterion_args(self.inputs, views)), jnp.float32)
 
     @property
     def differentiable(self) -> bool:
@@ -102,9 +180,9 @@ class Criterion:
         Also takes rgba renders [P, H, W, 4]; an "images" criterion ignores their opacity and a
         "renders" criterion given colour alone treats every pixel as opaque.
         """
-        if self.inputs == "poses":
+        if not self.needs.render:
             raise CriterionError(f"criterion {self.name!r} scores camera poses, not images")
-        if self.inputs == "posed":
+        if self.needs.pose:
             raise CriterionError(
                 f"criterion {self.name!r} scores renders together with their camera poses, "
                 "not images alone (`score_posed`)"
@@ -114,25 +192,20 @@ class Criterion:
             raise CriterionError(
                 f"criterion {self.name!r} expects images [P, H, W, 3] (or rgba [P, H, W, 4]), got shape {images.shape}"
             )
-        if self.inputs == "images":
-            return jnp.asarray(_compiled(self.apply, self.params, images[..., :3]), jnp.float32)
-        return jnp.asarray(_compiled(self.apply, self.params, with_opacity(images)), jnp.float32)
+        return self.score_views(Views(images))
 
     def score_poses(self, c2w: Array, intrinsics: Intrinsics) -> Array:
         """Scores [P] of cameras c2w [P, 4, 4] with the given intrinsics (a "poses" criterion)."""
-        if self.inputs != "poses":
+        if self.needs.render:
             raise CriterionError(f"criterion {self.name!r} scores images: render the poses first")
-        return jnp.asarray(_compiled(self.apply, self.params, jnp.asarray(c2w, jnp.float32), intrinsics), jnp.float32)
+        return self.score_views(Views(None, jnp.asarray(c2w, jnp.float32), intrinsics))
 
     def score_posed(self, images: Array, c2w: Array, intrinsics: Intrinsics) -> Array:
         """Scores [P] of renders [P, H, W, 4] (or photographs [P, H, W, 3], opacity 1) taken from cameras
         c2w [P, 4, 4] with `intrinsics`: any criterion but an image criterion given poses alone."""
-        c2w = jnp.asarray(c2w, jnp.float32)
-        if self.inputs == "poses":
-            return self.score_poses(c2w, intrinsics)
-        if self.inputs != "posed":
+        if not self.needs.pose:
             return self.score_images(images)
-        return jnp.asarray(_compiled(self.apply, self.params, with_opacity(images), c2w, intrinsics), jnp.float32)
+        return self.score_views(Views(jnp.asarray(images, jnp.float32), jnp.asarray(c2w, jnp.float32), intrinsics))
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -214,6 +287,11 @@ class CriterionSpec:
     description: str
     build: Callable[[CriterionContext], Criterion]
     smooth: bool = False
+
+    @property
+    def needs(self) -> InputNeeds:
+        """What the criterion it builds needs of a view (`INPUT_NEEDS` of its `inputs`)."""
+        return INPUT_NEEDS[self.inputs]
 
 
 CRITERIA: Dict[str, CriterionSpec] = {}

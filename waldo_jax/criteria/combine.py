@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -30,10 +30,14 @@ from waldo_jax.criteria.base import (
     CriterionContext,
     CriterionError,
     CriterionSpec,
+    Views,
     check_registered,
+    combined_inputs,
+    criterion_args,
     finite_or_worst,
     make_criterion,
     register,
+    views_of_args,
     worst_score,
 )
 from waldo_jax.types import Array
@@ -90,46 +94,19 @@ class _Part:
             criterion.apply, criterion.smooth_apply, criterion.inputs, criterion.direction, tuple(criterion.value_range)
         )
 
-    def scores(self, params, views: "_Views", smooth: bool = False) -> Array:
+    def scores(self, params, views: Views, smooth: bool = False) -> Array:
         apply = self.smooth_apply if smooth else self.apply
-        if self.inputs == "poses":
-            return apply(params, views.c2w, views.intrinsics)
-        if self.inputs == "posed":  # a combination inside a combination
-            return apply(params, views.rgba, views.c2w, views.intrinsics)
-        return apply(params, views.rgba[..., :3] if self.inputs == "images" else views.rgba)
+        return apply(params, *criterion_args(self.inputs, views))
 
-    def normalised(self, params, views: "_Views", smooth: bool = False) -> Array:
+    def normalised(self, params, views: Views, smooth: bool = False) -> Array:
         low, high = self.value_range
         unit = (self.scores(params, views, smooth) - low) / (high - low)
         return jnp.clip(unit if self.direction == "max" else 1.0 - unit, 0.0, 1.0)
 
 
-class _Views(NamedTuple):
-    """What a combination's parts score: renders (None for pose criteria alone) and poses (None for views alone)."""
-
-    rgba: Optional[Array]  # [P, H, W, 3 or 4]
-    c2w: Optional[Array]  # [P, 4, 4]
-    intrinsics: Any
-
-
 def _inputs(parts: Sequence[_Part]) -> str:
-    """The combination's inputs: "poses" when every part scores poses, "posed" when some score poses and
-    some views (`Criterion.inputs`), else "renders" when any part needs the opacity, else "images"."""
-    kinds = {p.inputs for p in parts}
-    if kinds == {"poses"}:
-        return "poses"
-    if "poses" in kinds or "posed" in kinds:
-        return "posed"
-    return "renders" if "renders" in kinds else "images"
-
-
-def _views(inputs: str, args) -> _Views:
-    """The `apply` arguments of a combination with these inputs, as `_Views`."""
-    if inputs == "poses":
-        return _Views(None, *args)
-    if inputs == "posed":
-        return _Views(*args)
-    return _Views(args[0], None, None)
+    """The combination's inputs (`base.combined_inputs` of its parts')."""
+    return combined_inputs(p.inputs for p in parts)
 
 
 def _smooth_apply(apply, parts: Sequence[_Part]):
@@ -147,7 +124,7 @@ class _ConstrainedApply:
 
     def __call__(self, params, *args) -> Array:
         primary_params, guard_params, threshold = params
-        views = _views(self.inputs, args)
+        views = views_of_args(self.inputs, args)
         score = self.primary.scores(primary_params, views, self.smooth)
         guard = self.guard.scores(guard_params, views, self.smooth)
         if self.smooth:  # a sigmoid of 5 % of the guard's range (or of 1 where it is unbounded) for the step
@@ -217,7 +194,7 @@ class _WeightedApply:
 
     def __call__(self, params, *args) -> Array:
         part_params, weights = params
-        views = _views(self.inputs, args)
+        views = views_of_args(self.inputs, args)
         units = jnp.stack([p.normalised(q, views, self.smooth) for p, q in zip(self.parts, part_params)])  # [K, P]
         return jnp.sum(weights[:, None] * units, axis=0)
 

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria import Criterion
+from waldo_jax.criteria import Criterion, Views
 from waldo_jax.errors import WaldoError, host_memory_bytes
 from waldo_jax.search import (
     ExploreConfig,
@@ -120,7 +120,7 @@ GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12, "posed": 12}
 def gradient_cost_for(criterion: Criterion, source: Optional[Source] = None) -> int:
     """The default `RefineConfig.gradient_cost` for a criterion (`GRADIENT_COSTS` by its inputs), or the
     source's own measured cost (`Source.gradient_cost`) for a criterion of its renders."""
-    if source is not None and source.gradient_cost is not None and criterion.inputs != "poses":
+    if source is not None and source.gradient_cost is not None and criterion.needs.render:
         return int(source.gradient_cost)
     return GRADIENT_COSTS[criterion.inputs]
 
@@ -130,31 +130,24 @@ def refine_for_source(
 ) -> RefineConfig:
     """`refine` with the source's way of differentiating (`Source.gradient`) and, when `default_cost`,
     the gradient cost for this source and criterion (`gradient_cost_for`)."""
-    mode = source.gradient if criterion.inputs != "poses" else refine.gradient
+    mode = source.gradient if criterion.needs.render else refine.gradient
     cost = gradient_cost_for(criterion, source) if default_cost else refine.gradient_cost
     return dataclasses.replace(refine, gradient=mode, gradient_cost=cost)
 
 
-def _score_rendered(render, criterion: Criterion, c2w):
-    return criterion.apply(criterion.params, render(c2w))
+def scene_views(render: Optional[jax.tree_util.Partial], intrinsics, c2w) -> Views:
+    """The `Views` of cameras c2w [P, 4, 4]: rendered by `render` (None: the poses alone)."""
+    return Views(None if render is None else render(c2w), c2w, intrinsics)
 
 
-def _score_posed(criterion: Criterion, intrinsics, c2w):
-    return criterion.apply(criterion.params, c2w, intrinsics)
-
-
-def _score_rendered_posed(render, criterion: Criterion, intrinsics, c2w):
-    return criterion.apply(criterion.params, render(c2w), c2w, intrinsics)
+def _score_views(render, criterion: Criterion, intrinsics, c2w):
+    return criterion.evaluate(scene_views(render, intrinsics, c2w))
 
 
 def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
-    """c2w [P, 4, 4] -> scores [P]: render with the source and score, or score the poses directly (a
-    "posed" combination: both)."""
-    if criterion.inputs == "poses":
-        return jax.tree_util.Partial(_score_posed, criterion, source.intrinsics)
-    if criterion.inputs == "posed":
-        return jax.tree_util.Partial(_score_rendered_posed, _renderer(source, criterion), criterion, source.intrinsics)
-    return jax.tree_util.Partial(_score_rendered, _renderer(source, criterion), criterion)
+    """c2w [P, 4, 4] -> scores [P]: the criterion of the source's views (rendered where it scores
+    pixels: `scoring_renderer`)."""
+    return jax.tree_util.Partial(_score_views, scoring_renderer(source, criterion), criterion, source.intrinsics)
 
 
 def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
@@ -166,22 +159,22 @@ def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Pa
     return score_function(source, criterion.smooth())
 
 
-def _renderer(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
-    """The source's renderer for the criterion: colour, or colour + opacity for a "renders" criterion."""
-    if criterion.inputs not in ("renders", "posed"):
+def scoring_renderer(source: Source, criterion: Criterion, opacity: bool = False) -> Optional[jax.tree_util.Partial]:
+    """The source's renderer for the criterion: None for one of poses alone, colour, or colour and
+    opacity (rgba) where the criterion needs it or `opacity` asks for it (path limits)."""
+    if not criterion.needs.render:
+        return None
+    if not (opacity or criterion.needs.opacity):
         return source.render
     if source.render_rgba is None:
-        raise WaldoError(
-            f"criterion {criterion.name!r} needs the renderer's opacity, which {source.spec} does not give"
-        )
+        needs = "path limits need" if opacity else f"criterion {criterion.name!r} needs"
+        raise WaldoError(f"{source.spec} cannot render the opacity, which {needs}")
     return source.render_rgba
 
 
 # Compiled once per criterion function and shape: scoring eagerly is ~10x slower for a network
 # (CSNet on 16 images: 22 s eager vs 2.6 s jitted on the 2-core CPU).
-_jit_score_images = jax.jit(lambda criterion, images: criterion.score_images(images))
-_jit_score_poses = jax.jit(lambda criterion, c2w, intrinsics: criterion.score_poses(c2w, intrinsics))
-_jit_score_posed = jax.jit(lambda criterion, images, c2w, intrinsics: criterion.score_posed(images, c2w, intrinsics))
+_jit_score_views = jax.jit(lambda criterion, views: criterion.evaluate(views))
 
 
 def initial_scores(source: Source, criterion: Criterion, initial: str = "images") -> Tuple[np.ndarray, str]:
@@ -189,8 +182,8 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
     if initial not in INITIAL_MODES:
         raise WaldoError(f"initial scores must come from one of {INITIAL_MODES}, got {initial!r}")
     train_c2w = jnp.asarray(source.train_c2w)
-    if criterion.inputs == "poses":
-        return np.asarray(_jit_score_poses(criterion, train_c2w, source.intrinsics), np.float32), "poses"
+    if not criterion.needs.render:
+        return np.asarray(_jit_score_views(criterion, Views(None, train_c2w, source.intrinsics)), np.float32), "poses"
     if initial == "images":
         if source.train_images is None:
             raise WaldoError(
@@ -199,12 +192,8 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
             )
         images = jnp.asarray(source.train_images)
     else:
-        images = _renderer(source, criterion)(train_c2w)
-    if criterion.inputs == "posed":
-        scores = _jit_score_posed(criterion, images, train_c2w, source.intrinsics)
-    else:
-        scores = _jit_score_images(criterion, images)
-    return np.asarray(scores, np.float32), initial
+        images = scoring_renderer(source, criterion)(train_c2w)
+    return np.asarray(_jit_score_views(criterion, Views(images, train_c2w, source.intrinsics)), np.float32), initial
 
 
 def seed_keys(seed: int, count: int):

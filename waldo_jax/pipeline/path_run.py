@@ -31,7 +31,14 @@ from waldo_jax.search.path import PathLimits, path_c2w, straight_path
 from waldo_jax.search.path_search import PathConfig, aggregate_scores, search_path, search_path_seeds
 from waldo_jax.criteria import Criterion
 from waldo_jax.errors import WaldoError
-from waldo_jax.pipeline.experiment import EPOCH_BYTES_PER_PIXEL, initial_scores, memory_bytes, seed_keys
+from waldo_jax.pipeline.experiment import (
+    EPOCH_BYTES_PER_PIXEL,
+    initial_scores,
+    memory_bytes,
+    scene_views,
+    scoring_renderer,
+    seed_keys,
+)
 from waldo_jax.pipeline.figures import criterion_caption, criterion_label, plot_frame, scene_up
 from waldo_jax.pipeline.sources import Source
 from waldo_jax.search.population import training_poses
@@ -53,30 +60,17 @@ __all__ = [
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
 
 
-def _frames_posed(criterion: Criterion, intrinsics, c2w):
-    return criterion.apply(criterion.params, c2w, intrinsics), jnp.ones(c2w.shape[0], jnp.float32)
-
-
-def _frames_rendered(render_rgba, criterion: Criterion, c2w):
-    rgba = render_rgba(c2w)
-    images = rgba if criterion.inputs == "renders" else rgba[..., :3]
-    return criterion.apply(criterion.params, images), jnp.mean(rgba[..., 3], axis=(1, 2))
-
-
-def _frames_rendered_posed(render_rgba, criterion: Criterion, intrinsics, c2w):
-    rgba = render_rgba(c2w)
-    return criterion.apply(criterion.params, rgba, c2w, intrinsics), jnp.mean(rgba[..., 3], axis=(1, 2))
+def _frames(render_rgba, criterion: Criterion, intrinsics, c2w):
+    views = scene_views(render_rgba, intrinsics, c2w)
+    opacity = jnp.ones(c2w.shape[0], jnp.float32) if views.rgba is None else jnp.mean(views.rgba[..., 3], axis=(1, 2))
+    return criterion.evaluate(views), opacity
 
 
 def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
-    """c2w [B, 4, 4] -> (scores [B], mean opacity [B]). A pose criterion renders nothing (opacity 1)."""
-    if criterion.inputs == "poses":
-        return jax.tree_util.Partial(_frames_posed, criterion, source.intrinsics)
-    if source.render_rgba is None:
-        raise WaldoError(f"{source.spec} cannot render opacity, which path limits need")
-    if criterion.inputs == "posed":  # pose and view criteria combined
-        return jax.tree_util.Partial(_frames_rendered_posed, source.render_rgba, criterion, source.intrinsics)
-    return jax.tree_util.Partial(_frames_rendered, source.render_rgba, criterion)
+    """c2w [B, 4, 4] -> (scores [B], mean opacity [B]): `experiment.score_function` with the frames'
+    opacity for the path limits. A pose criterion renders nothing (opacity 1)."""
+    render_rgba = scoring_renderer(source, criterion, opacity=True)
+    return jax.tree_util.Partial(_frames, render_rgba, criterion, source.intrinsics)
 
 
 def paths_per_call(source: Source, config: PathConfig) -> int:
