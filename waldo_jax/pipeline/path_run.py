@@ -372,15 +372,6 @@ def check_nerfstudio_export(source: Source, dataparser: Optional[Tuple[np.ndarra
         )
 
 
-def _ngp_frame(source: Source) -> NgpFrame:
-    info = source.info
-    return NgpFrame.create(
-        info.get("ngp_scale", NgpFrame.scale),
-        info.get("ngp_offset", NgpFrame.offset),
-        bool(info.get("ngp_from_mitsuba", False)),
-    )
-
-
 def _score_figure(run: PathRun):
     """Per-frame scores of the found path and the two references (a bare Matplotlib `Figure`)."""
     from matplotlib.figure import Figure
@@ -496,7 +487,7 @@ def write_path_outputs(
     )
     io.write_json(
         out / "instant_ngp_path.json",
-        instant_ngp_camera_path(best, video.intrinsics, fps, extra=info, frame=_ngp_frame(run.source)),
+        instant_ngp_camera_path(best, video.intrinsics, fps, extra=info, frame=NgpFrame.of_info(run.source.info)),
     )
     names = [f"frame_{i:04d}" for i in range(len(best))]
     io.write_transforms(out / "poses.json", best, video.intrinsics, names, extra={"waldo_path": info})

@@ -68,6 +68,16 @@ class NgpFrame:
         offset = np.broadcast_to(np.asarray(offset, np.float64), (3,))
         return cls(float(scale), tuple(float(v) for v in offset), bool(from_mitsuba))
 
+    @classmethod
+    def of_info(cls, info: Dict[str, Any]) -> "NgpFrame":
+        """The frame a source's info records (`ngp_scale`, `ngp_offset`, `ngp_from_mitsuba`, as results.json
+        keeps them in `source_info`); NGP's defaults where absent."""
+        return cls.create(
+            info.get("ngp_scale", cls.scale),
+            info.get("ngp_offset", cls.offset),
+            bool(info.get("ngp_from_mitsuba", False)),
+        )
+
 
 def _finite(value: Any, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -81,17 +81,6 @@ def _intrinsics(scene: ViewScene, folder: Path):
         return fallback
 
 
-def _ngp_frame(info: dict):
-    """Instant-NGP's frame of the scene, from its `source_info` (as `waldo path` writes it)."""
-    from waldo_jax.scenes.camera_paths import NgpFrame
-
-    return NgpFrame.create(
-        info.get("ngp_scale", NgpFrame.scale),
-        info.get("ngp_offset", NgpFrame.offset),
-        bool(info.get("ngp_from_mitsuba", False)),
-    )
-
-
 def _new_folder(output: Path) -> Path:
     """`output/viewer_path_NN` for the first NN not taken, created here (exclusively: never an earlier one)."""
     for number in range(1, _MAX_EXPORTS):
@@ -115,7 +104,7 @@ def export_camera_path(scene: ViewScene, group: str = "", output: Optional[Path]
       ViewerError: nothing to export, or no output folder (a SOURCE alone).
     """
     from waldo_jax import io
-    from waldo_jax.scenes.camera_paths import instant_ngp_camera_path, nerfstudio_camera_path
+    from waldo_jax.scenes.camera_paths import NgpFrame, instant_ngp_camera_path, nerfstudio_camera_path
 
     output = Path(output) if output is not None else scene.output
     if output is None or not Path(output).is_dir():
@@ -127,6 +116,6 @@ def export_camera_path(scene: ViewScene, group: str = "", output: Optional[Path]
     nerfstudio = folder / "camera_path.json"
     io.write_json(nerfstudio, nerfstudio_camera_path(frames, intrinsics, fps, extra=info))
     ngp = folder / "instant_ngp_path.json"
-    frame = _ngp_frame(scene.source_info)
+    frame = NgpFrame.of_info(scene.source_info)
     io.write_json(ngp, instant_ngp_camera_path(frames, intrinsics, fps, extra=info, frame=frame))
     return [nerfstudio, ngp]
