@@ -12,7 +12,7 @@ from waldo_jax.criteria import CRITERIA, CriterionContext, build_criterion, make
 from waldo_jax.io import read_image
 from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, DemoSettings, run_demo
 from waldo_jax.pipeline.sources import NERF_GRADIENT_COST
-from waldo_jax.pipeline.experiment import _jit_score_images
+from waldo_jax.pipeline.experiment import initial_scores
 from waldo_jax.errors import WaldoError
 from waldo_jax.procedural import make_room, waldo_coverage
 from waldo_jax.pipeline.sources import procedural_source, run_source
@@ -438,4 +438,4 @@ def test_explore_accepts_each_criterion(tmp_path, criterion):
     assert r["n_generated"] == 12 and np.all(np.isfinite(r["scores_generated"]))
     # The training images scored by the same criterion (the program `waldo explore` compiled: no new one).
     guarded = build_criterion(criterion, CriterionContext(target=target), ["opacity:0.5"])
-    assert r["scores_train"] == np.asarray(_jit_score_images(guarded, source.train_images)).tolist()
+    assert r["scores_train"] == initial_scores(source, guarded, "images")[0].tolist()
