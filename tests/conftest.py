@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -19,6 +20,12 @@ os.environ.setdefault("JAX_ENABLE_X64", "0")
 # (notebooks, sharding, benchmarks). `WALDO_FAST_COMPILE=0 pytest ...` runs the suite with XLA's
 # default emitters; tests/test_xla_guard.py checks both settings give the same answers.
 os.environ.setdefault("WALDO_FAST_COMPILE", "1")
+# One persistent XLA compilation cache for the whole run (created in `pytest_configure` below, shared
+# by the xdist workers and every subprocess they start): the CLI, notebook and benchmark tests start
+# processes that compile the same programs again. Programs that compile in under 0.2 s are not
+# stored (writing them costs about what compiling does). The cache key covers XLA_FLAGS, so the
+# default-emitter runs of tests/test_xla_guard.py compile their own programs.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 import pytest
 from filelock import FileLock
@@ -157,6 +164,59 @@ HEAVY_FIRST = (
     "test_xla_guard.py",
     "test_multiprocess.py",
 )
+
+
+def pytest_configure(config):
+    """The run's compilation cache: a fresh folder made by the controlling process, before the xdist
+    workers start (they and their subprocesses inherit it), removed at the end. A cache folder the
+    user set (JAX_COMPILATION_CACHE_DIR) is used as it is and kept."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return
+    import jax
+
+    folder = tempfile.mkdtemp(prefix="waldo-jax-test-compile-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    jax.config.update("jax_compilation_cache_dir", folder)  # this process, when it runs tests itself
+    config.stash[_CACHE_KEY] = folder
+
+
+def pytest_unconfigure(config):
+    folder = config.stash.get(_CACHE_KEY, None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+_CACHE_KEY = pytest.StashKey[str]()
+
+
+# `WALDO_TEST_COMPILE_LOG=FILE pytest ...` appends one JSON line per test to FILE: its wall time and
+# the seconds JAX spent in this process tracing, lowering and compiling (JAX's own monitoring
+# events; subprocesses not included). For the suite-time work: which tests are compile-bound.
+_COMPILE_LOG = os.environ.get("WALDO_TEST_COMPILE_LOG")
+_compile_seconds: dict = {}
+
+if _COMPILE_LOG:
+    import jax.monitoring
+
+    def _on_duration(event, seconds, **kwargs):
+        if event.startswith("/jax/core/compile/"):
+            name = event.rsplit("/", 1)[-1]
+            _compile_seconds[name] = _compile_seconds.get(name, 0.0) + seconds
+
+    jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import json
+        import time
+
+        _compile_seconds.clear()
+        start = time.perf_counter()
+        yield
+        record = {"test": item.nodeid, "seconds": round(time.perf_counter() - start, 2)}
+        record.update({k: round(v, 2) for k, v in _compile_seconds.items()})
+        with FileLock(_COMPILE_LOG + ".lock"), open(_COMPILE_LOG, "a") as log:
+            log.write(json.dumps(record) + "\n")
 
 
 def pytest_collection_modifyitems(config, items):
