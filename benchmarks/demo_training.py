@@ -46,7 +46,7 @@ from waldo_jax.nerf.trained import TrainedField  # noqa: E402
 from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
 from waldo_jax.metrics import image_psnr  # noqa: E402
 from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS as DEMO_SETTINGS  # noqa: E402
-from waldo_jax.pipeline.demo import closeup_cameras, room_train_config, with_intrinsics  # noqa: E402
+from waldo_jax.pipeline.demo import closeup_cameras, room_train_config  # noqa: E402
 from waldo_jax.pipeline.sources import field_renderer  # noqa: E402
 from waldo_jax.procedural import held_out_scene, room_scene, waldo_surface_seen  # noqa: E402
 from waldo_jax.search import ExploreConfig  # noqa: E402
@@ -98,7 +98,7 @@ def evaluation_views(seeds: int, resolution: int) -> Views:
     c2w = np.concatenate(views).astype(np.float32)
     best = np.asarray(best)
     closeup_c2w, zoomed, _ = closeup_cameras(source.room, c2w[best], source.intrinsics)
-    closeup_truth = np.asarray(with_intrinsics(source.render, zoomed)(jnp.asarray(closeup_c2w)))
+    closeup_truth = np.asarray(source.render(closeup_c2w, zoomed))
     truth = np.asarray(source.render(jnp.asarray(c2w)))
     return Views(c2w, truth, best, source.intrinsics, closeup_c2w, zoomed, closeup_truth)
 
@@ -119,9 +119,9 @@ def measure(name: str, overrides: dict, views: Views, figures: Optional[Path]) -
     t1 = time.perf_counter()
     result = training.train(jax.random.key(DEMO_ROOM_SEED), scene, config, test, progress=False)
     t2 = time.perf_counter()
-    render = field_renderer(TrainedField.from_result(result, scene), views.intrinsics)
-    psnr = image_psnr(np.asarray(render(jnp.asarray(views.c2w))), views.truth)
-    closeups = np.asarray(with_intrinsics(render, views.closeup_intrinsics)(jnp.asarray(views.closeup_c2w)))
+    render = field_renderer(TrainedField.from_result(result, scene))
+    psnr = image_psnr(np.asarray(render(jnp.asarray(views.c2w), views.intrinsics).rgba[..., :3]), views.truth)
+    closeups = np.asarray(render(jnp.asarray(views.closeup_c2w), views.closeup_intrinsics).rgba[..., :3])
     closeup_psnr = image_psnr(closeups, views.closeup_truth)
     if figures is not None:
         io.save_png(

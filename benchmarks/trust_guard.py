@@ -64,7 +64,7 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 def render_psnr_of(source, c2w: np.ndarray) -> np.ndarray:
     """PSNR [V] of the NeRF's renders at c2w [V, 4, 4] against the analytic room, in calls of 8 poses."""
-    return image_psnr(demo.render_in(source.render, c2w, 8), demo.render_in(source.truth_render, c2w, 8))
+    return image_psnr(demo.render_in(source.render, c2w, 8), demo.render_in(source.render_truth, c2w, 8))
 
 
 def sweep(source, runs: dict) -> dict:

@@ -289,7 +289,7 @@ def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
         run_demo(out, settings=settings, progress=False)
     # The saved NeRF of the room is a SOURCE: it keeps the room, so the oracle applies.
     source = run_source(str(out / "nerf"), resolution=16)
-    assert source.room is not None and source.truth_render is not None and source.n_train == 10
+    assert source.room is not None and source.truth is not None and source.n_train == 10
     assert (
         main(
             [

@@ -158,8 +158,8 @@ def test_trained_nerf_refine_gradients_agree(trained_lego_fast):
             np.zeros(3, np.float32),
             scene.aabb,
         )
-        render = field_renderer(field, intrinsics, gradient=mode)
-        score = jax.tree_util.Partial(lambda r, c: criterion.apply(criterion.params, r(c)), render)
+        render = field_renderer(field, gradient=mode)
+        score = jax.tree_util.Partial(lambda r, c: criterion.evaluate(r(c, intrinsics)), render)
         results[mode] = jax.jit(lambda o, s=score, m=mode: values_and_gradients(s, start, jnp.float32(1.0), o, m))(
             offsets
         )

@@ -192,8 +192,7 @@ def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
     """`waldo demo`'s close-ups: same camera centres, Waldo's centre at the image centre, zoomed so that he
     fills about `CLOSEUP_FILL` of the height (twice as far: twice the zoom), the image size unchanged."""
     from waldo_jax.cameras import project_points
-    from waldo_jax.errors import WaldoError
-    from waldo_jax.pipeline.demo import CLOSEUP_FILL, closeup_cameras, with_intrinsics
+    from waldo_jax.pipeline.demo import CLOSEUP_FILL, closeup_cameras
     from waldo_jax.pipeline.sources import room_renderer
 
     centre = np.asarray(bare_room.waldo_points).mean(axis=0)
@@ -217,13 +216,12 @@ def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
     )
     extent = float(np.ptp(np.asarray(uv[:, 1])))
     assert 0.5 * CLOSEUP_FILL * INTR.height < extent < 1.1 * CLOSEUP_FILL * INTR.height  # about: perspective
-    # The renderers take the zoomed intrinsics: the same camera renders a different (closer) image.
-    render = room_renderer(bare_room, INTR)
-    zoomed_render = with_intrinsics(render, zoomed)
+    # A scene's renderer takes the zoomed intrinsics: the same camera renders a different (closer) image.
+    render = room_renderer(bare_room)
     camera = jnp.asarray(cameras[1:])
-    assert not np.allclose(np.asarray(render(camera)), np.asarray(zoomed_render(camera)), atol=1e-2)
-    with pytest.raises(WaldoError, match="one Intrinsics"):
-        with_intrinsics(jax.tree_util.Partial(lambda c: c), zoomed)
+    plain, closer = render(camera, INTR), render(camera, zoomed)
+    assert closer.intrinsics is zoomed and closer.rgba.shape == (1, INTR.height, INTR.width, 4)
+    assert not np.allclose(np.asarray(plain.rgba), np.asarray(closer.rgba), atol=1e-2)
     # A NaN pose is skipped by the zoom (the median of the others); none finite gives zoom 1.
     nan_pose = np.full((1, 4, 4), np.nan, np.float32)
     assert closeup_cameras(bare_room, np.concatenate([near, nan_pose]), INTR)[2] == near_zoom

@@ -1,4 +1,4 @@
-"""`waldo render`: views to PNGs, of the procedural room or of a trained run.
+"""`waldo render`: views to PNGs, of the procedural room, a trained run or a splat scene.
 
     waldo render procedural[:SEED] --out DIR [--resolution R] [--views N] [--samples S]
     waldo render procedural[:SEED] --poses FILE --out DIR [--resolution R] [--samples S]
@@ -6,12 +6,13 @@
     waldo render SPLATS --poses FILE|train --out DIR [--resolution R]     (a .ply or a 3DGS model folder)
 
 The room renders its training views analytically, with a contact sheet, transforms.json and
-room.json (Waldo's visibility per view), or, with --poses, the cameras of a poses file. A run renders
-the poses of a file read by `waldo_jax.scenes.read_poses_file` (a JSON object with
-`frames[].transform_matrix`: instant-ngp / nerfstudio transforms, OpenGL camera-to-world in the
-scene's world frame, as the training poses; nerfstudio viewer camera paths are refused) or its
-training poses. Intrinsics come from the file when it has a focal length, else from the checkpoint;
-`--resolution` rescales them so that the longer side has R pixels.
+room.json (Waldo's visibility per view). With --poses every SOURCE renders through its scene's one
+renderer (`Source.renderer`; the room's analytic one, --samples per ray): the poses of a file read
+by `waldo_jax.scenes.read_poses_file` (a JSON object with `frames[].transform_matrix`: instant-ngp /
+nerfstudio transforms, OpenGL camera-to-world in the scene's world frame, as the training poses;
+nerfstudio viewer camera paths are refused) or the training poses of a run or a splat scene.
+Intrinsics come from the file when it has a focal length, else from the scene; `--resolution`
+rescales them so that the longer side has R pixels.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -28,19 +30,9 @@ import numpy as np
 from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
-from waldo_jax.nerf.checkpoint import load_checkpoint
-from waldo_jax.nerf.trained import TrainedField, render_trained
-from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural
-from waldo_jax.pipeline.splat_sources import calibrate_max_pairs, is_splat_spec, splat_renderer, splat_source
-from waldo_jax.procedural import (
-    RoomCameraConfig,
-    make_room,
-    room_field,
-    room_render_config,
-    room_scene,
-    waldo_visibility_batch,
-)
-from waldo_jax.render import render_views
+from waldo_jax.pipeline.load import load_source
+from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural, room_renderer
+from waldo_jax.procedural import RoomCameraConfig, make_room, room_scene, waldo_visibility_batch
 from waldo_jax.types import Intrinsics
 from waldo_jax.scenes import read_poses_file
 
@@ -88,20 +80,106 @@ def add_command(subparsers) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    """`waldo render`: the procedural room's training views, or poses rendered by a trained run or splats."""
+    """`waldo render`: the procedural room's training views, or poses rendered by any SOURCE's renderer."""
     seed = parse_procedural(args.source, args.seed)
-    if seed is not None:
+    if seed is not None and args.poses is None:
         return _render_procedural(args, seed)
-    ignored = [
-        flag
-        for flag, value in (("--seed", args.seed), ("--views", args.views), ("--samples", args.samples))
-        if value is not None
-    ]
-    if ignored:
-        raise WaldoError(f"{', '.join(ignored)}: for procedural sources only; {args.source} renders its trained field")
-    if is_splat_spec(args.source):
-        return _render_splats(args)
-    return _render_run(args)
+    if seed is None:
+        ignored = [
+            flag
+            for flag, value in (("--seed", args.seed), ("--views", args.views), ("--samples", args.samples))
+            if value is not None
+        ]
+        if ignored:
+            raise WaldoError(
+                f"{', '.join(ignored)}: for procedural sources only; {args.source} renders its trained field"
+            )
+    return _render_poses(args, seed)
+
+
+@dataclasses.dataclass(frozen=True)
+class _PosedScene:
+    """What `--poses` renders with: a scene's renderer (`Source.renderer`), its default camera, its
+    training poses (None: it has none) and its `Source.sized_renderer`."""
+
+    name: str
+    renderer: jax.tree_util.Partial
+    intrinsics: Intrinsics
+    train_c2w: Optional[np.ndarray] = None
+    sized_renderer: Optional[Callable] = None
+
+
+def _posed_scene(args: argparse.Namespace, seed: Optional[int]) -> _PosedScene:
+    """The scene `--poses` renders: the procedural room (its analytic renderer, --samples per ray, a
+    128 px camera), else the SOURCE's own (`load_source` without its training images)."""
+    if seed is None:
+        if args.poses is None:
+            raise WaldoError(
+                f"rendering {args.source} needs --poses FILE (a transforms.json) or --poses train "
+                "(its training cameras; a splat scene's cameras.json, else a ring of views around it)"
+            )
+        if args.poses != "train" and not Path(args.poses).exists():
+            raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
+        if not Path(args.source).exists():
+            raise WaldoError(f"SOURCE {args.source} does not exist (a run directory or a splat scene)")
+        if args.resolution is not None:
+            check_resolution(args.resolution)
+        source = load_source(args.source, args.resolution, images=False)
+        return _PosedScene(source.name, source.renderer, source.intrinsics, source.train_c2w, source.sized_renderer)
+    if args.poses == "train":
+        raise WaldoError(
+            "--poses train is for trained runs; `waldo render procedural` renders the room's training "
+            "views without --poses"
+        )
+    if args.views is not None:
+        raise WaldoError("--views: the procedural room renders the poses of --poses, not training views")
+    samples = 128 if args.samples is None else args.samples
+    if not 1 <= samples <= 1024:
+        raise WaldoError(f"--samples must be between 1 and 1024, got {samples}")
+    if not Path(args.poses).exists():
+        raise WaldoError(f"{args.poses}: no such poses file")
+    camera = Intrinsics.from_fov(128, 128, RoomCameraConfig().fov_x)
+    return _PosedScene(f"procedural:{seed}", room_renderer(make_room(seed), samples), camera)
+
+
+def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
+    """`waldo render SOURCE --poses FILE|train`: the poses rendered by the scene's renderer to DIR/0000.png, ..."""
+    scene = _posed_scene(args, seed)
+    if args.poses == "train":
+        c2w, intrinsics = scene.train_c2w, scene.intrinsics
+    else:
+        c2w, intrinsics, _ = read_poses_file(Path(args.poses), scene.intrinsics)
+    if args.resolution is not None:
+        check_resolution(args.resolution)
+        intrinsics = intrinsics.with_max_side(args.resolution)
+    if len(c2w) > MAX_RENDER_POSES:
+        raise WaldoError(
+            f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} (split the file)"
+        )
+    out = io.prepare_output_dir(args.out, force=args.force)
+    names = [f"{i:04d}.png" for i in range(len(c2w))]
+    stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
+    c2w = np.asarray(c2w, np.float32)
+    renderer, sized = scene.renderer, ""
+    if scene.sized_renderer is not None:  # capacities sized to these very poses
+        renderer, note = scene.sized_renderer(c2w, intrinsics)
+        sized = f" ({note})"
+    progress = Progress(args.quiet)
+    progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
+    start = time.perf_counter()
+    with progress:
+        _write_groups(
+            lambda poses: renderer(jnp.asarray(poses), intrinsics).rgba[..., :3], c2w, intrinsics, out, names, progress
+        )
+    seconds = time.perf_counter() - start
+    for path in stale:
+        path.unlink()
+    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
+    print(
+        f"wrote {len(names)} PNGs of {scene.name} at {intrinsics.width}x{intrinsics.height} to {out} "
+        f"in {seconds:.1f} s{sized}{removed}"
+    )
+    return 0
 
 
 def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names, progress: Progress) -> None:
@@ -119,59 +197,8 @@ def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Pa
     progress.close()
 
 
-def _render_splats(args: argparse.Namespace) -> int:
-    """`waldo render SPLATS --poses FILE|train`: renders poses of a splat scene to DIR/0000.png, ..."""
-    if args.poses is None:
-        raise WaldoError(
-            "rendering a splat scene needs --poses FILE (a transforms.json) or --poses train "
-            "(its cameras.json, else a ring of views around it)"
-        )
-    if args.poses != "train" and not Path(args.poses).exists():
-        raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
-    if args.resolution is not None:
-        check_resolution(args.resolution)
-    source = splat_source(args.source, args.resolution, images=False)
-    if args.poses == "train":
-        c2w, intrinsics = source.train_c2w, source.intrinsics
-    else:
-        c2w, intrinsics, _ = read_poses_file(Path(args.poses), source.intrinsics)
-        if args.resolution is not None:
-            intrinsics = intrinsics.with_max_side(args.resolution)
-    if len(c2w) > MAX_RENDER_POSES:
-        raise WaldoError(
-            f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} (split the file)"
-        )
-    out = io.prepare_output_dir(args.out, force=args.force)
-    names = [f"{i:04d}.png" for i in range(len(c2w))]
-    stale = io.stale_files(out, r"\d{4,}\.png", names)
-    # Pairs sized to these very poses: no view drops a splat.
-    config = dataclasses.replace(
-        source.splat_config,
-        max_pairs=calibrate_max_pairs(source.splats, c2w, intrinsics, source.splat_config, margin=1.0),
-    )
-    render = splat_renderer(source.splats, intrinsics, config)
-    progress = Progress(args.quiet)
-    progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
-    start = time.perf_counter()
-    with progress:
-        _write_groups(
-            lambda poses: render(jnp.asarray(poses)), np.asarray(c2w, np.float32), intrinsics, out, names, progress
-        )
-    seconds = time.perf_counter() - start
-    for path in stale:
-        path.unlink()
-    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
-    print(
-        f"wrote {len(names)} PNGs of {source.info['splats']} splats to {out} in {seconds:.1f} s "
-        f"(max_pairs {config.max_pairs}: no view dropped a splat){removed}"
-    )
-    return 0
-
-
 def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     """`waldo render procedural[:SEED]`: the room's training views, a sheet, transforms.json, room.json."""
-    if args.poses is not None:
-        return _render_procedural_poses(args, seed)
     resolution = 128 if args.resolution is None else args.resolution
     args.resolution = resolution
     args.views = check_views(DEFAULT_PROCEDURAL_VIEWS if args.views is None else args.views)
@@ -235,95 +262,4 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
         f"(contact_sheet.png, transforms.json, room.json) in {seconds:.1f} s; "
         f"best training-view Waldo visibility {visibility.max():.0%}"
     )
-    return 0
-
-
-def _render_procedural_poses(args: argparse.Namespace, seed: int) -> int:
-    """`waldo render procedural[:SEED] --poses FILE`: the room's analytic renders of a poses file's cameras."""
-    if args.poses == "train":
-        raise WaldoError(
-            "--poses train is for trained runs; `waldo render procedural` renders the room's training "
-            "views without --poses"
-        )
-    if args.views is not None:
-        raise WaldoError("--views: the procedural room renders the poses of --poses, not training views")
-    samples = 128 if args.samples is None else args.samples
-    if not 1 <= samples <= 1024:
-        raise WaldoError(f"--samples must be between 1 and 1024, got {samples}")
-    poses_path = Path(args.poses)
-    if not poses_path.exists():
-        raise WaldoError(f"{poses_path}: no such poses file")
-    default = Intrinsics.from_fov(128, 128, RoomCameraConfig().fov_x)
-    c2w, intrinsics, _ = read_poses_file(poses_path, default)
-    if args.resolution is not None:
-        check_resolution(args.resolution)
-        intrinsics = intrinsics.with_max_side(args.resolution)
-    if len(c2w) > MAX_RENDER_POSES:
-        raise WaldoError(
-            f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} (split the file)"
-        )
-    out = io.prepare_output_dir(args.out, force=args.force)
-    names = [f"{i:04d}.png" for i in range(len(c2w))]
-    stale = io.stale_files(out, r"\d{4,}\.png", names)
-    room = make_room(seed)
-    config = room_render_config(room, num_samples=samples)
-    start = time.perf_counter()
-    with Progress(args.quiet) as progress:
-        _write_groups(
-            lambda poses: render_views(room_field, room, jnp.asarray(poses), intrinsics, config).rgb,
-            np.asarray(c2w, np.float32),
-            intrinsics,
-            out,
-            names,
-            progress,
-        )
-    seconds = time.perf_counter() - start
-    for path in stale:
-        path.unlink()
-    print(
-        f"wrote {len(names)} PNGs of procedural:{seed} at {intrinsics.width}x{intrinsics.height} to {out} "
-        f"in {seconds:.1f} s"
-    )
-    return 0
-
-
-def _render_run(args: argparse.Namespace) -> int:
-    """`waldo render RUN_DIR --poses FILE|train`: renders poses with a trained field to DIR/0000.png, ..."""
-    if args.poses is None:
-        raise WaldoError("rendering a trained run needs --poses FILE (a transforms.json) or --poses train")
-    run = Path(args.source)
-    if not run.exists():
-        raise WaldoError(f"run directory {run} does not exist")
-    checkpoint = load_checkpoint(run)
-    scene = checkpoint.scene
-    if args.poses == "train":
-        c2w, intrinsics = np.asarray(scene.c2w, np.float32), scene.intrinsics
-    else:
-        poses_path = Path(args.poses)
-        if not poses_path.exists():
-            raise WaldoError(f"{poses_path}: no such poses file (or pass --poses train)")
-        c2w, intrinsics, _ = read_poses_file(poses_path, scene.intrinsics)
-    if args.resolution is not None:
-        check_resolution(args.resolution)
-        intrinsics = intrinsics.with_max_side(args.resolution)
-    if len(c2w) > MAX_RENDER_POSES:
-        raise WaldoError(
-            f"{args.poses}: {len(c2w)} poses; one render writes at most {MAX_RENDER_POSES} (split the file)"
-        )
-    force = getattr(args, "force", False)
-    out = io.prepare_output_dir(args.out, force=force)
-    names = [f"{i:04d}.png" for i in range(len(c2w))]
-    stale = io.stale_files(out, r"\d{4,}\.png", names)  # --force: an earlier render's PNGs, removed at the end
-
-    field = TrainedField.from_checkpoint(checkpoint)
-    progress = Progress(args.quiet)
-    progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
-    start = time.perf_counter()
-    with progress:
-        _write_groups(lambda poses: render_trained(field, poses, intrinsics).rgb, c2w, intrinsics, out, names, progress)
-    seconds = time.perf_counter() - start
-    for path in stale:
-        path.unlink()
-    removed = f"; removed {len(stale)} PNGs of an earlier render" if stale else ""
-    print(f"wrote {len(names)} PNGs to {out} in {seconds:.1f} s{removed}")
     return 0

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import time
 from pathlib import Path
 from typing import Any, Dict, Optional
@@ -305,21 +306,17 @@ def room_scenes(seed: int, settings: DemoSettings):
 
 def nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedField, psnr_test) -> Source:
     """The trained NeRF of the room as the searches' source, with the analytic room as its truth."""
-    render = field_renderer(field, scene.intrinsics, gradient=NERF_GRADIENT)
-    render_rgba = field_renderer(field, scene.intrinsics, rgba=True, gradient=NERF_GRADIENT)
-    truth = room_renderer(room, scene.intrinsics)
     return Source(
         spec=str(run_dir),
         kind="run",
         name=f"NeRF of procedural:{seed}",
         train_c2w=scene.c2w,
         intrinsics=scene.intrinsics,
-        render=render,
-        render_rgba=render_rgba,
+        renderer=field_renderer(field, gradient=NERF_GRADIENT),
         train_images=scene.images,
         train_names=scene.file_names,
         room=room,
-        truth_render=truth,
+        truth=room_renderer(room),
         info={"procedural_seed": seed, "run_dir": str(run_dir), "psnr_test": psnr_test},
         gradient=NERF_GRADIENT,
     )
@@ -329,21 +326,6 @@ def nerf_source(run_dir: Path, seed: int, scene: Scene, room, field: TrainedFiel
 # he fills about `CLOSEUP_FILL` of the image's height (one zoom for all, the median of the views').
 CLOSEUP_FILL = 0.6
 CLOSEUP_MAX_ZOOM = 6.0
-
-
-def with_intrinsics(render: jax.tree_util.Partial, intrinsics: Intrinsics) -> jax.tree_util.Partial:
-    """The renderer `render` (a Partial taking c2w, as `Source.render`) with its one positional
-    `Intrinsics` argument replaced. The same image size keeps the same compiled program.
-
-    Raises:
-      WaldoError: `render` does not take exactly one positional `Intrinsics`.
-    """
-    found = [i for i, a in enumerate(render.args) if isinstance(a, Intrinsics)]
-    if len(found) != 1:
-        raise WaldoError(f"renderer {render.func}: expected one Intrinsics argument, found {len(found)}")
-    args = list(render.args)
-    args[found[0]] = intrinsics
-    return jax.tree_util.Partial(render.func, *args, **render.keywords)
 
 
 def closeup_cameras(room, c2w: np.ndarray, intrinsics: Intrinsics):
@@ -380,8 +362,8 @@ def _closeups(source: Source, best_c2w: np.ndarray, views: int):
     """Close-ups of Waldo from each best view [P, 4, 4] by the NeRF and by the truth, and Waldo's pixels in
     them: (nerf, truth, mask [P, H, W], zoom)."""
     cameras, zoomed, zoom = closeup_cameras(source.room, best_c2w, source.intrinsics)
-    nerf = render_in(with_intrinsics(source.render, zoomed), cameras, views)
-    truth = render_in(with_intrinsics(source.truth_render, zoomed), cameras, views)
+    nerf = render_in(functools.partial(source.render, intrinsics=zoomed), cameras, views)
+    truth = render_in(functools.partial(source.render_truth, intrinsics=zoomed), cameras, views)
     return nerf, truth, waldo_mask(source.room, cameras, zoomed), zoom
 
 
@@ -393,7 +375,7 @@ def _method_stats(run, results: Dict[str, Any], source: Source):
     visible = np.asarray(waldo_visibility_batch(source.room, best_c2w, source.intrinsics))
     views = max(len(run.top_images), 1)  # render in calls of the top-k's size: no new compilation
     best_nerf = render_in(source.render, best_c2w, views)
-    best_truth = render_in(source.truth_render, best_c2w, views)
+    best_truth = render_in(source.render_truth, best_c2w, views)
     best_psnr = image_psnr(best_nerf, best_truth)
     waldo_psnr = masked_psnr(best_nerf, best_truth, waldo_mask(source.room, best_c2w, source.intrinsics))
     top_psnr = image_psnr(run.top_images, run.top_truth)

@@ -135,9 +135,9 @@ def refine_for_source(
     return dataclasses.replace(refine, gradient=mode, gradient_cost=cost)
 
 
-def scene_views(render: Optional[jax.tree_util.Partial], intrinsics, c2w) -> Views:
-    """The `Views` of cameras c2w [P, 4, 4]: rendered by `render` (None: the poses alone)."""
-    return Views(None if render is None else render(c2w), c2w, intrinsics)
+def scene_views(renderer: Optional[jax.tree_util.Partial], intrinsics, c2w) -> Views:
+    """The `Views` of cameras c2w [P, 4, 4]: rendered by a scene's `renderer` (None: the poses alone)."""
+    return Views(None, c2w, intrinsics) if renderer is None else renderer(c2w, intrinsics)
 
 
 def _score_views(render, criterion: Criterion, intrinsics, c2w):
@@ -159,17 +159,9 @@ def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Pa
     return score_function(source, criterion.smooth())
 
 
-def scoring_renderer(source: Source, criterion: Criterion, opacity: bool = False) -> Optional[jax.tree_util.Partial]:
-    """The source's renderer for the criterion: None for one of poses alone, colour, or colour and
-    opacity (rgba) where the criterion needs it or `opacity` asks for it (path limits)."""
-    if not criterion.needs.render:
-        return None
-    if not (opacity or criterion.needs.opacity):
-        return source.render
-    if source.render_rgba is None:
-        needs = "path limits need" if opacity else f"criterion {criterion.name!r} needs"
-        raise WaldoError(f"{source.spec} cannot render the opacity, which {needs}")
-    return source.render_rgba
+def scoring_renderer(source: Source, criterion: Criterion) -> Optional[jax.tree_util.Partial]:
+    """The source's renderer where the criterion scores pixels, None where it scores poses alone."""
+    return source.renderer if criterion.needs.render else None
 
 
 # Compiled once per criterion function and shape: scoring eagerly is ~10x slower for a network
@@ -192,7 +184,10 @@ def initial_scores(source: Source, criterion: Criterion, initial: str = "images"
             )
         images = jnp.asarray(source.train_images)
     else:
-        images = scoring_renderer(source, criterion)(train_c2w)
+        rgba = source.views(train_c2w).rgba
+        # Colour alone where the criterion takes no opacity, sliced here rather than in the compiled
+        # criterion, so that its program (and its float rounding) is the one that scores photographs.
+        images = rgba if criterion.needs.opacity else rgba[..., :3]
     return np.asarray(_jit_score_views(criterion, Views(images, train_c2w, source.intrinsics)), np.float32), initial
 
 
@@ -309,7 +304,7 @@ def run_explore(
     valid = np.asarray(top.top_valid)
     top_c2w = jnp.asarray(np.asarray(top.top_c2w)[valid])
     top_images = np.asarray(source.render(top_c2w), np.float32)
-    top_truth = None if source.truth_render is None else np.asarray(source.truth_render(top_c2w), np.float32)
+    top_truth = None if source.truth is None else np.asarray(source.render_truth(top_c2w), np.float32)
     done = time.perf_counter()
     seconds = {
         "setup": round(setup_seconds, 3),

@@ -26,6 +26,7 @@ def load_source(
     cameras: Optional[str] = None,
     up: Optional[np.ndarray] = None,
     orbit: Optional[str] = None,
+    images: bool = True,
 ) -> Source:
     """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
     (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
@@ -34,7 +35,8 @@ def load_source(
     views are those it was trained on, and passing `views` with a run is an error, not ignored.
     `cameras` (a transforms.json-like poses file, a COLMAP model or a nerfstudio run) gives a splat
     scene its training poses; `up` and `orbit` place the ring of views of a splat scene without cameras
-    (`splat_source`).
+    (`splat_source`). `images=False` leaves a run's or a splat scene's training images out (None), for
+    callers that only render.
 
     Raises:
       SourceError: a bad spec, a missing run directory, a bad checkpoint, `views` with a run,
@@ -51,5 +53,5 @@ def load_source(
     if views is not None:
         raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was trained on")
     if splat:
-        return splat_source(spec, resolution, cameras, up=up, orbit=orbit)
-    return run_source(spec, resolution)
+        return splat_source(spec, resolution, cameras, up=up, orbit=orbit, images=images)
+    return run_source(spec, resolution, images=images)

@@ -60,8 +60,8 @@ __all__ = [
 VIDEO_GROUP_PIXELS = 2**22  # pixels rendered per call for the video: bounds memory
 
 
-def _frames(render_rgba, criterion: Criterion, intrinsics, c2w):
-    views = scene_views(render_rgba, intrinsics, c2w)
+def _frames(renderer, criterion: Criterion, intrinsics, c2w):
+    views = scene_views(renderer, intrinsics, c2w)
     opacity = jnp.ones(c2w.shape[0], jnp.float32) if views.rgba is None else jnp.mean(views.rgba[..., 3], axis=(1, 2))
     return criterion.evaluate(views), opacity
 
@@ -69,8 +69,7 @@ def _frames(render_rgba, criterion: Criterion, intrinsics, c2w):
 def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
     """c2w [B, 4, 4] -> (scores [B], mean opacity [B]): `experiment.score_function` with the frames'
     opacity for the path limits. A pose criterion renders nothing (opacity 1)."""
-    render_rgba = scoring_renderer(source, criterion, opacity=True)
-    return jax.tree_util.Partial(_frames, render_rgba, criterion, source.intrinsics)
+    return jax.tree_util.Partial(_frames, scoring_renderer(source, criterion), criterion, source.intrinsics)
 
 
 def paths_per_call(source: Source, config: PathConfig) -> int:
@@ -271,9 +270,9 @@ def run_path(
     phase(f"rendering the {config.frames} video frames")
     best = np.asarray(results[0].best_c2w)
     pixels = video.intrinsics.width * video.intrinsics.height
-    rgba = _render_frames(video.render_rgba or video.render, best, pixels)
+    rgba = _render_frames(lambda c2w: video.views(c2w).rgba, best, pixels)
     frames = rgba[..., :3]
-    truth = None if video.truth_render is None else _render_frames(video.truth_render, best, pixels)
+    truth = None if video.truth is None else _render_frames(video.render_truth, best, pixels)
     done = time.perf_counter()
     seconds = {
         "setup": round(options.setup_seconds, 3),
@@ -281,7 +280,7 @@ def run_path(
         "render": round(done - searched, 3),
         "total": round(options.setup_seconds + done - start, 3),
     }
-    found[0]["video_opacity"] = rgba[..., 3].mean(axis=(1, 2)) if rgba.shape[-1] == 4 else None
+    found[0]["video_opacity"] = rgba[..., 3].mean(axis=(1, 2))
     return PathRun(
         source=source,
         criterion=criterion,

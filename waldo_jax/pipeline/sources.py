@@ -9,9 +9,11 @@ SOURCE is what `waldo explore` and `waldo render` accept:
     names are in the checkpoint). A run trained on the procedural room keeps the room, so its
     oracles (`waldo_oracle`) still apply and renders can be compared with the analytic truth.
 
-A `Source`'s renderers are `jax.tree_util.Partial`s c2w [P, 4, 4] -> rgb [P, H, W, 3] whose
-arrays (the room, the field's parameters, the occupancy grid) are traced arguments, so they can be
-called inside the search's jit and compile once per image size.
+Every scene gives one renderer, `renderer(c2w [P, 4, 4], intrinsics) -> Views` (colour and
+accumulated opacity as rgba [P, H, W, 4], with the poses and the camera): the `Views` every criterion
+takes (`waldo_jax.criteria.Views`). It is a `jax.tree_util.Partial` whose arrays (the room, the
+field's parameters, the occupancy grid, the splats) are traced arguments, so it can be called inside
+the search's jit and compiles once per image size.
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ import dataclasses
 import functools
 import warnings
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from waldo_jax.criteria.base import Views
 from waldo_jax.errors import WaldoError, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
@@ -77,24 +80,25 @@ class Source:
       name: a short name for reports ("procedural:0", the run folder's name).
       train_c2w: float32 [N, 4, 4] training poses (OpenGL camera-to-world).
       intrinsics: the camera of every render of the search (its width/height set the image size).
-      render: c2w [P, 4, 4] -> rgb float32 [P, H, W, 3] in [0, 1] (a `jax.tree_util.Partial`).
+      renderer: the scene's one renderer, (c2w [P, 4, 4], intrinsics) -> `Views` whose rgba float32
+        [P, H, W, 4] in [0, 1] holds the colour and the accumulated opacity (a `jax.tree_util.Partial`).
       train_images: float32 [N, H, W, 3] the real training images at `intrinsics`' size, or None
         when they cannot be read (then `train_images_note` says why).
       train_names: the N training images' file names.
       room: the procedural `WaldoRoom`, or None.
-      truth_render: for a NeRF of the procedural room, the analytic renderer (same signature as
-        `render`); None otherwise.
+      truth: for a NeRF of the procedural room, the analytic room's renderer (same signature as
+        `renderer`); None otherwise.
       info: facts for results files (seed, run directory, held-out PSNR of the run, ...).
       train_images_note: why `train_images` is None ("" otherwise).
-      render_rgba: as `render` but returning rgba [P, H, W, 4] with the accumulated opacity as alpha,
-        for criteria that guard against empty views; None when the source cannot give opacity.
       renderer_report: c2w [V, 4, 4] of every view a run rendered -> facts for results.json (what
         the renderer dropped, ...), or None.
       gradient: how a `+refine` method differentiates a render: "forward" (`jax.jvp`, six tangents) or
         "reverse" (`jax.vjp`: the splat renderer, and the marched NeRF renderer's own backward pass).
       gradient_cost: renders one gradient evaluation through this source's renderer counts as (None:
         the criterion's default, `pipeline.GRADIENT_COSTS`).
-      splats, splat_config: a splat source's splats and renderer settings (None otherwise).
+      sized_renderer: (c2w [P, 4, 4], intrinsics) -> (a renderer whose capacities are sized to those
+        very poses, a line saying what was sized): a splat scene's pairs, so that no view drops a
+        splat (`waldo render`); None where `renderer` has no capacity to size.
     """
 
     spec: str
@@ -102,28 +106,49 @@ class Source:
     name: str
     train_c2w: np.ndarray
     intrinsics: Intrinsics
-    render: jax.tree_util.Partial
+    renderer: jax.tree_util.Partial
     train_images: Optional[np.ndarray]
     train_names: Tuple[str, ...]
     room: Any = None
-    truth_render: Optional[jax.tree_util.Partial] = None
+    truth: Optional[jax.tree_util.Partial] = None
     info: Dict[str, Any] = dataclasses.field(default_factory=dict)
     train_images_note: str = ""
-    render_rgba: Optional[jax.tree_util.Partial] = None
     renderer_report: Optional[Any] = None
     gradient: str = "forward"
     gradient_cost: Optional[int] = None
-    splats: Any = None
-    splat_config: Any = None
+    sized_renderer: Optional[Callable[[np.ndarray, Intrinsics], Tuple[jax.tree_util.Partial, str]]] = None
 
     @property
     def n_train(self) -> int:
         return int(self.train_c2w.shape[0])
 
+    def views(self, c2w, intrinsics: Optional[Intrinsics] = None) -> Views:
+        """The `Views` of cameras c2w [P, 4, 4] (at `intrinsics`, default the source's own)."""
+        return self.renderer(jnp.asarray(c2w, jnp.float32), self.intrinsics if intrinsics is None else intrinsics)
 
-def render_in(render, c2w, count: int) -> np.ndarray:
-    """`render(c2w)` [P, H, W, 3] in calls of `count` poses (the last padded by repeating a pose), so that
-    any number of views renders with the program already compiled for `count`."""
+    def render(self, c2w, intrinsics: Optional[Intrinsics] = None) -> Array:
+        """rgb float32 [P, H, W, 3] of cameras c2w [P, 4, 4] (at `intrinsics`, default the source's own)."""
+        return _rgb(self.views(c2w, intrinsics))
+
+    def render_truth(self, c2w, intrinsics: Optional[Intrinsics] = None) -> Array:
+        """rgb [P, H, W, 3] of the analytic truth (`truth`) at cameras c2w [P, 4, 4].
+
+        Raises:
+          WaldoError: the source has no truth (only a NeRF of the procedural room has one).
+        """
+        if self.truth is None:
+            raise WaldoError(f"{self.spec} has no analytic truth to render (a NeRF of the procedural room has)")
+        intrinsics = self.intrinsics if intrinsics is None else intrinsics
+        return _rgb(self.truth(jnp.asarray(c2w, jnp.float32), intrinsics))
+
+
+def _rgb(views: Views) -> Array:
+    return views.rgba[..., :3]
+
+
+def render_in(render: Callable, c2w, count: int) -> np.ndarray:
+    """`render(c2w)` [P, H, W, 3] (e.g. `Source.render`) in calls of `count` poses (the last padded by
+    repeating a pose), so that any number of views renders with the program already compiled for `count`."""
     c2w = np.asarray(c2w, np.float32)
     total = c2w.shape[0]
     if total == 0:
@@ -148,38 +173,29 @@ def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
 
-def _output(out, rgba: bool) -> Array:
-    """rgb [P, H, W, 3], or rgba [P, H, W, 4] with the accumulated opacity as alpha."""
-    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1) if rgba else out.rgb
+def _rgba(out) -> Array:
+    """The colour and the accumulated opacity of a render, rgba [P, H, W, 4]."""
+    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1)
 
 
-def _render_room(room, intrinsics: Intrinsics, render_config, c2w: Array, *, rgba: bool = False) -> Array:
-    return _output(render_views(room_field, room, c2w, intrinsics, render_config), rgba)
+def _room_views(room, render_config, c2w: Array, intrinsics: Intrinsics) -> Views:
+    return Views(_rgba(render_views(room_field, room, c2w, intrinsics, render_config)), c2w, intrinsics)
 
 
-_render_room_rgba = functools.partial(_render_room, rgba=True)
+def _field_views(params, setup, c2w: Array, intrinsics: Intrinsics, *, field, gradient: str = "forward") -> Views:
+    out = render_marched(field, params, setup, c2w, intrinsics, gradient=gradient).output
+    return Views(_rgba(out), c2w, intrinsics)
 
 
-def _render_field(
-    params, setup, intrinsics: Intrinsics, c2w: Array, *, field, rgba: bool = False, gradient: str = "forward"
-) -> Array:
-    return _output(render_marched(field, params, setup, c2w, intrinsics, gradient=gradient).output, rgba)
-
-
-def room_renderer(room, intrinsics: Intrinsics, rgba: bool = False) -> jax.tree_util.Partial:
-    """The procedural room's analytic renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4])."""
-    return jax.tree_util.Partial(
-        _render_room_rgba if rgba else _render_room,
-        room,
-        intrinsics,
-        room_render_config(room, num_samples=_ROOM_SAMPLES),
-    )
+def room_renderer(room, num_samples: int = _ROOM_SAMPLES) -> jax.tree_util.Partial:
+    """The procedural room's analytic renderer, (c2w [P, 4, 4], intrinsics) -> `Views` (a Partial)."""
+    return jax.tree_util.Partial(_room_views, room, room_render_config(room, num_samples=num_samples))
 
 
 @functools.lru_cache(maxsize=None)
-def _field_fn(field_config, rgba: bool = False, gradient: str = "forward"):
+def _field_fn(field_config, gradient: str = "forward"):
     """One function object per field config, so that Partials of equal configs share compilations."""
-    return functools.partial(_render_field, field=make_field(field_config), rgba=rgba, gradient=gradient)
+    return functools.partial(_field_views, field=make_field(field_config), gradient=gradient)
 
 
 # How a `+refine` method differentiates a trained field's renders (`Source.gradient`): reverse mode through
@@ -195,42 +211,30 @@ NERF_GRADIENT = "reverse"
 NERF_GRADIENT_COST = 4
 
 
-def field_renderer(
-    field: TrainedField, intrinsics: Intrinsics, rgba: bool = False, gradient: str = "forward"
-) -> jax.tree_util.Partial:
-    """The renderer of a trained field (`waldo_jax.render.marched`, as `waldo render`) as a Partial c2w -> rgb.
+def field_renderer(field: TrainedField, gradient: str = "forward") -> jax.tree_util.Partial:
+    """The renderer of a trained field (`waldo_jax.render.marched`), (c2w [P, 4, 4], intrinsics) ->
+    `Views` (a Partial).
 
     `field`: the trained field and its near, far, background and box (`nerf.trained.TrainedField`).
-    With `rgba`, the Partial returns [P, H, W, 4]: the colour and the accumulated opacity. `gradient`:
-    how its images differentiate with respect to c2w, "forward" (`jax.jvp`) or "reverse" (`jax.vjp`)
-    (`render.marched.render_marched`); the images are the same.
+    `gradient`: how its images differentiate with respect to c2w, "forward" (`jax.jvp`) or "reverse"
+    (`jax.vjp`) (`render.marched.render_marched`); the images are the same.
     """
     params = jax.tree.map(jnp.asarray, field.params)
     occupancy = None if field.occupancy is None else jax.tree.map(jnp.asarray, field.occupancy)
     setup = render_setup(field.replace(params=params, occupancy=occupancy))
-    return jax.tree_util.Partial(_field_fn(field.config.field, rgba, gradient), params, setup, intrinsics)
+    return jax.tree_util.Partial(_field_fn(field.config.field, gradient), params, setup)
 
 
 def with_gradient(source: "Source", gradient: str) -> "Source":
-    """`source` with its trained-field renderers differentiating in `gradient` mode ("forward" or
+    """`source` with its trained-field renderer differentiating in `gradient` mode ("forward" or
     "reverse"; the images are the same), e.g. to compare the two, with the gradient cost of that mode.
     Other sources are returned as they are."""
-
-    def rebuilt(partial):
-        if partial is None or getattr(partial.func, "func", None) is not _render_field:
-            return partial
-        return jax.tree_util.Partial(functools.partial(partial.func, gradient=gradient), *partial.args)
-
-    if source.kind != "run":
+    renderer = source.renderer
+    if getattr(renderer.func, "func", None) is not _field_views:
         return source
     cost = NERF_GRADIENT_COST if gradient == NERF_GRADIENT else None  # None: the default, `GRADIENT_COSTS`
-    return dataclasses.replace(
-        source,
-        render=rebuilt(source.render),
-        render_rgba=rebuilt(source.render_rgba),
-        gradient=gradient,
-        gradient_cost=cost,
-    )
+    rebuilt = jax.tree_util.Partial(functools.partial(renderer.func, gradient=gradient), *renderer.args)
+    return dataclasses.replace(source, renderer=rebuilt, gradient=gradient, gradient_cost=cost)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -287,8 +291,7 @@ def procedural_source(
         name=f"procedural:{seed}",
         train_c2w=np.asarray(scene.c2w, np.float32),
         intrinsics=intrinsics,
-        render=room_renderer(room, intrinsics),
-        render_rgba=room_renderer(room, intrinsics, rgba=True),
+        renderer=room_renderer(room),
         train_images=np.asarray(images, np.float32),
         train_names=tuple(scene.file_names),
         room=room,
@@ -364,12 +367,13 @@ def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarr
     return resize_images(images, intrinsics.width, intrinsics.height), ""
 
 
-def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
+def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = True) -> Source:
     """A trained run directory (`waldo train` / `waldo demo` output) as a Source.
 
     Args:
       run_dir: the folder holding `checkpoint.ckpt`.
       resolution: longer side of the renders in pixels (default: the training images' size).
+      images: read (or, for the procedural room, render) the training images; False leaves them None.
     """
     run = Path(run_dir)
     if not run.is_dir():
@@ -384,8 +388,6 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
         check_resolution(resolution)
         intrinsics = intrinsics.with_max_side(int(resolution))
     field = TrainedField.from_checkpoint(checkpoint)
-    render = field_renderer(field, intrinsics, gradient=NERF_GRADIENT)
-    render_rgba = field_renderer(field, intrinsics, rgba=True, gradient=NERF_GRADIENT)
     info = {
         "run_dir": str(run.resolve()),
         "scene_path": record.path,
@@ -405,11 +407,12 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
     if record.format == "procedural":
         seed = int(record.metadata.get("seed", 0))
         room = room_from_metadata(record.metadata)  # the demo's room has a larger Waldo than make_room(seed)
-        truth = room_renderer(room, intrinsics)
+        truth = room_renderer(room)
         info["procedural_seed"] = seed
-        # The room's training images are its analytic renders: make them again at this size.
-        images = np.asarray(truth(jnp.asarray(record.c2w)), np.float32)
-        note = ""
+    if not images:
+        images, note = None, "not loaded (images=False)"
+    elif truth is not None:  # the room's training images are its analytic renders: made again at this size
+        images, note = np.asarray(_rgb(truth(jnp.asarray(record.c2w, jnp.float32), intrinsics)), np.float32), ""
     else:
         images, note = _run_train_images(record, intrinsics)
     return Source(
@@ -418,12 +421,11 @@ def run_source(run_dir: str, resolution: Optional[int] = None) -> Source:
         name=run.resolve().name,
         train_c2w=np.asarray(record.c2w, np.float32),
         intrinsics=intrinsics,
-        render=render,
-        render_rgba=render_rgba,
+        renderer=field_renderer(field, gradient=NERF_GRADIENT),
         train_images=images,
         train_names=tuple(record.file_names),
         room=room,
-        truth_render=truth,
+        truth=truth,
         info=info,
         train_images_note=note,
         gradient=NERF_GRADIENT,

@@ -22,6 +22,7 @@ The renderer is `waldo_jax.splats.render`, with `max_pairs` calibrated on the tr
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import warnings
@@ -34,6 +35,7 @@ import numpy as np
 
 from waldo_jax.io import read_json_file
 from waldo_jax.cameras import look_at
+from waldo_jax.criteria.base import Views
 from waldo_jax.errors import SceneFormatError, WaldoError, check_resolution
 from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
@@ -54,6 +56,7 @@ __all__ = [
     "calibrate_max_pairs",
     "calibrate_tile_chunks",
     "splat_renderer",
+    "sized_splat_renderer",
     "SPLAT_RESOLUTION",
     "RING_VIEWS",
     "SPLAT_GRADIENT_COST",
@@ -219,32 +222,34 @@ def calibrate_tile_chunks(
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
 
-def _render(
-    splats: Splats,
-    intrinsics: Intrinsics,
-    background: Array,
-    c2w: Array,
-    *,
-    config: SplatRenderConfig,
-    rgba: bool = False,
-) -> Array:
+def _views(splats: Splats, background: Array, c2w: Array, intrinsics: Intrinsics, *, config: SplatRenderConfig):
     out = render_splats(splats, c2w, intrinsics, config, background)
-    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1) if rgba else out.rgb
+    return Views(jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1), c2w, intrinsics)
 
 
 @functools.lru_cache(maxsize=None)
-def _render_fn(config: SplatRenderConfig, rgba: bool):
-    """One function object per (config, rgba), so that Partials of equal settings share compilations."""
-    return functools.partial(_render, config=config, rgba=rgba)
+def _views_fn(config: SplatRenderConfig):
+    """One function object per config, so that Partials of equal settings share compilations."""
+    return functools.partial(_views, config=config)
 
 
-def splat_renderer(
-    splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, background=None, rgba: bool = False
-) -> jax.tree_util.Partial:
-    """The splat renderer as a Partial c2w [P, 4, 4] -> rgb [P, H, W, 3] (rgba: [..., 4], alpha the
-    accumulated opacity); the splats are traced arguments, so it compiles once per image size."""
+def splat_renderer(splats: Splats, config: SplatRenderConfig, background=None) -> jax.tree_util.Partial:
+    """The splat renderer, (c2w [P, 4, 4], intrinsics) -> `Views` (rgba: the colour and the
+    accumulated opacity), a Partial; the splats are traced arguments, so it compiles once per image size.
+    `config.max_pairs` and `config.tile_chunks` are capacities sized for some views
+    (`calibrate_max_pairs`): `sized_splat_renderer` sizes them to others."""
     bg = jnp.asarray(config.background if background is None else background, jnp.float32)
-    return jax.tree_util.Partial(_render_fn(config, rgba), splats, intrinsics, bg)
+    return jax.tree_util.Partial(_views_fn(config), splats, bg)
+
+
+def sized_splat_renderer(
+    splats: Splats, config: SplatRenderConfig, c2w: np.ndarray, intrinsics: Intrinsics
+) -> Tuple[jax.tree_util.Partial, str]:
+    """`splat_renderer` with its pairs sized to the views c2w [P, 4, 4] at `intrinsics`, and what was sized
+    (`Source.sized_renderer`): no view drops a splat."""
+    max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config, margin=1.0)
+    note = f"{int(np.sum(np.asarray(splats.valid)))} splats, max_pairs {max_pairs}: no view dropped a splat"
+    return splat_renderer(splats, dataclasses.replace(config, max_pairs=max_pairs)), note
 
 
 def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c2w: np.ndarray) -> Dict[str, Any]:
@@ -422,8 +427,6 @@ def splat_source(
         "near": config.near,
         "background": list(config.background),
     }
-    render = splat_renderer(splats, intrinsics, config)
-    render_rgba = splat_renderer(splats, intrinsics, config, rgba=True)
     train_images, note = None, "not loaded (images=False)"
     if record is not None:
         info.update(
@@ -448,8 +451,7 @@ def splat_source(
         name=name,
         train_c2w=np.asarray(c2w, np.float32),
         intrinsics=intrinsics,
-        render=render,
-        render_rgba=render_rgba,
+        renderer=splat_renderer(splats, config),
         train_images=train_images,
         train_names=tuple(names),
         info=info,
@@ -457,6 +459,5 @@ def splat_source(
         renderer_report=functools.partial(_report, splats, intrinsics, config),
         gradient="reverse",
         gradient_cost=SPLAT_GRADIENT_COST,
-        splats=splats,
-        splat_config=config,
+        sized_renderer=functools.partial(sized_splat_renderer, splats, config),
     )
