@@ -184,6 +184,7 @@ _DEGENERATE = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("origin,target,up", list(_DEGENERATE.values()), ids=list(_DEGENERATE))
 def test_look_at_degenerate_input_is_valid_deterministic_and_differentiable(origin, target, up):
     origin, target, up = (np.asarray(v, np.float32) for v in (origin, target, up))
@@ -368,6 +369,7 @@ def test_slerp_constant_angular_speed_and_linear_translation(qa, a, angle, oa, o
         )
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(qa=quat, qb=quat)
 def test_slerp_takes_the_shortest_arc(qa, qb):
@@ -407,6 +409,7 @@ def test_slerp_pose_with_itself_is_constant(origin, target, up, t):
     np.testing.assert_allclose(_pose_to_c2w(out), _pose_to_c2w(pose), atol=1e-5)
 
 
+@pytest.mark.slow
 @PROPERTY
 @given(oa=vec3, ta=vec3, ob=vec3, tb=vec3, t=st.floats(0.0, 1.0))
 def test_slerp_pose_interpolates_focus_distance(oa, ta, ob, tb, t):
@@ -510,6 +513,7 @@ _CAMERAS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(_CAMERAS))
 @FEW
 @given(q=quat, origin=vec3)

@@ -136,6 +136,7 @@ def test_round_trip_is_bit_exact(tmp_path, sampler):
     assert _bytes(ckpt.load_checkpoint(_dir_with(tmp_path, path)).params) == _bytes(params)
 
 
+@pytest.mark.slow
 def test_trained_field_of_a_checkpoint_is_one_pytree_with_its_scene_settings(saved):
     """`TrainedField.from_checkpoint`: params and occupancy are the leaves, the config is static, and near,
     far, box and background come from the training scene (black for an opaque one); it renders as the
@@ -172,6 +173,7 @@ def _dir_with(tmp_path, path):
 # Damaged and incompatible files.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", [0.0, 0.01, 0.3, 0.6, 0.999])
 def test_flipped_byte_is_reported_naming_the_file(saved, where):
     raw = bytearray(saved.read_bytes())
@@ -183,6 +185,7 @@ def test_flipped_byte_is_reported_naming_the_file(saved, where):
     assert str(saved) in str(info.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("keep", [0, 5, 30, 0.5, -1])
 def test_truncated_file_is_reported_naming_the_file(saved, keep):
     raw = saved.read_bytes()
@@ -193,6 +196,7 @@ def test_truncated_file_is_reported_naming_the_file(saved, keep):
     assert str(saved) in str(info.value)
 
 
+@pytest.mark.slow
 def test_wrong_format_version_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(ckpt, "FORMAT_VERSION", 99)
     path = ckpt.save_checkpoint(tmp_path / "future.ckpt", _params(), _config(), _scene())
@@ -202,6 +206,7 @@ def test_wrong_format_version_is_a_clear_error(tmp_path, monkeypatch):
     assert str(path) in str(info.value)
 
 
+@pytest.mark.slow
 def test_shape_mismatch_with_the_stored_config_names_the_array(tmp_path):
     bigger = NGPFieldConfig(
         aabb=BOX,
@@ -357,6 +362,7 @@ def test_non_finite_field_parameters_are_refused_naming_the_file(tmp_path):
         ckpt.load_checkpoint(path)
 
 
+@pytest.mark.slow
 def test_a_run_of_the_demo_room_rebuilds_that_room_not_the_default(tmp_path):
     """`waldo demo` trains on a room with a larger Waldo and wider stripes than `make_room(seed)`: its
     checkpoint records them, and `run_source` (`waldo explore RUN`) rebuilds that room for its oracle."""

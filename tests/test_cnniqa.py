@@ -220,6 +220,7 @@ def test_scores_worsen_with_blur_and_noise(crit, real_images):
         assert blurred[0] > 60.0 and blurred[-1] < 40.0, (i, blurred)
 
 
+@pytest.mark.slow
 def test_clean_fox_beats_its_blurred_copies(crit, real_images):
     fox = real_images[0]
     scores = np.asarray(crit.score_images(np.stack([fox, blur(fox, 0.7), blur(fox, 1.5), blur(fox, 3.0)])))

@@ -95,6 +95,7 @@ def test_weighted_normalises_by_value_range_and_direction():
         weighted([a, b], [0, 0])
 
 
+@pytest.mark.slow
 def test_combinations_take_pose_oracles():
     """Pose oracles combine (they were refused before): with each other into a pose criterion, with view
     criteria into a "posed" one; the values are checked in tests/test_waldo_found.py."""
@@ -158,6 +159,7 @@ def test_guarded_criterion_runs_inside_a_jitted_search_step():
     np.testing.assert_allclose(step(guarded, renders), [0.5, 0.0], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
     import imageio.v3 as iio
 
@@ -204,6 +206,7 @@ def test_composition_prefers_power_points_to_corners_and_edges():
         assert float(composition_from_map(_blob_map(cx, cy))) == pytest.approx(power, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_composition_terms_on_analytic_maps():
     terms = {k: float(v) for k, v in composition_terms(_blob_map(1 / 3, 1 / 3)).items()}
     assert terms["thirds"] == pytest.approx(1.0, abs=1e-3)

@@ -50,6 +50,7 @@ def test_oracle_criteria_score_poses_like_the_oracle(bare_room):
         oracle.score_images(np.zeros((1, 8, 8, 3), np.float32))
 
 
+@pytest.mark.slow
 def test_coverage_drops_when_waldo_leaves_the_frame(bare_room):
     centre = np.asarray(bare_room.waldo_center)
     origin = centre + np.array([1.5, 0.3, 0.0])

@@ -46,6 +46,7 @@ def _run(env_update, *args):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,value", BAD, ids=[f"{n}={v}" for n, v in BAD])
 def test_a_bad_value_is_one_line_naming_it_from_the_command(name, value):
     result = _run({name: value}, "--help")
@@ -56,6 +57,7 @@ def test_a_bad_value_is_one_line_naming_it_from_the_command(name, value):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.slow
 def test_good_values_pass_and_the_command_runs():
     good = {
         "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_cpu_use_fusion_emitters=false",

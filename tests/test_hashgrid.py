@@ -119,6 +119,7 @@ def test_invalid_config_raises(kwargs):
         HashGridConfig(**kwargs)
 
 
+@pytest.mark.slow
 def test_init_table_shape_range_and_determinism():
     table = init_hashgrid(jax.random.key(0), SMALL)
     assert table.shape == (SMALL.n_rows, 2) and table.dtype == jnp.float32
@@ -216,6 +217,7 @@ def test_rows_stay_inside_their_level_on_the_cube_faces(config):
     np.testing.assert_allclose(np.asarray(weights)[1, :, 0], 1.0)  # all weight on the near corner (0, 0, 0)
 
 
+@pytest.mark.slow
 def test_gradient_reaches_exactly_the_touched_rows():
     table = init_hashgrid(jax.random.key(9), SMALL)
     points = _random_points(10, 3)
@@ -250,6 +252,7 @@ def test_gradient_reaches_exactly_the_touched_rows():
         assert single[row, 0] == 0.0
 
 
+@pytest.mark.slow
 def test_encode_is_differentiable_in_position():
     table = _rng(12).normal(size=(SMALL.n_rows, SMALL.F)).astype(np.float32)
     x = jnp.asarray(_random_points(13, 1)[0])

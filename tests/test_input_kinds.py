@@ -103,6 +103,7 @@ def test_a_deep_transforms_json_is_one_line(tmp_path, capsys, argv):
     _cli_refuses(argv, f"levels deep (at most {MAX_JSON_DEPTH})", capsys, tmp_path)
 
 
+@pytest.mark.slow
 def test_a_deep_poses_file_is_one_line(tmp_path, capsys):
     (tmp_path / "poses.json").write_text('{"w": 16, "h": 16, "frames": ' + _deep(DEEP) + "}")
     argv = ["render", "procedural", "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "new")]
@@ -136,6 +137,7 @@ def test_images_that_cannot_fit_are_refused_before_they_load(tmp_path, capsys, m
     )
 
 
+@pytest.mark.slow
 def test_a_search_that_cannot_fit_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
     """XLA's analysis of the compiled search against the memory at hand (here made small)."""
     monkeypatch.setattr(experiment, "memory_bytes", lambda: 50_000)
@@ -169,6 +171,7 @@ def test_the_issues_hundred_million_epochs_are_one_line(tmp_path, capsys):
 # Degenerate fields: a warning line and a flag in the results.
 
 
+@pytest.mark.slow
 def test_all_transparent_splats_warn_and_are_flagged(tmp_path):
     from waldo_jax.pipeline.splat_sources import splat_source
 
@@ -180,6 +183,7 @@ def test_all_transparent_splats_warn_and_are_flagged(tmp_path):
     assert any("every render is the background alone" in str(w.message) for w in caught)
 
 
+@pytest.mark.slow
 def test_visible_splats_are_not_flagged(tmp_path):
     from waldo_jax.pipeline.splat_sources import splat_source
 
@@ -190,6 +194,7 @@ def test_visible_splats_are_not_flagged(tmp_path):
     assert "degenerate" not in source.info
 
 
+@pytest.mark.slow
 def test_a_run_with_an_empty_occupancy_grid_warns_and_is_flagged(tmp_path):
     import dataclasses
 

@@ -114,6 +114,7 @@ def test_every_module_has_a_layer():
     assert all(_unit(m) in LAYERS for m in MODULES)
 
 
+@pytest.mark.slow
 def test_no_import_runs_upward_or_sideways():
     wrong = []
     for module, path in MODULES.items():
@@ -266,6 +267,7 @@ def test_oversized_counts_parameters_and_lines_as_documented():
     assert _oversized(f"def _f():\n{spread}", "x") == []
 
 
+@pytest.mark.slow
 def test_no_public_function_over_8_parameters_and_no_function_over_80_lines():
     found = []
     for path in MODULES.values():

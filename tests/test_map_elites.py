@@ -27,6 +27,7 @@ def cell(c2w, grid=GRID):
     return int(view_cell(jnp.asarray(c2w), FRAME, grid))
 
 
+@pytest.mark.slow
 def test_cells_of_analytic_views():
     # FRAME: focus 0, up +y, radius 3; azimuth 0 is the world axis least aligned with up: +x.
     a, e = GRID.azimuth_cells, GRID.elevation_cells
@@ -56,6 +57,7 @@ def brute_force_archive(fitness, c2w, grid):
     return best, slot
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_archive_equals_a_brute_force_archive(seed):
     fitness, c2w = random_views(seed, 60)
@@ -83,6 +85,7 @@ def test_archive_equals_a_brute_force_archive(seed):
     np.testing.assert_array_equal(np.asarray(sky.fitness), per_band.max(axis=0))
 
 
+@pytest.mark.slow
 def test_map_elites_archive_is_the_final_populations_and_the_key_fixes_it():
     result = explore(jax.random.key(7), toy_score, INITIAL, config=CONFIG)
     population = result.population
@@ -123,6 +126,7 @@ def test_map_elites_scan_equals_python_loop_and_refine_runs():
     assert np.all(np.isfinite(np.asarray(refined.population.score)[last]))
 
 
+@pytest.mark.slow
 def test_map_elites_children_come_from_elites_and_configs_are_checked():
     method = get_method("map-elites")
     assert method.stateful and method.options == ("grid",)

@@ -183,6 +183,7 @@ def test_field_matches_numpy_forward_pass(params):
     assert np.std(sigma[:-1]) > 0.0  # densities depend on the position
 
 
+@pytest.mark.slow
 def test_density_agrees_with_field_and_reads_the_hash(params):
     xs, ds = _inside_points(5, 8), _directions(6, 8)
     sigma, _ = FIELD_BATCH(params, xs, ds)
@@ -191,6 +192,7 @@ def test_density_agrees_with_field_and_reads_the_hash(params):
     assert not np.allclose(DENSITY_BATCH(changed, xs), DENSITY_BATCH(params, xs))
 
 
+@pytest.mark.slow
 def test_outputs_finite_and_in_range_for_extreme_inputs(params):
     inf, nan = np.inf, np.nan
     xs = np.array(
@@ -227,6 +229,7 @@ def test_outputs_finite_and_in_range_for_extreme_inputs(params):
     assert np.max(big_sigma) == pytest.approx(math.exp(15.0), rel=1e-5)  # the clamp was reached
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter_and_respect_the_box(params):
     x_in = np.tile(np.array([[0.3, -0.5, 1.2]], np.float32), (8, 1))
     x_out = np.tile(np.array([[3.0, 0.0, 1.0]], np.float32), (8, 1))
@@ -244,6 +247,7 @@ def test_gradients_reach_every_parameter_and_respect_the_box(params):
     assert np.max(np.abs(np.asarray(DENSITY_GRAD(params, x_in)["hash"]))) > 0.0
 
 
+@pytest.mark.slow
 def test_jit_vmap_4096_points_without_retracing(params):
     traces = []
 

@@ -234,6 +234,7 @@ def test_brisque_on_an_odd_size_matches_the_reference():
     assert _compare_features(got, ref.brisque_features(image), "odd-size BRISQUE") <= 1
 
 
+@pytest.mark.slow
 def test_mscn_of_flat_and_textured_images():
     flat = jnp.full((40, 50), 255.0)
     mscn = jax.jit(nss.mscn)
@@ -257,6 +258,7 @@ def _ggd_magnitudes(key, alpha: float, n: int) -> np.ndarray:
     return scipy.special.gammaincinv(1.0 / alpha, u) ** (1.0 / alpha)
 
 
+@pytest.mark.slow
 def test_ggd_fit_recovers_the_shape_of_generalised_gaussian_samples():
     fit = jax.jit(nss.ggd_fit)
     for i, alpha in enumerate((1.0, 2.0, 0.7)):  # Laplace, Gaussian, heavy-tailed
@@ -271,6 +273,7 @@ def test_ggd_fit_recovers_the_shape_of_generalised_gaussian_samples():
         assert abs(float(fitted) - ref_alpha) < 1.001e-3
 
 
+@pytest.mark.slow
 def test_aggd_fit_recovers_an_asymmetric_generalised_gaussian():
     alpha, beta_l, beta_r = 1.4, 0.5, 1.2
     k_mag, k_side = jax.random.split(jax.random.key(5))
@@ -307,6 +310,7 @@ def test_pairwise_products_pair_each_pixel_with_the_right_neighbour():
         nss.pairwise_products(x, "mirror")
 
 
+@pytest.mark.slow
 def test_feature_scaling_hits_the_range_file_bounds(params):
     p = params["brisque"]
     low, high = p["feature_min"], p["feature_max"]
@@ -320,6 +324,7 @@ def test_feature_scaling_hits_the_range_file_bounds(params):
 # Behaviour.
 
 
+@pytest.mark.slow
 def test_scores_worsen_with_blur_and_noise(test_set, computed):
     names, _ = test_set
     for model in ("niqe", "brisque"):

@@ -194,6 +194,7 @@ def test_grid_cell_matches_numpy_reference_across_cascades():
     assert np.all(u[coarse] > 2.0 ** (cascade[coarse] - 1.0) - 1e-6)
 
 
+@pytest.mark.slow
 def test_cell_points_round_trip():
     grid = occ.init_occupancy(BOX, aabb_scale=2, resolution=4)
     cells = jnp.arange(64)
@@ -255,6 +256,7 @@ def test_cells_inside_dense_balls_are_occupied(aabb_scale):
     assert far.sum() > 0.8 * far.size and not bitfield[far].any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("aabb_scale", [1, 2])
 def test_threshold_separates_cells_by_density(aabb_scale):
     """A cell whose least density exceeds its cascade's threshold is occupied; one whose greatest is below is not."""
@@ -283,6 +285,7 @@ def _deep_points(seed, center, radius, depth, num=400):
     return _points_in_balls(seed, make_balls([center], [radius - depth], [1.0], HARD), num)
 
 
+@pytest.mark.slow
 def test_removed_ball_decays_to_unoccupied():
     grid = occ.init_occupancy(BOX, resolution=G)
     config = occ.OccupancyConfig.create(grid, warmup_steps=2)
@@ -305,6 +308,7 @@ def test_removed_ball_decays_to_unoccupied():
     assert np.asarray(IS_OCCUPIED(grid, points_b)).all()
 
 
+@pytest.mark.slow
 def test_cells_not_sampled_keep_their_decayed_value():
     grid = occ.init_occupancy(BOX, aabb_scale=2, resolution=G)
     config = occ.OccupancyConfig.create(grid)
@@ -325,6 +329,7 @@ def test_cells_not_sampled_keep_their_decayed_value():
     assert np.all(changed.sum(1) <= 2 * num_draws) and np.all(changed.sum(1) >= num_draws // 2)
 
 
+@pytest.mark.slow
 def test_occupied_cells_are_resampled_after_warmup():
     grid = occ.init_occupancy(BOX, aabb_scale=2, resolution=G)
     config = occ.OccupancyConfig.create(grid)
@@ -337,6 +342,7 @@ def test_occupied_cells_are_resampled_after_warmup():
         assert float(updated.density[target[0]]) == 100.0 and float(updated.density[target[1]]) == 100.0
 
 
+@pytest.mark.slow
 def test_update_is_deterministic_per_key():
     grid = occ.init_occupancy(BOX, resolution=G)
     config = occ.OccupancyConfig.create(grid)
@@ -427,6 +433,7 @@ def test_marching_on_full_grid_matches_dense_sampling():
     assert int(evaluations.max()) > 300
 
 
+@pytest.mark.slow
 def test_marching_on_marked_grid_matches_dense_with_fewer_evaluations(dense_render):
     grid = _marked_grid(BALL["center"][0], float(BALL["radius"][0]))
     assert 0.01 < float(grid.bitfield.mean()) < 0.1
@@ -440,6 +447,7 @@ def test_marching_on_marked_grid_matches_dense_with_fewer_evaluations(dense_rend
     assert int((np.asarray(evaluations) == 0).sum()) > origins.shape[0] // 4
 
 
+@pytest.mark.slow
 def test_marching_on_updated_grid_is_close_to_dense(sparse_grid, dense_render):
     """With the grid NGP's update builds, cells that the ball only grazes can be missed (one jittered
     sample per cell and update): the image matches everywhere but at a few silhouette pixels."""
@@ -505,6 +513,7 @@ def test_march_samples_are_ordered_occupied_and_masked(sparse_grid):
     assert skipped >= 3  # rays through the ball skip the empty cells before and after it
 
 
+@pytest.mark.slow
 def test_march_budget_keeps_the_first_samples():
     grid = occ.init_occupancy(BOX, resolution=G)
     origin, direction = jnp.array([[0.0, 0.0, -3.0]]), jnp.array([[0.0, 0.0, 1.0]])
@@ -515,6 +524,7 @@ def test_march_budget_keeps_the_first_samples():
     np.testing.assert_allclose(np.asarray(delta[0]), DT_MIN, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_march_determinism_and_random_offset(sparse_grid):
     origins, directions, t_start, t_end = _ray_batch()
     first = MARCH_RAYS(sparse_grid, origins, directions, t_start, t_end, MARCH, None)
@@ -548,6 +558,7 @@ def test_cone_stepping_follows_ngp_recurrence(t_start):
     assert np.all(np.diff(edges) > 0)
 
 
+@pytest.mark.slow
 def test_cone_stepping_grows_steps_with_distance():
     grid = occ.init_occupancy(BOX, aabb_scale=4, resolution=G)  # 3 cascades, the outer one [-4, 4]^3
     cone = SHORT.replace(cone_angle=jnp.float32(1 / 8))

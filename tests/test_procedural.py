@@ -39,6 +39,7 @@ def side_camera(room, distance=1.6, height=0.5, angle=0.0):
     return look_at(jnp.asarray(origin), jnp.asarray(base + np.array([0.0, 0.5, 0.0])), UP)
 
 
+@pytest.mark.slow
 def test_same_seed_same_room_other_seed_other_room():
     a, b, c = make_room(3), make_room(3), make_room(4)
     for name in ("center", "size", "color", "waldo_points"):
@@ -47,18 +48,21 @@ def test_same_seed_same_room_other_seed_other_room():
     assert a.kind.shape == c.kind.shape  # shapes do not depend on the seed
 
 
+@pytest.mark.slow
 def test_primitives_sorted_by_kind(room):
     kinds = np.asarray(room.kind)
     assert np.all(np.diff(kinds) >= 0)
     assert room.num_boxes == int(np.sum(kinds == 0)) and room.num_spheres == int(np.sum(kinds == 1))
 
 
+@pytest.mark.slow
 def test_framed_unoccluded_waldo_is_fully_visible(bare_room):
     for angle in (0.0, 1.3, 2.9):
         vis = float(waldo_visibility(bare_room, side_camera(bare_room, angle=angle), INTR))
         assert vis > 0.95, (angle, vis)
 
 
+@pytest.mark.slow
 def test_waldo_behind_the_camera_is_invisible(bare_room):
     base = np.asarray(bare_room.waldo_base)
     origin = base + np.array([1.6, 0.5, 0.0])
@@ -66,6 +70,7 @@ def test_waldo_behind_the_camera_is_invisible(bare_room):
     assert float(waldo_visibility(bare_room, away, INTR)) == 0.0
 
 
+@pytest.mark.slow
 def test_an_occluder_hides_waldo(bare_room, room):
     # The full room has crates around Waldo; from the bare room's viewpoint list, some side views
     # must lose visibility once the crates are there.
@@ -77,6 +82,7 @@ def test_an_occluder_hides_waldo(bare_room, room):
     assert np.sum(full < 0.5) >= 4  # the pen blocks low views from several directions
 
 
+@pytest.mark.slow
 def test_cut_by_the_frame_is_partial(bare_room):
     base = np.asarray(bare_room.waldo_base)
     origin = base + np.array([1.2, 0.5, 0.0])
@@ -87,6 +93,7 @@ def test_cut_by_the_frame_is_partial(bare_room):
     assert 0.2 < vis < 0.8
 
 
+@pytest.mark.slow
 def test_batch_equals_single(room):
     key = jax.random.key(0)
     origins = jax.random.uniform(key, (70, 3), minval=jnp.array([-3.0, 0.5, -3.0]), maxval=jnp.array([3.0, 1.7, 3.0]))

@@ -107,6 +107,7 @@ def test_slab_covering_near_far_matches_closed_form_exactly(sigma):
     assert np.all((near < mean_depth) & (mean_depth < 0.5 * (near + far)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma", [0.2, 3.0])
 @pytest.mark.parametrize("stratified", [False, True], ids=["midpoints", "stratified"])
 def test_slab_inside_long_interval_within_1e3_with_512_samples(sigma, stratified):
@@ -122,6 +123,7 @@ def test_slab_inside_long_interval_within_1e3_with_512_samples(sigma, stratified
     np.testing.assert_allclose(out.rgb, np.broadcast_to(_expected_rgb(acc), (3, 3)), atol=1e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma", [0.5, 2.0])
 def test_slab_from_aabb_clipping_matches_closed_form(sigma):
     # Constant density everywhere; only the box [-1, 1]^3 bounds the samples.
@@ -173,6 +175,7 @@ def _view_loss(sigma, key=None):
 _loss_and_grad = jax.jit(jax.value_and_grad(_view_loss, has_aux=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma", [1e-6, 1e-3, 1.0, 1e3, 1e6, MAX_DENSITY])
 @pytest.mark.parametrize("stratified", [False, True], ids=["midpoints", "stratified"])
 def test_finite_outputs_and_gradients_across_densities(sigma, stratified):
@@ -186,6 +189,7 @@ def test_finite_outputs_and_gradients_across_densities(sigma, stratified):
         assert abs(float(grad)) > 0.0
 
 
+@pytest.mark.slow
 def test_density_gradient_matches_finite_difference():
     sigma, h = 1.0, 1e-2
     (_, _), grad = _loss_and_grad(jnp.float32(sigma), None)
@@ -194,6 +198,7 @@ def test_density_gradient_matches_finite_difference():
     np.testing.assert_allclose(float(grad), (float(plus) - float(minus)) / (2 * h), rtol=2e-2)
 
 
+@pytest.mark.slow
 def test_non_finite_densities_from_the_field_give_finite_outputs():
     hit = np.asarray(_loss_and_grad(jnp.float32(1.0), None)[0][1].acc) > 0.0  # pixels seeing the ball
     assert hit.any() and (~hit).any()
@@ -209,6 +214,7 @@ def test_non_finite_densities_from_the_field_give_finite_outputs():
             np.testing.assert_allclose(out.rgb, background, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_non_finite_colours_from_the_field_give_finite_outputs():
     out = _render_view(ball_field, _ball(2.0, rgb=(np.nan, 0.5, 0.5)), _C2W, INTRINSICS, _VIEW_CONFIG)
     assert np.all(np.isfinite(np.asarray(out.rgb)))
@@ -219,6 +225,7 @@ _ray_loss_grad = jax.jit(
 )
 
 
+@pytest.mark.slow
 def test_grazing_and_missing_rays():
     config = _config(near=0.0, far=10.0, aabb=BOX, num_samples=16)
     eps = 1e-6
@@ -252,6 +259,7 @@ def test_grazing_and_missing_rays():
     assert np.isfinite(float(grad))
 
 
+@pytest.mark.slow
 def test_zero_length_interval_gives_background_and_finite_gradients():
     # `create` rejects far <= near; build the config directly to get an empty [near, far].
     config = RenderConfig(
@@ -281,6 +289,7 @@ def test_zero_length_interval_gives_background_and_finite_gradients():
 # Building blocks.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(5))
 def test_volume_weights_sum_to_at_most_one(seed):
     rng = np.random.default_rng(seed)
@@ -329,6 +338,7 @@ def test_ray_aabb_interval_axis_parallel(axis, sign):
     assert np.isfinite(float(t_enter)) and np.isfinite(float(t_exit)) and float(t_exit) < float(t_enter)
 
 
+@pytest.mark.slow
 def test_stratified_samples_lie_inside_their_bins():
     num_samples = 16
     keys = jax.random.split(jax.random.key(0), 64)
@@ -407,12 +417,14 @@ def test_render_views_keys_determinism():
     assert np.abs(np.asarray(twins.depth[0]) - np.asarray(twins.depth[1])).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_render_views_accepts_legacy_uint32_keys():
     c2w = _poses(3)
     legacy = render_views(ball_field, _VIEWS_PARAMS, c2w, INTRINSICS, _VIEWS_CONFIG, jax.random.PRNGKey(0))
     assert np.all(np.isfinite(np.asarray(legacy.rgb)))
 
 
+@pytest.mark.slow
 def test_render_views_second_call_does_not_recompile():
     traces = []
 
@@ -444,6 +456,7 @@ def test_render_views_second_call_does_not_recompile():
     assert len(traces) > first
 
 
+@pytest.mark.slow
 def test_render_views_does_not_depend_on_the_chunking():
     """The rays of all poses form one list cut into chunks; each ray is computed alike whatever the
     chunk size and its stratified samples come from its own key, so the images agree to the last bits

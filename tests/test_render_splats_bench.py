@@ -60,6 +60,7 @@ def test_quick_synthetic_json(tmp_path):
         render_splats.main(["--quick", "--out", str(out)])
 
 
+@pytest.mark.slow
 def test_synthetic_scene_is_what_the_docstring_says():
     splats = render_splats.synthetic_splats(1000, sh_degree=1, seed=1)
     means, scales = np.asarray(splats.means), np.asarray(splats.scales())

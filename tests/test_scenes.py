@@ -123,6 +123,7 @@ def lego():
     return load_scene(require_scene("lego_tiny"))
 
 
+@pytest.mark.slow
 def test_fox(fox):
     scene, caught = fox
     assert scene.format == "instant-ngp" and scene.split == "all"
@@ -138,6 +139,7 @@ def test_fox(fox):
     assert _inside(camera_focus(scene.c2w), scene.aabb)
 
 
+@pytest.mark.slow
 def test_face(face):
     assert face.format == "nerfstudio"
     _assert_plausible(face, 65, 512, 512)
@@ -147,6 +149,7 @@ def test_face(face):
     assert face.file_names == tuple(sorted(face.file_names))
 
 
+@pytest.mark.slow
 def test_face_point_cloud_is_already_in_the_transforms_world(face):
     """The ply lies in front of the cameras as the poses stand, not after another applied_transform."""
     points = read_ply_points(require_scene("face") / "sparse_pc.ply").astype(np.float64)
@@ -160,6 +163,7 @@ def test_face_point_cloud_is_already_in_the_transforms_world(face):
     assert fraction_in_front(points @ applied[:, :3].T + applied[:, 3]) < 0.5
 
 
+@pytest.mark.slow
 def test_garden(garden):
     assert garden.format == "nerfstudio"
     _assert_plausible(garden, 185, 512, 512)

@@ -77,6 +77,7 @@ def test_scan_equals_python_loop(method):
     assert float(scanned.cvir) > 0.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["grs", "egps"])
 def test_same_key_bit_identical_other_key_differs(method):
     first = explore(jax.random.key(4), toy_score, INITIAL, method, CONFIG)
@@ -87,11 +88,13 @@ def test_same_key_bit_identical_other_key_differs(method):
     assert not np.array_equal(np.asarray(first.population.score), np.asarray(other.population.score))
 
 
+@pytest.mark.slow
 def test_pibs_without_fallback_ignores_the_key():
     first = explore(jax.random.key(4), toy_score, INITIAL, "pibs", CONFIG)
     assert_same(first, explore(jax.random.key(5), toy_score, INITIAL, "pibs", CONFIG))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["egps"])
 def test_nan_scores_are_counted_and_never_selected(method):
     initial = ring_initial(half_nan_score)
@@ -119,6 +122,7 @@ def negated_toy_score(c2w):
     return -toy_score(c2w)
 
 
+@pytest.mark.slow
 def test_min_direction_mirrors_max_direction():
     maximised = explore(jax.random.key(4), toy_score, INITIAL, "egps", CONFIG)
     negated = Initial(c2w=INITIAL.c2w, scores=-INITIAL.scores)
@@ -148,6 +152,7 @@ def test_multi_seed_vmap_equals_per_seed_runs():
     assert len(set(cvirs.tolist())) > 1  # the seeds really differ
 
 
+@pytest.mark.slow
 def test_second_call_does_not_retrace():
     explore(jax.random.key(0), toy_score, INITIAL, "egps", CONFIG)  # compiled here or by an earlier test
     before = len(TRACES)
@@ -184,6 +189,7 @@ def test_partial_score_fn_takes_traced_arrays_without_retracing():
     assert not np.array_equal(np.asarray(near.population.score), np.asarray(far.population.score))
 
 
+@pytest.mark.slow
 def test_progress_lines(capsys):
     config = ExploreConfig(epochs=2, children_per_epoch=3, top_k=3, top_n=2)
     results = {}
@@ -200,6 +206,7 @@ def test_progress_lines(capsys):
     assert_same(results[explore], quiet, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_method_options_belong_to_their_method():
     # A method's config refuses an option it does not have, naming the option and the method.
     with pytest.raises(ConfigError, match=r"search method 'grs' has no option 'top_c' \(its options: none\)"):

@@ -63,6 +63,7 @@ def unit(v):
 # GRS
 
 
+@pytest.mark.slow
 def test_grs_children_follow_the_training_cameras():
     population = make_population(np.linspace(0.0, 1.0, 8), capacity=8)
     children, mask, after = _ask["grs"](jax.random.key(0), population, grs.Params(), grs.Config(256), 1)
@@ -162,6 +163,7 @@ def test_pibs_interpolates_unexplored_pairs_and_exhausts_them():
     assert np.asarray(population.valid).sum() == 6 + 8  # masked children are not kept
 
 
+@pytest.mark.slow
 def test_pibs_skips_failed_scores_and_masks_spare_slots():
     # 3 finite views: 3 pairs for 4 slots, step round(4 / 3) = 1: 3 children and 1 masked slot.
     scores = np.array([0.4, np.nan, 0.1, np.nan, 0.2, np.nan], np.float32)
@@ -173,6 +175,7 @@ def test_pibs_skips_failed_scores_and_masks_spare_slots():
     assert explored.sum() == 2 * 3
 
 
+@pytest.mark.slow
 def test_pibs_more_pairs_than_slots_marks_only_used_pairs():
     # 6 pairs for 2 slots: round(2 / 6) = 0 is raised to 1; the 4 pairs not used stay unexplored.
     population = make_population(np.array([0.1, 0.9, 0.5, 0.7, 0.3, 0.8], np.float32), PIBS_CAPACITY)
@@ -182,6 +185,7 @@ def test_pibs_more_pairs_than_slots_marks_only_used_pairs():
     assert explored.sum() == 2 * 2 and explored[1, 5] and explored[1, 3]
 
 
+@pytest.mark.slow
 def test_pibs_grs_fallback_fills_exhausted_slots():
     population = make_population(np.array([0.1, 0.9, 0.5, 0.7, 0.3, 0.8], np.float32), PIBS_CAPACITY)
     population = population.replace(explored=jnp.ones((PIBS_CAPACITY, PIBS_CAPACITY), bool))
@@ -216,6 +220,7 @@ def egps_children(scores, params=None, seed=0):
     return population, children, np.asarray(mask)
 
 
+@pytest.mark.slow
 def test_egps_children_inside_widened_parent_box():
     # Four usable views: the better half is exactly the two best (slots 1 and 3): every child's parents.
     population, children, mask = egps_children([0.2, 0.9, 0.1, 0.7, NAN, NAN, NAN, NAN])
@@ -233,6 +238,7 @@ def test_egps_children_inside_widened_parent_box():
     np.testing.assert_allclose(up, np.broadcast_to(unit(pop_u[1] + pop_u[3]), up.shape), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_egps_without_mutation_stays_in_the_box():
     params = egps.Params(nabla_scale=jnp.asarray(0.0, jnp.float32))
     population, children, _ = egps_children([0.2, 0.9, 0.1, 0.7, NAN, NAN, NAN, NAN], params)
@@ -241,6 +247,7 @@ def test_egps_without_mutation_stays_in_the_box():
     assert np.all(origin >= np.minimum(pop_o[1], pop_o[3])) and np.all(origin <= np.maximum(pop_o[1], pop_o[3]))
 
 
+@pytest.mark.slow
 def test_egps_parents_come_from_the_better_half():
     # The 4 best views sit on the z >= 0 half of the ring, the 4 worst on the z < 0 half: a child of
     # a worse parent would land well below z = 0; children of the better half stay in its box.
@@ -253,12 +260,14 @@ def test_egps_parents_come_from_the_better_half():
     assert origin[:, 2].min() < 0.05 * spread[2]  # ... while really spanning the better half
 
 
+@pytest.mark.slow
 def test_egps_masks_when_no_two_parents():
     _, children, mask = egps_children([NAN, 0.3, NAN, NAN, NAN, NAN, NAN, NAN])
     assert not mask.any()
     assert np.all(np.isfinite(np.asarray(children.origin)))
 
 
+@pytest.mark.slow
 def test_egps_rank_biased_parent_selection():
     fitness = jnp.asarray([0.5, 0.9, -jnp.inf, 0.1, 0.7, 0.3, 0.2, 0.8, 0.6, 0.4], jnp.float32)
     weights, can_breed = egps.parent_weights(fitness, jnp.float32(1.0))
@@ -297,6 +306,7 @@ def test_egps_mutation_frequencies():
         np.testing.assert_allclose(freq, [0.05, 0.9, 0.05], atol=0.01)
 
 
+@pytest.mark.slow
 def test_egps_params_are_vmappable():
     population = make_population(np.array([0.2, 0.9, 0.1, 0.7, NAN, NAN, NAN, NAN], np.float32), 8)
     params = egps.Params(

@@ -34,6 +34,7 @@ def f(x):
     return float(np.asarray(x))
 
 
+@pytest.mark.slow
 def test_cvir_max_direction():
     train = [1.0, 2.0, 4.0]
     all_scores = train + [5.0, NAN, 3.0, INF]  # NaN and inf are failures, not improvements
@@ -44,6 +45,7 @@ def test_cvir_max_direction():
     assert f(mcvir(all_scores, train, n=10)) == pytest.approx(100 * (15 / 5 - 7 / 3) / (7 / 3))
 
 
+@pytest.mark.slow
 def test_cvir_min_direction_positive_means_better():
     train = [4.0, 2.0, 8.0]
     all_scores = train + [1.5, NAN, -INF, 9.0]
@@ -96,6 +98,7 @@ def _hand_population():
     )
 
 
+@pytest.mark.slow
 def test_population_metrics_and_epoch_curves():
     population, population_cvir_value, population_mcvir_value, curves, (indices, ok) = _hand_population()
     np.testing.assert_array_equal(np.asarray(population.epoch), [0, 0, 0, 0, 1, 1, 1, 2, -1, 2])
@@ -113,6 +116,7 @@ def test_population_metrics_and_epoch_curves():
     assert np.asarray(ok).tolist() == [True] * 7 + [False]
 
 
+@pytest.mark.slow
 def test_draw_index_never_draws_zero_weights():
     weights = jnp.asarray([0.0, 2.0, 0.0, 1.0, 1.0, 0.0])
     u = jnp.concatenate([jnp.linspace(0.0, 1.0, 1001)[:-1], jnp.asarray([0.9999999])])

@@ -200,6 +200,7 @@ def _cloud(c2w, marker=None, threshold=None):
     return figures.pose_cloud(None, poses, scores, epoch, "max", style=style)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", [2, 1])
 def test_pose_cloud_plots_the_scene_up_vertical(axis):
     c2w = _ring(axis)
@@ -213,6 +214,7 @@ def test_pose_cloud_plots_the_scene_up_vertical(axis):
     assert any(f"up, +{'xyz'[axis]}" in t.get_text() for t in fig.texts)
 
 
+@pytest.mark.slow
 def test_pose_cloud_legend_names_every_mark():
     fig = _cloud(_ring(2), marker=np.zeros(3))
     texts = [t.get_text() for legend in fig.legends for t in legend.get_texts()]

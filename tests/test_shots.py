@@ -95,6 +95,7 @@ def random_views(seed, count):
     return fitness, c2w.astype(np.float32)
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), separation=st.sampled_from([5.0, 20.0, 45.0]))
 def test_distinct_top_k_is_the_greedy_brute_force_and_pairwise_apart(seed, separation):
@@ -111,6 +112,7 @@ def test_distinct_top_k_is_the_greedy_brute_force_and_pairwise_apart(seed, separ
     assert int(count) == len(got)  # different shots stay different
 
 
+@pytest.mark.slow
 def test_separation_zero_is_the_paper_top_k_bit_for_bit():
     fitness, c2w = random_views(3, 40)
     indices, ok = distinct_top_k(jnp.asarray(fitness), jnp.asarray(c2w), FRAME, 10, 0.0)
@@ -130,6 +132,7 @@ def test_separation_zero_is_the_paper_top_k_bit_for_bit():
     assert float(zero.mcvir) == float(paper.mcvir) and float(zero.cvir) == float(paper.cvir)
 
 
+@pytest.mark.slow
 def test_distinct_count_of_copies_and_of_different_views():
     copies = np.stack([orbit(40 + 0.5 * i) for i in range(6)] + [orbit(120)])
     assert int(distinct_count(jnp.asarray(copies), jnp.ones(7, bool), FRAME, 20.0)) == 2
@@ -137,6 +140,7 @@ def test_distinct_count_of_copies_and_of_different_views():
     assert int(distinct_count(jnp.asarray(copies), jnp.ones(7, bool), FRAME, 0.0)) == 7
 
 
+@pytest.mark.slow
 def test_explore_reports_different_shots_and_the_gain_over_the_best_training_view():
     config = ExploreConfig(epochs=4, children_per_epoch=20, top_k=6)
     out = explore_seeds(jax.random.split(jax.random.key(2), 2), toy_score, INITIAL, "egps", config)

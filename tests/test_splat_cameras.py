@@ -492,6 +492,7 @@ def test_real_donut_colmap_cameras_match_cameras_json(tmp_path):
     assert [i.to_dict() for i in model.cameras.intrinsics] == [i.to_dict() for i in reference.cameras.intrinsics]
 
 
+@pytest.mark.slow
 def test_splat_source_reads_colmap_cameras(tmp_path):
     """`--cameras` takes a COLMAP model; a scene's own COLMAP model is said in `source_info.poses`."""
     from waldo_jax.pipeline.splat_sources import splat_source

@@ -341,6 +341,7 @@ def test_dot_splat_round_trip_and_order(tmp_path):
     assert np.all(np.diff(size) <= 1e-12)  # biggest, most opaque first
 
 
+@pytest.mark.slow
 def test_sh_sign_table_matches_the_basis_under_axis_flips():
     """Coefficient k's sign under (sx, sy, sz) is Y_k(flipped d) / Y_k(d), for every named system."""
     d = jnp.asarray(np.random.default_rng(1).normal(size=(64, 3)), jnp.float32)
@@ -369,6 +370,7 @@ def test_spz_coordinate_system_extension_is_converted_to_ply_axes(tmp_path):
 # The same scene in two formats renders the same.
 
 
+@pytest.mark.slow
 def test_formats_render_like_the_reference_ply(tmp_path):
     rng = np.random.default_rng(3)
     n = 24

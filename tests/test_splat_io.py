@@ -102,6 +102,7 @@ def _splat_table(n: int = 5, m: int = 0, names=None) -> np.ndarray:
 # The PLY.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("normals", [True, False])
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_round_trip_keeps_valid_rows_exactly(tmp_path, degree, normals):
@@ -115,6 +116,7 @@ def test_round_trip_keeps_valid_rows_exactly(tmp_path, degree, normals):
     assert ("property float nx" in _header_of(path)) == normals
 
 
+@pytest.mark.slow
 def test_written_header_is_the_reference_layout(tmp_path):
     splats = _random_splats(jax.random.key(0), 4, 3)
     path = write_splat_ply(tmp_path / "s.ply", splats)
@@ -345,6 +347,7 @@ def test_point_colours(tmp_path):
     assert read_ply_points(plain, colors=True)[1] is None
 
 
+@pytest.mark.slow
 def test_writer_refuses_what_the_reader_would(tmp_path):
     splats = _random_splats(jax.random.key(3), 4, 1)
     broken = splats.replace(logits=splats.logits.at[2].set(jnp.nan), quats=splats.quats.at[1].set(0.0))
@@ -372,6 +375,7 @@ def _random_c2w(key, n: int) -> np.ndarray:
     return np.asarray(jax.vmap(look_at)(origins, targets, ups))[:n]
 
 
+@pytest.mark.slow
 def test_cameras_round_trip(tmp_path):
     c2w = _random_c2w(jax.random.key(5), 4)
     shared = Intrinsics.create(640, 480, 500.0, 510.0)
@@ -457,6 +461,7 @@ def test_bad_cameras_json_is_one_clear_line(tmp_path, case):
 # Model folders.
 
 
+@pytest.mark.slow
 def test_model_folder_takes_the_highest_iteration_numerically(tmp_path):
     cameras = SplatCameras(_random_c2w(jax.random.key(7), 2), (Intrinsics.create(32, 24, 20.0),) * 2, ("p", "q"))
     for iteration in (7000, 30000, 900):
@@ -478,6 +483,7 @@ def test_model_folder_takes_the_highest_iteration_numerically(tmp_path):
     assert load_splat_model(tmp_path / "model" / "point_cloud").iteration == 30000
 
 
+@pytest.mark.slow
 def test_folder_with_point_cloud_ply_and_bare_ply(tmp_path):
     splats = _random_splats(jax.random.key(0), 5, 0)
     write_splat_ply(tmp_path / "flat" / "point_cloud.ply", splats, normals=False)

@@ -47,6 +47,7 @@ def test_registered_as_a_smooth_pose_criterion(criterion):
     assert criterion.value_range == (0.0, 1.0) and criterion.differentiable
 
 
+@pytest.mark.slow
 def test_training_poses_score_one_and_far_or_averted_views_zero(criterion, ring):
     np.testing.assert_allclose(criterion.score_poses(ring, INTRINSICS), 1.0)
     averted = _camera(ring[0, :3, 3], 2 * ring[0, :3, 3])  # at a training camera, looking out of the ring
@@ -56,6 +57,7 @@ def test_training_poses_score_one_and_far_or_averted_views_zero(criterion, ring)
     np.testing.assert_allclose(scores, 0.0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_trust_falls_as_a_camera_moves_away(criterion, ring):
     origin = ring[0, :3, 3]
     steps = np.linspace(1.0, 0.15, 12)  # from the training camera towards the centre: ever closer
@@ -69,6 +71,7 @@ def test_trust_falls_as_a_camera_moves_away(criterion, ring):
             assert scores[0] > 0.9 and scores[-1] < 0.1, scores
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_smooth_stand_in(criterion, ring):
     key = jax.random.key(0)
     offsets = 0.8 * jax.random.normal(key, (48, 3))
@@ -91,6 +94,7 @@ def test_jit_vmap_and_smooth_stand_in(criterion, ring):
     assert swept.shape == (4, 48) and np.all(np.diff(swept, axis=0) >= -1e-6) and swept[0].mean() < swept[-1].mean()
 
 
+@pytest.mark.slow
 def test_guards_pose_and_view_criteria(ring):
     room = make_room(1)
     context = CriterionContext(room=room, train_c2w=ring)
@@ -108,6 +112,7 @@ def test_guards_pose_and_view_criteria(ring):
     np.testing.assert_allclose(posed.score_posed(rgba, poses, INTRINSICS), [1.0, 1.0, 0.0, 0.0])
 
 
+@pytest.mark.slow
 def test_missing_training_cameras_refused_in_one_line():
     with pytest.raises(CriterionError, match=r"needs the source's training camera poses \(source: fox\)") as info:
         make_criterion("trust", CriterionContext(source="fox"))

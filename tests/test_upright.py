@@ -159,6 +159,7 @@ def _estimate(scene: Scene, rotation=None, **kwargs):
     return estimate_upright(jax.random.key(0), means, opacity, (log_scales, quats), **kwargs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "build", [tabletop, room, lambda: guitar(floor=True)], ids=["tabletop", "room", "guitar_floor"]
 )
@@ -172,6 +173,7 @@ def test_up_of_tilted_copies_is_within_10_degrees(build):
         assert result.rule == "support plane", result.reason
 
 
+@pytest.mark.slow
 def test_layout_tells_an_object_from_a_room():
     assert _estimate(tabletop()).layout == "object"
     inside = _estimate(room())
@@ -179,6 +181,7 @@ def test_layout_tells_an_object_from_a_room():
     assert inside.details["seen_from_inside"] > inside.details["seen_from_outside"]
 
 
+@pytest.mark.slow
 def test_an_objects_own_flat_face_is_not_its_support():
     """A standing plate without a floor: its face holds everything on one side and is wider than the
     plate is thick, but its body continues all along under it, so it is no support plane."""
@@ -187,6 +190,7 @@ def test_an_objects_own_flat_face_is_not_its_support():
     assert any("rests on" in r["rejected"] or "stands" in r["rejected"] for r in result.details["planes_rejected"])
 
 
+@pytest.mark.slow
 def test_a_format_axis_that_matches_the_longest_axis_is_taken():
     """The same plate in a y-down frame (as 3DGS/COLMAP files usually are): the prior picks its long axis."""
     to_y_down = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # z up -> -y up
@@ -195,12 +199,14 @@ def test_a_format_axis_that_matches_the_longest_axis_is_taken():
     assert angle_deg(result.up, [0.0, -1.0, 0.0]) <= 10.0
 
 
+@pytest.mark.slow
 def test_given_up_and_layout_are_kept():
     result = _estimate(tabletop(), up=np.array([0.0, 2.0, 0.0]), layout="surround")
     np.testing.assert_allclose(result.up, [0.0, 1.0, 0.0])
     assert (result.rule, result.layout) == ("given", "surround")
 
 
+@pytest.mark.slow
 def test_same_key_same_decision():
     a, b = _estimate(tabletop()), _estimate(tabletop())
     np.testing.assert_array_equal(a.up, b.up)
@@ -217,6 +223,7 @@ def test_parse_up_normalises():
     np.testing.assert_allclose(parse_up(" 0, 0 ,2"), [0.0, 0.0, 1.0])
 
 
+@pytest.mark.slow
 def test_visible_share_counts_occlusion():
     """Points inside a closed opaque box are hidden from outside and seen from inside."""
     s = Scene(0)
@@ -241,6 +248,7 @@ def test_ring_origins_are_on_the_ring():
     np.testing.assert_allclose((points - centre) @ up, 1.0)  # 2 sin 30
 
 
+@pytest.mark.slow
 def test_donut_up_is_its_iced_side():
     """The real donut (its icing faces +z: seen in renders from +z and -z) is found lying flat, +z up."""
     from test_splat_io import _require_data
@@ -262,6 +270,7 @@ def test_donut_up_is_its_iced_side():
     assert jnp.isfinite(jnp.asarray(result.up)).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tilt", [(30.0, (1.0, 0.0, 0.0)), (120.0, (1.0, -1.0, 1.0))])
 def test_a_tilted_donut_keeps_its_up(tilt):
     """The donut turned about the origin: its up turns along (a small flat patch of its side, which has the

@@ -56,12 +56,14 @@ def _expected_cameras(results):
     return results["n_train"] + results["n_generated"] + len(results["topk"]) + results["archive"]["cells_filled"]
 
 
+@pytest.mark.slow
 def test_import_waldo_jax_does_not_need_viser():
     code = "import sys, waldo_jax, waldo_jax.viewer; assert 'viser' not in sys.modules; print('ok')"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
 
 
+@pytest.mark.slow
 def test_serves_its_page_over_http_in_time(donut_viewer):
     viewer, seconds = donut_viewer
     assert seconds <= SERVE_SECONDS, f"served in {seconds:.1f} s (target {SERVE_SECONDS} s)"
@@ -72,6 +74,7 @@ def test_serves_its_page_over_http_in_time(donut_viewer):
     assert "<html" in body.lower() and "</html>" in body.lower()
 
 
+@pytest.mark.slow
 def test_scene_graph_holds_a_frustum_per_camera(donut_viewer, donut_explore):
     viewer, _ = donut_viewer
     _, results = donut_explore
@@ -107,6 +110,7 @@ class _Client:
         yield
 
 
+@pytest.mark.slow
 def test_a_click_moves_the_camera_and_fills_the_panel(donut_viewer, donut_explore):
     viewer, _ = donut_viewer
     _, results = donut_explore
@@ -128,6 +132,7 @@ def test_a_click_moves_the_camera_and_fills_the_panel(donut_viewer, donut_explor
     np.testing.assert_allclose(client.camera.position, np.asarray(results["generated_c2w"][j])[:3, 3], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_notebook_view_returns_the_server_and_shows_an_iframe(donut_explore, monkeypatch):
     import IPython
     import IPython.display
@@ -210,6 +215,7 @@ def _embedded_scene(page: str) -> list:
     return [message for _, message in recording["messages"]]
 
 
+@pytest.mark.slow
 def test_export_writes_a_self_contained_page_with_the_frustums(donut_explore, tmp_path, capsys):
     out, results = donut_explore
     target = tmp_path / "donut.html"
@@ -354,6 +360,7 @@ def _half_occupied_run(folder):
     return run
 
 
+@pytest.mark.slow
 def test_a_nerf_run_is_drawn_as_points_of_its_dense_occupied_cells(tmp_path, monkeypatch):
     """A `waldo train` run: points only in the occupancy grid's occupied cells (here the x > 0 half), each where
     the field makes a cell at least MIN_ALPHA opaque (checked against the field itself), the same points on a
@@ -409,6 +416,7 @@ def test_a_browser_camera_turns_back_into_the_pose_it_came_from():
         np.testing.assert_allclose(opengl_c2w(*opencv_pose(c2w)), c2w, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_render_this_view_is_the_sources_render(tmp_path):
     """ "Render this view" on a SOURCE: the image in the panel is the source's own render of that pose."""
     import jax.numpy as jnp
@@ -430,6 +438,7 @@ def test_render_this_view_is_the_sources_render(tmp_path):
         viewer.stop()
 
 
+@pytest.mark.slow
 def test_score_this_view_gives_the_searchs_own_score_and_rank(donut_viewer, donut_explore):
     """ "Score this view" at the best shot's pose: the run's criterion gives the score the search gave it,
     ranked first among the search's views."""
@@ -442,6 +451,7 @@ def test_score_this_view_gives_the_searchs_own_score_and_rank(donut_viewer, donu
     assert results["criterion"] in viewer.live_panel.content and "rank" in viewer.live_panel.content
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg writes the MP4 in a subprocess
 def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
     """A `waldo path` output: one frustum per frame (with its frame score), the path's line, and the frame
@@ -489,6 +499,7 @@ def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
         np.testing.assert_allclose([k[key] for k in ours["path"]], [k[key] for k in theirs["path"]], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_archive_elites_are_drawn_at_the_views_they_hold(donut_explore):
     """An explore output's view archive: one purple frustum per filled cell, at the pose of its elite's
     population slot (training views, then generated ones)."""
@@ -518,6 +529,7 @@ def _demo_folder(donut_explore, folder, settings=None):
     return folder
 
 
+@pytest.mark.slow
 def test_a_demo_output_shows_every_methods_shots_over_its_room(donut_explore, tmp_path):
     """`waldo view runs/demo-X`: the room as points, the training cameras, each method's top-k under
     /topk/<method> in its own colour and panel folder (hiding one hides its frustums); a method's folder alone
@@ -593,6 +605,7 @@ def test_a_guarded_criterion_is_rebuilt_from_its_recorded_name(monkeypatch):
     assert [c.name for c in built] == [guarded.name]
 
 
+@pytest.mark.slow
 def test_export_path_writes_the_top_shots_as_keyframes(donut_explore, tmp_path):
     """ "Export this path" on an explore output: its top-k shots in rank order as keyframes, written by `waldo
     path`'s writers as camera_path.json and instant_ngp_path.json into a new viewer_path_NN (never over an

@@ -49,6 +49,7 @@ def _facing(room, distance, height=0.0):
     return jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins), jnp.asarray(centre), UP)
 
 
+@pytest.mark.slow
 def test_whole_and_large_scores_high_half_hidden_scores_low(bare_room):
     found = make_criterion("waldo_found", CriterionContext(room=bare_room))
     assert found.inputs == "poses" and found.direction == "max" and found.value_range == (0.0, 2.0)
@@ -78,6 +79,7 @@ def test_whole_and_large_scores_high_half_hidden_scores_low(bare_room):
     assert float(found.score_poses(close, INTR)[0]) == pytest.approx(close_vis, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_waldo_view_is_both_oracles_in_one_pass(bare_room):
     c2w = _facing(bare_room, [2.0, 0.6], height=0.3)
     for c in c2w:
@@ -86,6 +88,7 @@ def test_waldo_view_is_both_oracles_in_one_pass(bare_room):
         assert float(cov) == pytest.approx(float(waldo_coverage(bare_room, c, INTR)), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_smooth_stand_in_is_close_and_climbs_towards_a_larger_whole_view(bare_room):
     found = make_criterion("waldo_found", CriterionContext(room=bare_room))
     smooth = found.smooth()
@@ -107,6 +110,7 @@ def test_smooth_stand_in_is_close_and_climbs_towards_a_larger_whole_view(bare_ro
     np.testing.assert_allclose(found_score(v, c, FOUND_SOFTNESS), found_score(v, c), atol=0.01)
 
 
+@pytest.mark.slow
 def test_pose_criteria_combine_with_each_other(bare_room):
     context = CriterionContext(room=bare_room)
     oracle, visible = make_criterion("waldo_oracle", context), make_criterion("waldo_visible", context)
@@ -130,6 +134,7 @@ def test_pose_criteria_combine_with_each_other(bare_room):
     np.testing.assert_allclose(parsed.score_poses(c2w, INTR), mean.score_poses(c2w, INTR), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_pose_and_view_criteria_combine_into_a_posed_criterion(bare_room):
     context = CriterionContext(room=bare_room)
     visible = make_criterion("waldo_visible", context)
@@ -188,6 +193,7 @@ def test_egps_finds_waldo_whole_with_waldo_found():
     assert np.mean(best["waldo_oracle"]) < FOUND_VISIBILITY, best
 
 
+@pytest.mark.slow
 def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
     """`waldo demo`'s close-ups: same camera centres, Waldo's centre at the image centre, zoomed so that he
     fills about `CLOSEUP_FILL` of the height (twice as far: twice the zoom), the image size unchanged."""
@@ -228,6 +234,7 @@ def test_demo_closeups_aim_at_waldo_and_zoom_to_his_size(bare_room):
     assert closeup_cameras(bare_room, nan_pose, INTR)[2] == 1.0
 
 
+@pytest.mark.slow
 def test_surface_seen_by_cameras(bare_room):
     """`waldo_surface_seen`: one camera in front sees about half of Waldo's surface; four around him see
     most of it (not his soles and undersides); a box between camera and Waldo hides all; more cameras never

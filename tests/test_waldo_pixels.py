@@ -28,6 +28,7 @@ def test_masked_psnr_counts_only_the_masked_pixels():
     assert np.isnan(psnr[1])
 
 
+@pytest.mark.slow
 def test_default_room_is_unchanged_by_the_new_arguments_and_scale_grows_waldo():
     base = make_room(1)
     same = make_room(1, waldo_scale=1.0, stripe_width=0.05)
@@ -43,6 +44,7 @@ def test_default_room_is_unchanged_by_the_new_arguments_and_scale_grows_waldo():
             make_room(1, **bad)
 
 
+@pytest.mark.slow
 def test_waldo_mask_is_where_he_is_seen():
     room = make_room(1)
     centre = np.asarray(room.waldo_center)
@@ -60,6 +62,7 @@ def test_waldo_mask_is_where_he_is_seen():
     assert abs(rows.mean() - 15.5) < 6 and abs(cols.mean() - 15.5) < 4
 
 
+@pytest.mark.slow
 def test_samples_seen_agree_with_surface_seen():
     room = make_room(1)
     c2w = jnp.asarray(training_cameras(jax.random.key(0), room, 6, INTR))
@@ -69,6 +72,7 @@ def test_samples_seen_agree_with_surface_seen():
     assert share == pytest.approx(float(waldo_surface_seen(room, c2w, INTR)), abs=1e-5)
 
 
+@pytest.mark.slow
 def test_covering_cameras_see_more_of_waldo_and_still_at_most_half():
     room = make_room(1)
     config = RoomCameraConfig()

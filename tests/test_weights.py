@@ -243,6 +243,7 @@ def test_native_store_round_trip_and_errors(tmp_path):
         load_native(tmp_path / "foreign.npz", "m")
 
 
+@pytest.mark.slow
 def test_weights_convert_cli_writes_loadable_files(tmp_path, capsys):
     import waldo_jax.criteria  # noqa: F401  (registers converters)
     from waldo_jax.weights import CONVERTERS, load_model
