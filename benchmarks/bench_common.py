@@ -104,6 +104,22 @@ def timed_alternately(fns: dict, repeats: int) -> dict:
     return {name: (min(t), statistics.median(t), t) for name, t in times.items()}
 
 
+def steady_chunks(chunks: list) -> tuple:
+    """The training chunks that ran without compiling, from `train.train`'s `on_chunk` entries (cumulative
+    "seconds" and "step", "rays_marched", "warmup"): a chunk is steady when its (rays marched, warm-up)
+    variant had run before. Returns (steady, timed): every steady chunk with its own "chunk_seconds" and
+    "chunk_steps", and those of them to time, the ones after the occupancy warm-up when there are such."""
+    seen, steady, previous_seconds, previous_step = set(), [], 0.0, 0
+    for entry in chunks:
+        variant = (entry["rays_marched"], entry["warmup"])
+        seconds, steps = entry["seconds"] - previous_seconds, entry["step"] - previous_step
+        previous_seconds, previous_step = entry["seconds"], entry["step"]
+        if variant in seen and steps > 0:
+            steady.append({**entry, "chunk_seconds": seconds, "chunk_steps": steps})
+        seen.add(variant)
+    return steady, [c for c in steady if not c["warmup"]] or steady
+
+
 def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
     """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
     start = time.perf_counter()

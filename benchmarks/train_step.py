@@ -28,7 +28,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from bench_common import emit_with_load, header, refuse_existing_out, steady_chunks, wait_for_quiet  # noqa: E402
 from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
 from waldo_jax.nerf.train import train  # noqa: E402
@@ -98,20 +98,10 @@ def main(argv=None):
         return False
 
     result = train(jax.random.key(args.seed), scene, config, progress=False, on_chunk=record)
-    # A chunk that compiled took longer than the last steady chunk before it; steady chunks are those whose
-    # (R, phase) had been seen before.
-    seen, steady = set(), []
-    previous_seconds, previous_step = 0.0, 0
-    for entry in chunks:
-        variant = (entry["rays_marched"], entry["warmup"])
-        seconds, steps = entry["seconds"] - previous_seconds, entry["step"] - previous_step
-        previous_seconds, previous_step = entry["seconds"], entry["step"]
-        if variant in seen and steps > 0:
-            steady.append({**entry, "chunk_seconds": seconds, "chunk_steps": steps})
-        seen.add(variant)
+    # A chunk that compiled took longer than the last steady chunk before it (`steady_chunks`).
+    steady, main_phase = steady_chunks(chunks)
     if not steady:
         raise SystemExit("no chunk ran without compiling: train for more steps (--steps)")
-    main_phase = [c for c in steady if not c["warmup"]] or steady
     seconds = sum(c["chunk_seconds"] for c in main_phase)
     steps = sum(c["chunk_steps"] for c in main_phase)
     rays = sum(c["rays"] * c["chunk_steps"] for c in main_phase) / steps

@@ -65,17 +65,11 @@ def step(ctx: Context, deadline: float) -> dict:
 
 
 def steady_timing(chunks: list) -> dict:
-    """ms per step over the chunks that did not compile, as benchmarks/train_step.py: a chunk is steady when
-    its (rays marched, warm-up) variant had run before; after the occupancy warm-up when there are such."""
-    seen, steady, previous_seconds, previous_step = set(), [], 0.0, 0
-    for entry in chunks:
-        variant = (entry["rays_marched"], entry["warmup"])
-        seconds, steps = entry["seconds"] - previous_seconds, entry["step"] - previous_step
-        previous_seconds, previous_step = entry["seconds"], entry["step"]
-        if variant in seen and steps > 0:
-            steady.append({**entry, "chunk_seconds": seconds, "chunk_steps": steps})
-        seen.add(variant)
-    main_phase = [c for c in steady if not c["warmup"]] or steady
+    """ms per step over the chunks that did not compile (`bench_common.steady_chunks`, as
+    benchmarks/train_step.py): after the occupancy warm-up when there are such."""
+    from bench_common import steady_chunks  # benchmarks/ is on the child's path (`child`)
+
+    steady, main_phase = steady_chunks(chunks)
     if not main_phase:
         return {"ms_per_step": None, "note": "no chunk ran without compiling"}
     seconds = sum(c["chunk_seconds"] for c in main_phase)

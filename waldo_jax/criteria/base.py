@@ -31,6 +31,7 @@ __all__ = [
     "INPUT_NEEDS",
     "InputNeeds",
     "Views",
+    "rendered_views",
     "combined_inputs",
     "criterion_args",
     "views_of_args",
@@ -81,6 +82,12 @@ class Views(NamedTuple):
     rgba: Optional[Array] = None
     c2w: Optional[Array] = None
     intrinsics: Optional[Intrinsics] = None
+
+
+def rendered_views(rgb: Array, acc: Array, c2w: Array, intrinsics: Intrinsics) -> Views:
+    """`Views` of a renderer's output: rgba [P, H, W, 4] from the colour rgb [P, H, W, 3] and the
+    accumulated opacity acc [P, H, W], with the cameras that rendered them."""
+    return Views(jnp.concatenate([rgb, acc[..., None]], axis=-1), c2w, intrinsics)
 
 
 def criterion_args(inputs: str, views: Views) -> tuple:

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.criteria.base import Views
+from waldo_jax.criteria.base import Views, rendered_views
 from waldo_jax.errors import WaldoError, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
@@ -173,18 +173,14 @@ def resize_images(images: np.ndarray, width: int, height: int) -> np.ndarray:
 # Renderers (module-level functions: the Partials built from them compile once per shape).
 
 
-def _rgba(out) -> Array:
-    """The colour and the accumulated opacity of a render, rgba [P, H, W, 4]."""
-    return jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1)
-
-
 def _room_views(room, render_config, c2w: Array, intrinsics: Intrinsics) -> Views:
-    return Views(_rgba(render_views(room_field, room, c2w, intrinsics, render_config)), c2w, intrinsics)
+    out = render_views(room_field, room, c2w, intrinsics, render_config)
+    return rendered_views(out.rgb, out.acc, c2w, intrinsics)
 
 
 def _field_views(params, setup, c2w: Array, intrinsics: Intrinsics, *, field, gradient: str = "forward") -> Views:
     out = render_marched(field, params, setup, c2w, intrinsics, gradient=gradient).output
-    return Views(_rgba(out), c2w, intrinsics)
+    return rendered_views(out.rgb, out.acc, c2w, intrinsics)
 
 
 def room_renderer(room, num_samples: int = _ROOM_SAMPLES) -> jax.tree_util.Partial:

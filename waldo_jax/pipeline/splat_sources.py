@@ -35,7 +35,7 @@ import numpy as np
 
 from waldo_jax.io import read_json_file
 from waldo_jax.cameras import look_at
-from waldo_jax.criteria.base import Views
+from waldo_jax.criteria.base import rendered_views
 from waldo_jax.errors import SceneFormatError, WaldoError, check_resolution
 from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
@@ -224,7 +224,7 @@ def calibrate_tile_chunks(
 
 def _views(splats: Splats, background: Array, c2w: Array, intrinsics: Intrinsics, *, config: SplatRenderConfig):
     out = render_splats(splats, c2w, intrinsics, config, background)
-    return Views(jnp.concatenate([out.rgb, out.acc[..., None]], axis=-1), c2w, intrinsics)
+    return rendered_views(out.rgb, out.acc, c2w, intrinsics)
 
 
 @functools.lru_cache(maxsize=None)
