@@ -104,6 +104,13 @@ def timed_alternately(fns: dict, repeats: int) -> dict:
     return {name: (min(t), statistics.median(t), t) for name, t in times.items()}
 
 
+def cold_compile_env() -> dict:
+    """The environment for a timed `waldo` child process: the command's persistent compilation cache
+    off (`WALDO_COMPILE_CACHE`, unless set), so that a wall time includes its compiles as a first run's
+    does, whatever ran before."""
+    return {**os.environ, "WALDO_COMPILE_CACHE": os.environ.get("WALDO_COMPILE_CACHE", "off")}
+
+
 def steady_chunks(chunks: list) -> tuple:
     """The training chunks that ran without compiling, from `train.train`'s `on_chunk` entries (cumulative
     "seconds" and "step", "rays_marched", "warmup"): a chunk is steady when its (rays marched, warm-up)

@@ -305,8 +305,11 @@ def _folders(args: argparse.Namespace, settings: Settings) -> tuple:
 
 
 def _child_env(data: Path, smoke: bool) -> dict:
-    """The environment of the steps' processes: the data and weights, the repository on PYTHONPATH."""
+    """The environment of the steps' processes: the data and weights, the repository on PYTHONPATH, the
+    `waldo` command's compilation cache off (each step's compiles timed cold, and the determinism step's
+    second run compiled again, not loaded; unless WALDO_COMPILE_CACHE is set)."""
     env = dict(os.environ)
+    env.setdefault("WALDO_COMPILE_CACHE", "off")
     env.update(
         {
             "WALDO_DATA": str(data.resolve()),

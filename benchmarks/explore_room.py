@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
-from bench_common import emit_with_load, header, wait_for_quiet  # noqa: E402
+from bench_common import cold_compile_env, emit_with_load, header, wait_for_quiet  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
 from waldo_jax.pipeline import load_source, run_explore, write_outputs  # noqa: E402
 from waldo_jax.search import ExploreConfig  # noqa: E402
@@ -73,7 +73,7 @@ def run_cli(criterion: str, method: str, resolution: int, seed: int, scratch: Pa
         "--quiet",
     ]
     start = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True)
+    done = subprocess.run(command, capture_output=True, text=True, env=cold_compile_env())
     wall = time.perf_counter() - start
     if done.returncode != 0:
         return {"command": " ".join(command[1:]), "error": done.stderr.strip()[-2000:], "wall_s": round(wall, 3)}

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import waldo_jax  # noqa: E402,F401  (XLA flags before the first computation)
 
-from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
+from bench_common import cold_compile_env, emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
 from render_splats import synthetic_splats  # noqa: E402
 from waldo_jax.splats.io import write_splat_ply  # noqa: E402
 
@@ -47,7 +47,8 @@ def measure(count: int, scratch: Path, args) -> dict:
     argv += ["--criterion", "colorfulness", "--method", "egps", "--budget", "low", "--seed", "0"]
     argv += ["--quiet", "--out", str(out)]
     start = time.perf_counter()
-    child = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = cold_compile_env()
+    child = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     _, status, usage = os.wait4(child.pid, 0)
     wall = time.perf_counter() - start
     stdout, stderr = child.stdout.read(), child.stderr.read()

@@ -13,6 +13,7 @@ from waldo_jax.environment import (
     EnvironmentVariableError,
     VARIABLES,
     check_environment,
+    compile_cache_folder,
     environment_problems,
     xla_flag_known,
 )
@@ -36,6 +37,7 @@ BAD = [
     ("WALDO_REQUIRE_DATA", "banana"),
     ("WALDO_DETERMINISTIC", "banana"),
     ("WALDO_FAST_COMPILE", "banana"),
+    ("WALDO_COMPILE_CACHE", "/etc/passwd"),  # a file: not a folder for the cache
 ]
 
 
@@ -90,3 +92,52 @@ def test_xla_flags_are_read_from_jaxlib_itself(tmp_path, monkeypatch):
     assert not xla_flag_known("xla_no_such_flag_at_all")
     assert (tmp_path / "waldo_jax" / "xla_flags.json").is_file()  # the answers are cached
     assert not xla_flag_known("xla_no_such_flag_at_all")
+
+
+# ----------------------------------------------------------------------------------------------
+# The `waldo` command's persistent compilation cache (`WALDO_COMPILE_CACHE`).
+
+
+def test_compile_cache_folder_default_off_path_and_jaxs_own(tmp_path):
+    default = tmp_path / "xdg" / "waldo_jax" / "jax_cache"
+    assert compile_cache_folder({"XDG_CACHE_HOME": str(tmp_path / "xdg")}) == default
+    assert compile_cache_folder({"XDG_CACHE_HOME": str(tmp_path / "xdg"), "WALDO_COMPILE_CACHE": "on"}) == default
+    assert compile_cache_folder({"WALDO_COMPILE_CACHE": "off"}) is None
+    assert compile_cache_folder({"WALDO_COMPILE_CACHE": str(tmp_path / "c")}) == tmp_path / "c"
+    # JAX's own variable set: JAX caches there, waldo_jax adds nothing.
+    assert compile_cache_folder({"JAX_COMPILATION_CACHE_DIR": str(tmp_path), "WALDO_COMPILE_CACHE": "on"}) is None
+    # A folder to be made is fine where its nearest existing parent is a folder; under a file it is not.
+    assert environment_problems({"WALDO_COMPILE_CACHE": str(tmp_path / "new" / "deeper")}) == []
+    (tmp_path / "file").write_text("x")
+    (problem,) = environment_problems({"WALDO_COMPILE_CACHE": str(tmp_path / "file" / "below")})
+    assert problem.startswith("WALDO_COMPILE_CACHE=") and "not a writable folder" in problem
+
+
+def _score(tmp_path, env_update, image):
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}  # the suite's own cache
+    env.update({"XDG_CACHE_HOME": str(tmp_path / "xdg"), **env_update})
+    argv = [sys.executable, "-m", "waldo_jax", "score", "--criterion", "colorfulness", str(image), "--json"]
+    result = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout
+
+
+@pytest.mark.slow
+def test_a_command_fills_the_cache_and_a_rerun_loads_it_with_the_same_result(tmp_path):
+    import imageio.v3 as iio
+    import numpy as np
+
+    image = tmp_path / "view.png"
+    iio.imwrite(image, (np.random.default_rng(0).uniform(size=(24, 32, 3)) * 255).astype(np.uint8))
+    cache = tmp_path / "cache"
+    first = _score(tmp_path, {"WALDO_COMPILE_CACHE": str(cache)}, image)
+    entries = sorted(p.name for p in cache.iterdir())
+    assert entries, "the first run cached nothing"
+    again = _score(tmp_path, {"WALDO_COMPILE_CACHE": str(cache)}, image)
+    assert again == first  # the same scores from the loaded programs
+    assert sorted(p.name for p in cache.iterdir()) == entries  # every program found: nothing new compiled
+    # Off: nothing cached, not even in the default folder; on (unset): the default folder.
+    _score(tmp_path, {"WALDO_COMPILE_CACHE": "off"}, image)
+    assert not (tmp_path / "xdg" / "waldo_jax" / "jax_cache").exists()
+    _score(tmp_path, {}, image)
+    assert any((tmp_path / "xdg" / "waldo_jax" / "jax_cache").iterdir())

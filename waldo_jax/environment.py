@@ -7,7 +7,8 @@ no Python error at all when `XLA_FLAGS` names a flag it does not know, and a bad
 first and raises `EnvironmentVariableError`, one line naming the variable, its value and what it takes:
 
   * waldo_jax's own: `WALDO_DATA`, `WALDO_WEIGHTS` (existing folders when set), `WALDO_REQUIRE_DATA`,
-    `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words);
+    `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words), `WALDO_COMPILE_CACHE` (on / off or a
+    folder that can be made: `enable_compile_cache`, which the `waldo` command runs);
   * XLA's: `XLA_FLAGS` (each `--name` or `--name=value`, every name one this jaxlib knows: the flag
     names are read from its shared library, `xla_flag_known`), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
@@ -39,6 +40,9 @@ __all__ = [
     "environment_problems",
     "check_environment",
     "import_jax",
+    "COMPILE_CACHE_MAX_BYTES",
+    "compile_cache_folder",
+    "enable_compile_cache",
     "xla_flag_known",
     "install_excepthook",
 ]
@@ -116,6 +120,21 @@ def _xla_flags(value: str) -> Optional[str]:
     return None
 
 
+def _compile_cache(value: str) -> Optional[str]:
+    """An on / off word, or a folder that exists or can be made (its nearest existing parent a writable folder)."""
+    if value.strip().lower() in _ON + _OFF:
+        return None
+    path = Path(value).expanduser()
+    if path.exists():
+        return None if path.is_dir() and os.access(path, os.W_OK) else "not a writable folder"
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        return f"cannot be made ({parent} is not a writable folder)"
+    return None
+
+
 # name -> (check of a set value: None or the problem, what it takes)
 VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "WALDO_DATA": (_folder, "the data folder, ../shared's layout"),
@@ -123,6 +142,7 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "WALDO_REQUIRE_DATA": (_switch, "a missing data file fails instead of skipping"),
     "WALDO_DETERMINISTIC": (_switch, "deterministic GPU kernels, default on"),
     "WALDO_FAST_COMPILE": (_switch, "faster XLA:CPU compiles, default off"),
+    "WALDO_COMPILE_CACHE": (_compile_cache, "the `waldo` command's compilation cache: on, off or a folder"),
     "XLA_FLAGS": (_xla_flags, "XLA's flags"),
     "XLA_PYTHON_CLIENT_PREALLOCATE": (_switch, "preallocate GPU memory"),
     "XLA_PYTHON_CLIENT_MEM_FRACTION": (_fraction, "the share of GPU memory to preallocate"),
@@ -176,6 +196,64 @@ def import_jax():
             f"{where}JAX refuses it ({message[:200]})" + ("" if named else f"; JAX variables set: {set_ or 'none'}")
         ) from None
     return jax
+
+
+# The compilation cache's size bound (least recently used programs are evicted past it): the demo
+# writes about 4 MB, an explore of a NeRF tens of MB.
+COMPILE_CACHE_MAX_BYTES = 2**30
+
+
+def compile_cache_folder(environ: Optional[Mapping[str, str]] = None) -> Optional[Path]:
+    """The folder of the `waldo` command's persistent compilation cache, or None for none.
+
+    `WALDO_COMPILE_CACHE`: unset or an on word, `$XDG_CACHE_HOME/waldo_jax/jax_cache` (default
+    `~/.cache/...`); an off word, none; anything else, that folder. None as well when JAX's own
+    `JAX_COMPILATION_CACHE_DIR` is set: JAX then caches there itself.
+    """
+    environ = os.environ if environ is None else environ
+    value = environ.get("WALDO_COMPILE_CACHE", "").strip()
+    if environ.get("JAX_COMPILATION_CACHE_DIR", "").strip() or value.lower() in _OFF:
+        return None
+    if value and value.lower() not in _ON:
+        return Path(value).expanduser()
+    base = environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "waldo_jax" / "jax_cache"
+
+
+def enable_compile_cache(environ: Optional[Mapping[str, str]] = None) -> Optional[Path]:
+    """Turns on JAX's persistent compilation cache in `compile_cache_folder` for this process; returns the
+    folder (None: off, or left to JAX_COMPILATION_CACHE_DIR).
+
+    A command run again, or another with programs of the same shapes, loads XLA's compiled programs
+    instead of compiling them again (the results are the same: the cache key covers the program, the
+    XLA flags, the jaxlib version and the device). Every program is cached, however short its compile
+    (`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`, when set, decides instead), and the folder is bounded
+    by `COMPILE_CACHE_MAX_BYTES` (`JAX_COMPILATION_CACHE_MAX_SIZE`, when set). Call it before the
+    process's first compilation (JAX decides once whether it caches). A default folder that cannot be
+    made is a warning (the command runs without the cache); a folder named in `WALDO_COMPILE_CACHE`
+    that cannot be, an `EnvironmentVariableError`.
+    """
+    environ = os.environ if environ is None else environ
+    folder = compile_cache_folder(environ)
+    if folder is None:
+        return None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        why = f"cannot make {folder} ({e.strerror or e})"
+        if environ.get("WALDO_COMPILE_CACHE", "").strip().lower() not in ("",) + _ON:
+            raise EnvironmentVariableError(f"environment variable WALDO_COMPILE_CACHE: {why}") from None
+        import warnings
+
+        warnings.warn(f"no compilation cache: {why}; set WALDO_COMPILE_CACHE to a writable folder, or to off")
+        return None
+    jax = import_jax()
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    if "JAX_COMPILATION_CACHE_MAX_SIZE" not in environ:
+        jax.config.update("jax_compilation_cache_max_size", COMPILE_CACHE_MAX_BYTES)
+    return folder
 
 
 def _jaxlib_libraries() -> List[Path]:

@@ -18,7 +18,9 @@ runs it as `handler`. Bad input (a missing file, a malformed scene, an existing 
 one line `waldo: error: ...` on stderr and exits with status 1, without a traceback; so do bad arguments
 (an unknown flag or choice: `waldo_jax.cli.conventions`, which also holds `--quiet` and progress). Ctrl-C and
 SIGTERM print `waldo: interrupted` and exit with 130 / 143, leaving no unfinished output
-(`waldo_jax.cli.interrupt`).
+(`waldo_jax.cli.interrupt`). Every command keeps XLA's compiled programs in a persistent cache
+(`waldo_jax.environment.enable_compile_cache`; `WALDO_COMPILE_CACHE=off` or a folder), so a command
+run again compiles little.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from typing import List, Optional
 
 from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, view, weights
 from waldo_jax.cli.conventions import Parser
+from waldo_jax.environment import enable_compile_cache
 from waldo_jax.errors import WaldoError, check_seed
 from waldo_jax.version import package_version
 
@@ -78,6 +81,7 @@ def _run(argv: Optional[List[str]]) -> int:
         args = parser.parse_args(argv)  # bad arguments: `UsageError`, one line like any bad input
         if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
             check_seed(args.seed, "--seed", getattr(args, "seeds", 1) or 1)
+        enable_compile_cache()  # before the first compilation: JAX decides once whether it caches
         check_jax_platforms()
         return int(args.handler(args) or 0)
     except WaldoError as e:
