@@ -16,6 +16,7 @@ from waldo_jax.environment import (
     compile_cache_folder,
     environment_problems,
     xla_flag_known,
+    xla_flags_refused,
 )
 
 # One bad value per kind of check, each named by the error (the JAX_* ones refused by JAX's own import).
@@ -25,6 +26,8 @@ BAD = [
     ("JAX_TRACEBACK_FILTERING", "banana"),
     ("XLA_FLAGS", "--banana"),
     ("XLA_FLAGS", "banana"),
+    ("XLA_FLAGS", "--xla_force_host_platform_device_count=banana"),  # a known flag, a value XLA cannot read
+    ("XLA_FLAGS", "--xla_cpu_disable_loop_unrolling=true"),  # a string in jaxlib's library, not a flag
     ("XLA_PYTHON_CLIENT_MEM_FRACTION", "2"),
     ("XLA_PYTHON_CLIENT_ALLOCATOR", "banana"),
     ("XLA_PYTHON_CLIENT_PREALLOCATE", "banana"),
@@ -84,6 +87,25 @@ def test_check_environment_names_each_problem():
         check_environment({"XLA_FLAGS": "--banana", "WALDO_FAST_COMPILE": "x"})
     assert "XLA_FLAGS=--banana" in str(raised.value) and "WALDO_FAST_COMPILE=x" in str(raised.value)
     check_environment({})  # nothing set: nothing to refuse
+
+
+def test_xla_itself_refuses_what_the_names_let_through_and_the_answer_is_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    good, unknown, unreadable = (
+        "--xla_cpu_use_fusion_emitters=false --xla_force_host_platform_device_count=2",
+        "--xla_cpu_disable_loop_unrolling=true",
+        "--xla_force_host_platform_device_count=banana",
+    )
+    assert xla_flags_refused(good) is None
+    assert "is no flag this jaxlib knows" in xla_flags_refused(unknown)
+    assert "cannot read the value 'banana'" in xla_flags_refused(unreadable)
+    import subprocess
+
+    def no_child(*args, **kwargs):
+        raise AssertionError("asked XLA again")
+
+    monkeypatch.setattr(subprocess, "run", no_child)  # cached: no child process the second time
+    assert xla_flags_refused(good) is None and xla_flags_refused(unreadable).startswith("--xla_force_host")
 
 
 def test_xla_flags_are_read_from_jaxlib_itself(tmp_path, monkeypatch):

@@ -10,7 +10,9 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words), `WALDO_COMPILE_CACHE` (on / off or a
     folder that can be made: `enable_compile_cache`, which the `waldo` command runs);
   * XLA's: `XLA_FLAGS` (each `--name` or `--name=value`, every name one this jaxlib knows: the flag
-    names are read from its shared library, `xla_flag_known`), `XLA_PYTHON_CLIENT_PREALLOCATE`,
+    names are read from its shared library, `xla_flag_known`; then XLA itself parses the whole value in
+    a child process, `xla_flags_refused`, which finds the rest: a name the library holds as a string but
+    XLA does not take as a flag, a value it cannot read), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
     `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
   * JAX's: `JAX_PLATFORMS` (names from the known platforms) and every `JAX_*` configuration variable,
@@ -44,6 +46,7 @@ __all__ = [
     "compile_cache_folder",
     "enable_compile_cache",
     "xla_flag_known",
+    "xla_flags_refused",
     "install_excepthook",
 ]
 
@@ -117,7 +120,7 @@ def _xla_flags(value: str) -> Optional[str]:
     unknown = [t for t in tokens if not xla_flag_known(_XLA_TOKEN.fullmatch(t).group(1))]
     if unknown:
         return f"{unknown[0]} is no flag this jaxlib knows: XLA would abort the process"
-    return None
+    return xla_flags_refused(value) if tokens else None
 
 
 def _compile_cache(value: str) -> Optional[str]:
@@ -271,6 +274,81 @@ def _cache_file() -> Path:
     return Path(base) / "waldo_jax" / "xla_flags.json"
 
 
+# A child process that starts XLA's CPU client with the XLA_FLAGS to check: XLA parses every flag there
+# and aborts on one it does not know or a value it cannot read (jaxlib's own client, else JAX's).
+_PROBE = """
+try:
+    from jaxlib import _jax
+    _jax.get_tfrt_cpu_client(asynchronous=False)
+except (ImportError, AttributeError, TypeError):
+    import jax
+    jax.devices("cpu")
+"""
+_UNKNOWN_FLAG = re.compile(r"Unknown flag in XLA_FLAGS: (\S+)")
+_BAD_VALUE = re.compile(r"Couldn't interpret value (.*) for flag (\w+)")
+
+
+def _read_cache() -> Tuple[str, dict]:
+    """(key of the installed jaxlib libraries, the answers cached for them)."""
+    libraries = _jaxlib_libraries()
+    stamp = hashlib.sha1(repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries]).encode())
+    key = stamp.hexdigest()[:16]
+    cache = _cache_file()
+    try:
+        known = json.loads(cache.read_text()) if cache.is_file() and cache.stat().st_size < 1_000_000 else {}
+        known = known if isinstance(known, dict) and known.get("key") == key else {"key": key}
+    except (OSError, ValueError):
+        known = {"key": key}
+    return key, known
+
+
+def _write_cache(known: dict) -> None:
+    """Writes the answers whole (a temporary file renamed over the cache: a reader never sees half)."""
+    cache = _cache_file()
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        partial = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")
+        partial.write_text(json.dumps(known))
+        os.replace(partial, cache)
+    except OSError:
+        pass
+
+
+def xla_flags_refused(value: str) -> Optional[str]:
+    """Why XLA would refuse XLA_FLAGS=`value` (it aborts the process on an unknown flag or a value it
+    cannot read), or None. XLA itself is asked, in a child process (about half a second; the answer is
+    cached per value and jaxlib install); None where the child fails for another reason."""
+    import subprocess
+
+    _, known = _read_cache()
+    probed = known.get("probed") if isinstance(known.get("probed"), dict) else {}
+    if value in probed and isinstance(probed[value], str):
+        return probed[value] or None
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_", "TF_CPP_"))}
+    env.update(XLA_FLAGS=value, JAX_PLATFORMS="cpu", TF_CPP_MIN_LOG_LEVEL="0")
+    try:
+        child = subprocess.run(
+            [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=120, errors="replace"
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    answer = ""
+    if child.returncode != 0:
+        unknown, bad = _UNKNOWN_FLAG.search(child.stderr), _BAD_VALUE.search(child.stderr)
+        if unknown:
+            answer = f"{unknown.group(1)} is no flag this jaxlib knows: XLA would abort the process"
+        elif bad:
+            answer = f"--{bad.group(2)}: XLA cannot read the value {bad.group(1)[:40]!r} and would abort the process"
+        else:
+            return None  # a failure for another reason: nothing learnt about the flags
+    _, known = _read_cache()  # again: another process may have written meanwhile
+    probed = known.get("probed") if isinstance(known.get("probed"), dict) else {}
+    if len(probed) < 256:
+        known["probed"] = {**probed, value: answer}
+        _write_cache(known)
+    return answer or None
+
+
 def xla_flag_known(name: str) -> bool:
     """Whether `name` (without `--`) is an XLA flag of the installed jaxlib: its name is a string in
     one of jaxlib's shared libraries (where XLA registers its flags). Answers are cached per library
@@ -280,14 +358,7 @@ def xla_flag_known(name: str) -> bool:
     libraries = _jaxlib_libraries()
     if not libraries:
         return True
-    stamp = hashlib.sha1(repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries]).encode())
-    key = stamp.hexdigest()[:16]
-    cache = _cache_file()
-    try:
-        known = json.loads(cache.read_text()) if cache.is_file() and cache.stat().st_size < 1_000_000 else {}
-        known = known if isinstance(known, dict) and known.get("key") == key else {"key": key}
-    except (OSError, ValueError):
-        known = {"key": key}
+    _, known = _read_cache()
     if isinstance(known.get(name), bool):
         return known[name]
     needle = name.encode() + b"\x00"
@@ -301,11 +372,7 @@ def xla_flag_known(name: str) -> bool:
     except (OSError, ValueError):
         return True
     known[name] = answer
-    try:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        cache.write_text(json.dumps(known))
-    except OSError:
-        pass
+    _write_cache(known)
     return answer
 
 
