@@ -15,8 +15,10 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     XLA does not take as a flag, a value it cannot read), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
     `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
-  * JAX's: `JAX_PLATFORMS` (names from the known platforms) and every `JAX_*` configuration variable,
-    which JAX itself checks when it is imported: `import_jax` turns its refusal into the same one line.
+  * JAX's: `JAX_PLATFORMS` (names from the known platforms), `JAX_COMPILATION_CACHE_DIR` (a folder that
+    exists or can be made; JAX itself only warns at each program it cannot cache) and every `JAX_*`
+    configuration variable, which JAX itself checks when it is imported: `import_jax` turns its refusal
+    into the same one line.
 
 `waldo_jax/__init__.py` runs `check_environment` and `import_jax` first of all; the `waldo` command
 prints the error as one line and exits 1 (`install_excepthook`).
@@ -124,9 +126,12 @@ def _xla_flags(value: str) -> Optional[str]:
 
 
 def _compile_cache(value: str) -> Optional[str]:
-    """An on / off word, or a folder that exists or can be made (its nearest existing parent a writable folder)."""
-    if value.strip().lower() in _ON + _OFF:
-        return None
+    """An on / off word, or a folder that exists or can be made (`_writable_folder`)."""
+    return None if value.strip().lower() in _ON + _OFF else _writable_folder(value)
+
+
+def _writable_folder(value: str) -> Optional[str]:
+    """A writable folder, or one that can be made (its nearest existing parent a writable folder)."""
     path = Path(value).expanduser()
     if path.exists():
         return None if path.is_dir() and os.access(path, os.W_OK) else "not a writable folder"
@@ -157,6 +162,7 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "TF_CPP_MAX_VLOG_LEVEL": (lambda v: _level(v, 10), "XLA's verbose log level"),
     "CUDA_VISIBLE_DEVICES": (_cuda_devices, "the GPUs JAX may use"),
     "JAX_PLATFORMS": (_platforms, "the backends JAX may start"),
+    "JAX_COMPILATION_CACHE_DIR": (_writable_folder, "JAX's persistent compilation cache"),
 }
 
 
