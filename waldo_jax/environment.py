@@ -294,8 +294,8 @@ _UNKNOWN_FLAG = re.compile(r"Unknown flag in XLA_FLAGS: (\S+)")
 _BAD_VALUE = re.compile(r"Couldn't interpret value (.*) for flag (\w+)")
 
 
-def _read_cache() -> Tuple[str, dict]:
-    """(key of the installed jaxlib libraries, the answers cached for them)."""
+def _read_cache() -> dict:
+    """The answers cached for the installed jaxlib libraries (under their "key"; none for others)."""
     libraries = _jaxlib_libraries()
     stamp = hashlib.sha1(repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries]).encode())
     key = stamp.hexdigest()[:16]
@@ -305,7 +305,7 @@ def _read_cache() -> Tuple[str, dict]:
         known = known if isinstance(known, dict) and known.get("key") == key else {"key": key}
     except (OSError, ValueError):
         known = {"key": key}
-    return key, known
+    return known
 
 
 def _write_cache(known: dict) -> None:
@@ -326,7 +326,7 @@ def xla_flags_refused(value: str) -> Optional[str]:
     cached per value and jaxlib install); None where the child fails for another reason."""
     import subprocess
 
-    _, known = _read_cache()
+    known = _read_cache()
     probed = known.get("probed") if isinstance(known.get("probed"), dict) else {}
     if value in probed and isinstance(probed[value], str):
         return probed[value] or None
@@ -347,7 +347,7 @@ def xla_flags_refused(value: str) -> Optional[str]:
             answer = f"--{bad.group(2)}: XLA cannot read the value {bad.group(1)[:40]!r} and would abort the process"
         else:
             return None  # a failure for another reason: nothing learnt about the flags
-    _, known = _read_cache()  # again: another process may have written meanwhile
+    known = _read_cache()  # again: another process may have written meanwhile
     probed = known.get("probed") if isinstance(known.get("probed"), dict) else {}
     if len(probed) < 256:
         known["probed"] = {**probed, value: answer}
@@ -364,7 +364,7 @@ def xla_flag_known(name: str) -> bool:
     libraries = _jaxlib_libraries()
     if not libraries:
         return True
-    _, known = _read_cache()
+    known = _read_cache()
     if isinstance(known.get(name), bool):
         return known[name]
     needle = name.encode() + b"\x00"
