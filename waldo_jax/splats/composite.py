@@ -1,9 +1,12 @@
 """Compositing a view's chunks of depth-sorted splats, with a hand-written reverse-mode gradient.
 
 A chunk is B splats of one tile, nearest first; a tile's chunks follow each other in the K chunk slots
-(`first` marks each tile's first). Every chunk is composited at its tile's S pixels at once, one splat
-per step of a `lax.scan` over the B slots; the chunks of a tile are chained by the transmittance that
-enters each (the product of its tile's earlier chunks' transmittances, a segmented scan). Per pixel:
+(`first` marks each tile's first). Every chunk is composited at its tile's S pixels, one splat per
+step of a `lax.scan` over the B slots; the chunks of a tile are chained by the transmittance that
+enters each (the product of its tile's earlier chunks' transmittances, a segmented scan). On an
+accelerator all K chunks go at once, in two passes (the transmittances, then the weighted sums); on a
+CPU one pass goes over blocks of `CPU_BLOCK` chunks in order, evaluating each block's alphas once and
+passing over blocks with no splat (`_forward_blocked`). Per pixel:
 
   T_i      transmittance before splat i, carried without the stop (it only falls);
   kept_i   T_i (1 - alpha_i) >= min_transmittance: the splats before the reference's stop;
@@ -32,6 +35,12 @@ import jax.numpy as jnp
 from waldo_jax.types import Array
 
 __all__ = ["ChunkSplats", "alphas", "segmented", "composite_chunks"]
+
+# Chunks composited together in one step of the CPU's pass over the chunks (`_forward_blocked`): their
+# alphas, [chunk, CPU_BLOCK, S] floats, stay in a core's cache between the two uses.
+CPU_BLOCK = 64
+# The packed columns of a slot before its values: mean2d (2), conic (3), opacity (1).
+_GEOMETRY = 6
 
 
 def alphas(
@@ -94,23 +103,100 @@ def _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, a
     return values, leaving, entering
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9))
-def _composite_vjp(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance):
-    values, leaving, _ = _forward(
-        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
-    )
+def _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, block):
+    """`_forward` of packed chunk-major rows, in one pass over blocks of `block` chunks, in order (a
+    `lax.scan`): the CPU's way.
+
+    Each block's alphas [B, block, S] are evaluated once and kept (they fit in a core's cache) for
+    both its transmittance product and its weighted sums; the transmittance leaving the previous
+    block's last chunk enters the block's chunks that continue that tile. A block with no splat (the
+    unused chunk slots at the end of a view's lists) is passed over, not evaluated. The values equal
+    `_forward`'s up to the order of the transmittance products (float32 rounding). K a multiple of
+    `block` reads the inputs in place (others are padded with empty chunks).
+    """
+    k, s = pixels.shape[:2]
+    c = rows.shape[-1] - _GEOMETRY
+    blocks = -(-k // block)
+    pad = blocks * block - k
+    if pad:
+        pixels = jnp.pad(pixels, ((0, pad), (0, 0), (0, 0)))
+        first = jnp.pad(first, (0, pad), constant_values=True)
+        rows = jnp.pad(rows, ((0, pad), (0, 0), (0, 0)))
+        filled = jnp.pad(filled, ((0, pad), (0, 0)))
+
+    def composite_block(carry, px, fst, r, f):
+        mean2d, conic, opacity, sample = _unpack(r)  # [B, block, ...]
+        alpha = jax.vmap(lambda *g: alphas(px, *g, alpha_min, alpha_max))(mean2d, conic, opacity, f.T)
+
+        def through(t, a):
+            return t * (1.0 - a), None
+
+        product, _ = jax.lax.scan(through, jnp.ones((block, s), jnp.float32), alpha)  # [block, S]
+        inclusive = segmented(jnp.multiply, fst, product)
+        entering = jnp.concatenate([jnp.ones((1, s), jnp.float32), inclusive[:-1]])
+        entering = jnp.where(fst[:, None], 1.0, entering)
+        continues = (jnp.cumsum(fst) == 0)[:, None]  # the block's first run: the previous block's tile
+        entering = jnp.where(continues, entering * carry, entering)
+
+        def step(state, xs):
+            transmittance, values = state
+            a, v = xs
+            after = transmittance * (1.0 - a)
+            weight = jnp.where(after >= min_transmittance, a * transmittance, 0.0)  # [block, S]
+            return (after, values + weight[..., None] * v[:, None, :]), None
+
+        zeros = jnp.zeros((block, s, c), jnp.float32)
+        (leaving, values), _ = jax.lax.scan(step, (entering, zeros), (alpha, sample))
+        return leaving[-1], (values, leaving, entering)
+
+    def skip(carry, px, fst, *_):  # no splat in the block: every alpha is 0, the transmittance passes
+        continues = (jnp.cumsum(fst) == 0)[:, None]
+        entering = jnp.where(continues, carry, jnp.ones((block, s), jnp.float32))
+        return entering[-1], (jnp.zeros((block, s, c), jnp.float32), entering, entering)
+
+    def body(carry, i):
+        own = tuple(jax.lax.dynamic_slice_in_dim(a, i * block, block, 0) for a in (pixels, first, rows, filled))
+        return jax.lax.cond(jnp.any(own[3]), composite_block, skip, carry, *own)
+
+    _, out = jax.lax.scan(body, jnp.ones((s,), jnp.float32), jnp.arange(blocks, dtype=jnp.int32))
+    return tuple(o.reshape((blocks * block,) + o.shape[2:])[:k] for o in out)
+
+
+def _unpack(rows: Array):
+    """(mean2d [B, K, 2], conic [B, K, 3], opacity [B, K], sample [B, K, C]) of rows [K, B, 6 + C]."""
+    r = jnp.swapaxes(rows, 0, 1)
+    return r[..., 0:2], r[..., 2:5], r[..., 5], r[..., _GEOMETRY:]
+
+
+def _pack(mean2d: Array, conic: Array, opacity: Array, sample: Array) -> Array:
+    """The rows [K, B, 6 + C] of slot-major arrays (`_unpack`'s inverse)."""
+    return jnp.swapaxes(jnp.concatenate([mean2d, conic, opacity[..., None], sample], -1), 0, 1)
+
+
+def _forward_rows(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance):
+    """(values, leaving, entering) of packed rows: `_forward_blocked` on a CPU (blocks of `CPU_BLOCK`
+    chunks), `_forward` of the slot-major arrays elsewhere."""
+    if jax.default_backend() == "cpu":
+        return _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, CPU_BLOCK)
+    mean2d, conic, opacity, sample = _unpack(rows)
+    return _forward(pixels, first, mean2d, conic, opacity, filled.T, sample, alpha_min, alpha_max, min_transmittance)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
+def _composite_vjp(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance):
+    values, leaving, _ = _forward_rows(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance)
     return values, leaving
 
 
-def _composite_fwd(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance):
-    values, leaving, entering = _forward(
-        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
-    )
-    return (values, leaving), (pixels, first, mean2d, conic, opacity, filled, sample, entering, values)
+def _composite_fwd(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance):
+    values, leaving, entering = _forward_rows(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance)
+    return (values, leaving), (pixels, first, rows, filled, entering, values)
 
 
 def _composite_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangents):
-    pixels, first, mean2d, conic, opacity, filled, sample, entering, values = residuals
+    pixels, first, rows, filled_rows, entering, values = residuals
+    mean2d, conic, opacity, sample = _unpack(rows)
+    filled = filled_rows.T
     g, _ = cotangents  # [K, S, 5]; `leaving` only ever feeds comparisons
     # Each chunk's own sum of w_j e_j, then R's share from the tile's later chunks: a segmented
     # suffix sum (the scan reversed, restarting at each tile's last chunk).
@@ -166,25 +252,23 @@ def _composite_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangent
     _, (d_mean2d, d_conic, d_opacity, d_sample) = jax.lax.scan(
         backward, later, (mean2d, conic, opacity, filled, sample, before), reverse=True
     )
-    return None, None, d_mean2d, d_conic, d_opacity, None, d_sample
+    return None, None, _pack(d_mean2d, d_conic, d_opacity, d_sample), None
 
 
 _composite_vjp.defvjp(_composite_fwd, _composite_bwd)
 
 
 class ChunkSplats(NamedTuple):
-    """Each chunk's projected splats, nearest first, slot by slot (B slots of K chunks).
+    """Each chunk's projected splats, nearest first, chunk by chunk (K chunks of B slots), packed so
+    that one gather of a table of projected splats makes them.
 
     Attributes:
-      mean2d: [B, K, 2] projected means (px).
-      conic: [B, K, 3] inverse 2D covariances (a, b, c).
-      opacity: [B, K].
-      filled: bool [B, K], the slots that hold a splat.
+      rows: [K, B, 6 + C] per slot: the projected mean (x, y) in px, the inverse 2D covariance
+        (a, b, c), the opacity, then the C values the splat adds, weighted (e.g. r, g, b, 1, depth).
+      filled: bool [K, B], the slots that hold a splat.
     """
 
-    mean2d: Array
-    conic: Array
-    opacity: Array
+    rows: Array
     filled: Array
 
 
@@ -192,7 +276,6 @@ def composite_chunks(
     pixels: Array,
     first: Array,
     splats: ChunkSplats,
-    sample: Array,
     alpha_min: float,
     alpha_max: float,
     min_transmittance: float,
@@ -203,9 +286,7 @@ def composite_chunks(
     Args:
       pixels: [K, S, 2] pixel centres of each chunk's tile.
       first: bool [K] the first chunk of its tile (unused chunks count as first).
-      splats: each chunk's splats, nearest first, slot by slot (mean2d [B, K, 2], conic [B, K, 3],
-        opacity [B, K], filled bool [B, K]).
-      sample: [B, K, C] the values each splat adds, weighted (e.g. r, g, b, 1, depth).
+      splats: each chunk's splats, nearest first (`ChunkSplats`: rows [K, B, 6 + C], filled [K, B]).
       alpha_min, alpha_max, min_transmittance: the reference's 1/255, 0.99 and 1e-4.
       custom_gradient: the hand-written reverse-mode gradient (no forward mode), or JAX's own
         differentiation of the scans (both modes; slower in reverse).
@@ -213,12 +294,11 @@ def composite_chunks(
     Returns:
       (values [K, S, C], transmittance leaving each chunk without the stop [K, S]).
     """
-    mean2d, conic, opacity, filled = splats
+    rows, filled = splats
     if custom_gradient:
-        return _composite_vjp(
-            pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
-        )
+        return _composite_vjp(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance)
+    mean2d, conic, opacity, sample = _unpack(rows)
     values, leaving, _ = _forward(
-        pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, alpha_max, min_transmittance
+        pixels, first, mean2d, conic, opacity, filled.T, sample, alpha_min, alpha_max, min_transmittance
     )
     return values, leaving
