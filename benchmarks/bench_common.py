@@ -127,8 +127,43 @@ def steady_chunks(chunks: list) -> tuple:
     return steady, [c for c in steady if not c["warmup"]] or steady
 
 
+# Other processes' mean CPU use over a run (cores) above which it counts as shared, per unit of the
+# start's load threshold (so 0.25 cores at the usual 1.0; a test's huge threshold turns both off).
+OTHERS_CORES_PER_LOAD = 0.25
+
+
+def cpu_snapshot() -> dict | None:
+    """The machine's busy CPU seconds (/proc/stat: user, nice, system, irq, softirq; steal left out)
+    and this process's own and its waited-for children's, with the wall clock; None where /proc/stat
+    cannot be read (not Linux)."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+    except OSError:
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq = (int(x) for x in fields[1:8])
+    mine = os.times()
+    return {
+        "machine_s": (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK"),
+        "own_s": mine.user + mine.system + mine.children_user + mine.children_system,
+        "wall_s": time.perf_counter(),
+    }
+
+
+def others_cores(start: dict | None) -> float | None:
+    """Other processes' mean CPU use (cores) since `start` (`cpu_snapshot`): the machine's busy time
+    less this process's and its children's (a child still running when this is called is not counted
+    as ours, so call it after waiting for them). None without a snapshot."""
+    end = cpu_snapshot()
+    if start is None or end is None:
+        return None
+    wall = max(end["wall_s"] - start["wall_s"], 1e-9)
+    others = (end["machine_s"] - start["machine_s"]) - (end["own_s"] - start["own_s"])
+    return max(others, 0.0) / wall
+
+
 def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 300.0) -> dict:
-    """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed."""
+    """Polls the 1-minute load average until it is <= threshold or max_wait_s has passed; starts the
+    count of other processes' CPU time that `emit_with_load` reads at the end."""
     start = time.perf_counter()
     load = os.getloadavg()
     while load[0] > threshold and time.perf_counter() - start < max_wait_s:
@@ -139,6 +174,7 @@ def wait_for_quiet(threshold: float, poll_s: float = 30.0, max_wait_s: float = 3
         "loadavg_start": list(load),
         "waited_s": round(time.perf_counter() - start, 1),
         "loaded": load[0] > threshold,
+        "cpu_start": cpu_snapshot(),
     }
 
 
@@ -149,18 +185,28 @@ def loaded_name(out: str) -> str:
 
 
 def emit_with_load(result: dict, out: str | None, quiet: dict, load_threshold: float) -> None:
-    """Adds the load record of `wait_for_quiet` (start, end, verdict) to `result` and emits it,
-    under `loaded_name(out)` when the machine was shared."""
+    """Adds the load record of `wait_for_quiet` (start, end, other processes' CPU use over the run,
+    verdict) to `result` and emits it, under `loaded_name(out)` when the machine was shared: loaded
+    at the start, or other processes used more than `OTHERS_CORES_PER_LOAD * load_threshold` cores on
+    average during it."""
+    others = others_cores(quiet.get("cpu_start"))
+    limit = OTHERS_CORES_PER_LOAD * load_threshold
+    loaded = bool(quiet["loaded"]) or (others is not None and others > limit)
     result.update(
         {
             "loadavg_start": quiet["loadavg_start"],
             "loadavg_end": list(os.getloadavg()),
             "waited_for_load_s": quiet["waited_s"],
-            "loaded": quiet["loaded"],
-            "loaded_rule": f"loaded = 1-min load average still > {load_threshold} after waiting up to 5 min",
+            "others_cores": None if others is None else round(others, 3),
+            "loaded": loaded,
+            "loaded_rule": (
+                f"loaded = 1-min load average still > {load_threshold} after waiting up to 5 min, or other "
+                f"processes used > {limit:g} cores on average during the run (/proc/stat busy time less this "
+                "process's and its children's)"
+            ),
         }
     )
-    if out and quiet["loaded"]:
+    if out and loaded:
         out = loaded_name(out)
         print(f"the machine was shared during this run: writing {out}", file=sys.stderr)
     emit(result, out)
