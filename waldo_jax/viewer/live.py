@@ -17,6 +17,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from waldo_jax.errors import WaldoError
+from waldo_jax.viewer.scene import quaternion_matrices
 
 __all__ = ["MAX_LIVE_SIDE", "LiveView", "criterion_spec", "opengl_c2w"]
 
@@ -27,14 +28,8 @@ _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
 def opengl_c2w(wxyz, position) -> np.ndarray:
     """The OpenGL camera-to-world [4, 4] of a camera given as viser gives it (OpenCV axes: x right, y down,
     z forward; rotation as a unit quaternion w, x, y, z)."""
-    w, x, y, z = (float(v) for v in np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz))
-    rotation = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    wxyz = np.asarray(wxyz, np.float64)
+    rotation = quaternion_matrices(wxyz / np.linalg.norm(wxyz))
     c2w = np.eye(4)
     c2w[:3, :3] = rotation @ _OPENCV_TO_OPENGL
     c2w[:3, 3] = np.asarray(position, np.float64)

@@ -29,6 +29,7 @@ __all__ = [
     "ViewScene",
     "ViewerError",
     "archive_frustums",
+    "quaternion_matrices",
     "explore_scene",
     "path_scene",
     "ring_of",
@@ -144,8 +145,8 @@ class ViewScene:
         return float(max(np.linalg.norm(high - low), 1e-3))
 
 
-def _quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
-    """Rotation matrices [N, 3, 3] of unit quaternions [N, 4] (w first)."""
+def quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of unit quaternions [..., 4] (w first), in NumPy (host-side drawing)."""
     w, x, y, z = np.moveaxis(wxyz, -1, 0)
     return np.stack(
         [
@@ -162,7 +163,7 @@ def splat_cloud(splats) -> SplatCloud:
     from waldo_jax.splats.sh import SH_C0
 
     valid = np.asarray(splats.valid, bool)
-    rotations = _quat_to_matrix(np.asarray(splats.rotations(), np.float64)[valid])  # [N, 3, 3]
+    rotations = quaternion_matrices(np.asarray(splats.rotations(), np.float64)[valid])  # [N, 3, 3]
     scales = np.asarray(splats.scales(), np.float64)[valid]  # [N, 3]
     covariances = np.einsum("nij,nj,nkj->nik", rotations, scales * scales, rotations)
     rgbs = np.clip(0.5 + SH_C0 * np.asarray(splats.sh, np.float64)[valid, 0, :], 0.0, 1.0)
