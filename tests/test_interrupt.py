@@ -157,10 +157,13 @@ RENDER = ["render", "procedural", "--views", "3", "--resolution", "8", "--sample
 
 def test_an_interrupt_while_writing_removes_the_new_folder(tmp_path, capsys, monkeypatch):
     """Ctrl-C between two files of a new output folder: status 130, the folder (which holds a part of
-    the run) removed, no temporary file anywhere."""
+    the run) removed, no temporary file anywhere; the caller's signal handlers as they were (they were
+    left ignoring SIGINT and SIGTERM, which every process started afterwards inherited)."""
     _interrupt_on_call(monkeypatch, io, "write_bytes", 2, KeyboardInterrupt())
     out = tmp_path / "deep" / "views"
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     assert main([*RENDER, "--out", str(out)]) == 130
+    assert {s: signal.getsignal(s) for s in handlers} == handlers
     err = capsys.readouterr().err.strip()
     assert err == f"waldo: interrupted (removed the unfinished output folder {tmp_path / 'deep'})", err
     assert os.listdir(tmp_path) == []
@@ -190,3 +193,40 @@ def test_discard_unfinished_removes_the_temporary_file_of_a_write_in_progress(tm
             assert io.discard_unfinished() == []
             assert os.listdir(tmp_path) == []
     assert os.listdir(tmp_path) == []
+
+
+_DROPPED = """
+import os, signal, sys, time
+from waldo_jax.cli import interrupt
+
+signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as a shell starts it (the worker may ignore it)
+
+class Dropper:  # the signal arrives while Python runs a __del__, where an exception is dropped
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        end = time.perf_counter() + 0.3
+        while time.perf_counter() < end:
+            pass
+
+with interrupt.handled(exit_process=True) as guard:
+    try:
+        Dropper()
+        end = time.perf_counter() + 5.0
+        while time.perf_counter() < end:  # Python code, as a training loop between its chunks
+            pass
+        print("never interrupted", flush=True)
+    except KeyboardInterrupt as e:
+        print("the main thread unwound", flush=True)
+        guard.finish(e.signum)
+"""
+
+
+def test_a_signal_raised_where_python_drops_exceptions_is_raised_again():
+    """SIGTERM handled inside a __del__ (as it was inside one of JAX's garbage-collection callbacks in a
+    training run): no "Exception ignored" traceback, and the main thread itself unwinds and ends the
+    process with 143 (before: the traceback, then the watcher thread ending it after its grace time)."""
+    proc = subprocess.run([sys.executable, "-c", _DROPPED], capture_output=True, text=True, timeout=120)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 143, text
+    assert "Traceback" not in text and "Exception ignored" not in text, text
+    assert "the main thread unwound" in text and "waldo: interrupted by SIGTERM" in text, text

@@ -11,7 +11,9 @@ waited for the whole search; and SIGTERM killed the process without any cleanup.
 
 So, within `handled(exit_process=True)` (the `waldo` process itself):
   * SIGINT and SIGTERM raise `Interrupted` (a KeyboardInterrupt) in the main thread, which unwinds as
-    Ctrl-C does (atomic writes remove their temporary file, progress bars close);
+    Ctrl-C does (atomic writes remove their temporary file, progress bars close); one raised where
+    Python drops exceptions (a garbage-collection callback of JAX's, a __del__) is not printed but
+    raised again where the main thread next runs Python code (`sys.unraisablehook`);
   * a watcher thread is woken through `signal.set_wakeup_fd` at once, even while the main thread waits
     in XLA, and finishes the job itself if the main thread has not within `GRACE_SECONDS`;
   * either way `Guard.finish` removes what the command left unfinished (`io.discard_unfinished`: the
@@ -25,6 +27,7 @@ the same way and `finish` returns the status instead of ending the process.
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import os
 import signal
@@ -61,10 +64,11 @@ class Guard:
         """Cleans up after an interrupt and prints one line; ends the process with 128 + signum when
         `exit_process`, else returns that status. Runs once: a second caller waits for the first."""
         self._lock.acquire()  # never released: the first caller ends the process (or returns, in-process)
+        ignored = {}
         if threading.current_thread() is threading.main_thread():
             for other in EXIT_STATUS:  # a second Ctrl-C must not cut the cleanup short
                 with contextlib.suppress(ValueError, OSError):
-                    signal.signal(other, signal.SIG_IGN)
+                    ignored[other] = signal.signal(other, signal.SIG_IGN)
         status = EXIT_STATUS.get(signum, 128 + int(signum))
         _close_progress_bars()
         removed = io.discard_unfinished(io.created_output_dirs()[self._created_before :])
@@ -73,7 +77,10 @@ class Guard:
         with contextlib.suppress(Exception):
             start = "\n" if getattr(sys.stderr, "line_open", False) else ""  # after a bar cut mid-line
             print(f"{start}waldo: interrupted{what}{note}", file=sys.stderr)
-        if not self.exit_process:
+        if not self.exit_process:  # in-process: the caller's handlers back, not an "ignore" for good
+            for other, handler in ignored.items():
+                with contextlib.suppress(ValueError, OSError, TypeError):
+                    signal.signal(other, handler)
             self._lock.release()
             return status
         for stream in (sys.stdout, sys.stderr):
@@ -122,6 +129,22 @@ def handled(exit_process: bool) -> Iterator[Guard]:
             raised.append(signum)
             raise Interrupted(signum)
 
+    # A handler that raises where Python cannot propagate (a garbage-collection callback, a __del__)
+    # has its exception printed as "Exception ignored" and dropped. Such an Interrupted is silenced
+    # and, from another thread a moment later (from this one it would raise inside this hook), the
+    # signal is simulated again: the main thread raises it where it next runs Python code (a main
+    # thread waiting in XLA is ended by the watcher as before).
+    previous_hook = sys.unraisablehook
+
+    def unraisable(event) -> None:
+        if isinstance(event.exc_value, Interrupted) and raised:
+            again = threading.Timer(0.01, _thread.interrupt_main, args=(raised.pop(),))
+            again.daemon = True
+            again.start()
+            return
+        previous_hook(event)
+
+    sys.unraisablehook = unraisable
     previous = {}
     for signum in EXIT_STATUS:
         handler = signal.getsignal(signum)
@@ -140,6 +163,8 @@ def handled(exit_process: bool) -> Iterator[Guard]:
     finally:
         if sys.stderr is stderr:
             sys.stderr = stderr._stream
+        if sys.unraisablehook is unraisable:
+            sys.unraisablehook = previous_hook
         signal.set_wakeup_fd(previous_fd)
         for signum, handler in previous.items():
             signal.signal(signum, handler)
