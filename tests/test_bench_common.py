@@ -15,7 +15,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import bench_common  # noqa: E402
 
-pytestmark = pytest.mark.skipif(bench_common.cpu_snapshot() is None, reason="no /proc/stat (not Linux)")
+pytestmark = [
+    pytest.mark.slow,  # each spins a process for 1.5 s
+    pytest.mark.skipif(bench_common.cpu_snapshot() is None, reason="no /proc/stat (not Linux)"),
+]
 
 SPIN = "import time\nend = time.perf_counter() + 1.5\nwhile time.perf_counter() < end: pass\n"
 

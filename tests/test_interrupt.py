@@ -221,6 +221,7 @@ with interrupt.handled(exit_process=True) as guard:
 """
 
 
+@pytest.mark.slow
 def test_a_signal_raised_where_python_drops_exceptions_is_raised_again():
     """SIGTERM handled inside a __del__ (as it was inside one of JAX's garbage-collection callbacks in a
     training run): no "Exception ignored" traceback, and the main thread itself unwinds and ends the
