@@ -28,10 +28,10 @@ silently.
 
 Batching: every view of a call runs the same program (`jax.vmap` over poses inside `jax.lax.map` over
 groups of `pose_chunk` poses, sized to the memory of an accelerator; one pose a step on a CPU), and
-`render_splats_sharded` splits the poses over devices. Everything is differentiable in reverse mode with respect to the
-camera pose and the splats' parameters (the tile lists are integer bookkeeping; the gradient flows
-through the projected means, covariances, colours and opacities), which is what `egps+refine` and
-fitting (`waldo_jax.splats.fit`) use.
+`render_splats_sharded` splits the poses over devices. Everything is differentiable in reverse mode
+with respect to the camera pose and the splats' parameters (the tile lists are integer bookkeeping;
+the gradient flows through the projected means, covariances, colours and opacities), which is what
+`egps+refine` and fitting (`waldo_jax.splats.fit`) use.
 
 Names: N splats, P poses, T tiles of a view, S = tile_size^2 pixels of a tile, C = tile_capacity.
 """
