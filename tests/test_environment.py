@@ -40,6 +40,7 @@ BAD = [
     ("WALDO_REQUIRE_DATA", "banana"),
     ("WALDO_DETERMINISTIC", "banana"),
     ("WALDO_FAST_COMPILE", "banana"),
+    ("WALDO_CPU_DEVICES", "0"),
     ("WALDO_COMPILE_CACHE", "/etc/passwd"),  # a file: not a folder for the cache
     ("JAX_COMPILATION_CACHE_DIR", "/etc/passwd"),
 ]

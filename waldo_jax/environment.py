@@ -7,8 +7,9 @@ no Python error at all when `XLA_FLAGS` names a flag it does not know, and a bad
 first and raises `EnvironmentVariableError`, one line naming the variable, its value and what it takes:
 
   * waldo_jax's own: `WALDO_DATA`, `WALDO_WEIGHTS` (existing folders when set), `WALDO_REQUIRE_DATA`,
-    `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words), `WALDO_COMPILE_CACHE` (on / off or a
-    folder that can be made: `enable_compile_cache`, which the `waldo` command runs);
+    `WALDO_DETERMINISTIC`, `WALDO_FAST_COMPILE` (on / off words), `WALDO_CPU_DEVICES` (1..256),
+    `WALDO_COMPILE_CACHE` (on / off or a folder that can be made: `enable_compile_cache`, which the
+    `waldo` command runs);
   * XLA's: `XLA_FLAGS` (each `--name` or `--name=value`, every name one this jaxlib knows: the flag
     names are read from its shared library, `xla_flag_known`; then XLA itself parses the whole value in
     a child process, `xla_flags_refused`, which finds the rest: a name the library holds as a string but
@@ -150,6 +151,10 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "WALDO_REQUIRE_DATA": (_switch, "a missing data file fails instead of skipping"),
     "WALDO_DETERMINISTIC": (_switch, "deterministic GPU kernels, default on"),
     "WALDO_FAST_COMPILE": (_switch, "faster XLA:CPU compiles, default off"),
+    "WALDO_CPU_DEVICES": (
+        lambda v: None if v.strip().isdigit() and 1 <= int(v) <= 256 else "expected an integer 1..256",
+        "the CPU devices XLA makes, default the usable cores up to 8",
+    ),
     "WALDO_COMPILE_CACHE": (_compile_cache, "the `waldo` command's compilation cache: on, off or a folder"),
     "XLA_FLAGS": (_xla_flags, "XLA's flags"),
     "XLA_PYTHON_CLIENT_PREALLOCATE": (_switch, "preallocate GPU memory"),

@@ -43,7 +43,7 @@ from waldo_jax.splats.formats import find_splat_file, splat_format
 from waldo_jax.splats.cameras import read_camera_source
 from waldo_jax.splats.io import SplatModel, load_splat_model
 from waldo_jax.splats.model import Splats
-from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splats
+from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splats_on_devices
 from waldo_jax.splats.upright import FORMAT_UP, Upright, UprightConfig, estimate_upright, ring_origins
 from waldo_jax.splats.runs import TRAIN_JSON
 from waldo_jax.types import Array, Intrinsics
@@ -194,7 +194,7 @@ def calibrate_max_pairs(
     return max(_PAIRS_QUANTUM, int(math.ceil(margin * needed / _PAIRS_QUANTUM)) * _PAIRS_QUANTUM)
 
 
-_render_stats = jax.jit(render_splats, static_argnames=("config",))
+_render_stats = jax.jit(render_splats_on_devices, static_argnames=("config",))
 
 
 def calibrate_tile_chunks(
@@ -223,7 +223,7 @@ def calibrate_tile_chunks(
 
 
 def _views(splats: Splats, background: Array, c2w: Array, intrinsics: Intrinsics, *, config: SplatRenderConfig):
-    out = render_splats(splats, c2w, intrinsics, config, background)
+    out = render_splats_on_devices(splats, c2w, intrinsics, config, background)
     return rendered_views(out.rgb, out.acc, c2w, intrinsics)
 
 

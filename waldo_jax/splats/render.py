@@ -65,6 +65,7 @@ __all__ = [
     "render_view",
     "render_splats",
     "render_splats_sharded",
+    "render_splats_on_devices",
     "default_pose_chunk",
     "count_pairs",
     "depth_order",
@@ -637,3 +638,14 @@ def render_splats_sharded(
     """
     bg = jnp.asarray(config.background if background is None else background, jnp.float32)
     return shard_over_poses(_local_fn(config), (splats, intrinsics, bg), c2w, mesh)
+
+
+def render_splats_on_devices(
+    splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRenderConfig, background: Optional[Array] = None
+) -> SplatRenderOutput:
+    """`render_splats` with the poses split over the local devices where there are several
+    (`render_splats_sharded`; a CPU has one per core, `waldo_jax._xla_flags`), else `render_splats`. Each
+    pose is rendered by the same per-view program either way, so the images are the same."""
+    if jax.local_device_count() > 1:
+        return render_splats_sharded(splats, c2w, intrinsics, config, background)
+    return render_splats(splats, c2w, intrinsics, config, background)
