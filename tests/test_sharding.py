@@ -98,3 +98,50 @@ def test_trained_renderer_sharded_equals_single_device():
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().endswith("OK")
+
+
+SPLAT_SCRIPT = textwrap.dedent(
+    """
+    import dataclasses
+    import numpy as np
+    import waldo_jax  # noqa: F401
+    import jax, jax.numpy as jnp
+    from waldo_jax.cameras import look_at
+    from waldo_jax.pipeline.splat_sources import splat_renderer
+    from waldo_jax.splats.model import make_splats
+    from waldo_jax.splats.render import SplatRenderConfig, render_splats, render_splats_on_devices
+    from waldo_jax.types import Intrinsics
+
+    assert jax.device_count() == 3, jax.devices()
+    rng = np.random.default_rng(0)
+    n = 300
+    splats = make_splats(
+        means=rng.uniform(-1, 1, (n, 3)), log_scales=np.log(rng.uniform(0.03, 0.15, (n, 3))),
+        quats=rng.normal(size=(n, 4)), logits=rng.normal(size=n), sh=rng.uniform(-1, 1, (n, 3)),
+    )
+    origins = rng.uniform(-1, 1, (7, 3)).astype(np.float32) + np.array([0.0, 0.0, 4.0], np.float32)
+    c2w = jax.vmap(look_at, in_axes=(0, None, None))(jnp.asarray(origins), jnp.zeros(3), jnp.array([0.0, 1.0, 0.0]))
+    intr = Intrinsics.from_fov(24, 16, 0.9)
+    config = SplatRenderConfig(max_pairs=4096)
+    one = jax.jit(render_splats, static_argnames="config")(splats, c2w, intr, config=config)
+    split = render_splats_on_devices(splats, c2w, intr, config)
+    assert len(split.rgb.sharding.device_set) == 3  # 7 poses padded to 9: three a device
+    for name in ("rgb", "depth", "acc"):
+        np.testing.assert_array_equal(np.asarray(getattr(one, name)), np.asarray(getattr(split, name)))
+    # The search's renderer (a Partial called inside its jitted program) splits the same way.
+    views = jax.jit(lambda r, c: r(c, intr))(splat_renderer(splats, config), c2w)
+    np.testing.assert_array_equal(np.asarray(views.rgba[..., :3]), np.asarray(one.rgb))
+    np.testing.assert_array_equal(np.asarray(views.rgba[..., 3]), np.asarray(one.acc))
+    print("OK")
+    """
+)
+
+
+def test_splat_renderer_split_over_devices_equals_one_device():
+    """With several devices the splat renderer (alone and inside a search's jit) splits the poses over
+    them and gives the single-device images bit for bit (WALDO_CPU_DEVICES=3, a subprocess)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["WALDO_CPU_DEVICES"] = "3"
+    result = subprocess.run([sys.executable, "-c", SPLAT_SCRIPT], env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().endswith("OK")

@@ -38,7 +38,8 @@ def test_fused_reduction_ratio_matches_numpy():
 
 def _flags_after_import(env_changes: dict) -> str:
     """XLA_FLAGS as a fresh process sees it after `import waldo_jax`, with `env_changes` applied."""
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "WALDO_DETERMINISTIC", "WALDO_FAST_COMPILE")}
+    dropped = ("XLA_FLAGS", "WALDO_DETERMINISTIC", "WALDO_FAST_COMPILE", "WALDO_CPU_DEVICES")
+    env = {k: v for k, v in os.environ.items() if k not in dropped}
     env.update(env_changes)
     result = subprocess.run(
         [sys.executable, "-c", "import os, waldo_jax; print(os.environ.get('XLA_FLAGS', ''))"],
@@ -94,6 +95,22 @@ def test_fast_cpu_compiles_only_when_asked():
     assert f"{flag}=false" in _flags_after_import({"WALDO_FAST_COMPILE": "1"}).split()
     own = _flags_after_import({"WALDO_FAST_COMPILE": "1", "XLA_FLAGS": f"{flag}=true"}).split()
     assert own.count(f"{flag}=true") == 1 and f"{flag}=false" not in own
+
+
+def test_one_cpu_device_per_usable_core_unless_set():
+    """A CPU gets as many XLA host devices as this process may use cores (at most 8), `WALDO_CPU_DEVICES`
+    sets the number, a count in the user's XLA_FLAGS wins, and one device adds no flag."""
+    from waldo_jax._xla_flags import MAX_CPU_DEVICES, cpu_devices
+
+    flag = "--xla_force_host_platform_device_count"
+    cores = min(len(os.sched_getaffinity(0)), MAX_CPU_DEVICES)
+    assert cpu_devices({}) == cores and cpu_devices({"WALDO_CPU_DEVICES": "3"}) == 3
+    default = _flags_after_import({}).split()
+    assert (f"{flag}={cores}" in default) if cores > 1 else not any(f.startswith(flag) for f in default)
+    assert f"{flag}=3" in _flags_after_import({"WALDO_CPU_DEVICES": "3"}).split()
+    assert not any(f.startswith(flag) for f in _flags_after_import({"WALDO_CPU_DEVICES": "1"}).split())
+    own = _flags_after_import({"WALDO_CPU_DEVICES": "3", "XLA_FLAGS": f"{flag}=5"}).split()
+    assert [f for f in own if f.startswith(flag)] == [f"{flag}=5"]
 
 
 EXPLORE = [
