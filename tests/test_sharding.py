@@ -74,9 +74,13 @@ TRAINED_SCRIPT = textwrap.dedent(
         # a grid with structure: one density update from the random field (warm-up samples every cell)
         grid = make_sampler(config).update(jax.random.key(2), state.sampler_state, state.params, True)
         args = (TrainedField.create(state.params, grid, config, 1.0, 12.0), c2w, intr)
-        sharded = render_trained(*args, mesh=None)  # 4 local devices: render_trained shards by default
+        sharded = render_trained(*args, mesh=pose_mesh())  # over the 4 local devices
         one = render_trained_counted(*args).output  # the single-device renderer
         assert len(sharded.rgb.sharding.device_set) == 4, sampler
+        # With no mesh, a CPU's host devices are left alone (on accelerators it splits by default).
+        default = render_trained(*args)
+        assert len(default.rgb.sharding.device_set) == 1, sampler
+        np.testing.assert_array_equal(np.asarray(default.rgb), np.asarray(one.rgb))
         # Each device packs only its own poses' rays into passes: the per-pass sums of a ray may be
         # split differently, so the images agree to float32 rounding.
         for name in ("rgb", "depth", "acc"):
@@ -91,7 +95,8 @@ TRAINED_SCRIPT = textwrap.dedent(
 
 
 def test_trained_renderer_sharded_equals_single_device():
-    """`render_trained` (occupancy marching and dense) splits the poses over 4 devices, the same images."""
+    """`render_trained` (occupancy marching and dense) splits the poses over 4 devices, the same images;
+    with no mesh on a CPU it renders on one device."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
     result = subprocess.run(
         [sys.executable, "-c", TRAINED_SCRIPT], env=env, capture_output=True, text=True, timeout=600

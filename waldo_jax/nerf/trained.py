@@ -137,6 +137,13 @@ def render_setup(
     return marched.MarchSetup(sampler.view_grid(field.occupancy), render_config, march)
 
 
+def _splits_by_default() -> bool:
+    """Whether `render_trained` with no mesh splits the poses over the local devices: where there are
+    several accelerators. A CPU's host devices (one per core, `waldo_jax._xla_flags`) are left to the
+    renderers measured faster split over them (splats); a NeRF there renders on one, as it always did."""
+    return jax.local_device_count() > 1 and jax.default_backend() != "cpu"
+
+
 def _render_counted(
     field: TrainedField,
     c2w,
@@ -150,7 +157,7 @@ def _render_counted(
     setup = render_setup(field, step_scale, sizes_of)
     field_fn = make_field(field.config.field)
     c2w = jnp.asarray(np.asarray(c2w, np.float32))
-    if mesh is None and jax.local_device_count() == 1:
+    if mesh is None and not _splits_by_default():
         views = marched.render_marched(field_fn, field.params, setup, c2w, intrinsics, packing)
         return views.output, views.evaluations
     return marched.render_marched_sharded(field_fn, field.params, setup, c2w, intrinsics, packing, mesh)
@@ -187,15 +194,15 @@ def render_trained(
 ) -> RenderOutput:
     """Renders P views of a trained field in one call with the marched renderer (`render.marched`).
 
-    With more than one local device (or a `mesh`), the poses are split over the devices
-    (`render.marched.render_marched_sharded`).
+    With more than one local accelerator (or a `mesh`), the poses are split over the devices
+    (`render.marched.render_marched_sharded`); a CPU's host devices are used only with a `mesh`.
 
     Args:
       field: the trained field (params, occupancy grid, config) and its near, far, background and box
         (`TrainedField.create`, `.from_result`, `.from_checkpoint`).
       c2w: [P, 4, 4] or [P, 3, 4] camera-to-world matrices.
       intrinsics: shared intrinsics (their width and height set the image size).
-      mesh: a one-axis mesh named "poses" to shard over (default: all local devices if more than one).
+      mesh: a one-axis mesh named "poses" to shard over (default: all local accelerators if more than one).
       step_scale: the marching step over the training step (default `config.render_step_scale`).
       packing: the renderer's static sizes (default `render.marched.Packing.for_backend()`).
 
