@@ -150,3 +150,36 @@ def test_splat_renderer_split_over_devices_equals_one_device():
     result = subprocess.run([sys.executable, "-c", SPLAT_SCRIPT], env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().endswith("OK")
+
+
+MEMORY_SCRIPT = textwrap.dedent(
+    """
+    import waldo_jax  # noqa: F401
+    import jax, jax.numpy as jnp
+    from waldo_jax.render.sharding import shard_over_poses
+    from waldo_jax.search.explore import program_memory
+
+    assert jax.device_count() == 2, jax.devices()
+
+    def local(scale, posed):
+        return jnp.tile(posed[0][..., None], (1, 1, 1, 50000)) * scale
+
+    c2w = jnp.ones((8, 3, 4))
+    split = jax.jit(lambda s, c: shard_over_poses(local, s, c).sum()).lower(2.0, c2w).compile()
+    whole = jax.jit(lambda s, c: local(s, (c, None)).sum()).lower(2.0, c2w).compile()
+    per_device = split.memory_analysis().temp_size_in_bytes
+    assert per_device < 0.6 * whole.memory_analysis().temp_size_in_bytes  # XLA's figure: one device's
+    assert abs(program_memory(split) - program_memory(whole)) < 0.05 * program_memory(whole)
+    print("OK")
+    """
+)
+
+
+def test_the_memory_of_a_program_split_over_host_devices_counts_every_device():
+    """`program_memory` (the search's memory check) of a program split over 2 CPU devices is the whole
+    host's, about the unsplit program's; XLA's own figure is half of it."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["WALDO_CPU_DEVICES"] = "2"
+    result = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT], env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().endswith("OK")

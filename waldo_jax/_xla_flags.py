@@ -7,11 +7,11 @@
     (`WALDO_DETERMINISTIC=0` leaves it out).
   * Every backend: `jax_default_matmul_precision` = "highest" (full float32, no TF32).
   * CPU: as many host devices as usable cores, at most 8
-    (`--xla_force_host_platform_device_count`; `WALDO_CPU_DEVICES=N` sets N): a population renderer
-    splits its poses over them (`waldo_jax.render.sharding`), and XLA runs the devices' parts side by
-    side, where one program's small loops run on one core (the splat compositing: 1M splats at 128 px
-    on the 2-core CPU, 1.6 -> 1.2 s a view). Programs that are not split run on the first device as
-    before.
+    (`--xla_force_host_platform_device_count`; `WALDO_CPU_DEVICES=N` sets N): the splat renderer
+    splits its poses over them (`splats.render.render_splats_on_devices`), and XLA runs the devices'
+    parts side by side, where one program's small loops keep one core busy (a search of 1M splats at
+    128 px on the 2-core CPU: 2.3 -> 1.2 s a view). Programs that are not split run on the first
+    device as before.
   * CPU, only when asked (`WALDO_FAST_COMPILE=1`): XLA's legacy CPU fusion emitters
     (`--xla_cpu_use_fusion_emitters=false`), which compile faster and run the NeRF field slower; the
     test suite turns it on (tests/conftest.py).

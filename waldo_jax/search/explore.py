@@ -644,7 +644,8 @@ def search_memory(
     the program `explore` (one key) or `explore_seeds` (keys [K]) would run, with the same arguments.
 
     It compiles that program without running it; the compile is cached, so the run that follows with the
-    same arguments does not compile again. None where the backend gives no analysis.
+    same arguments does not compile again. None where the backend gives no analysis
+    (`program_memory`).
     """
     search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
@@ -661,6 +662,14 @@ def search_memory(
         config=config,
         progress=bool(progress),
     ).compile()
+    return program_memory(compiled)
+
+
+def program_memory(compiled) -> Optional[int]:
+    """Bytes a compiled program (`jax.jit(f).lower(...).compile()`) needs by XLA's analysis: arguments,
+    outputs and temporaries, or None where the backend gives none. XLA's figure is one device's: a
+    program split over a CPU's host devices counts every device's part, since they all take from the
+    host's memory; on accelerators, each with its own, it is the one device's."""
     try:
         analysis = compiled.memory_analysis()
     except (NotImplementedError, RuntimeError):  # pragma: no cover - backends without the analysis
@@ -668,7 +677,10 @@ def search_memory(
     if analysis is None:
         return None
     parts = ("argument_size_in_bytes", "output_size_in_bytes", "temp_size_in_bytes")
-    return int(sum(max(int(getattr(analysis, name, 0) or 0), 0) for name in parts))
+    per_device = int(sum(max(int(getattr(analysis, name, 0) or 0), 0) for name in parts))
+    devices = {d for s in jax.tree.leaves(compiled.output_shardings) for d in s.device_set}
+    on_host = devices and all(d.platform == "cpu" for d in devices)
+    return per_device * len(devices) if on_host else per_device
 
 
 def explore_loop(
