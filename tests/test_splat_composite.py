@@ -127,3 +127,46 @@ def test_blocked_pass_skips_empty_blocks():
     for g, c in zip(got, clean):
         assert np.all(np.isfinite(np.asarray(g)))
         np.testing.assert_array_equal(np.asarray(g), np.asarray(c))
+
+
+def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
+    """`render._reaches_tile` (which pairs of a splat's tile box are composited) against a float64 brute
+    force over each tile's pixel centres: every (splat, tile) where some pixel's alpha reaches alpha_min
+    is kept, and tilted needles' and round splats' empty corner tiles (a third of the box here) are left out."""
+    from waldo_jax.splats.render import Projected, SplatRenderConfig, _reaches_tile
+
+    rng = np.random.default_rng(0)
+    n, ts = 400, 8
+    config = SplatRenderConfig(tile_size=ts)
+    angle = rng.uniform(0, np.pi, n)
+    sx, sy = rng.uniform(0.5, 12.0, n), rng.uniform(0.5, 3.0, n)  # needles to round, half axes in px
+    rot = np.stack([np.stack([np.cos(angle), -np.sin(angle)], -1), np.stack([np.sin(angle), np.cos(angle)], -1)], -2)
+    cov = rot @ (np.stack([sx, sy], -1)[:, :, None] ** 2 * np.eye(2)) @ np.swapaxes(rot, 1, 2)  # [n, 2, 2]
+    inv = np.linalg.inv(cov)
+    mean = rng.uniform(8.0, 56.0, (n, 2))
+    opacity = rng.uniform(0.01, 1.0, n)
+    projected = Projected(
+        mean2d=mean.astype(np.float32),
+        conic=np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1).astype(np.float32),
+        depth=np.ones(n, np.float32),
+        opacity=opacity.astype(np.float32),
+        rgb=np.zeros((n, 3), np.float32),
+        extent=np.zeros((n, 2), np.float32),
+        visible=np.ones(n, bool),
+    )
+    q_max = 2.0 * np.log(opacity / config.alpha_min)
+    half = np.sqrt(q_max[:, None] * np.stack([cov[:, 0, 0], cov[:, 1, 1]], -1))
+    splat, tx, ty = [], [], []
+    for i in range(n):  # every tile of the support's box
+        lo, hi = np.floor((mean[i] - half[i]) / ts).astype(int), np.floor((mean[i] + half[i]) / ts).astype(int)
+        for y in range(lo[1], hi[1] + 1):
+            for x in range(lo[0], hi[0] + 1):
+                splat.append(i), tx.append(x), ty.append(y)
+    splat, tx, ty = np.array(splat), np.array(tx), np.array(ty)
+    kept = np.asarray(_reaches_tile(projected, splat, tx, ty, config))
+    offsets = np.stack(np.meshgrid(np.arange(ts), np.arange(ts)), -1).reshape(-1, 2) + 0.5  # pixel centres
+    d = np.stack([tx, ty], -1)[:, None, :] * ts + offsets[None] - mean[splat][:, None, :]  # [M, S, 2]
+    q = np.einsum("msi,mij,msj->ms", d, inv[splat], d)
+    reaches = np.any(opacity[splat][:, None] * np.exp(-0.5 * q) >= config.alpha_min, axis=1)
+    assert np.all(kept[reaches]), "a pair with a pixel at or above alpha_min was left out"
+    assert 0.2 < 1.0 - kept.mean() and np.mean(kept == reaches) > 0.98, (kept.mean(), reaches.mean())

@@ -276,8 +276,7 @@ def project(splats: Splats, c2w: Array, intrinsics: Intrinsics, config: SplatRen
     opacity = splats.opacities()
     # The support: alpha = o exp(-q / 2) >= alpha_min <=> q <= 2 log(o / alpha_min); its bounding box
     # has half sides sqrt(q_max * Sigma_xx), sqrt(q_max * Sigma_yy) (slightly grown against rounding).
-    q_max = jax.lax.stop_gradient(2.0 * jnp.log(jnp.maximum(opacity, 1e-30) / config.alpha_min))
-    q_max = jnp.maximum(q_max, 0.0) * 1.0001
+    q_max = _support_q(opacity, config)
     extent = jnp.sqrt(jnp.stack([q_max * jax.lax.stop_gradient(a), q_max * jax.lax.stop_gradient(c)], -1)) + 1e-3
 
     # A safe norm: a mean at the camera centre gives a finite direction and gradient, not 0 * inf.
@@ -323,8 +322,9 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
 
     The (splat, tile) pairs are made in depth order into `max_pairs` slots (those beyond are the
     farthest splats' and are dropped) and sorted by tile, stably, so each tile's run of pairs is in
-    depth order. The runs are cut into chunks, tile by tile; `chunk_slots` (max_pairs / chunk + T)
-    holds every chunk of any view whose pairs fit.
+    depth order; a pair whose tile no pixel of the splat's support reaches (`_reaches_tile`) sorts
+    behind the lists with the unused slots. The runs are cut into chunks, tile by tile; `chunk_slots`
+    (max_pairs / chunk + T) holds every chunk of any view whose pairs fit.
 
     Returns:
       ids: int32 [K, B] splat index of each chunk's slots (K = chunk_slots, B = chunk).
@@ -359,8 +359,11 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     splat = order[rank]
     local = slot - (ends[rank] - n_sorted[rank])
     width = span[splat, 0]
-    pair_tile = (lo[splat, 1] + local // width) * tiles_x + lo[splat, 0] + local % width
-    pair_tile = jnp.where(slot < pairs, pair_tile, num_tiles)  # unused slots sort last
+    pair_x, pair_y = lo[splat, 0] + local % width, lo[splat, 1] + local // width
+    # Unused slots sort last, and so do the pairs whose tile holds no pixel centre inside the splat's
+    # support (the corner tiles of a tilted or round splat's box), which would composite nothing there.
+    keep = (slot < pairs) & _reaches_tile(projected, splat, pair_x, pair_y, config)
+    pair_tile = jnp.where(keep, pair_y * tiles_x + pair_x, num_tiles)
     pair_tile, rank = _sort_by_tile(pair_tile, rank, num_tiles, config.max_pairs)
 
     tile_ids = jnp.arange(num_tiles, dtype=jnp.int32)
@@ -406,6 +409,42 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
         jnp.sum(visible).astype(jnp.int32),
         jnp.where(used, level, 0),
     )
+
+
+def _reaches_tile(projected: Projected, splat: Array, tile_x: Array, tile_y: Array, config: SplatRenderConfig):
+    """bool [M]: whether splat `splat[m]` may reach alpha_min at a pixel centre of tile (tile_x[m],
+    tile_y[m]): the least q = d^T conic d over the rectangle of the tile's pixel centres (d from the
+    splat's mean) is at most the support's q_max. A convex q's least value on a rectangle not holding
+    its minimum (the mean) lies on an edge, where it is a parabola: four clamped minima. Conservative:
+    q_max carries the projection's margin and a little more, so no pair whose alpha reaches alpha_min
+    at a pixel is left out (the compositing skips the same alphas)."""
+    geometry = jax.lax.stop_gradient(
+        jnp.concatenate([projected.mean2d, projected.conic, _support_q(projected.opacity, config)[:, None]], -1)
+    )[splat]  # [M, 6]: one gather
+    mx, my, a, b, c, q_max = (geometry[:, i] for i in range(6))
+    ts = float(config.tile_size)
+    x0 = tile_x.astype(jnp.float32) * ts + 0.5 - mx
+    y0 = tile_y.astype(jnp.float32) * ts + 0.5 - my
+    x1, y1 = x0 + (ts - 1.0), y0 + (ts - 1.0)
+    a = jnp.maximum(a, 1e-30)
+    c = jnp.maximum(c, 1e-30)
+
+    def q(dx, dy):
+        return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+
+    least = jnp.minimum(
+        jnp.minimum(q(x0, jnp.clip(-b * x0 / c, y0, y1)), q(x1, jnp.clip(-b * x1 / c, y0, y1))),
+        jnp.minimum(q(jnp.clip(-b * y0 / a, x0, x1), y0), q(jnp.clip(-b * y1 / a, x0, x1), y1)),
+    )
+    holds_mean = (x0 <= 0.0) & (x1 >= 0.0) & (y0 <= 0.0) & (y1 >= 0.0)
+    return holds_mean | (least <= q_max + 1e-3)
+
+
+def _support_q(opacity: Array, config: SplatRenderConfig) -> Array:
+    """q_max [N]: alpha = o exp(-q / 2) >= alpha_min <=> q <= 2 log(o / alpha_min) (slightly grown
+    against rounding)."""
+    q_max = jax.lax.stop_gradient(2.0 * jnp.log(jnp.maximum(opacity, 1e-30) / config.alpha_min))
+    return jnp.maximum(q_max, 0.0) * 1.0001
 
 
 def _sortable_bits(x: Array) -> Array:
