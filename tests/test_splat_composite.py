@@ -133,7 +133,7 @@ def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
     """`render._reaches_tile` (which pairs of a splat's tile box are composited) against a float64 brute
     force over each tile's pixel centres: every (splat, tile) where some pixel's alpha reaches alpha_min
     is kept, and tilted needles' and round splats' empty corner tiles (a third of the box here) are left out."""
-    from waldo_jax.splats.render import Projected, SplatRenderConfig, _reaches_tile
+    from waldo_jax.splats.render import SplatRenderConfig, _reaches_tile, _support_q
 
     rng = np.random.default_rng(0)
     n, ts = 400, 8
@@ -145,15 +145,6 @@ def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
     inv = np.linalg.inv(cov)
     mean = rng.uniform(8.0, 56.0, (n, 2))
     opacity = rng.uniform(0.01, 1.0, n)
-    projected = Projected(
-        mean2d=mean.astype(np.float32),
-        conic=np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1).astype(np.float32),
-        depth=np.ones(n, np.float32),
-        opacity=opacity.astype(np.float32),
-        rgb=np.zeros((n, 3), np.float32),
-        extent=np.zeros((n, 2), np.float32),
-        visible=np.ones(n, bool),
-    )
     q_max = 2.0 * np.log(opacity / config.alpha_min)
     half = np.sqrt(q_max[:, None] * np.stack([cov[:, 0, 0], cov[:, 1, 1]], -1))
     splat, tx, ty = [], [], []
@@ -163,7 +154,10 @@ def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
             for x in range(lo[0], hi[0] + 1):
                 splat.append(i), tx.append(x), ty.append(y)
     splat, tx, ty = np.array(splat), np.array(tx), np.array(ty)
-    kept = np.asarray(_reaches_tile(projected, splat, tx, ty, config))
+    conic = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    support = np.asarray(_support_q(opacity.astype(np.float32), config))
+    columns = tuple(np.concatenate([mean, conic, support[:, None]], -1).astype(np.float32).T)
+    kept = np.asarray(_reaches_tile(columns, splat, tx, ty, ts))
     offsets = np.stack(np.meshgrid(np.arange(ts), np.arange(ts)), -1).reshape(-1, 2) + 0.5  # pixel centres
     d = np.stack([tx, ty], -1)[:, None, :] * ts + offsets[None] - mean[splat][:, None, :]  # [M, S, 2]
     q = np.einsum("msi,mij,msj->ms", d, inv[splat], d)

@@ -362,7 +362,9 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     pair_x, pair_y = lo[splat, 0] + local % width, lo[splat, 1] + local // width
     # Unused slots sort last, and so do the pairs whose tile holds no pixel centre inside the splat's
     # support (the corner tiles of a tilted or round splat's box), which would composite nothing there.
-    keep = (slot < pairs) & _reaches_tile(projected, splat, pair_x, pair_y, config)
+    # (One gather per field, each fused into the test: a table of them gathered as rows was slower.)
+    support = (*projected.mean2d.T, *projected.conic.T, _support_q(projected.opacity, config))
+    keep = (slot < pairs) & _reaches_tile(jax.lax.stop_gradient(support), splat, pair_x, pair_y, config.tile_size)
     pair_tile = jnp.where(keep, pair_y * tiles_x + pair_x, num_tiles)
     pair_tile, rank = _sort_by_tile(pair_tile, rank, num_tiles, config.max_pairs)
 
@@ -411,18 +413,16 @@ def tile_lists(projected: Projected, intrinsics: Intrinsics, config: SplatRender
     )
 
 
-def _reaches_tile(projected: Projected, splat: Array, tile_x: Array, tile_y: Array, config: SplatRenderConfig):
+def _reaches_tile(support, splat: Array, tile_x: Array, tile_y: Array, tile_size: int) -> Array:
     """bool [M]: whether splat `splat[m]` may reach alpha_min at a pixel centre of tile (tile_x[m],
-    tile_y[m]): the least q = d^T conic d over the rectangle of the tile's pixel centres (d from the
-    splat's mean) is at most the support's q_max. A convex q's least value on a rectangle not holding
-    its minimum (the mean) lies on an edge, where it is a parabola: four clamped minima. Conservative:
-    q_max carries the projection's margin and a little more, so no pair whose alpha reaches alpha_min
-    at a pixel is left out (the compositing skips the same alphas)."""
-    geometry = jax.lax.stop_gradient(
-        jnp.concatenate([projected.mean2d, projected.conic, _support_q(projected.opacity, config)[:, None]], -1)
-    )[splat]  # [M, 6]: one gather
-    mx, my, a, b, c, q_max = (geometry[:, i] for i in range(6))
-    ts = float(config.tile_size)
+    tile_y[m]). `support`: the splats' mean2d x and y, conic a, b, c and support bound q_max
+    (`_support_q`), six arrays [N]. The test: the least q = d^T conic d over the rectangle of the
+    tile's pixel centres (d from the mean) is at most q_max. A convex q's least value on a rectangle
+    not holding its minimum (the mean) lies on an edge, where it is a parabola: four clamped minima.
+    Conservative: q_max carries the projection's margin and a little more, so no pair whose alpha
+    reaches alpha_min at a pixel is left out (the compositing skips the same alphas)."""
+    mx, my, a, b, c, q_max = (column[splat] for column in support)
+    ts = float(tile_size)
     x0 = tile_x.astype(jnp.float32) * ts + 0.5 - mx
     y0 = tile_y.astype(jnp.float32) * ts + 0.5 - my
     x1, y1 = x0 + (ts - 1.0), y0 + (ts - 1.0)
