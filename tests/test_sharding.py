@@ -134,7 +134,11 @@ SPLAT_SCRIPT = textwrap.dedent(
     for name in ("rgb", "depth", "acc"):
         np.testing.assert_array_equal(np.asarray(getattr(one, name)), np.asarray(getattr(split, name)))
     # The search's renderer (a Partial called inside its jitted program) splits the same way.
-    views = jax.jit(lambda r, c: r(c, intr))(splat_renderer(splats, config), c2w)
+    search_like = jax.jit(lambda r, c: r(c, intr))
+    renderer = splat_renderer(splats, config)
+    compiled = search_like.lower(renderer, c2w).compile()
+    assert len(jax.tree.leaves(compiled.output_shardings)[0].device_set) == 3  # the program spans them
+    views = search_like(renderer, c2w)
     np.testing.assert_array_equal(np.asarray(views.rgba[..., :3]), np.asarray(one.rgb))
     np.testing.assert_array_equal(np.asarray(views.rgba[..., 3]), np.asarray(one.acc))
     print("OK")
