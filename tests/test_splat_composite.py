@@ -129,6 +129,52 @@ def test_blocked_pass_skips_empty_blocks():
         np.testing.assert_array_equal(np.asarray(g), np.asarray(c))
 
 
+def test_rows_named_in_a_table_equal_the_rows_gathered_bit_for_bit():
+    """`ChunkSplats(table, filled, ids)` (the slots gathered where they are composited: block by block on
+    a CPU) gives the same values, transmittances and table gradient, bit for bit, as the slots gathered
+    first, `ChunkSplats(table[ids], filled)`; a block whose slots are all empty is passed over (its ids
+    may name a row of NaNs and nothing changes)."""
+    pixels, first, rows, filled = _lists(1)
+    k = len(first)
+    rng = np.random.default_rng(3)
+    # The table: every filled slot's row, shuffled, plus rows no slot names.
+    table = np.concatenate([rows[filled], rng.uniform(0, 1, (5, rows.shape[-1])).astype(np.float32)])
+    perm = rng.permutation(len(table))
+    table = table[perm]
+    ids = np.zeros((k, B), np.int32)
+    ids[filled] = np.argsort(perm)[: int(filled.sum())]
+    g = rng.normal(size=(k, S, rows.shape[-1] - 6)).astype(np.float32)
+
+    def run(form):
+        def loss(t):
+            gathered = form == "gathered"
+            splats = composite.ChunkSplats(t[ids], filled) if gathered else composite.ChunkSplats(t, filled, ids)
+            values, leaving = composite.composite_chunks(pixels, first, splats, ALPHA_MIN, ALPHA_MAX, MIN_T)
+            return (values * g).sum(), (values, leaving)
+
+        return jax.jit(jax.value_and_grad(loss, has_aux=True))(table)
+
+    (_, (v_gathered, l_gathered)), d_gathered = run("gathered")
+    (_, (v_table, l_table)), d_table = run("table")
+    np.testing.assert_array_equal(np.asarray(v_table), np.asarray(v_gathered))
+    np.testing.assert_array_equal(np.asarray(l_table), np.asarray(l_gathered))
+    np.testing.assert_array_equal(np.asarray(d_table), np.asarray(d_gathered))
+    assert np.any(np.asarray(d_table)[:, :6] != 0)  # the gradient reaches the geometry
+    # A block (of 4 chunks here) with no filled slot is passed over: its ids may name a row of NaNs.
+    got = composite._forward_blocked(pixels, first, table, filled, ALPHA_MIN, ALPHA_MAX, MIN_T, 4, ids)
+    empty4 = ~filled.reshape(10, 4, B).any(axis=(1, 2))
+    assert empty4.sum() >= 2
+    wild4 = ids.copy().reshape(10, 4, B)
+    table_nan = np.concatenate([table, np.full((1, table.shape[1]), np.nan, np.float32)])
+    wild4[empty4] = len(table)  # the NaN row: evaluating it would poison the values
+    poisoned = composite._forward_blocked(
+        pixels, first, table_nan, filled, ALPHA_MIN, ALPHA_MAX, MIN_T, 4, wild4.reshape(k, B)
+    )
+    for p_, g_ in zip(poisoned, got):
+        assert np.all(np.isfinite(np.asarray(p_)))
+        np.testing.assert_array_equal(np.asarray(p_), np.asarray(g_))
+
+
 def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
     """`render._reaches_tile` (which pairs of a splat's tile box are composited) against a float64 brute
     force over each tile's pixel centres: every (splat, tile) where some pixel's alpha reaches alpha_min

@@ -27,7 +27,7 @@ in the reference. A pose gradient costs about 3 renders, against 5 when JAX diff
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -103,9 +103,10 @@ def _forward(pixels, first, mean2d, conic, opacity, filled, sample, alpha_min, a
     return values, leaving, entering
 
 
-def _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, block):
+def _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, block, ids=None):
     """`_forward` of packed chunk-major rows, in one pass over blocks of `block` chunks, in order (a
-    `lax.scan`): the CPU's way.
+    `lax.scan`): the CPU's way. With `ids` [K, B], `rows` is a table whose rows `ids` names, gathered
+    block by block (a block with no splat is not gathered).
 
     Each block's alphas [B, block, S] are evaluated once and kept (they fit in a core's cache) for
     both its transmittance product and its weighted sums; the transmittance leaving the previous
@@ -118,14 +119,16 @@ def _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_tran
     c = rows.shape[-1] - _GEOMETRY
     blocks = -(-k // block)
     pad = blocks * block - k
+    rows = jnp.asarray(rows)
+    slots = rows if ids is None else ids  # [K, B, ...] sliced block by block
     if pad:
         pixels = jnp.pad(pixels, ((0, pad), (0, 0), (0, 0)))
         first = jnp.pad(first, (0, pad), constant_values=True)
-        rows = jnp.pad(rows, ((0, pad), (0, 0), (0, 0)))
+        slots = jnp.pad(slots, ((0, pad),) + ((0, 0),) * (slots.ndim - 1))
         filled = jnp.pad(filled, ((0, pad), (0, 0)))
 
     def composite_block(carry, px, fst, r, f):
-        mean2d, conic, opacity, sample = _unpack(r)  # [B, block, ...]
+        mean2d, conic, opacity, sample = _unpack(r if ids is None else rows[r])  # [B, block, ...]
         alpha = jax.vmap(lambda *g: alphas(px, *g, alpha_min, alpha_max))(mean2d, conic, opacity, f.T)
 
         def through(t, a):
@@ -155,7 +158,7 @@ def _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_tran
         return entering[-1], (jnp.zeros((block, s, c), jnp.float32), entering, entering)
 
     def body(carry, i):
-        own = tuple(jax.lax.dynamic_slice_in_dim(a, i * block, block, 0) for a in (pixels, first, rows, filled))
+        own = tuple(jax.lax.dynamic_slice_in_dim(a, i * block, block, 0) for a in (pixels, first, slots, filled))
         return jax.lax.cond(jnp.any(own[3]), composite_block, skip, carry, *own)
 
     _, out = jax.lax.scan(body, jnp.ones((s,), jnp.float32), jnp.arange(blocks, dtype=jnp.int32))
@@ -173,11 +176,14 @@ def _pack(mean2d: Array, conic: Array, opacity: Array, sample: Array) -> Array:
     return jnp.swapaxes(jnp.concatenate([mean2d, conic, opacity[..., None], sample], -1), 0, 1)
 
 
-def _forward_rows(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance):
-    """(values, leaving, entering) of packed rows: `_forward_blocked` on a CPU (blocks of `CPU_BLOCK`
-    chunks), `_forward` of the slot-major arrays elsewhere."""
+def _forward_rows(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, ids=None):
+    """(values, leaving, entering) of packed rows (or of the rows `ids` names in the table `rows`):
+    `_forward_blocked` on a CPU (blocks of `CPU_BLOCK` chunks), `_forward` of the slot-major arrays
+    elsewhere."""
     if jax.default_backend() == "cpu":
-        return _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, CPU_BLOCK)
+        return _forward_blocked(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance, CPU_BLOCK, ids)
+    if ids is not None:
+        rows = rows[ids]
     mean2d, conic, opacity, sample = _unpack(rows)
     return _forward(pixels, first, mean2d, conic, opacity, filled.T, sample, alpha_min, alpha_max, min_transmittance)
 
@@ -265,11 +271,16 @@ class ChunkSplats(NamedTuple):
     Attributes:
       rows: [K, B, 6 + C] per slot: the projected mean (x, y) in px, the inverse 2D covariance
         (a, b, c), the opacity, then the C values the splat adds, weighted (e.g. r, g, b, 1, depth).
+        With `ids`: the table [N, 6 + C] of the projected splats, one row each.
       filled: bool [K, B], the slots that hold a splat.
+      ids: int32 [K, B], each slot's row of the table `rows`, or None when `rows` are the slots'. The
+        slots are then gathered where they are composited: on a CPU block by block, so that the blocks
+        with no splat (the unused slots at the end of a view's lists) are never gathered.
     """
 
     rows: Array
     filled: Array
+    ids: Optional[Array] = None
 
 
 def composite_chunks(
@@ -294,11 +305,40 @@ def composite_chunks(
     Returns:
       (values [K, S, C], transmittance leaving each chunk without the stop [K, S]).
     """
-    rows, filled = splats
+    rows, filled, ids = splats
     if custom_gradient:
-        return _composite_vjp(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance)
+        if ids is None:
+            return _composite_vjp(pixels, first, rows, filled, alpha_min, alpha_max, min_transmittance)
+        return _composite_table_vjp(pixels, first, rows, ids, filled, alpha_min, alpha_max, min_transmittance)
+    if ids is not None:
+        rows = rows[ids]
     mean2d, conic, opacity, sample = _unpack(rows)
     values, leaving, _ = _forward(
         pixels, first, mean2d, conic, opacity, filled.T, sample, alpha_min, alpha_max, min_transmittance
     )
     return values, leaving
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
+def _composite_table_vjp(pixels, first, table, ids, filled, alpha_min, alpha_max, min_transmittance):
+    """`_composite_vjp` of the rows `ids` [K, B] names in `table` [N, 6 + C], gathered where they are
+    composited; its gradient is the rows' gradient added into the table (a gather's transpose)."""
+    values, leaving, _ = _forward_rows(pixels, first, table, filled, alpha_min, alpha_max, min_transmittance, ids)
+    return values, leaving
+
+
+def _composite_table_fwd(pixels, first, table, ids, filled, alpha_min, alpha_max, min_transmittance):
+    values, leaving, entering = _forward_rows(
+        pixels, first, table, filled, alpha_min, alpha_max, min_transmittance, ids
+    )
+    return (values, leaving), (pixels, first, table, ids, filled, entering, values)
+
+
+def _composite_table_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangents):
+    pixels, first, table, ids, filled, entering, values = residuals
+    residuals = (pixels, first, table[ids], filled, entering, values)
+    d_rows = _composite_bwd(alpha_min, alpha_max, min_transmittance, residuals, cotangents)[2]
+    return None, None, jnp.zeros_like(table).at[ids].add(d_rows), None, None
+
+
+_composite_table_vjp.defvjp(_composite_table_fwd, _composite_table_bwd)

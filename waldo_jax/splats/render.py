@@ -554,7 +554,7 @@ def render_view(
     values, leaving = composite_chunks(
         pixels,
         first,
-        ChunkSplats(table[ids], filled),
+        ChunkSplats(table, filled, ids),  # gathered where composited
         config.alpha_min,
         config.alpha_max,
         config.min_transmittance,
