@@ -297,7 +297,8 @@ def composite_chunks(
     Args:
       pixels: [K, S, 2] pixel centres of each chunk's tile.
       first: bool [K] the first chunk of its tile (unused chunks count as first).
-      splats: each chunk's splats, nearest first (`ChunkSplats`: rows [K, B, 6 + C], filled [K, B]).
+      splats: each chunk's splats, nearest first (`ChunkSplats`: rows [K, B, 6 + C], filled [K, B], or a
+        table [N, 6 + C] with the ids [K, B] of each slot's row).
       alpha_min, alpha_max, min_transmittance: the reference's 1/255, 0.99 and 1e-4.
       custom_gradient: the hand-written reverse-mode gradient (no forward mode), or JAX's own
         differentiation of the scans (both modes; slower in reverse).
