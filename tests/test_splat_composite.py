@@ -175,6 +175,32 @@ def test_rows_named_in_a_table_equal_the_rows_gathered_bit_for_bit():
         np.testing.assert_array_equal(np.asarray(p_), np.asarray(g_))
 
 
+def test_rows_named_in_a_table_are_gathered_only_inside_the_evaluated_branch():
+    """The point of the table form on a CPU: the table's rows are read only in the branch that composites a
+    block holding a splat (inside the block loop's `lax.cond`), never for all K x B slots up front."""
+    pixels, first, rows, filled = _lists(0)
+    table = rows[filled]
+    ids = np.zeros(filled.shape, np.int32)
+    ids[filled] = np.arange(len(table))
+    jaxpr = jax.make_jaxpr(
+        lambda t: composite._forward_blocked(pixels, first, t, filled, ALPHA_MIN, ALPHA_MAX, MIN_T, 4, ids)
+    )(table)
+    where = []  # for each gather from the table: whether it lies inside a cond's branch
+
+    def walk(jx, in_branch):
+        for eqn in jx.eqns:
+            if eqn.primitive.name == "gather" and eqn.invars[0].aval.shape == table.shape:
+                where.append(in_branch)
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (tuple, list)) else (param,):
+                    inner = getattr(sub, "jaxpr", None)
+                    if inner is not None:
+                        walk(getattr(inner, "jaxpr", inner), in_branch or eqn.primitive.name == "cond")
+
+    walk(jaxpr.jaxpr, False)
+    assert where and all(where), where
+
+
 def test_pairs_whose_tile_no_splat_pixel_reaches_are_left_out_and_no_other():
     """`render._reaches_tile` (which pairs of a splat's tile box are composited) against a float64 brute
     force over each tile's pixel centres: every (splat, tile) where some pixel's alpha reaches alpha_min
