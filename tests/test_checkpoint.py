@@ -285,6 +285,8 @@ def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
         (["--steps", "0"], "--steps must be a positive integer"),
         (["--downscale", "-2"], "--downscale must be a positive number"),
         (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
+        (["--eval-max-pixels", "-1"], "--eval-max-pixels must be 0"),
+        (["--model", "splat", "--eval-max-pixels", "100"], "--eval-max-pixels: for NeRF training only"),
     ],
 )
 def test_train_rejects_bad_arguments(tmp_path, argv, message):

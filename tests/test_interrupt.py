@@ -12,6 +12,7 @@ in-process tests interrupt the writing of outputs.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import select
 import signal
@@ -231,3 +232,38 @@ def test_a_signal_raised_where_python_drops_exceptions_is_raised_again():
     assert proc.returncode == 143, text
     assert "Traceback" not in text and "Exception ignored" not in text, text
     assert "the main thread unwound" in text and "waldo: interrupted by SIGTERM" in text, text
+
+
+@pytest.mark.slow
+def test_an_interrupted_held_out_evaluation_keeps_the_trained_run(tmp_path, capsys, monkeypatch):
+    """Ctrl-C after training, while the held-out views render: status 130, and the run folder stays with
+    the trained field (loadable; train.json without a held-out PSNR), not removed as unfinished. Run
+    again without the interrupt, the evaluation is at the pixel budget and says so."""
+    from waldo_jax.nerf import runs
+    from waldo_jax.nerf.checkpoint import load_checkpoint
+
+    _write_scene(tmp_path / "scene")  # 16x16 images; one held-out view
+    _interrupt_on_call(monkeypatch, runs, "evaluate_held_out", 1, KeyboardInterrupt())
+    out = tmp_path / "run"
+    argv = ["train", str(tmp_path / "scene"), "--out", str(out), "--steps", "2", "--quiet", "--eval-max-pixels", "64"]
+    assert main(argv) == 130
+    assert capsys.readouterr().err.strip() == "waldo: interrupted"
+    assert sorted(os.listdir(out)) == ["checkpoint.ckpt", "train.json"]
+    stats = json.loads((out / "train.json").read_text())
+    assert stats["psnr_test"] is None and stats["eval_image_size"] is None and stats["steps"] == 2
+    assert load_checkpoint(out / "checkpoint.ckpt").config.render_step_scale is None
+    monkeypatch.undo()
+    assert main([*argv, "--force"]) == 0
+    assert "(at 8x8, 1/2 size; renders march x" in capsys.readouterr().out
+    stats = json.loads((out / "train.json").read_text())
+    assert stats["eval_image_size"] == [8, 8] and stats["eval_downscale"] == 2 and stats["psnr_test"] is not None
+
+
+def test_a_kept_output_folder_and_the_folders_made_for_it_are_left_by_an_interrupt(tmp_path):
+    before = len(io.created_output_dirs())  # earlier in-process tests may have left some
+    kept = io.prepare_output_dir(tmp_path / "deep" / "run")
+    other = io.prepare_output_dir(tmp_path / "other")
+    assert io.created_output_dirs()[before:] == [tmp_path / "deep", tmp_path / "other"]
+    io.keep_output_dir(kept)
+    assert io.discard_unfinished(io.created_output_dirs()[before:]) == [other.absolute()]
+    assert kept.is_dir() and sorted(os.listdir(tmp_path)) == ["deep"]

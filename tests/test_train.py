@@ -261,3 +261,61 @@ def test_learning_rate_schedule_follows_instant_ngp_decay():
     hparams = TrainHParams(decay_start=100.0, decay_interval=50.0)
     rates = [float(hparams.learning_rate_at(s)) for s in (0, 99, 100, 149, 150, 200)]
     np.testing.assert_allclose(rates, [1e-2, 1e-2, 3.3e-3, 3.3e-3, 1.089e-3, 3.5937e-4], rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------------------------
+# The held-out views: at most EVAL_MAX_PIXELS pixels each, evaluated after the field is saved.
+
+
+@pytest.mark.parametrize("size", [(1080, 1920), (100, 100), (1008, 756), (17, 5), (4000, 3)])
+@pytest.mark.parametrize("budget", [1, 2500, 2**16, 10**9])
+def test_the_held_out_factor_is_the_least_whole_factor_that_fits(size, budget):
+    from waldo_jax.scenes.images import _target_size, fit_factor
+
+    k = fit_factor(*size, budget)
+    fits = lambda f: np.prod(_target_size(*size, f)) <= budget  # noqa: E731
+    assert fits(k) or np.prod(_target_size(*size, k)) == 1  # a single pixel is the least there is
+    assert k == 1 or not fits(k - 1)
+
+
+def test_held_out_views_are_the_box_means_of_the_images(lego_small):
+    from waldo_jax.scenes.images import downscale_scene
+
+    scene = dataclasses.replace(lego_small, alphas=np.random.default_rng(0).random((12, 100, 100), np.float32))
+    small, factor = tr.held_out_views(scene, 2500)
+    assert factor == 2 and (small.width, small.height) == (50, 50)
+    blocks = scene.images.reshape(12, 50, 2, 50, 2, 3).astype(np.float64).mean(axis=(2, 4))
+    np.testing.assert_allclose(small.images, blocks, atol=1e-6)
+    np.testing.assert_allclose(small.alphas, scene.alphas.reshape(12, 50, 2, 50, 2).mean(axis=(2, 4)), atol=1e-6)
+    assert small.intrinsics == scene.intrinsics.downscaled(2)
+    assert small.metadata["downscale"] == 2 * (scene.metadata.get("downscale") or 1)
+    assert tr.held_out_views(scene, None) == (scene, 1) and downscale_scene(scene, 1) is scene
+    with pytest.raises(ValueError, match="pixel budget"):
+        tr.held_out_views(scene, 0)
+
+
+@pytest.mark.slow
+def test_the_end_of_run_evaluation_renders_the_views_at_the_budget_and_can_come_later(lego_small):
+    """`train` evaluates at `eval_max_pixels` (here 1/2 of lego_tiny's 100x100), and `held_out=False`
+    then `evaluate_held_out` gives the same result bit for bit (what `waldo train` does, saving the field
+    between the two)."""
+    from waldo_jax.nerf.trained import evaluate
+
+    test = load_scene(require_scene("lego_tiny"), split="test", max_images=3)
+    config = _tiny_config(lego_small, "occupancy")
+    key = jax.random.key(0)
+    whole = tr.train(key, lego_small, config, test, progress=False, eval_max_pixels=2500)
+    assert whole.eval_size == (50, 50) and whole.eval_downscale == 2 and whole.n_test == 3
+    assert whole.history[-1]["eval_size"] == [50, 50] and whole.history[-1]["psnr_test"] == whole.psnr_test
+    half = tr.held_out_views(test, 2500)[0]
+    by_hand = evaluate(whole.params, whole.occupancy, whole.config, half)["psnr"]
+    assert by_hand == whole.psnr_test
+    trained = tr.train(key, lego_small, config, test, progress=False, eval_max_pixels=2500, held_out=False)
+    assert trained.psnr_test is None and trained.eval_size is None and trained.config.render_step_scale is None
+    later = tr.evaluate_held_out(trained, test, 2500)
+    assert later.psnr_test == whole.psnr_test and later.config == whole.config
+    assert later.render_step_curve == whole.render_step_curve
+    untimed = lambda history: [{k: v for k, v in h.items() if k != "seconds"} for h in history]  # noqa: E731
+    assert untimed(later.history) == untimed(whole.history)
+    full = tr.evaluate_held_out(trained, test, None)
+    assert full.eval_size == (100, 100) and full.eval_downscale == 1 and full.psnr_test != whole.psnr_test

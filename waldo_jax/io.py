@@ -41,6 +41,7 @@ __all__ = [
     "discard_unfinished",
     "stale_files",
     "write_json",
+    "keep_output_dir",
     "MAX_JSON_DEPTH",
     "MAX_JSON_BYTES",
     "json_depth",
@@ -233,6 +234,15 @@ def created_output_dirs() -> List[Path]:
     """The output folders `prepare_output_dir` created in this process, oldest first (absolute paths;
     the outermost folder each call created)."""
     return list(_CREATED_DIRS)
+
+
+def keep_output_dir(path: str | os.PathLike) -> None:
+    """Declares the output folder `path` usable as it is: an interrupt from now on leaves it, and the
+    folders `prepare_output_dir` created above it, in place (`discard_unfinished` is not given them)."""
+    path = Path(path).absolute()
+    for folder in list(_CREATED_DIRS):
+        if folder == path or folder in path.parents:
+            _CREATED_DIRS.remove(folder)
 
 
 def discard_unfinished(folders: Sequence[Path] = ()) -> List[Path]:

@@ -19,6 +19,7 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
 from waldo_jax.nerf.config import PRESETS
 from waldo_jax.nerf.runs import SAMPLER_CHOICES, train_scene_run
+from waldo_jax.nerf.train import EVAL_MAX_PIXELS
 from waldo_jax.types import RunOptions
 
 MODELS = ("nerf", "splat")
@@ -58,6 +59,14 @@ def add_command(subparsers) -> None:
         help="march renders X times coarser than training (default: measured after training on the "
         "held-out views, the largest of 2, 3, 4 within 0.05 dB of X = 1)",
     )
+    p.add_argument(
+        "--eval-max-pixels",
+        type=int,
+        default=EVAL_MAX_PIXELS,
+        metavar="N",
+        help=f"render and compare the held-out views at most N pixels each, their images area-filtered by a "
+        f"whole factor (default {EVAL_MAX_PIXELS}; 0: the test images' full size)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
     add_quiet(p, "progress bar")
     p.set_defaults(handler=cmd_train)
@@ -73,6 +82,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         return _fit_splats(args)
     if args.capacity is not None:
         raise WaldoError("--capacity is for --model splat")
+    if args.eval_max_pixels < 0:
+        raise WaldoError(
+            f"--eval-max-pixels must be 0 (full size) or a positive number of pixels, got {args.eval_max_pixels}"
+        )
     result, _, out = train_scene_run(
         args.scene_path,
         args.out,
@@ -81,10 +94,15 @@ def cmd_train(args: argparse.Namespace) -> int:
         sampler=args.sampler,
         render_step_scale=args.render_step_scale,
         options=_run_options(args),
+        eval_max_pixels=args.eval_max_pixels or None,
     )
     psnr = "n/a" if result.psnr_test is None else f"{result.psnr_test:.2f} dB"
-    scale = result.config.render_step_scale
-    step = "" if scale is None else f" (renders march x{scale:g} the training step)"
+    notes = []
+    if result.eval_size is not None and result.eval_downscale > 1:
+        notes.append(f"at {result.eval_size[0]}x{result.eval_size[1]}, 1/{result.eval_downscale} size")
+    if result.config.render_step_scale is not None:
+        notes.append(f"renders march x{result.config.render_step_scale:g} the training step")
+    step = f" ({'; '.join(notes)})" if notes else ""
     print(
         f"trained {result.steps} steps in {result.seconds:.1f} s ({result.rays_per_second:,.0f} rays/s, "
         f"{result.device}); held-out PSNR {psnr}{step}; wrote {out / CHECKPOINT_NAME}"
@@ -102,6 +120,7 @@ def _fit_splats(args: argparse.Namespace) -> int:
             ("--preset", args.preset, "fast"),
             ("--sampler", args.sampler, "auto"),
             ("--render-step-scale", args.render_step_scale, None),
+            ("--eval-max-pixels", args.eval_max_pixels, EVAL_MAX_PIXELS),
         )
         if value != default
     ]

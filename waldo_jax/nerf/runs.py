@@ -18,7 +18,7 @@ from waldo_jax import io
 from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
-from waldo_jax.nerf.train import TrainResult, train
+from waldo_jax.nerf.train import EVAL_MAX_PIXELS, TrainResult, evaluate_held_out, train
 from waldo_jax.scenes import load_splits
 from waldo_jax.types import RunOptions, Scene
 
@@ -44,6 +44,8 @@ def train_stats(
         "psnr_test_training_step": result.psnr_test_training_step,
         "render_step_scale": config.render_step_scale,
         "render_step_curve": result.render_step_curve,
+        "eval_image_size": None if result.eval_size is None else list(result.eval_size),
+        "eval_downscale": result.eval_downscale,
         "steps": result.steps,
         "seconds": round(result.seconds, 3),
         "compile_seconds": round(result.compile_seconds, 3),
@@ -76,8 +78,14 @@ def train_run(
     preset: str,
     progress: bool = True,
     scene_path: Optional[str] = None,
+    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
+    keep_trained: bool = False,
 ) -> Tuple[TrainResult, Dict[str, Any]]:
     """Trains on `scene` (held-out PSNR on `test_scene`) and writes OUT/checkpoint.ckpt and OUT/train.json.
+
+    The two files are written as soon as training ends (the held-out PSNR not yet measured, the
+    render step as `config` has it) and again after the held-out evaluation, so an interrupted
+    evaluation loses no training.
 
     Args:
       seed: the training seed (`jax.random.key(seed)`).
@@ -86,6 +94,10 @@ def train_run(
       preset: the preset `config` came from (recorded).
       progress: a progress bar.
       scene_path: the path the scene was loaded from, as given (recorded in train.json).
+      eval_max_pixels: the held-out views' size (`waldo_jax.nerf.train.held_out_views`; None: full size).
+      keep_trained: `out` is the command's own output folder, to be kept (`io.keep_output_dir`) once the
+        trained field is written, even if the evaluation is interrupted (the demo's NeRF folder, a part
+        of its output, is not).
 
     Returns:
       (the `TrainResult`, whose config holds the calibrated render step, and the train.json contents).
@@ -97,7 +109,30 @@ def train_run(
     out = Path(out)
     if not out.is_dir() or not os.access(out, os.W_OK):
         raise WaldoError(f"{out}: not an existing writable folder to save the run in")
-    result = train(jax.random.key(seed), scene, config, test_scene, progress=progress)
+    result = train(
+        jax.random.key(seed),
+        scene,
+        config,
+        test_scene,
+        progress=progress,
+        eval_max_pixels=eval_max_pixels,
+        held_out=False,
+    )
+    stats = _save_run(out, result, scene, preset, seed, scene_path)
+    if test_scene is not None:  # the trained field is on disk first: an interrupted evaluation loses no training
+        if keep_trained:
+            io.keep_output_dir(out)
+            if progress:
+                print(f"wrote {out / CHECKPOINT_NAME} (kept if the evaluation is interrupted)", flush=True)
+        result = evaluate_held_out(result, test_scene, eval_max_pixels, progress)
+        stats = _save_run(out, result, scene, preset, seed, scene_path)
+    return result, stats
+
+
+def _save_run(
+    out: Path, result: TrainResult, scene: Scene, preset: str, seed: int, scene_path: Optional[str]
+) -> Dict[str, Any]:
+    """Writes OUT/checkpoint.ckpt and OUT/train.json of `result`; returns the train.json contents."""
     stats = train_stats(result, scene, preset, seed, scene_path)
     save_checkpoint(
         out / CHECKPOINT_NAME,
@@ -108,7 +143,7 @@ def train_run(
         info={k: v for k, v in stats.items() if k != "history"},
     )
     io.write_json(out / TRAIN_JSON, stats)
-    return result, stats
+    return stats
 
 
 def _positive(flag: str, value: Optional[float]) -> None:
@@ -125,12 +160,14 @@ def train_scene_run(
     sampler: str = "auto",
     render_step_scale: Optional[float] = None,
     options: RunOptions = RunOptions(),
+    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
 ) -> Tuple[TrainResult, Dict[str, Any], Path]:
     """`waldo train` as a function: the scene on disk -> a run directory `out`.
 
     Every value is checked, and `out` too (empty, writable, a valid name), before the scene is loaded:
     a training is never lost to a folder it cannot write. `options`: the scene's downscale, the seed,
-    whether to write into a non-empty `out` (force), progress.
+    whether to write into a non-empty `out` (force), progress. `eval_max_pixels`: the held-out views'
+    size (`waldo_jax.nerf.train.held_out_views`; None: full size).
 
     Returns:
       (the `TrainResult`, the train.json contents, the run directory).
@@ -146,6 +183,8 @@ def train_scene_run(
         raise WaldoError(f"--steps must be a positive integer of at most {MAX_INT32}, got {steps}")
     _positive("--downscale", options.downscale)
     _positive("--render-step-scale", render_step_scale)
+    if eval_max_pixels is not None and not 1 <= eval_max_pixels <= MAX_INT32:
+        raise WaldoError(f"--eval-max-pixels must be a positive number of pixels, got {eval_max_pixels}")
     out = io.check_output_dir(out, force=options.force)
     train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3)
     out = io.prepare_output_dir(out, force=options.force)
@@ -155,5 +194,16 @@ def train_scene_run(
     if render_step_scale is not None:
         overrides["render_step_scale"] = render_step_scale
     config = TrainConfig.preset(preset, train_scene, **overrides)
-    result, stats = train_run(options.seed, train_scene, config, test_scene, out, preset, options.progress, scene_path)
+    result, stats = train_run(
+        options.seed,
+        train_scene,
+        config,
+        test_scene,
+        out,
+        preset,
+        options.progress,
+        scene_path,
+        eval_max_pixels,
+        keep_trained=True,
+    )
     return result, stats, out

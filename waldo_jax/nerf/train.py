@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Dict, List, NamedTuple, Optional
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -29,9 +29,26 @@ from waldo_jax.nerf.step import (
     warmup_steps,
 )
 from waldo_jax.render.volume import RenderConfig
+from waldo_jax.scenes.images import downscale_scene, fit_factor
 from waldo_jax.types import PRNGKey, Scene
 
-__all__ = ["TrainInputs", "TrainResult", "train", "training_inputs"]
+__all__ = [
+    "EVAL_MAX_PIXELS",
+    "TrainInputs",
+    "TrainResult",
+    "evaluate_held_out",
+    "held_out_views",
+    "train",
+    "training_inputs",
+]
+
+# The held-out views are rendered with at most this many pixels each (the test images area-filtered by
+# the least whole factor that fits, `held_out_views`). The end-of-run evaluation renders every test view
+# once and three of them at four marching steps (`calibrate_render_step`): at the fox's full 1080x1920,
+# about 75 minutes on the 2-core CPU (estimated from 3,900 rays/s at 540x960 at the training step, on
+# the fox the fast preset trains in 5-6 minutes there); at 180x320 (2**16 = 256x256 pixels), minutes.
+# PSNR rises as the views shrink (that fox: 23.96 dB at 540x960, 24.34 at 270x480, 25.16 at 135x240).
+EVAL_MAX_PIXELS = 2**16
 
 
 def training_inputs(
@@ -84,6 +101,9 @@ class TrainResult(NamedTuple):
         None (the curve has the training step's PSNR on the calibration views).
       render_step_curve: `calibrate_render_step`'s curve ([] when the scale was not calibrated).
       stopped: True when `on_chunk` stopped the run before `config.steps`.
+      eval_size: (width, height) the held-out views were rendered and compared at (`held_out_views`),
+        or None without a test scene.
+      eval_downscale: the factor from the test images' size to `eval_size` (1: full size).
     """
 
     params: Any
@@ -102,6 +122,8 @@ class TrainResult(NamedTuple):
     psnr_test_training_step: Optional[float] = None
     render_step_curve: List[Dict[str, Any]] = []
     stopped: bool = False
+    eval_size: Optional[Tuple[int, int]] = None
+    eval_downscale: int = 1
 
 
 def _device_name() -> str:
@@ -225,35 +247,18 @@ def _train_chunks(
     return _Chunks(inputs.state, history, timing, stopped)
 
 
-class _HeldOut(NamedTuple):
-    """The end-of-run evaluation (`_held_out`)."""
+def held_out_views(test_scene: Scene, max_pixels: Optional[int] = EVAL_MAX_PIXELS) -> Tuple[Scene, int]:
+    """The held-out views as they are evaluated: (the scene, the factor), its images area-filtered by the
+    least whole factor that brings each to at most `max_pixels` pixels (None: full size, factor 1).
 
-    config: TrainConfig
-    psnr_test: Optional[float]
-    psnr_training_step: Optional[float]
-    curve: List[Dict[str, Any]]
-    entry: Optional[Dict[str, Any]]
-
-
-def _held_out(state: TrainState, config: TrainConfig, test_scene: Optional[Scene], seconds: float) -> _HeldOut:
-    """The final held-out PSNR, as the run renders: its step calibrated first when `config` has none."""
-    if test_scene is None:
-        return _HeldOut(config, None, None, [], None)
-    scale = config.render_step_scale
-    curve: List[Dict[str, Any]] = []
-    if scale is None:
-        scale, curve = calibrate_render_step(state.params, state.sampler_state, config, test_scene)
-        config = config.replace(render_step_scale=scale)
-    final = evaluate(state.params, state.sampler_state, config, test_scene)
-    psnr_test = final["psnr"]
-    entry = {
-        "step": int(state.step),
-        "seconds": seconds,
-        "psnr_test": psnr_test,
-        "render_step_scale": scale,
-        "evaluations_per_ray": final["evaluations_per_ray"],
-    }
-    return _HeldOut(config, psnr_test, psnr_test if scale == 1.0 else None, curve, entry)
+    PSNR is compared at that size: the render and the filtered image are both 1/factor of the
+    original's resolution, so fine detail counts less than at full size (train.json records the size)."""
+    if max_pixels is None:
+        return test_scene, 1
+    if isinstance(max_pixels, bool) or not isinstance(max_pixels, (int, np.integer)) or max_pixels < 1:
+        raise ValueError(f"the held-out views' pixel budget must be a positive integer or None, got {max_pixels!r}")
+    factor = fit_factor(test_scene.width, test_scene.height, int(max_pixels))
+    return downscale_scene(test_scene, factor), factor
 
 
 def train(
@@ -264,6 +269,8 @@ def train(
     progress: bool = True,
     hparams: Optional[TrainHParams] = None,
     on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None,
+    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
+    held_out: bool = True,
 ) -> TrainResult:
     """Trains an Instant-NGP field on a scene.
 
@@ -280,6 +287,11 @@ def train(
       hparams: numeric hyper-parameters (default `TrainHParams.for_config(config)`).
       on_chunk: called after every chunk with the state and the chunk's history entry; its time is
         not training time (evaluate there); returning True stops training after that chunk.
+      eval_max_pixels: the held-out views are rendered and compared at most this many pixels each,
+        their images area-filtered by the least whole factor that fits (`held_out_views`); None: at
+        the test images' full size.
+      held_out: False leaves the end-of-run evaluation to `evaluate_held_out` (so that a caller can
+        save the trained field first): `psnr_test` None and the render step as `config` has it.
 
     Returns:
       A `TrainResult`. Same key, scene and config give bit-identical params on the same device.
@@ -287,29 +299,81 @@ def train(
     Raises:
       TrainConfigError: a scene is unusable for training.
     """
+    given_test = test_scene
     if test_scene is not None:
         check_scene(test_scene, "test scene")
+        test_scene, _ = held_out_views(test_scene, eval_max_pixels)  # for the `eval_every` evaluations
     hparams = hparams or TrainHParams.for_config(config)
     chunks = _train_chunks(training_inputs(key, train_scene, config, hparams), config, test_scene, progress, on_chunk)
-    state, history, timing = chunks.state, chunks.history, chunks.timing
-    held_out = _held_out(state, config, test_scene, timing.train_seconds)
-    if held_out.entry is not None:
-        history.append(held_out.entry)
-    return TrainResult(
+    state, timing = chunks.state, chunks.timing
+    result = TrainResult(
         params=state.params,
         occupancy=state.sampler_state,
-        history=history,
-        psnr_test=held_out.psnr_test,
+        history=chunks.history,
+        psnr_test=None,
         seconds=timing.train_seconds,
         compile_seconds=timing.compile_seconds,
         rays_per_second=timing.rays_per_second(),
         steps=int(state.step),
-        config=held_out.config,
+        config=config,
         hparams=hparams,
         device=_device_name(),
         n_train=train_scene.n_images,
         n_test=0 if test_scene is None else test_scene.n_images,
-        psnr_test_training_step=held_out.psnr_training_step,
-        render_step_curve=held_out.curve,
         stopped=chunks.stopped,
+    )
+    if not held_out or given_test is None:
+        return result
+    return evaluate_held_out(result, given_test, eval_max_pixels, progress)
+
+
+def evaluate_held_out(
+    result: TrainResult,
+    test_scene: Scene,
+    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
+    progress: bool = False,
+) -> TrainResult:
+    """The end-of-run evaluation of a trained run: the final held-out PSNR, as the run renders.
+
+    The views are taken at most `eval_max_pixels` pixels each (`held_out_views`); when the run's
+    `config.render_step_scale` is None its marching step is calibrated on them first
+    (`calibrate_render_step`) and stored in the returned config. `progress` prints one line first
+    (how many views, at what size).
+
+    Returns:
+      `result` with `psnr_test`, `config`, `psnr_test_training_step`, `render_step_curve`,
+      `eval_size`, `eval_downscale` set and the evaluation appended to a copy of its history.
+    """
+    check_scene(test_scene, "test scene")
+    full = (test_scene.width, test_scene.height)
+    scene, factor = held_out_views(test_scene, eval_max_pixels)
+    config = result.config
+    scale = config.render_step_scale
+    if progress:
+        size = f"{scene.width}x{scene.height}" + (f" (1/{factor} of {full[0]}x{full[1]})" if factor > 1 else "")
+        calibrating = ", the render step calibrated on 3 of them first" if scale is None else ""
+        print(f"held-out evaluation: {scene.n_images} views at {size}{calibrating}", flush=True)
+    curve: List[Dict[str, Any]] = []
+    if scale is None:
+        scale, curve = calibrate_render_step(result.params, result.occupancy, config, scene)
+        config = config.replace(render_step_scale=scale)
+    final = evaluate(result.params, result.occupancy, config, scene)
+    psnr_test = final["psnr"]
+    entry = {
+        "step": result.steps,
+        "seconds": result.seconds,
+        "psnr_test": psnr_test,
+        "render_step_scale": scale,
+        "evaluations_per_ray": final["evaluations_per_ray"],
+        "eval_size": [scene.width, scene.height],
+    }
+    return result._replace(
+        history=list(result.history) + [entry],
+        psnr_test=psnr_test,
+        config=config,
+        n_test=scene.n_images,
+        psnr_test_training_step=psnr_test if scale == 1.0 else None,
+        render_step_curve=curve,
+        eval_size=(scene.width, scene.height),
+        eval_downscale=factor,
     )

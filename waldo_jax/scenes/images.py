@@ -8,6 +8,8 @@ else `resize(BOX)` to `round(size / factor)`. See docs/design.md, "Scenes".
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -17,8 +19,9 @@ import numpy as np
 from PIL import Image
 
 from waldo_jax.errors import SceneFormatError, check_memory
+from waldo_jax.types import Scene
 
-__all__ = ["IMAGE_EXTENSIONS", "image_size", "load_images", "resolve_image"]
+__all__ = ["IMAGE_EXTENSIONS", "downscale_scene", "fit_factor", "image_size", "load_images", "resolve_image"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 _MAX_THREADS = 8
@@ -42,6 +45,47 @@ def _box_resize(array: np.ndarray, size: Tuple[int, int]) -> np.ndarray:
         np.asarray(Image.fromarray(np.ascontiguousarray(array[..., i]), "F").resize(size, Image.BOX)) for i in range(c)
     ]
     return np.stack(channels, -1).astype(np.float32)
+
+
+def fit_factor(width: int, height: int, max_pixels: int) -> int:
+    """The least whole factor k >= 1 that brings a width x height image to at most `max_pixels` pixels."""
+    if max_pixels < 1:
+        raise ValueError(f"max_pixels must be a positive integer, got {max_pixels}")
+
+    def fits(k: int) -> bool:
+        return math.prod(_target_size(width, height, k)) <= max_pixels
+
+    k = max(1, math.ceil(math.sqrt(width * height / max_pixels)))  # sizes round to the nearest pixel:
+    while not fits(k):  # the factor that fits by area may be a little too small ...
+        k += 1
+    while k > 1 and fits(k - 1):  # ... or too large
+        k -= 1
+    return k
+
+
+def downscale_scene(scene: Scene, factor: int) -> Scene:
+    """`scene` with its images (and alphas) area-filtered to 1/factor of their size, the camera to match
+    (`Intrinsics.downscaled`), as a load with `downscale` times `factor` would give; factor 1: `scene`."""
+    factor = int(factor)
+    if factor < 1:
+        raise ValueError(f"the downscale factor must be a whole number >= 1, got {factor}")
+    if factor == 1:
+        return scene
+    intrinsics = scene.intrinsics.downscaled(factor)
+    size = (intrinsics.width, intrinsics.height)
+    images = np.stack([_box_resize(image, size) for image in scene.images]) if scene.n_images else scene.images
+    alphas = None
+    if scene.alphas is not None:
+        alphas = np.stack([_box_resize(a[..., None], size)[..., 0] for a in scene.alphas])
+    metadata = dict(scene.metadata)
+    metadata["downscale"] = float(metadata.get("downscale") or 1.0) * factor
+    return dataclasses.replace(
+        scene,
+        images=np.clip(images, 0.0, 1.0).astype(np.float32),
+        intrinsics=intrinsics,
+        alphas=alphas,
+        metadata=metadata,
+    )
 
 
 def _decode(img: Image.Image, size: Tuple[int, int], path: Path) -> Tuple[np.ndarray, Optional[np.ndarray]]:
