@@ -137,6 +137,42 @@ def test_images_that_cannot_fit_are_refused_before_they_load(tmp_path, capsys, m
     )
 
 
+def test_a_run_of_large_images_renders_at_most_256_pixels_a_side_unless_told(tmp_path):
+    """A NeRF run trained on 1080x1920 images (the fox) is searched and rendered at 144x256 by default
+    (at its own size, one view is 2M rays and a search's epoch did not fit in 24 GiB); `--resolution`
+    sets another size, and a run of small images keeps its own."""
+    from waldo_jax.pipeline.sources import RUN_RESOLUTION, run_source
+    from waldo_jax.scenes import load_scene
+
+    _write_scene(tmp_path / "scene")  # 16x16
+    large = load_scene(tmp_path / "scene").intrinsics.scaled(1080, 1920)
+    _write_run(tmp_path / "large_run", intrinsics=large)
+    _write_run(tmp_path / "small_run")
+    size = lambda source: (source.intrinsics.width, source.intrinsics.height)  # noqa: E731
+    assert RUN_RESOLUTION == 256 and size(run_source(str(tmp_path / "large_run"), images=False)) == (144, 256)
+    assert size(run_source(str(tmp_path / "large_run"), 512, images=False)) == (288, 512)
+    assert size(run_source(str(tmp_path / "small_run"), images=False)) == (16, 16)
+
+
+def test_one_seed_that_cannot_fit_is_told_the_resolution_that_would(monkeypatch):
+    """When even one seed's epoch exceeds the memory, the advice is a --resolution that fits (it was
+    "at most --seeds 0"), and that resolution passes the same check."""
+    from types import SimpleNamespace
+
+    from waldo_jax.types import Intrinsics
+
+    config = SimpleNamespace(children_per_epoch=46)
+    source = lambda side: SimpleNamespace(intrinsics=Intrinsics.from_fov(side * 9 // 16, side, 0.8))  # noqa: E731
+    monkeypatch.setattr(experiment, "memory_bytes", lambda: 11 << 30)
+    with pytest.raises(errors.WaldoError, match=r"--resolution 1920: .*; pass --resolution (\d+) or less") as info:
+        experiment.check_epoch_memory(source(1920), config, 1)
+    fits = int(info.value.args[0].rsplit("--resolution ", 1)[1].split()[0])
+    assert 256 < fits < 1920
+    experiment.check_epoch_memory(source(fits), config, 1)  # passes
+    with pytest.raises(errors.WaldoError, match=r"--seeds 100: .*at most --seeds \d+ here"):
+        experiment.check_epoch_memory(source(256), config, 100)
+
+
 @pytest.mark.slow
 def test_a_search_that_cannot_fit_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
     """XLA's analysis of the compiled search against the memory at hand (here made small)."""

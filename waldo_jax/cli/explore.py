@@ -62,7 +62,7 @@ def add_command(subparsers) -> None:
         "--resolution",
         type=int,
         default=None,
-        help="longer image side of the renders (default: procedural 64, runs: the training size)",
+        help="longer image side of the renders (default: procedural 64, runs: the training size, at most 256)",
     )
     p.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     p.add_argument("--epochs", type=int, default=5, help="epochs (default: 5, as the paper)")

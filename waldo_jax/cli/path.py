@@ -115,7 +115,7 @@ def add_command(subparsers) -> None:
         "--resolution",
         type=int,
         default=None,
-        help="longer image side of the search's renders (default: procedural 64, runs: training size)",
+        help="longer image side of the search's renders (default: procedural 64, runs: the training size, at most 256)",
     )
     p.add_argument(
         "--video-resolution",

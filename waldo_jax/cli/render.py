@@ -65,7 +65,8 @@ def add_command(subparsers) -> None:
         "--resolution",
         type=int,
         default=None,
-        help="procedural: image side; RUN_DIR: longer side (default: procedural 128, RUN_DIR the camera's)",
+        help="procedural: image side; RUN_DIR: longer side "
+        "(default: procedural 128, RUN_DIR the camera's, at most 256)",
     )
     render.add_argument("--seed", type=int, default=None, help="procedural: room seed (default: 0)")
     render.add_argument(

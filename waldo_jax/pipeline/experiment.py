@@ -13,6 +13,7 @@ artefacts). A criterion that scores poses (the room's oracle) ignores images: it
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from typing import Dict, List, Optional, Tuple
@@ -82,12 +83,18 @@ def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> Non
     per_seed = config.children_per_epoch * pixels * EPOCH_BYTES_PER_PIXEL
     available = memory_bytes()
     if seeds * per_seed > available:
-        raise WaldoError(
-            f"--seeds {seeds}: one epoch renders {seeds} x {config.children_per_epoch} views of "
+        views = (
+            f"one epoch renders {seeds} x {config.children_per_epoch} views of "
             f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
-            f"more than the {available / 2**30:.1f} GiB at hand; at most --seeds {max(available // per_seed, 0)} "
-            "here (or a lower --resolution)"
+            f"more than the {available / 2**30:.1f} GiB at hand"
         )
+        if per_seed <= available:
+            raise WaldoError(
+                f"--seeds {seeds}: {views}; at most --seeds {available // per_seed} here (or a lower --resolution)"
+            )
+        side = max(source.intrinsics.width, source.intrinsics.height)
+        fits = int(side * math.sqrt(available / per_seed))
+        raise WaldoError(f"--resolution {side}: {views}; pass --resolution {fits} or less")
 
 
 def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, config: ExploreConfig, objective, progress):

@@ -257,6 +257,13 @@ def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
     return 0 if seed is None else seed
 
 
+# The default longer side of a NeRF run's renders (its training images' size when smaller), as a splat
+# scene's (`splat_sources.SPLAT_RESOLUTION`): a search renders hundreds of views, and at the fox's
+# 1080x1920 one view costs 2M rays (about 9 minutes on the 2-core CPU; its epoch would not fit in
+# 24 GiB); `--resolution` sets another.
+RUN_RESOLUTION = 256
+
+
 def procedural_source(
     seed: int = 0,
     resolution: Optional[int] = None,
@@ -368,7 +375,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = Tr
 
     Args:
       run_dir: the folder holding `checkpoint.ckpt`.
-      resolution: longer side of the renders in pixels (default: the training images' size).
+      resolution: longer side of the renders in pixels (default: the training images' size, at most
+        `RUN_RESOLUTION`).
       images: read (or, for the procedural room, render) the training images; False leaves them None.
     """
     run = Path(run_dir)
@@ -383,6 +391,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = Tr
     if resolution is not None:
         check_resolution(resolution)
         intrinsics = intrinsics.with_max_side(int(resolution))
+    elif max(intrinsics.width, intrinsics.height) > RUN_RESOLUTION:
+        intrinsics = intrinsics.with_max_side(RUN_RESOLUTION)
     field = TrainedField.from_checkpoint(checkpoint)
     info = {
         "run_dir": str(run.resolve()),
