@@ -61,7 +61,7 @@ from waldo_jax.nerf.trained import (  # noqa: E402
     render_trained,
     render_trained_counted,
 )
-from waldo_jax.nerf.train import train  # noqa: E402
+from waldo_jax.nerf.train import HeldOut, train  # noqa: E402
 from waldo_jax.render import marched  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 from waldo_jax.types import Intrinsics  # noqa: E402
@@ -158,7 +158,7 @@ def quick_run(folder: Path, steps: int) -> tuple:
     train_scene = load_scene(scene_path, split="train")
     test_scene = load_scene(scene_path, split="test")
     config = TrainConfig.preset("fast", train_scene, steps=steps)
-    result = train(jax.random.key(0), train_scene, config, test_scene, progress=False)
+    result = train(jax.random.key(0), train_scene, config, test_scene, progress=False, held_out=HeldOut(None))
     save_checkpoint(
         folder / CHECKPOINT_NAME,
         result.params,

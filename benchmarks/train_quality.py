@@ -42,7 +42,7 @@ from bench_common import emit, header, loaded_name, refuse_existing_out  # noqa:
 from waldo_jax.errors import SceneFormatError  # noqa: E402
 from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
 from waldo_jax.nerf.trained import evaluate  # noqa: E402
-from waldo_jax.nerf.train import train  # noqa: E402
+from waldo_jax.nerf.train import HeldOut, train  # noqa: E402
 from waldo_jax.scenes import load_scene  # noqa: E402
 
 
@@ -149,7 +149,15 @@ def main(argv=None):
     share = CpuShare()
     share.start()
     start = time.perf_counter()
-    run = train(jax.random.key(args.seed), train_scene, config, test_scene, progress=False, on_chunk=on_chunk)
+    run = train(  # the final PSNR at the test images' loaded size, as the evaluations above
+        jax.random.key(args.seed),
+        train_scene,
+        config,
+        test_scene,
+        progress=False,
+        on_chunk=on_chunk,
+        held_out=HeldOut(None),
+    )
     cpu = share.stop()
     # Everything in `train` but the training chunks (the evaluations above, the calibration of the render
     # step, the final evaluation) is evaluation time.

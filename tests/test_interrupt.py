@@ -250,7 +250,8 @@ def test_an_interrupted_held_out_evaluation_keeps_the_trained_run(tmp_path, caps
     assert capsys.readouterr().err.strip() == "waldo: interrupted"
     assert sorted(os.listdir(out)) == ["checkpoint.ckpt", "train.json"]
     stats = json.loads((out / "train.json").read_text())
-    assert stats["psnr_test"] is None and stats["eval_image_size"] is None and stats["steps"] == 2
+    assert stats["psnr_test"] is None and stats["eval_image_size"] is None and stats["eval_downscale"] is None
+    assert stats["steps"] == 2
     assert load_checkpoint(out / "checkpoint.ckpt").config.render_step_scale is None
     monkeypatch.undo()
     assert main([*argv, "--force"]) == 0
@@ -264,6 +265,7 @@ def test_a_kept_output_folder_and_the_folders_made_for_it_are_left_by_an_interru
     kept = io.prepare_output_dir(tmp_path / "deep" / "run")
     other = io.prepare_output_dir(tmp_path / "other")
     assert io.created_output_dirs()[before:] == [tmp_path / "deep", tmp_path / "other"]
-    io.keep_output_dir(kept)
+    assert not io.keep_output_dir(tmp_path / "other" / "part")  # a part of an output folder is not kept alone
+    assert io.keep_output_dir(kept)
     assert io.discard_unfinished(io.created_output_dirs()[before:]) == [other.absolute()]
     assert kept.is_dir() and sorted(os.listdir(tmp_path)) == ["deep"]

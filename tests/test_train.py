@@ -296,7 +296,7 @@ def test_held_out_views_are_the_box_means_of_the_images(lego_small):
 
 @pytest.mark.slow
 def test_the_end_of_run_evaluation_renders_the_views_at_the_budget_and_can_come_later(lego_small):
-    """`train` evaluates at `eval_max_pixels` (here 1/2 of lego_tiny's 100x100), and `held_out=False`
+    """`train` evaluates at `HeldOut.max_pixels` (here 1/2 of lego_tiny's 100x100), and `at_end=False`
     then `evaluate_held_out` gives the same result bit for bit (what `waldo train` does, saving the field
     between the two)."""
     from waldo_jax.nerf.trained import evaluate
@@ -304,13 +304,13 @@ def test_the_end_of_run_evaluation_renders_the_views_at_the_budget_and_can_come_
     test = load_scene(require_scene("lego_tiny"), split="test", max_images=3)
     config = _tiny_config(lego_small, "occupancy")
     key = jax.random.key(0)
-    whole = tr.train(key, lego_small, config, test, progress=False, eval_max_pixels=2500)
+    whole = tr.train(key, lego_small, config, test, progress=False, held_out=tr.HeldOut(2500))
     assert whole.eval_size == (50, 50) and whole.eval_downscale == 2 and whole.n_test == 3
     assert whole.history[-1]["eval_size"] == [50, 50] and whole.history[-1]["psnr_test"] == whole.psnr_test
     half = tr.held_out_views(test, 2500)[0]
     by_hand = evaluate(whole.params, whole.occupancy, whole.config, half)["psnr"]
     assert by_hand == whole.psnr_test
-    trained = tr.train(key, lego_small, config, test, progress=False, eval_max_pixels=2500, held_out=False)
+    trained = tr.train(key, lego_small, config, test, progress=False, held_out=tr.HeldOut(2500, at_end=False))
     assert trained.psnr_test is None and trained.eval_size is None and trained.config.render_step_scale is None
     later = tr.evaluate_held_out(trained, test, 2500)
     assert later.psnr_test == whole.psnr_test and later.config == whole.config

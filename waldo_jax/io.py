@@ -19,7 +19,7 @@ import secrets
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterator, List, Optional, Sequence
+from typing import Any, BinaryIO, Callable, Dict, Iterator, List, Optional, Sequence
 
 import imageio.v3 as iio
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = [
 # atomic writes in progress, and the output folders `prepare_output_dir` created, in creation order.
 _PENDING: set = set()
 _CREATED_DIRS: List[Path] = []
+_CREATED_FOR: Dict[Path, Path] = {}  # each folder `prepare_output_dir` returned -> the outermost it created
 
 
 def _open_temp(path: Path) -> tuple:
@@ -227,6 +228,7 @@ def prepare_output_dir(path: str | os.PathLike, force: bool = False, can_force: 
         raise WaldoError(f"{path}: cannot create the output directory ({e.strerror or e})") from None
     if top is not None:
         _CREATED_DIRS.append(top)
+        _CREATED_FOR[path.absolute()] = top
     return path
 
 
@@ -236,13 +238,16 @@ def created_output_dirs() -> List[Path]:
     return list(_CREATED_DIRS)
 
 
-def keep_output_dir(path: str | os.PathLike) -> None:
-    """Declares the output folder `path` usable as it is: an interrupt from now on leaves it, and the
-    folders `prepare_output_dir` created above it, in place (`discard_unfinished` is not given them)."""
-    path = Path(path).absolute()
-    for folder in list(_CREATED_DIRS):
-        if folder == path or folder in path.parents:
-            _CREATED_DIRS.remove(folder)
+def keep_output_dir(path: str | os.PathLike) -> bool:
+    """Declares the output folder `path` usable as it is, when `prepare_output_dir` created it for this
+    command: an interrupt from now on leaves it, and the folders created above it, in place. Any other
+    folder (one that existed before, or a part of a larger output folder) is left to the command's rules.
+    Returns whether `path` was such a folder."""
+    top = _CREATED_FOR.pop(Path(path).absolute(), None)
+    if top is None or top not in _CREATED_DIRS:
+        return False
+    _CREATED_DIRS.remove(top)
+    return True
 
 
 def discard_unfinished(folders: Sequence[Path] = ()) -> List[Path]:

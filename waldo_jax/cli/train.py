@@ -64,8 +64,8 @@ def add_command(subparsers) -> None:
         type=int,
         default=EVAL_MAX_PIXELS,
         metavar="N",
-        help=f"render and compare the held-out views at most N pixels each, their images area-filtered by a "
-        f"whole factor (default {EVAL_MAX_PIXELS}; 0: the test images' full size)",
+        help="render and compare the held-out views at most N pixels each, their images area-filtered by a "
+        f"whole factor; 0: the test images' full size (default: {EVAL_MAX_PIXELS})",
     )
     p.add_argument("--force", action="store_true", help="overwrite the run files in a non-empty RUN_DIR")
     add_quiet(p, "progress bar")

@@ -18,7 +18,7 @@ from waldo_jax import io
 from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
-from waldo_jax.nerf.train import EVAL_MAX_PIXELS, TrainResult, evaluate_held_out, train
+from waldo_jax.nerf.train import EVAL_MAX_PIXELS, HeldOut, TrainResult, evaluate_held_out, train
 from waldo_jax.scenes import load_splits
 from waldo_jax.types import RunOptions, Scene
 
@@ -45,7 +45,7 @@ def train_stats(
         "render_step_scale": config.render_step_scale,
         "render_step_curve": result.render_step_curve,
         "eval_image_size": None if result.eval_size is None else list(result.eval_size),
-        "eval_downscale": result.eval_downscale,
+        "eval_downscale": None if result.eval_size is None else result.eval_downscale,
         "steps": result.steps,
         "seconds": round(result.seconds, 3),
         "compile_seconds": round(result.compile_seconds, 3),
@@ -75,29 +75,24 @@ def train_run(
     config: TrainConfig,
     test_scene: Optional[Scene],
     out: Path,
-    preset: str,
     progress: bool = True,
     scene_path: Optional[str] = None,
     eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
-    keep_trained: bool = False,
 ) -> Tuple[TrainResult, Dict[str, Any]]:
     """Trains on `scene` (held-out PSNR on `test_scene`) and writes OUT/checkpoint.ckpt and OUT/train.json.
 
     The two files are written as soon as training ends (the held-out PSNR not yet measured, the
-    render step as `config` has it) and again after the held-out evaluation, so an interrupted
-    evaluation loses no training.
+    render step as `config` has it) and again after the held-out evaluation; when `out` is a command's
+    own output folder (`io.prepare_output_dir`'s), it is kept from then on (`io.keep_output_dir`), so an
+    interrupted evaluation loses no training. The preset recorded is `config.preset_name`.
 
     Args:
       seed: the training seed (`jax.random.key(seed)`).
       scene, config, test_scene: as `waldo_jax.nerf.train.train`.
       out: an existing folder (see `waldo_jax.io.prepare_output_dir`).
-      preset: the preset `config` came from (recorded).
       progress: a progress bar.
       scene_path: the path the scene was loaded from, as given (recorded in train.json).
       eval_max_pixels: the held-out views' size (`waldo_jax.nerf.train.held_out_views`; None: full size).
-      keep_trained: `out` is the command's own output folder, to be kept (`io.keep_output_dir`) once the
-        trained field is written, even if the evaluation is interrupted (the demo's NeRF folder, a part
-        of its output, is not).
 
     Returns:
       (the `TrainResult`, whose config holds the calibrated render step, and the train.json contents).
@@ -115,25 +110,20 @@ def train_run(
         config,
         test_scene,
         progress=progress,
-        eval_max_pixels=eval_max_pixels,
-        held_out=False,
+        held_out=HeldOut(eval_max_pixels, at_end=False),
     )
-    stats = _save_run(out, result, scene, preset, seed, scene_path)
+    stats = _save_run(out, result, scene, seed, scene_path)
     if test_scene is not None:  # the trained field is on disk first: an interrupted evaluation loses no training
-        if keep_trained:
-            io.keep_output_dir(out)
-            if progress:
-                print(f"wrote {out / CHECKPOINT_NAME} (kept if the evaluation is interrupted)", flush=True)
+        if io.keep_output_dir(out) and progress:
+            print(f"wrote {out / CHECKPOINT_NAME} (kept if the evaluation is interrupted)", flush=True)
         result = evaluate_held_out(result, test_scene, eval_max_pixels, progress)
-        stats = _save_run(out, result, scene, preset, seed, scene_path)
+        stats = _save_run(out, result, scene, seed, scene_path)
     return result, stats
 
 
-def _save_run(
-    out: Path, result: TrainResult, scene: Scene, preset: str, seed: int, scene_path: Optional[str]
-) -> Dict[str, Any]:
+def _save_run(out: Path, result: TrainResult, scene: Scene, seed: int, scene_path: Optional[str]) -> Dict[str, Any]:
     """Writes OUT/checkpoint.ckpt and OUT/train.json of `result`; returns the train.json contents."""
-    stats = train_stats(result, scene, preset, seed, scene_path)
+    stats = train_stats(result, scene, result.config.preset_name, seed, scene_path)
     save_checkpoint(
         out / CHECKPOINT_NAME,
         result.params,
@@ -200,10 +190,8 @@ def train_scene_run(
         config,
         test_scene,
         out,
-        preset,
         options.progress,
         scene_path,
         eval_max_pixels,
-        keep_trained=True,
     )
     return result, stats, out

@@ -34,6 +34,7 @@ from waldo_jax.types import PRNGKey, Scene
 
 __all__ = [
     "EVAL_MAX_PIXELS",
+    "HeldOut",
     "TrainInputs",
     "TrainResult",
     "evaluate_held_out",
@@ -49,6 +50,20 @@ __all__ = [
 # the fox the fast preset trains in 5-6 minutes there); at 180x320 (2**16 = 256x256 pixels), minutes.
 # PSNR rises as the views shrink (that fox: 23.96 dB at 540x960, 24.34 at 270x480, 25.16 at 135x240).
 EVAL_MAX_PIXELS = 2**16
+
+
+class HeldOut(NamedTuple):
+    """How `train` evaluates its held-out views.
+
+    Attributes:
+      max_pixels: the views are rendered and compared at most this many pixels each, their images
+        area-filtered by the least whole factor that fits (`held_out_views`); None: full size.
+      at_end: False leaves the end-of-run evaluation to `evaluate_held_out` (so that a caller can save
+        the trained field first): `psnr_test` None and the render step as the config has it.
+    """
+
+    max_pixels: Optional[int] = EVAL_MAX_PIXELS
+    at_end: bool = True
 
 
 def training_inputs(
@@ -269,8 +284,7 @@ def train(
     progress: bool = True,
     hparams: Optional[TrainHParams] = None,
     on_chunk: Optional[Callable[[TrainState, Dict[str, Any]], bool]] = None,
-    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
-    held_out: bool = True,
+    held_out: HeldOut = HeldOut(),
 ) -> TrainResult:
     """Trains an Instant-NGP field on a scene.
 
@@ -287,11 +301,8 @@ def train(
       hparams: numeric hyper-parameters (default `TrainHParams.for_config(config)`).
       on_chunk: called after every chunk with the state and the chunk's history entry; its time is
         not training time (evaluate there); returning True stops training after that chunk.
-      eval_max_pixels: the held-out views are rendered and compared at most this many pixels each,
-        their images area-filtered by the least whole factor that fits (`held_out_views`); None: at
-        the test images' full size.
-      held_out: False leaves the end-of-run evaluation to `evaluate_held_out` (so that a caller can
-        save the trained field first): `psnr_test` None and the render step as `config` has it.
+      held_out: the held-out views' size (default at most `EVAL_MAX_PIXELS` pixels each) and whether
+        the end-of-run evaluation is done here (`HeldOut`).
 
     Returns:
       A `TrainResult`. Same key, scene and config give bit-identical params on the same device.
@@ -302,7 +313,7 @@ def train(
     given_test = test_scene
     if test_scene is not None:
         check_scene(test_scene, "test scene")
-        test_scene, _ = held_out_views(test_scene, eval_max_pixels)  # for the `eval_every` evaluations
+        test_scene, _ = held_out_views(test_scene, held_out.max_pixels)  # for the `eval_every` evaluations
     hparams = hparams or TrainHParams.for_config(config)
     chunks = _train_chunks(training_inputs(key, train_scene, config, hparams), config, test_scene, progress, on_chunk)
     state, timing = chunks.state, chunks.timing
@@ -322,9 +333,9 @@ def train(
         n_test=0 if test_scene is None else test_scene.n_images,
         stopped=chunks.stopped,
     )
-    if not held_out or given_test is None:
+    if not held_out.at_end or given_test is None:
         return result
-    return evaluate_held_out(result, given_test, eval_max_pixels, progress)
+    return evaluate_held_out(result, given_test, held_out.max_pixels, progress)
 
 
 def evaluate_held_out(

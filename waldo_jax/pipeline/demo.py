@@ -189,7 +189,7 @@ def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, see
     Returns:
       (the `TrainResult`, its train.json contents), as `waldo_jax.nerf.runs.train_run`.
     """
-    return train_run(seed, scene, room_train_config(scene, settings), test_scene, run_dir, "fast", progress)
+    return train_run(seed, scene, room_train_config(scene, settings), test_scene, run_dir, progress)
 
 
 def _report(out: Path, summary: Dict[str, Any]) -> str:
