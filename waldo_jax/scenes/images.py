@@ -65,7 +65,8 @@ def fit_factor(width: int, height: int, max_pixels: int) -> int:
 
 def downscale_scene(scene: Scene, factor: int) -> Scene:
     """`scene` with its images (and alphas) area-filtered to 1/factor of their size, the camera to match
-    (`Intrinsics.downscaled`), as a load with `downscale` times `factor` would give; factor 1: `scene`."""
+    (`Intrinsics.downscaled`); where `factor` divides the size, as a load with `downscale` times
+    `factor` would give (else one box filter after another, close to it); factor 1: `scene`."""
     factor = int(factor)
     if factor < 1:
         raise ValueError(f"the downscale factor must be a whole number >= 1, got {factor}")
