@@ -586,10 +586,47 @@ def demo_waldo_pixels_table() -> str:
             )
     return "\n".join(lines) + (
         "\n\nThe demo's former full settings otherwise (48 training views at 64 px, 2^15 samples per step, renders "
-        "at twice the training step, 8 seeds at the low budget, `waldo_found`); `waldo demo` now uses "
-        "scale15_stripes15_close16_steps2500; stripes 5 cm x Waldo's size unless given; "
+        "at twice the training step, 8 seeds at the low budget, `waldo_found`, room 1); `waldo demo` used "
+        "scale15_stripes15_close16_steps2500 in room 1, then close16_error_x2_steps1200 in room 6 (below); "
+        "stripes 5 cm x Waldo's size unless given; "
         "covering views on a ring 1.2 to 2.2 x his size from him. Times with other benchmarks on the same 2 cores. "
         "From " + ", ".join(f"`benchmarks/results/{n}`" for n in DEMO_SETTINGS_RUNS) + "."
+    )
+
+
+DEMO_ROOMS_RUNS = (
+    "demo_settings_rooms_cpu.json",
+    "demo_settings_room6_ab_cpu.json",
+    "demo_settings_room6_render1_cpu.json",
+    "demo_settings_room6_uniform_cpu.json",
+)
+
+
+def demo_rooms_table() -> str:
+    """The whole demo per room and training setting: EGPS found, Waldo's pixels, time (benchmarks/demo_settings.py)."""
+    lines = [
+        "| room | setting | steps | pixels | training step | held-out | EGPS found | EGPS Waldo-pixel PSNR per seed "
+        "| seeds >= 20 dB | training | demo time |",
+        "|---:|---|---:|---|---:|---:|---:|---|---:|---:|---:|",
+    ]
+    for name in DEMO_ROOMS_RUNS:
+        for row in _json(name)["rows"]:
+            o, e = row["overrides"], row["methods"]["egps"]
+            per_seed = ", ".join("n/a" if v is None else f"{v:.1f}" for v in e["waldo_psnr_per_seed"])
+            lines.append(
+                f"| {row['room_seed']} | {row['name']} | {o.get('train_steps', 500)} | "
+                f"{o.get('pixel_sampling', 'uniform')} | x{o.get('train_step_scale', 1.0):g} | "
+                f"{row['psnr_test']:.2f} dB | "
+                f"{e['found_seeds']}/{len(e['waldo_psnr_per_seed'])} | {per_seed} | {e['waldo_psnr_20db_seeds']} | "
+                f"{row['seconds']['train']:.0f} s | {row['seconds']['total']:.0f} s |"
+            )
+    return "\n".join(lines) + (
+        "\n\nThe whole `waldo demo` per room (its room seed and first search seed; 8 seeds, low budget, `waldo_found`, "
+        "48 training views at 64 px, Waldo 1.5 x his size with 15 cm stripes, 16 covering views). Training: the "
+        "NeRF's training and held-out evaluation; demo time: the whole run. The runs after the first in one "
+        "process (one file) reuse its compiled programs, so only each file's first row times a first run. From "
+        + ", ".join(f"`benchmarks/results/{n}`" for n in DEMO_ROOMS_RUNS)
+        + "."
     )
 
 
@@ -636,6 +673,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
     "refine-fox": refine_fox_table,
     "demo-closeups": demo_closeups_table,
     "demo-waldo-pixels": demo_waldo_pixels_table,
+    "demo-rooms": demo_rooms_table,
     "room-reachable": room_reachable_table,
     "perf-collected": perf_table,
     "packed": packed_table,

@@ -28,6 +28,7 @@ __all__ = ["LOSSES", "PRESETS", "SAMPLERS", "TrainConfig", "TrainConfigError", "
 PRESETS = ("fast", "quality")
 LOSSES = ("mse", "huber")
 SAMPLERS = ("dense", "occupancy")
+PIXEL_SAMPLINGS = ("uniform", "error")
 
 # Instant-NGP (base.json): decay starts at step 20k and repeats every 10k, of ~35k steps.
 _DECAY_START_FRACTION = 0.5
@@ -98,6 +99,10 @@ class TrainConfig:
         times this; None: `train` measures the run's quality/speed curve on its held-out views and
         sets it (`calibrate_render_step`); renders use 1 while it is None.
       preset_name: the preset this config came from ("custom" otherwise), recorded for reports.
+      pixel_sampling: how a step draws its rays' pixels: "uniform" over all training pixels, or "error":
+        a quarter uniformly and the rest in proportion to each pixel's squared error when it was last
+        trained (Instant-NGP's error map, at full resolution; the loss is not reweighted, so hard pixels,
+        fine detail and edges, are trained more often).
     """
 
     field: NGPFieldConfig = NGPFieldConfig()
@@ -120,6 +125,7 @@ class TrainConfig:
     eval_every: int = 0
     render_step_scale: Optional[float] = None
     preset_name: str = "custom"
+    pixel_sampling: str = "uniform"
 
     def __post_init__(self):
         for name in (
@@ -147,6 +153,10 @@ class TrainConfig:
         object.__setattr__(self, "preset_name", str(self.preset_name))
         if self.loss not in LOSSES:
             raise TrainConfigError(f"TrainConfig.loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if self.pixel_sampling not in PIXEL_SAMPLINGS:
+            raise TrainConfigError(
+                f"TrainConfig.pixel_sampling must be one of {', '.join(PIXEL_SAMPLINGS)}, got {self.pixel_sampling!r}"
+            )
         if self.sampler not in SAMPLERS:
             raise TrainConfigError(f"TrainConfig.sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
         if not isinstance(self.field, NGPFieldConfig):

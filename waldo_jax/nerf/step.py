@@ -53,12 +53,15 @@ class TrainState:
       opt_state: the optimiser's state (Adam moments and step count).
       sampler_state: the sampler's state (the occupancy grid, or None for the dense sampler).
       step: int32 [], steps taken.
+      pixel_error: float32 [N * H * W], each training pixel's squared error when a ray last trained it
+        (`TrainConfig.pixel_sampling == "error"`; 1 for pixels not yet drawn), or None.
     """
 
     params: Any
     opt_state: Any
     sampler_state: Any
     step: Array
+    pixel_error: Optional[Array] = None
 
 
 @flax.struct.dataclass
@@ -119,35 +122,77 @@ def make_optimizer(hparams: TrainHParams) -> optax.GradientTransformation:
     )
 
 
-def init_train_state(key: PRNGKey, config: TrainConfig, hparams: Optional[TrainHParams] = None) -> TrainState:
-    """Initial field parameters, optimiser state and sampler state.
+def init_train_state(
+    key: PRNGKey, config: TrainConfig, hparams: Optional[TrainHParams] = None, pixels: Optional[int] = None
+) -> TrainState:
+    """Initial field parameters, optimiser state, sampler state and (error sampling) pixel errors.
 
     Args:
       key: PRNG key (consumed: split into the field's and the sampler's keys).
       config: static training configuration.
       hparams: numeric hyper-parameters (only their structure matters here).
+      pixels: N * H * W, the training pixels (needed when `config.pixel_sampling == "error"`).
     """
     hparams = (hparams or TrainHParams.for_config(config)).as_arrays()
     key_field, key_sampler = jax.random.split(key)
     params = init_field(key_field, config.field)
     opt_state = make_optimizer(hparams).init(params)
     sampler_state = make_sampler(config).init(key_sampler, params)
-    return TrainState(params=params, opt_state=opt_state, sampler_state=sampler_state, step=jnp.int32(0))
+    pixel_error = None
+    if config.pixel_sampling == "error":
+        if pixels is None:
+            raise ValueError("init_train_state: error pixel sampling needs the number of training pixels")
+        pixel_error = jnp.ones((int(pixels),), jnp.float32)
+    return TrainState(
+        params=params, opt_state=opt_state, sampler_state=sampler_state, step=jnp.int32(0), pixel_error=pixel_error
+    )
+
+
+# Error sampling draws this share of a step's rays uniformly over all pixels and the rest in proportion
+# to each pixel's last squared error (so that no pixel is starved once it is learned).
+ERROR_UNIFORM_SHARE = 0.25
+
+
+def _draw_pixels(key: PRNGKey, num_rays: int, pixels: int, pixel_error: Optional[Array]) -> Array:
+    """int32 [R] flat pixel indices: uniform, or by `pixel_error` [pixels] (inverse CDF, one binary search
+    per ray): probability `ERROR_UNIFORM_SHARE / pixels + (1 - ERROR_UNIFORM_SHARE) * e / sum(e)`."""
+    if pixel_error is None:
+        return jax.random.randint(key, (num_rays,), 0, pixels)
+    error = jnp.maximum(jnp.nan_to_num(pixel_error, nan=1.0, posinf=1.0), 0.0)  # [pixels]
+    share = jnp.maximum(jnp.sum(error), 1e-30)
+    weight = ERROR_UNIFORM_SHARE / pixels + (1.0 - ERROR_UNIFORM_SHARE) * error / share  # [pixels], sums to 1
+    cdf = jnp.cumsum(weight)  # [pixels]
+    u = jax.random.uniform(key, (num_rays,)) * cdf[-1]  # [R]
+    return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), pixels - 1).astype(jnp.int32)
+
+
+def _updated_errors(pixel_error: Optional[Array], flat: Array, residual: Array, included: Array) -> Optional[Array]:
+    """`pixel_error` with the drawn pixels `flat` [R] set to their rays' mean squared residual [R, 3]
+    (where `included`; a pixel drawn twice keeps the larger: a max-scatter, the same on every backend)."""
+    if pixel_error is None:
+        return None
+    squared = jnp.where(included, jnp.mean(jax.lax.stop_gradient(residual) ** 2, axis=-1), -1.0)  # [R]
+    drawn = jnp.full_like(pixel_error, -1.0).at[flat].max(squared)  # [pixels], -1 where not trained
+    return jnp.where(drawn >= 0.0, drawn, pixel_error)
 
 
 def _sample_batch(
-    key: PRNGKey, data: TrainData, config: TrainConfig, num_rays: Optional[int] = None
-) -> Tuple[Array, Array, Array, Array]:
-    """R = `num_rays` (default `config.rays_per_batch`) rays uniform over all training pixels, with their
-    targets and backgrounds.
+    key: PRNGKey,
+    data: TrainData,
+    config: TrainConfig,
+    num_rays: Optional[int] = None,
+    pixel_error: Optional[Array] = None,
+) -> Tuple[Array, Array, Array, Array, Array]:
+    """R = `num_rays` (default `config.rays_per_batch`) rays over all training pixels, with their targets
+    and backgrounds: uniform, or by `pixel_error` [N * H * W] (`_draw_pixels`).
 
     Returns:
-      origins [R, 3], unit directions [R, 3], target rgb [R, 3], background [R, 3].
+      origins [R, 3], unit directions [R, 3], target rgb [R, 3], background [R, 3], flat pixel indices [R].
     """
     num_rays = config.rays_per_batch if num_rays is None else num_rays
     key_pixel, key_bg = jax.random.split(key)
     n, h, w = data.images.shape[:3]
-    flat = jax.random.randint(key_pixel, (num_rays,), 0, n * h * w)  # [R]
+    flat = _draw_pixels(key_pixel, num_rays, n * h * w, pixel_error)  # [R]
     image, rest = flat // (h * w), flat % (h * w)
     row, col = rest // w, rest % w
     dirs_cam = jax.vmap(lambda u, v: pixel_directions(data.intrinsics, u, v))(
@@ -167,7 +212,7 @@ def _sample_batch(
         target = premultiplied + (1.0 - alpha) * background  # = rgb * a + (1 - a) * bg
     else:
         target = premultiplied
-    return origins, directions, target, background
+    return origins, directions, target, background, flat
 
 
 def _loss(residual: Array, included: Array, config: TrainConfig, hparams: TrainHParams) -> Tuple[Array, Array]:
@@ -205,19 +250,24 @@ def make_train_step(config: TrainConfig, rays_per_batch: Optional[int] = None) -
     ):
         key = jax.random.fold_in(train_key, state.step)
         key_batch, key_render, _ = jax.random.split(key, 3)  # the third key is the occupancy update's
-        origins, directions, target, background = _sample_batch(key_batch, data, config, num_rays)
+        origins, directions, target, background, flat = _sample_batch(
+            key_batch, data, config, num_rays, state.pixel_error
+        )
 
         def loss_fn(params):
             out, included, stats = sampler.render_rays(
                 key_render, params, state.sampler_state, origins, directions, background, render_config
             )
-            loss, mse = _loss(out.rgb - target, included, config, hparams)
-            return loss, (mse, jnp.sum(included, dtype=jnp.int32), stats)
+            residual = out.rgb - target  # [R, 3]
+            loss, mse = _loss(residual, included, config, hparams)
+            return loss, (mse, included, residual, stats)
 
-        (loss, (mse, rays, stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        (loss, (mse, included, residual, stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        rays = jnp.sum(included, dtype=jnp.int32)
         updates, opt_state = make_optimizer(hparams).update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
+        pixel_error = _updated_errors(state.pixel_error, flat, residual, included)
+        new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1, pixel_error=pixel_error)
         return new_state, {
             "loss": loss,
             "psnr": psnr_from_mse(mse),

@@ -78,8 +78,8 @@ def training_inputs(
     check_scene(train_scene, "training scene")
     hparams = hparams or TrainHParams.for_config(config)
     key_init, key_train = jax.random.split(key)
-    state = init_train_state(key_init, config, hparams)
     data = TrainData.from_scene(train_scene)
+    state = init_train_state(key_init, config, hparams, pixels=int(np.prod(data.images.shape[:3])))
     render_config = RenderConfig.create(
         near=train_scene.near,
         far=train_scene.far,
