@@ -102,7 +102,10 @@ class TrainConfig:
       pixel_sampling: how a step draws its rays' pixels: "uniform" over all training pixels, or "error":
         a quarter uniformly and the rest in proportion to each pixel's squared error when it was last
         trained (Instant-NGP's error map, at full resolution; the loss is not reweighted, so hard pixels,
-        fine detail and edges, are trained more often).
+        fine detail and edges, are trained more often). It keeps one float32 per training pixel on the
+        device and sums them every step: nothing for the room's 48 x 64 x 64 pixels, but 357 MB and a
+        cumulative sum of 89M values a step for the fox's 43 views at 1080 x 1920 (load such scenes
+        downscaled, or keep "uniform").
     """
 
     field: NGPFieldConfig = NGPFieldConfig()
