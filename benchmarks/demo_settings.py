@@ -107,8 +107,9 @@ SETTINGS = {
         "hash_table_log2": 18,
         "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
     },
-    # Pixels drawn by their error (`TrainConfig.pixel_sampling`) and a training step twice the fast preset's
-    # (twice the rays in a step's samples): what `waldo demo` now trains, in fewer steps.
+    # 1,200 steps: uniform pixels, pixels drawn by their error (`TrainConfig.pixel_sampling`), a training step
+    # twice the fast preset's (twice the rays in a step's samples), both, and both rendered at the training
+    # step; `waldo demo` trains close16_error_x2_steps1200.
     "close16_steps1200": {
         "waldo_scale": 1.5,
         "stripe_width": 0.15,

@@ -29,7 +29,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_common import emit_with_load, header, refuse_existing_out, steady_chunks, wait_for_quiet  # noqa: E402
-from waldo_jax.nerf.config import PRESETS, TrainConfig  # noqa: E402
+from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS, TrainConfig  # noqa: E402
 from waldo_jax.nerf.field import make_field  # noqa: E402
 from waldo_jax.nerf.train import train  # noqa: E402
 from waldo_jax.render import occupancy  # noqa: E402
@@ -82,6 +82,9 @@ def main(argv=None):
     parser.add_argument("--preset", default="fast", choices=PRESETS)
     parser.add_argument("--steps", type=int, default=400, help="steps to train (the learning-rate decay follows)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--pixel-sampling", default="uniform", choices=PIXEL_SAMPLINGS, help="TrainConfig.pixel_sampling"
+    )
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of the field alone")
     parser.add_argument("--load-threshold", type=float, default=1.5)
     parser.add_argument("--out", default=None, help="also write the JSON here (never overwrites)")
@@ -90,7 +93,9 @@ def main(argv=None):
 
     quiet = wait_for_quiet(args.load_threshold)
     scene = load_scene(args.scene_path, downscale=args.downscale, split="train")
-    config = TrainConfig.preset(args.preset, scene, steps=args.steps, render_step_scale=1.0)
+    config = TrainConfig.preset(
+        args.preset, scene, steps=args.steps, render_step_scale=1.0, pixel_sampling=args.pixel_sampling
+    )
     chunks = []
 
     def record(state, entry):
@@ -118,6 +123,7 @@ def main(argv=None):
             "downscale": scene.metadata.get("downscale"),
             "image_size": [scene.width, scene.height],
             "preset": args.preset,
+            "pixel_sampling": args.pixel_sampling,
             "steps": result.steps,
             "samples_per_batch": config.samples_per_batch,
             "ms_per_step": ms_per_step,

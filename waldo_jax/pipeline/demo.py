@@ -80,8 +80,8 @@ METHOD_ORDER = ("grs", "pibs", "egps")
 # reference image of Waldo; its best views are checked by the exact oracle like the others'.
 RENDERS_METHOD, RENDERS_KEY, RENDERS_CRITERION = "egps", "egps_on_renders", "waldo"
 # The demo's room: of the rooms whose search space holds views of Waldo whole (not 0, 2, 3), the one where
-# the NeRF renders him best at EGPS's best views (1,500 steps: 7 of 8 seeds >= 20 dB over his pixels in
-# room 6; 6 in room 4; 4 in rooms 1, 5 and 7; docs/results.md, "Waldo's own pixels").
+# the NeRF renders him best at EGPS's best views (the demo's training: 7 of 8 seeds >= 20 dB over his pixels
+# in room 6; 5 in room 4; 4 in rooms 1, 5 and 7; docs/results.md, "Waldo's own pixels").
 DEMO_ROOM_SEED = 6
 
 
