@@ -147,6 +147,20 @@ SETTINGS = {
         "train_step_scale": 2.0,
         "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
     },
+    # The demo's training with fewer hash-grid levels (the same resolutions, coarser steps between them):
+    # fewer table lookups a sample.
+    **{
+        f"close16_error_x2_L{levels}_steps1200": {
+            "waldo_scale": 1.5,
+            "stripe_width": 0.15,
+            "train_steps": 1200,
+            "pixel_sampling": "error",
+            "train_step_scale": 2.0,
+            "hash_levels": levels,
+            "camera": {"cover_views": 16, "cover_band": (1.2, 2.2)},
+        }
+        for levels in (8, 12)
+    },
 }
 
 

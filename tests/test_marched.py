@@ -240,15 +240,15 @@ def test_one_compile_per_pose_count_and_deterministic():
     packing = PACKINGS[1]
     first = render(FOG, grid, cameras(2), packing=packing)
     traces = TRACES["field"]
-    size = marched.render_marched._cache_size()
+    size = marched._render_jit._cache_size()
     again = render(FOG, grid, cameras(2), packing=packing)
     other = render(DENSE_FOG, grid_for("dense_fog"), cameras(2)[::-1], packing=packing)  # other params, poses, grid
-    assert TRACES["field"] == traces and marched.render_marched._cache_size() == size
+    assert TRACES["field"] == traces and marched._render_jit._cache_size() == size
     for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
         np.testing.assert_array_equal(a, b)
     assert not np.array_equal(first[0].rgb, other[0].rgb)
     render(FOG, grid, cameras(4), packing=packing)  # a new pose count: one more program
-    assert marched.render_marched._cache_size() == size + 1
+    assert marched._render_jit._cache_size() == size + 1
 
 
 def test_packing_is_validated():

@@ -4,6 +4,7 @@ and to finite differences, on an analytic field and on a trained NeRF."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import waldo_jax  # noqa: F401  (XLA flags before the first computation)
@@ -86,7 +87,8 @@ def reverse_gradient(values, offsets):
 def test_reverse_equals_forward_and_finite_differences(packing):
     offsets = jnp.zeros((2, 6), jnp.float32)
     forward, reverse = objective("forward", packing=packing), objective("reverse", packing=packing)
-    np.testing.assert_array_equal(np.asarray(forward(offsets)), np.asarray(reverse(offsets)))  # the same images
+    # The same images from the two programs (under jit the poses are traced, so each mode runs its own).
+    np.testing.assert_array_equal(np.asarray(jax.jit(forward)(offsets)), np.asarray(jax.jit(reverse)(offsets)))
     g_forward, g_reverse = forward_gradient(forward, offsets), reverse_gradient(reverse, offsets)
     scale = np.max(np.abs(g_forward))
     assert scale > 0.1 and np.all(np.isfinite(g_reverse))
@@ -98,6 +100,21 @@ def test_reverse_equals_forward_and_finite_differences(packing):
         step[:, k] = eps
         fd[:, k] = (np.asarray(forward(offsets + step)) - np.asarray(forward(offsets - step))) / (2 * eps)
     np.testing.assert_allclose(g_reverse, fd, atol=3e-3 * scale)
+
+
+def test_an_untraced_call_runs_the_forward_program():
+    """A call on concrete arrays cannot be differentiated: gradient="reverse" renders with the forward
+    program (no second compilation) and the same images; traced, it differentiates in reverse mode."""
+    offsets = jnp.zeros((2, 6), jnp.float32)
+    packing = dataclasses.replace(PACKINGS[1], rays_per_block=48)  # a packing of this test's own: fresh programs
+    forward, reverse = objective("forward", packing=packing), objective("reverse", packing=packing)
+    images = np.asarray(forward(offsets))
+    programs = marched._render_jit._cache_size()
+    np.testing.assert_array_equal(np.asarray(reverse(offsets)), images)
+    assert marched._render_jit._cache_size() == programs
+    # Traced by jax.vjp it differentiates in reverse mode (the forward program has none: its while loops).
+    g_reverse = reverse_gradient(reverse, offsets)
+    np.testing.assert_allclose(g_reverse, forward_gradient(forward, offsets), atol=2e-5 * np.max(np.abs(g_reverse)))
 
 
 def test_reverse_with_early_termination_and_dense_fog():

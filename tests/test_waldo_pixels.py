@@ -10,7 +10,7 @@ from waldo_jax.cameras import look_at
 from waldo_jax.metrics import masked_psnr
 from waldo_jax.procedural import RoomCameraConfig, make_room, waldo_mask, waldo_surface_seen, waldo_visibility_batch
 from waldo_jax.procedural.cameras import training_cameras
-from waldo_jax.procedural.visibility import waldo_samples_seen
+from waldo_jax.procedural.visibility import waldo_samples_seen, waldo_visibility
 from waldo_jax.types import Intrinsics
 
 INTR = Intrinsics.from_fov(32, 32, np.radians(60.0))
@@ -92,3 +92,37 @@ def test_covering_cameras_see_more_of_waldo_and_still_at_most_half():
 def test_field_of_view_in_degrees_is_refused():
     with pytest.raises(ValueError, match="radians"):
         Intrinsics.from_fov(32, 32, 60.0)
+
+
+@pytest.mark.slow
+def test_held_out_views_are_as_many_as_asked_with_the_training_share_covering():
+    """`held_out_scene` returns `count` views (it once returned `cover_views` of them when asked for fewer),
+    of which the training views' share covers Waldo; more covering views than views is refused."""
+    from waldo_jax.procedural import held_out_scene, room_scene
+
+    room = make_room(1)
+    config = RoomCameraConfig(cover_views=4)
+    scene, room = room_scene(1, num_views=12, resolution=16, camera_config=config, room=room)
+    test = held_out_scene(room, 1, 3, scene, config)
+    assert test.images.shape == (3, 16, 16, 3) and test.c2w.shape == (3, 4, 4)
+    assert held_out_scene(room, 1, 6, scene, config).n_images == 6  # 2 of them covering (4 x 6 / 12)
+    with pytest.raises(ValueError, match="cover_views"):
+        training_cameras(jax.random.key(0), room, 3, INTR, config)
+
+
+def test_eager_oracles_share_one_program_across_population_sizes():
+    """Eager calls of the batched oracles pad their cameras to `POSE_BUCKET` (one program for every size
+    up to it) and give each camera the value it has alone in a batch of its own size."""
+    from waldo_jax.procedural import visibility
+
+    room = make_room(1)
+    c2w = np.asarray(training_cameras(jax.random.key(0), room, 9, INTR))
+    full = waldo_visibility_batch(room, c2w, INTR)
+    programs = visibility._visibility_batch._cache_size()
+    for count in (1, 4, 9):
+        np.testing.assert_array_equal(waldo_visibility_batch(room, c2w[:count], INTR), full[:count])
+    assert visibility._visibility_batch._cache_size() == programs
+    unpadded = np.asarray(jax.jit(jax.vmap(waldo_visibility, in_axes=(None, 0, None)))(room, jnp.asarray(c2w), INTR))
+    np.testing.assert_array_equal(full, unpadded)
+    seen = waldo_samples_seen(room, c2w, INTR)
+    np.testing.assert_array_equal(waldo_samples_seen(room, c2w[:2], INTR), seen[:2])

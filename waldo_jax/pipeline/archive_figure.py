@@ -26,6 +26,9 @@ __all__ = ["archive_sheet", "archive_summary", "view_descriptors"]
 
 _EMPTY_GREY = 0.55
 _descriptors = jax.jit(jax.vmap(view_descriptor, in_axes=(0, None)))
+# Poses are padded to a multiple of this (copies of the last, cropped away): one program for the top-k and
+# the archive's elites of every method, not one per count.
+_DESCRIPTOR_BUCKET = 64
 
 
 def view_descriptors(run: ExploreRun, c2w: np.ndarray) -> List[Dict[str, float]]:
@@ -33,7 +36,9 @@ def view_descriptors(run: ExploreRun, c2w: np.ndarray) -> List[Dict[str, float]]
     in the first seed's scene frame."""
     if len(c2w) == 0:
         return []
-    values = np.asarray(_descriptors(np.asarray(c2w, np.float32), run.result.population.frame), np.float64)
+    c2w = np.asarray(c2w, np.float32)
+    padded = np.concatenate([c2w, np.repeat(c2w[-1:], (-len(c2w)) % _DESCRIPTOR_BUCKET, axis=0)])
+    values = np.asarray(_descriptors(padded, run.result.population.frame), np.float64)[: len(c2w)]
     return [
         {"azimuth": round(float(a), 2), "elevation": round(float(e), 2), "distance": round(float(d), 4)}
         for a, e, d in values

@@ -94,7 +94,8 @@ class DemoSettings:
       resolution: image side of the training views and of every render.
       train_steps: NeRF training steps (fast preset).
       seeds: search seeds per method (one vmapped call each).
-      test_views: held-out views for the NeRF's PSNR.
+      test_views: held-out views for the NeRF's PSNR (10, the top-k's size: the held-out views and every
+        later render of the NeRF and of the room then run the programs compiled once for 10 poses).
       render_step_scale: the NeRF's marching step over its training step; None calibrates it after
         training (`waldo_jax.nerf.train`), a number fixes it (quick: x3, the usual choice, saving
         the calibration's renders and compiles).
@@ -106,6 +107,8 @@ class DemoSettings:
       waldo_scale: Waldo's size, with his pen's, in the room (`procedural.make_room`).
       stripe_width: his stripes' width in metres (None: 5 cm times `waldo_scale`).
       hash_table_log2: the hash grid's table size T = 2**hash_table_log2 per level (None: the fast preset's).
+      hash_levels: the hash grid's levels L between its coarsest and finest resolution (None: the fast
+        preset's 16); fewer levels, fewer table lookups a sample.
       samples_per_batch: field samples per training step (None: the fast preset's 2**15).
       search_renders: also run EGPS scored by the `waldo` finder on the NeRF's renders (`RENDERS_KEY`); it
         renders every view it scores (settings.seeds x the low budget), the others render only their top-k.
@@ -119,7 +122,7 @@ class DemoSettings:
     resolution: int
     train_steps: int
     seeds: int
-    test_views: int = 8
+    test_views: int = 10
     render_step_scale: Optional[float] = None
     finest_resolution_scale: float = 1.0
     criterion: str = "waldo_found"
@@ -128,6 +131,7 @@ class DemoSettings:
     waldo_scale: float = 1.0
     stripe_width: Optional[float] = None
     hash_table_log2: Optional[int] = None
+    hash_levels: Optional[int] = None
     samples_per_batch: Optional[int] = None
     search_renders: bool = False
     pixel_sampling: str = "error"
@@ -162,7 +166,6 @@ SETTINGS = {
         resolution=48,
         train_steps=120,
         seeds=4,
-        test_views=4,
         render_step_scale=3.0,
         train_step_scale=2.0,
         camera=RoomCameraConfig(cover_views=6, cover_band=(1.2, 2.2)),
@@ -184,8 +187,8 @@ def default_demo_dir(root: str | Path = "runs") -> Path:
 
 def room_train_config(scene: Scene, settings: DemoSettings) -> TrainConfig:
     """The room NeRF's training config: the fast preset with `settings.train_steps`, its pixel sampling,
-    render step and training step (`train_step_scale`), and the hash grid's finest resolution scaled by
-    `settings.finest_resolution_scale` (at least 32)."""
+    render step and training step (`train_step_scale`), the hash grid's finest resolution scaled by
+    `settings.finest_resolution_scale` (at least 32), its table size and levels where the settings give them."""
     overrides = {} if settings.render_step_scale is None else {"render_step_scale": settings.render_step_scale}
     if settings.samples_per_batch is not None:
         overrides["samples_per_batch"] = settings.samples_per_batch
@@ -197,9 +200,10 @@ def room_train_config(scene: Scene, settings: DemoSettings) -> TrainConfig:
     hashgrid = config.field.hashgrid
     n_max = max(32, int(hashgrid.N_max * settings.finest_resolution_scale))
     table = hashgrid.T if settings.hash_table_log2 is None else 2**settings.hash_table_log2
-    if (n_max, table) == (hashgrid.N_max, hashgrid.T):
+    levels = hashgrid.L if settings.hash_levels is None else settings.hash_levels
+    if (n_max, table, levels) == (hashgrid.N_max, hashgrid.T, hashgrid.L):
         return config
-    hashgrid = dataclasses.replace(hashgrid, N_max=n_max, T=table)
+    hashgrid = dataclasses.replace(hashgrid, N_max=n_max, T=table, L=levels)
     return config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
 
 

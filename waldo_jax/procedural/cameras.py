@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import look_at
-from waldo_jax.procedural.visibility import waldo_samples_seen, waldo_visibility_batch
+from waldo_jax.procedural.visibility import in_buckets, waldo_samples_seen, waldo_visibility_batch
 from waldo_jax.procedural.room import WaldoRoom, room_sdf
 from waldo_jax.types import Array, Intrinsics, PRNGKey
 
@@ -78,8 +78,11 @@ def training_cameras(
       c2w: float32 [num_views, 4, 4].
 
     Raises:
-      ValueError: when too few candidates qualify (ask for fewer views or a larger oversample).
+      ValueError: when too few candidates qualify (ask for fewer views or a larger oversample), or
+        `config.cover_views` is not in [0, num_views].
     """
+    if not 0 <= config.cover_views <= num_views:
+        raise ValueError(f"cover_views must lie in [0, {num_views}] (the views asked for), got {config.cover_views}")
     n = num_views * config.oversample
     c2w = _candidates(
         key,
@@ -90,7 +93,7 @@ def training_cameras(
         np.float32(config.target_height),
     )
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
-    clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
+    clearance = in_buckets(_clearance, room, c2w)
     keep = np.flatnonzero((visibility <= config.max_visibility) & (clearance >= config.min_clearance))
     if len(keep) < num_views - config.cover_views:
         raise ValueError(
@@ -130,7 +133,7 @@ def _covering_cameras(
     aims = jnp.asarray(low, jnp.float32) + 2 * config.cover_aim * scale * jax.random.uniform(k_aim, (n, 3))
     c2w = jax.vmap(look_at, in_axes=(0, 0, None))(places, aims, jnp.array([0.0, 1.0, 0.0]))
     visibility = np.asarray(waldo_visibility_batch(room, c2w, intrinsics))
-    clearance = np.asarray(jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w))
+    clearance = in_buckets(_clearance, room, c2w)
     usable = (visibility <= config.max_visibility) & (visibility > 0.0) & (clearance >= config.min_clearance)
     if int(usable.sum()) < config.cover_views:
         raise ValueError(
@@ -150,6 +153,13 @@ def _covering_cameras(
         picked.append(best)
         counts = counts + seen[best]
     return np.asarray(c2w)[picked]
+
+
+@jax.jit
+def _clearance(room: WaldoRoom, c2w: Array) -> jax.Array:
+    """Distances float32 [n] from the centres of cameras c2w [n, 4, 4] to the nearest solid (one program:
+    eagerly, the vmapped distance would compile each of its operations on its own)."""
+    return jax.vmap(lambda c: room_sdf(room, c[:3, 3]))(c2w)
 
 
 @functools.partial(jax.jit, static_argnames="n")

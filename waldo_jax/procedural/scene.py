@@ -94,9 +94,17 @@ def held_out_scene(
     room: WaldoRoom, seed: int, count: int, train_scene: Scene, camera_config: RoomCameraConfig = RoomCameraConfig()
 ) -> Scene:
     """`count` views of the room from cameras its NeRF has not seen (another key, the training views'
-    `camera_config`), rendered analytically at `train_scene`'s intrinsics: the NeRF's held-out test split."""
+    `camera_config`), rendered analytically at `train_scene`'s intrinsics: the NeRF's held-out test split.
+
+    Of the `count` views, the covering share (`RoomCameraConfig.cover_views`) is the training views':
+    `cover_views * count / train_scene.n_images`, rounded."""
+    cover = min(count, round(camera_config.cover_views * count / max(train_scene.n_images, 1)))
     c2w = training_cameras(
-        jax.random.fold_in(jax.random.key(seed), 2), room, count, train_scene.intrinsics, camera_config
+        jax.random.fold_in(jax.random.key(seed), 2),
+        room,
+        count,
+        train_scene.intrinsics,
+        dataclasses.replace(camera_config, cover_views=cover),
     )
     images = np.asarray(
         render_views(room_field, room, jnp.asarray(c2w), train_scene.intrinsics, room_render_config(room)).rgb,

@@ -11,6 +11,7 @@ from typing import Tuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from waldo_jax.cameras import project_points
 from waldo_jax.procedural.room import FAR, KIND_BOX, KIND_SPHERE, WaldoRoom
@@ -111,12 +112,35 @@ def _waldo_solid_angles(
     return jnp.sum(seen * weight), jnp.sum(weight)
 
 
+# Eager calls of the batched oracles pad their cameras to a multiple of this many (copies of the last,
+# cropped away), so that the populations of different sizes a run asks about (candidate cameras, training
+# views, best views) share a few compiled programs instead of one each; each camera's value is its own.
+POSE_BUCKET = 128
+
+
+def in_buckets(jitted, room: WaldoRoom, c2w, *args):
+    """`jitted(room, c2w, *args)` with a concrete c2w [P, 4, 4] padded to a multiple of `POSE_BUCKET` poses
+    and the result's pose axis cropped to P (padded and cropped on the host: no program per size), as a
+    NumPy array; a traced c2w (inside a jit) is passed as it is."""
+    if isinstance(c2w, jax.core.Tracer):
+        return jitted(room, c2w, *args)
+    c2w = np.asarray(c2w, np.float32)
+    count = c2w.shape[0]
+    pad = (-count) % POSE_BUCKET if count else 0
+    padded = np.concatenate([c2w, np.repeat(c2w[-1:], pad, axis=0)]) if pad else c2w
+    return np.asarray(jitted(room, padded, *args))[:count]
+
+
 @jax.jit
+def _samples_seen_batch(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
+    seen = jax.vmap(lambda c: _samples_seen(room, c, intrinsics, 0.05))(jnp.asarray(c2w, jnp.float32))
+    return (seen[0] > 0.0) & (seen[1] > 0.0)
+
+
 def waldo_samples_seen(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
     """bool [P, M]: which of Waldo's M surface samples each camera c2w [P, 4, 4] sees (facing it, in frame,
     unoccluded; exact), as `waldo_surface_seen` counts them."""
-    seen = jax.vmap(lambda c: _samples_seen(room, c, intrinsics, 0.05))(jnp.asarray(c2w, jnp.float32))
-    return (seen[0] > 0.0) & (seen[1] > 0.0)
+    return in_buckets(_samples_seen_batch, room, c2w, intrinsics)
 
 
 @jax.jit
@@ -195,6 +219,10 @@ def waldo_view(
 
 
 @jax.jit
+def _visibility_batch(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
+    return jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics)
+
+
 def waldo_visibility_batch(room: WaldoRoom, c2w: Array, intrinsics: Intrinsics) -> Array:
     """`waldo_visibility` for a population of cameras c2w [P, 4, 4]; returns [P]."""
-    return jax.vmap(waldo_visibility, in_axes=(None, 0, None))(room, c2w, intrinsics)
+    return in_buckets(_visibility_batch, room, c2w, intrinsics)

@@ -491,8 +491,9 @@ def _render(
 
 GRADIENTS = ("forward", "reverse")
 
+_render_jit = jax.jit(_render, static_argnames=("field", "packing", "gradient"))
 
-@functools.partial(jax.jit, static_argnames=("field", "packing", "gradient"))
+
 def render_marched(
     field: Field,
     params,
@@ -504,7 +505,10 @@ def render_marched(
 ) -> MarchedViews:
     """Renders P poses of a field through its occupancy grid in one jitted call (see docs/design.md, "Rendering").
 
-    One compilation per (field, packing, grid geometry, march sizes, image size, P).
+    One compilation per (field, packing, grid geometry, march sizes, image size, P), and per gradient mode
+    only where the call can be differentiated: a call on concrete arrays (no transformation traces it)
+    cannot, so it runs the forward program whatever `gradient` says (the same images; one program, not
+    two, for a source's renders outside a search and for held-out views).
 
     Args:
       field: radiance field for one point, `field(params, x [3], d [3]) -> (sigma [], rgb [3])` (static).
@@ -525,7 +529,9 @@ def render_marched(
     """
     if gradient not in GRADIENTS:
         raise ValueError(f"render_marched: gradient must be one of {GRADIENTS}, got {gradient!r}")
-    return _render(
+    if not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((params, setup, c2w, intrinsics))):
+        gradient = "forward"  # nothing traced: no gradient can be taken, and the images are the same
+    return _render_jit(
         field,
         params,
         setup.grid,
