@@ -10,7 +10,9 @@ his close-ups, the held-out PSNR, the share of his surface the training views sa
   python benchmarks/demo_settings.py --settings base,scale15,scale15_steps800 \\
       --out benchmarks/results/demo_settings_cpu.json
 
-The JSON says when other jobs shared the CPU (`_loaded` name); times are then longer than alone.
+The JSON says when other jobs shared the CPU (`_loaded` name); times are then longer than alone. Rows measured
+since `procedural.held_out_scene` returns as many views as asked (10, with the training views' covering share)
+hold out other views than the earlier rows (16 covering views): their `psnr_test` is not comparable across.
 """
 
 from __future__ import annotations

@@ -287,12 +287,31 @@ def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
         (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
         (["--eval-max-pixels", "-1"], "--eval-max-pixels must be 0"),
         (["--model", "splat", "--eval-max-pixels", "100"], "--eval-max-pixels: for NeRF training only"),
+        (["--pixel-sampling", "worst"], "unknown --pixel-sampling 'worst'"),
+        (["--model", "splat", "--pixel-sampling", "error"], "--pixel-sampling: for NeRF training only"),
     ],
 )
 def test_train_rejects_bad_arguments(tmp_path, argv, message):
     with pytest.raises(WaldoError, match=message):
         args = _parse(["train", str(tmp_path), "--out", str(tmp_path / "run")] + argv)
         args.handler(args)
+
+
+@pytest.mark.slow
+def test_train_draws_pixels_by_their_error_when_asked(tmp_path):
+    """`waldo train --pixel-sampling error` trains with `TrainConfig.pixel_sampling="error"` (recorded in the
+    checkpoint and train.json); the default stays uniform."""
+    from test_bad_input import _write_scene
+
+    _write_scene(tmp_path / "scene")
+    for mode in ("error", None):
+        out = tmp_path / f"run-{mode}"
+        argv = ["train", str(tmp_path / "scene"), "--out", str(out), "--steps", "2", "--quiet"]
+        args = _parse(argv + ([] if mode is None else ["--pixel-sampling", mode]))
+        assert args.handler(args) == 0
+        expected = mode or "uniform"
+        assert ckpt.load_checkpoint(out / ckpt.CHECKPOINT_NAME).config.pixel_sampling == expected
+        assert json.loads((out / "train.json").read_text())["config"]["pixel_sampling"] == expected
 
 
 @pytest.mark.slow

@@ -17,8 +17,8 @@ import argparse
 from waldo_jax.cli.conventions import add_quiet
 from waldo_jax.errors import WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
-from waldo_jax.nerf.config import PRESETS
-from waldo_jax.nerf.runs import SAMPLER_CHOICES, train_scene_run
+from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS
+from waldo_jax.nerf.runs import SAMPLER_CHOICES, Sampling, train_scene_run
 from waldo_jax.nerf.train import EVAL_MAX_PIXELS
 from waldo_jax.types import RunOptions
 
@@ -51,6 +51,13 @@ def add_command(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--preset", default="fast", choices=PRESETS, help="training settings")
     p.add_argument("--sampler", default="auto", choices=SAMPLER_CHOICES, help="auto (= occupancy), dense or occupancy")
+    p.add_argument(
+        "--pixel-sampling",
+        default="uniform",
+        choices=PIXEL_SAMPLINGS,
+        help="which pixels a step trains: uniform, or error, three quarters of them by each pixel's last error "
+        "as Instant-NGP's error map (default: uniform)",
+    )
     p.add_argument(
         "--render-step-scale",
         type=float,
@@ -91,7 +98,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         args.out,
         preset=args.preset,
         steps=args.steps,
-        sampler=args.sampler,
+        sampling=Sampling(samples=args.sampler, pixels=args.pixel_sampling),
         render_step_scale=args.render_step_scale,
         options=_run_options(args),
         eval_max_pixels=args.eval_max_pixels or None,
@@ -119,6 +126,7 @@ def _fit_splats(args: argparse.Namespace) -> int:
         for flag, value, default in (
             ("--preset", args.preset, "fast"),
             ("--sampler", args.sampler, "auto"),
+            ("--pixel-sampling", args.pixel_sampling, "uniform"),
             ("--render-step-scale", args.render_step_scale, None),
             ("--eval-max-pixels", args.eval_max_pixels, EVAL_MAX_PIXELS),
         )

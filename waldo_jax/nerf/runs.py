@@ -10,22 +10,34 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Tuple
 
 import jax
 
 from waldo_jax import io
 from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-from waldo_jax.nerf.config import PRESETS, SAMPLERS, TrainConfig
+from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS, SAMPLERS, TrainConfig
 from waldo_jax.nerf.train import EVAL_MAX_PIXELS, HeldOut, TrainResult, evaluate_held_out, train
 from waldo_jax.scenes import load_splits
 from waldo_jax.types import RunOptions, Scene
 
-__all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "load_splits", "train_stats", "train_run", "train_scene_run"]
+__all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "Sampling", "load_splits", "train_stats", "train_run", "train_scene_run"]
 
 TRAIN_JSON = "train.json"
 SAMPLER_CHOICES = ("auto",) + SAMPLERS  # auto = occupancy
+
+
+class Sampling(NamedTuple):
+    """How `waldo train` picks what a step trains on (`train_scene_run`).
+
+    Attributes:
+      samples: where along the rays: "auto" (= "occupancy") or a `TrainConfig.sampler`.
+      pixels: which pixels: "uniform" or "error" (`TrainConfig.pixel_sampling`).
+    """
+
+    samples: str = "auto"
+    pixels: str = "uniform"
 
 
 def train_stats(
@@ -147,7 +159,7 @@ def train_scene_run(
     out: str | Path,
     preset: str = "fast",
     steps: Optional[int] = None,
-    sampler: str = "auto",
+    sampling: Sampling = Sampling(),
     render_step_scale: Optional[float] = None,
     options: RunOptions = RunOptions(),
     eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
@@ -155,7 +167,8 @@ def train_scene_run(
     """`waldo train` as a function: the scene on disk -> a run directory `out`.
 
     Every value is checked, and `out` too (empty, writable, a valid name), before the scene is loaded:
-    a training is never lost to a folder it cannot write. `options`: the scene's downscale, the seed,
+    a training is never lost to a folder it cannot write. `sampling`: the samples' sampler and the
+    pixels' (`Sampling`). `options`: the scene's downscale, the seed,
     whether to write into a non-empty `out` (force), progress. `eval_max_pixels`: the held-out views'
     size (`waldo_jax.nerf.train.held_out_views`; None: full size).
 
@@ -167,8 +180,10 @@ def train_scene_run(
     """
     if preset not in PRESETS:
         raise WaldoError(f"unknown preset {preset!r}: expected one of {', '.join(PRESETS)}")
-    if sampler not in SAMPLER_CHOICES:
-        raise WaldoError(f"unknown sampler {sampler!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
+    if sampling.samples not in SAMPLER_CHOICES:
+        raise WaldoError(f"unknown sampler {sampling.samples!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
+    if sampling.pixels not in PIXEL_SAMPLINGS:
+        raise WaldoError(f"unknown pixel sampling {sampling.pixels!r}: expected one of {', '.join(PIXEL_SAMPLINGS)}")
     if steps is not None and not 1 <= steps <= MAX_INT32:  # an int32 under jit: 10**12 would wrap
         raise WaldoError(f"--steps must be a positive integer of at most {MAX_INT32}, got {steps}")
     _positive("--downscale", options.downscale)
@@ -178,7 +193,10 @@ def train_scene_run(
     out = io.check_output_dir(out, force=options.force)
     train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3)
     out = io.prepare_output_dir(out, force=options.force)
-    overrides: Dict[str, Any] = {"sampler": "occupancy" if sampler == "auto" else sampler}
+    overrides: Dict[str, Any] = {
+        "sampler": "occupancy" if sampling.samples == "auto" else sampling.samples,
+        "pixel_sampling": sampling.pixels,
+    }
     if steps is not None:
         overrides["steps"] = steps
     if render_step_scale is not None:

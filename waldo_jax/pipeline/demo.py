@@ -143,7 +143,8 @@ class DemoSettings:
 # the fast preset's step (twice the rays in a step's samples): the NeRF then renders his stripes where the
 # searches find him. Room 6, EGPS, Waldo-pixel PSNR at the best views (benchmarks/demo_settings.py,
 # docs/results.md "Waldo's own pixels"): these settings 7 of 8 seeds >= 20 dB, mean 20.9 dB, the whole demo
-# 151-160 s on the 2-core CPU; rendered at the training step (render_step_scale 1) 8 of 8, 22.1 dB, 180 s;
+# 146-179 s in first runs on the 2-core CPU (benchmarks/results/demo_programs_ab_cpu.json); rendered at the
+# training step (render_step_scale 1) 8 of 8, 22.1 dB, 180 s;
 # the preset's step with error sampling 7 of 8, 22.0 dB, 186 s; 1,200 uniform steps 5 of 8; 2,500 uniform
 # steps 8 of 8, 23.3 dB, 225 s.
 DEMO_ROOM = dict(waldo_scale=1.5, stripe_width=0.15)
