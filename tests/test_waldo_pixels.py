@@ -126,3 +126,6 @@ def test_eager_oracles_share_one_program_across_population_sizes():
     np.testing.assert_array_equal(full, unpadded)
     seen = waldo_samples_seen(room, c2w, INTR)
     np.testing.assert_array_equal(waldo_samples_seen(room, c2w[:2], INTR), seen[:2])
+    # Traced (here the room, under jit), nothing is padded and the value is the same.
+    traced = jax.jit(lambda r: waldo_visibility_batch(r, jnp.asarray(c2w), INTR))(room)
+    np.testing.assert_array_equal(np.asarray(traced), full)

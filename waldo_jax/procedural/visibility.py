@@ -121,8 +121,8 @@ POSE_BUCKET = 128
 def in_buckets(jitted, room: WaldoRoom, c2w, *args):
     """`jitted(room, c2w, *args)` with a concrete c2w [P, 4, 4] padded to a multiple of `POSE_BUCKET` poses
     and the result's pose axis cropped to P (padded and cropped on the host: no program per size), as a
-    NumPy array; a traced c2w (inside a jit) is passed as it is."""
-    if isinstance(c2w, jax.core.Tracer):
+    NumPy array; traced arguments (inside a jit or a transformation) are passed as they are."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((room, c2w, args))):
         return jitted(room, c2w, *args)
     c2w = np.asarray(c2w, np.float32)
     count = c2w.shape[0]
