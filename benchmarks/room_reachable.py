@@ -80,7 +80,8 @@ def table(rows: list, tolerance: float) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--rooms", default=f"{DEMO_ROOM_SEED},0,2,3,4,5,6,7", help="room seeds, the demo's first")
+    others = ",".join(str(seed) for seed in range(8) if seed != DEMO_ROOM_SEED)
+    parser.add_argument("--rooms", default=f"{DEMO_ROOM_SEED},{others}", help="room seeds, the demo's first")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--samples", type=int, default=32768, help="camera centres of the dense search")
