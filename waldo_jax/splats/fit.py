@@ -27,7 +27,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any, Dict, List, Optional, Tuple
+import warnings
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import flax.struct
 import jax
@@ -35,7 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from waldo_jax.errors import MemoryBudgetError, host_memory_bytes
 from waldo_jax.metrics import image_psnr, psnr_from_mse
+from waldo_jax.search.explore import program_memory
 from waldo_jax.splats.model import Splats, make_splats, sh_coefficients
 from waldo_jax.splats.render import SplatRenderConfig, count_pairs, quat_to_rotmat, render_view
 from waldo_jax.splats.sh import SH_C0
@@ -121,6 +124,8 @@ class FitResult:
     max_pairs: int = flax.struct.field(pytree_node=False, default=0)
     overflow_views: int = flax.struct.field(pytree_node=False, default=0)
     densify_dropped: int = flax.struct.field(pytree_node=False, default=0)
+    max_pairs_capped: int = flax.struct.field(pytree_node=False, default=0)
+    step_memory: Optional[int] = flax.struct.field(pytree_node=False, default=None)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -473,6 +478,55 @@ def evaluate_splats(splats: Splats, scene: Scene, config: SplatRenderConfig) -> 
     return psnr(np.asarray(rendered.rgb), scene.images)
 
 
+# A fit whose step renders at least this many pixels times one step before the first block and says
+# how long the fit will take (a block is `densify_every` steps: minutes of silence on large images).
+TIMED_STEP_PIXELS = 2**18
+
+
+class _Programs:
+    """The fit's compiled step programs, one per (max_pairs, steps in the block), each checked against
+    the host's free memory before it runs (XLA's analysis of its temporaries and outputs: the state and
+    the images it takes are in memory already)."""
+
+    def __init__(self, state, key, data, intrinsics, optimizer, config: FitConfig):
+        self.args = (state, key, jnp.int32(0), data, intrinsics)
+        self.optimizer, self.config = optimizer, config
+        self.compiled: Dict[Tuple[int, int], Any] = {}
+        self.need: Dict[int, Optional[int]] = {}
+
+    def get(self, render_config: SplatRenderConfig, count: int):
+        key = (render_config.max_pairs, count)
+        if key not in self.compiled:
+            cfg = dataclasses.replace(self.config, render=render_config)
+            lowered = _run_steps_jit.lower(*self.args, self.optimizer, cfg, count)
+            self.compiled[key] = lowered.compile()
+            analysis = _new_memory(self.compiled[key])
+            self.need[render_config.max_pairs] = max(analysis or 0, self.need.get(render_config.max_pairs) or 0) or None
+        return self.compiled[key]
+
+    def fits(self, render_config: SplatRenderConfig, count: int) -> Tuple[bool, Optional[int], int]:
+        """(whether the block's program fits the host's free memory, bytes it needs, bytes free)."""
+        self.get(render_config, count)
+        need, available = self.need[render_config.max_pairs], host_memory_bytes()
+        return not (need and available and need > available), need, available
+
+
+def _new_memory(compiled) -> Optional[int]:
+    """Bytes a compiled step program takes beyond its arguments (its temporaries and outputs)."""
+    total = program_memory(compiled)
+    if total is None:
+        return None
+    analysis = compiled.memory_analysis()
+    return max(total - int(getattr(analysis, "argument_size_in_bytes", 0) or 0), 0)
+
+
+def _fit_size(scene: Scene, config: FitConfig) -> str:
+    return (
+        f"{config.views_per_step} view{'s' * (config.views_per_step > 1)} of {scene.width}x{scene.height} a step, "
+        f"{config.capacity} splats"
+    )
+
+
 def fit_splats(
     key: PRNGKey,
     scene: Scene,
@@ -480,10 +534,17 @@ def fit_splats(
     test_scene: Optional[Scene] = None,
     points: Optional[np.ndarray] = None,
     colors: Optional[np.ndarray] = None,
-    progress: bool = True,
-    log=print,
+    log: Optional[Callable[[str], None]] = print,
+    ready: Optional[Callable[[], None]] = None,
 ) -> FitResult:
     """Fits splats to `scene`'s images; the held-out PSNR on `test_scene` when given.
+
+    The work of a step is set by the images' size: before any step runs, the first block's compiled
+    program is checked against the host's free memory (refused with `MemoryBudgetError`, naming the
+    image size and the `--downscale` that would fit), and a step rendering at least `TIMED_STEP_PIXELS`
+    pixels is timed and the fit's time estimated (logged). A later block whose `max_pairs` would
+    not fit the memory keeps the largest that does (a warning); the pairs beyond are dropped and counted
+    (`overflow_views`, `max_pairs_capped`).
 
     Args:
       key: the fit's PRNG key (initialisation, views, backgrounds, splits).
@@ -491,11 +552,14 @@ def fit_splats(
       config: `FitConfig`.
       test_scene: held-out views, or None.
       points, colors: sparse points [P, 3] (and colours [P, 3] in [0, 1]) to start from, or None.
-      progress: print a line per densification.
-      log: where progress lines go.
+      log: where progress lines go (one per densification, and the time estimate), or None for none.
+      ready: called once the memory check has passed, before the first step (a run folder is made there).
 
     Returns:
       `FitResult` (its splats hold the valid rows only).
+
+    Raises:
+      MemoryBudgetError: the first block's program needs more memory than the host has free.
     """
     start = time.perf_counter()
     key_init, key_steps, key_densify = jax.random.split(key, 3)
@@ -503,7 +567,6 @@ def fit_splats(
     extent = max(_scene_extent(scene), 1e-6)
     optimizer = _optimizer(config, extent)
     data = _data(scene)
-    intrinsics = scene.intrinsics
     n = config.capacity
     params = _params(splats)
     state = _State(
@@ -514,14 +577,21 @@ def fit_splats(
         grad_count=jnp.zeros(n, jnp.int32),
     )
     sample = data.c2w[:: max(1, data.c2w.shape[0] // 16)]
-    render_config = dataclasses.replace(config.render, max_pairs=_max_pairs(splats, sample, intrinsics, config.render))
+    render_config = dataclasses.replace(
+        config.render, max_pairs=_max_pairs(splats, sample, scene.intrinsics, config.render)
+    )
+    programs = _Programs(state, key_steps, data, scene.intrinsics, optimizer, config)
+    need = _check_first_block(programs, render_config, scene, config)
+    if ready is not None:
+        ready()
     history: List[Dict[str, Any]] = [{"step": 0, "splats": int(np.sum(np.asarray(splats.valid))), "init": how}]
-    overflow_views, dropped_total = 0, 0
-    step = 0
+    history[0]["step_memory_bytes"] = need
+    state, step, overflow_views = _timed_first_step(programs, render_config, state, scene, config, history[0], log)
+    dropped_total, capped = 0, 0
     while step < config.steps:
-        count = min(config.densify_every, config.steps - step)
-        cfg = dataclasses.replace(config, render=render_config)
-        state, metrics = _run_steps_jit(state, key_steps, jnp.int32(step), data, intrinsics, optimizer, cfg, count)
+        # Blocks end on multiples of densify_every (a timed first step makes the first block one shorter).
+        count = min(config.densify_every - step % config.densify_every, config.steps - step)
+        state, metrics = programs.get(render_config, count)(state, key_steps, jnp.int32(step), data, scene.intrinsics)
         step += count
         metrics = jax.device_get(metrics)
         overflow_views += int(np.sum(metrics["pair_overflow"]))
@@ -534,12 +604,15 @@ def fit_splats(
         if config.densify_from <= step <= config.last_densify and step < config.steps:
             reset = config.opacity_reset_every > 0 and step % config.opacity_reset_every == 0
             state, dropped = _densify_jit(
-                state, jax.random.fold_in(key_densify, step), jnp.float32(extent), jnp.bool_(reset), config=cfg
+                state,
+                jax.random.fold_in(key_densify, step),
+                jnp.float32(extent),
+                jnp.bool_(reset),
+                config=dataclasses.replace(config, render=render_config),
             )
             dropped_total += int(dropped)
-            render_config = dataclasses.replace(
-                render_config, max_pairs=_max_pairs(state.splats, sample, intrinsics, config.render)
-            )
+            render_config, wanted = _next_render_config(programs, render_config, state, sample, scene, config, step)
+            capped = max(capped, wanted)
             row.update(
                 {
                     "splats": int(np.sum(np.asarray(state.splats.valid))),
@@ -547,8 +620,10 @@ def fit_splats(
                     "opacity_reset": bool(reset),
                 }
             )
+            if wanted:
+                row["max_pairs_capped"] = wanted
         history.append(row)
-        if progress:
+        if log is not None:
             log(
                 f"[fit] step {step}/{config.steps}: loss {row['loss']:.4f}, train PSNR {row['psnr']:.2f} dB, "
                 f"{int(np.sum(np.asarray(state.splats.valid)))} splats, max_pairs {render_config.max_pairs}"
@@ -567,7 +642,71 @@ def fit_splats(
         max_pairs=render_config.max_pairs,
         overflow_views=overflow_views,
         densify_dropped=dropped_total,
+        max_pairs_capped=capped,
+        step_memory=max((b for b in programs.need.values() if b), default=None),
     )
+
+
+def _check_first_block(programs: _Programs, render_config: SplatRenderConfig, scene: Scene, config: FitConfig):
+    """The first block's program's memory (bytes or None), refused when it exceeds the free memory."""
+    fits, need, available = programs.fits(render_config, min(config.densify_every, config.steps))
+    if not fits:
+        factor = 1.2 * math.sqrt(need / max(available, 1))
+        raise MemoryBudgetError(
+            f"fitting splats to {_fit_size(scene, config)}: a step needs {need / 2**30:,.1f} GiB (XLA's analysis of "
+            f"the compiled step, {render_config.max_pairs} splat-tile pairs a view), more than the "
+            f"{available / 2**30:.1f} GiB this machine has free; pass --downscale {max(2, math.ceil(factor))} "
+            f"(images {factor:.1f} x smaller a side) or fewer --capacity"
+        )
+    return need
+
+
+def _timed_first_step(programs, render_config, state, scene: Scene, config: FitConfig, first: dict, log):
+    """(state, steps run, views with pair overflow): two steps run one by one when a step renders at
+    least `TIMED_STEP_PIXELS` pixels, the second timed (the first run of a program also takes its memory
+    from the system: about twice as long), the estimate logged and kept in `first`; none otherwise."""
+    if config.views_per_step * scene.width * scene.height < TIMED_STEP_PIXELS or config.steps < 3:
+        return state, 0, 0
+    data, key = programs.args[3], programs.args[1]
+    overflow = 0
+    for step in range(2):
+        timer = time.perf_counter()
+        state, metrics = programs.get(render_config, 1)(state, key, jnp.int32(step), data, scene.intrinsics)
+        overflow += int(np.sum(jax.device_get(metrics)["pair_overflow"]))  # waits for the step
+        seconds = time.perf_counter() - timer
+    first["step_seconds"] = round(seconds, 3)
+    if log is not None:
+        log(
+            f"[fit] one step ({_fit_size(scene, config)}) took {seconds:.2f} s: about "
+            f"{_duration(seconds * config.steps)} for {config.steps} steps on this machine "
+            "(--downscale K: about K^2 x less)"
+        )
+    return state, 2, overflow
+
+
+def _next_render_config(programs, render_config, state, sample, scene: Scene, config: FitConfig, step: int):
+    """(the renderer's settings for the next block, the max_pairs wanted and not taken or 0): the pairs
+    re-measured after a densification, kept at the current `max_pairs` when more would not fit."""
+    wanted = dataclasses.replace(
+        render_config, max_pairs=_max_pairs(state.splats, sample, scene.intrinsics, config.render)
+    )
+    next_count = min(config.densify_every, config.steps - step)
+    if wanted.max_pairs <= render_config.max_pairs or programs.fits(wanted, next_count)[0]:
+        return wanted, 0
+    warnings.warn(
+        f"splat fit, step {step}: {wanted.max_pairs} splat-tile pairs a view would not fit this machine's "
+        f"memory; keeping {render_config.max_pairs} (the pairs beyond are dropped and counted in train.json)",
+        stacklevel=3,
+    )
+    return render_config, wanted.max_pairs
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def _compact(splats: Splats) -> Splats:

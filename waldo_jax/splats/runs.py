@@ -79,9 +79,12 @@ def fit_scene_run(
     out = io.check_output_dir(out, force=options.force)
     train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3, model="a splat fit")
     points, colors, points_from = sparse_points(train_scene)
-    out = io.prepare_output_dir(out, force=options.force)
-    if not os.access(out, os.W_OK):
-        raise WaldoError(f"{out}: not a writable folder to save the run in")
+
+    def ready() -> None:  # the step program fits this machine: the run folder is made now, before any step
+        made = io.prepare_output_dir(out, force=options.force)
+        if not os.access(made, os.W_OK):
+            raise WaldoError(f"{made}: not a writable folder to save the run in")
+
     log = lambda message: print(message, flush=True)  # noqa: E731
     result = fit_splats(
         jax.random.key(options.seed),
@@ -90,8 +93,8 @@ def fit_scene_run(
         test_scene,
         points,
         colors,
-        progress=options.progress,
-        log=log,
+        log=log if options.progress else None,
+        ready=ready,
     )
     cameras = SplatCameras(
         c2w=np.asarray(train_scene.c2w, np.float32),
@@ -112,6 +115,8 @@ def fit_scene_run(
         "init_points": points_from,
         "max_pairs": result.max_pairs,
         "steps_with_pair_overflow": result.overflow_views,
+        "max_pairs_capped": result.max_pairs_capped,
+        "step_memory_bytes": result.step_memory,
         "densify_dropped": result.densify_dropped,
         "device": jax.devices()[0].platform,
         "n_train": train_scene.n_images,
