@@ -31,9 +31,21 @@ def test_a_step_that_does_not_fit_is_refused_before_the_run_folder_is_made(monke
     code = main(["train", str(require_scene("lego_tiny")), "--model", "splat", "--steps", "20", "--out", str(out)])
     err = capsys.readouterr().err
     assert code != 0
-    assert "100x100 a step" in err and "GiB" in err and "--downscale" in err, err
+    assert "100x100 a step" in err and "GiB" in err and "--downscale" in err and "--capacity" in err, err
     assert "Traceback" not in err
     assert not out.exists()
+
+
+def test_a_capacity_whose_state_does_not_fit_is_refused_before_it_is_allocated(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(fit, "init_splats", None)  # never reached
+    out = tmp_path / "run"
+    args = ["train", str(require_scene("lego_tiny")), "--model", "splat", "--capacity", str(2**24), "--out", str(out)]
+    monkeypatch.setattr("waldo_jax.errors.host_memory_bytes", lambda: 8 << 30)
+    assert main(args) != 0
+    err = capsys.readouterr().err
+    assert "--capacity 16777216" in err and "GiB" in err and "Traceback" not in err, err
+    assert not out.exists()
+    assert fit.capacity_bytes(fit.FitConfig(capacity=2**24)) > 8 << 30 > fit.capacity_bytes(fit.FitConfig())
 
 
 def test_the_refusal_names_the_image_size_and_the_memory(lego, monkeypatch):

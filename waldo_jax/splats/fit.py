@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from waldo_jax.errors import MemoryBudgetError, host_memory_bytes
+from waldo_jax.errors import MemoryBudgetError, check_memory, host_memory_bytes
 from waldo_jax.metrics import image_psnr, psnr_from_mse
 from waldo_jax.search.explore import program_memory
 from waldo_jax.splats.model import Splats, make_splats, sh_coefficients
@@ -562,6 +562,12 @@ def fit_splats(
       MemoryBudgetError: the first block's program needs more memory than the host has free.
     """
     start = time.perf_counter()
+    check_memory(
+        capacity_bytes(config),
+        f"a splat fit of --capacity {config.capacity} (SH degree {config.sh_degree}: the splats, their Adam "
+        "moments, a step's new copy and its work per splat)",
+        "pass a lower --capacity",
+    )
     key_init, key_steps, key_densify = jax.random.split(key, 3)
     splats, how = init_splats(key_init, scene, config, points, colors)
     extent = max(_scene_extent(scene), 1e-6)
@@ -647,16 +653,31 @@ def fit_splats(
     )
 
 
+# Temporaries of a fit step per splat row and view, whatever the image: XLA's analysis of lego_tiny's step
+# (100x100, SH degree 3) at 2^24 rows was 21.9 GiB (projection, sort, SH and their gradients).
+STEP_BYTES_PER_SPLAT = 1400
+
+
+def capacity_bytes(config: FitConfig) -> int:
+    """Bytes a fit takes by its capacity alone, checked before anything is allocated: the state twice (a
+    step's input and its output: each splat's parameters, means 3, log-scales 3, quaternion 4, logit 1,
+    SH 3 x (degree + 1)^2, with their two Adam moments, and its gradient statistics) and a step's
+    temporaries per splat (`STEP_BYTES_PER_SPLAT` per view). The step's pixel part comes on top (its
+    compiled program is checked too)."""
+    floats = 11 + 3 * (config.sh_degree + 1) ** 2
+    state = 2 * config.capacity * (4 * 3 * floats + 8 + 1)
+    return state + config.capacity * config.views_per_step * STEP_BYTES_PER_SPLAT
+
+
 def _check_first_block(programs: _Programs, render_config: SplatRenderConfig, scene: Scene, config: FitConfig):
     """The first block's program's memory (bytes or None), refused when it exceeds the free memory."""
     fits, need, available = programs.fits(render_config, min(config.densify_every, config.steps))
     if not fits:
-        factor = 1.2 * math.sqrt(need / max(available, 1))
         raise MemoryBudgetError(
             f"fitting splats to {_fit_size(scene, config)}: a step needs {need / 2**30:,.1f} GiB (XLA's analysis of "
             f"the compiled step, {render_config.max_pairs} splat-tile pairs a view), more than the "
-            f"{available / 2**30:.1f} GiB this machine has free; pass --downscale {max(2, math.ceil(factor))} "
-            f"(images {factor:.1f} x smaller a side) or fewer --capacity"
+            f"{available / 2**30:.1f} GiB this machine has free; pass --downscale K (a step's pixels and pairs "
+            f"fall about K^2 times) or a lower --capacity (now {config.capacity})"
         )
     return need
 
