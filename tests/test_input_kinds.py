@@ -171,6 +171,33 @@ def test_one_seed_that_cannot_fit_is_told_the_resolution_that_would(monkeypatch)
     experiment.check_epoch_memory(source(fits), config, 1)  # passes
     with pytest.raises(errors.WaldoError, match=r"--seeds 100: .*at most --seeds \d+ here"):
         experiment.check_epoch_memory(source(256), config, 100)
+    # Children no resolution can hold: the advice names --children-per-epoch (it said "--resolution 0").
+    many = SimpleNamespace(children_per_epoch=10**9)
+    with pytest.raises(
+        errors.WaldoError, match=r"^--children-per-epoch 1000000000: .*at most --children-per-epoch (\d+)"
+    ):
+        experiment.check_epoch_memory(source(64), many, 1)
+
+
+@pytest.mark.parametrize("kind", ["procedural", "splats"])
+def test_a_size_the_epoch_cannot_hold_is_refused_before_the_source_renders(kind, tmp_path, capsys, monkeypatch):
+    """--resolution 4096: the room rendered its 24 training views (the splats their calibration views) at
+    that size for minutes before the epoch's memory check refused it; the check now comes first."""
+    import waldo_jax.pipeline.sources as sources
+    import waldo_jax.pipeline.splat_sources as splat_sources
+
+    def never(*args, **kwargs):
+        raise AssertionError("rendered before the epoch's memory check")
+
+    monkeypatch.setattr(sources, "room_scene", never)
+    monkeypatch.setattr(splat_sources, "calibrate_max_pairs", never)
+    monkeypatch.setattr(experiment, "memory_bytes", lambda: 4 << 30)
+    spec = "procedural"
+    if kind == "splats":
+        spec = str(tmp_path / "tiny.ply")
+        write_splat_ply(spec, _tiny_splats())
+    argv = ["explore", spec, "--resolution", "4096", "--out", str(tmp_path / "new"), "--quiet"]
+    _cli_refuses(argv, "--resolution 4096: one epoch renders 1 x", capsys, tmp_path)
 
 
 @pytest.mark.slow
@@ -178,7 +205,7 @@ def test_a_search_that_cannot_fit_is_refused_before_it_runs(tmp_path, capsys, mo
     """XLA's analysis of the compiled search against the memory at hand (here made small)."""
     monkeypatch.setattr(experiment, "memory_bytes", lambda: 50_000)
     monkeypatch.setattr(experiment, "host_memory_bytes", lambda: 50_000)
-    monkeypatch.setattr(experiment, "check_epoch_memory", lambda *a: None)  # the per-epoch rule of thumb: aside
+    monkeypatch.setattr(experiment, "check_epoch_pixels", lambda *a: None)  # the per-epoch rule of thumb: aside
     argv = ["explore", "procedural", "--resolution", "16", "--out", str(tmp_path / "new"), "--quiet"]
     _cli_refuses(argv, "the compiled search needs", capsys, tmp_path)
 

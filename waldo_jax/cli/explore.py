@@ -30,6 +30,7 @@ from waldo_jax.cli.flags import (
 from waldo_jax.cli.shots import add_shot_arguments, shot_separation, view_grid
 from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
+from waldo_jax.pipeline.experiment import epoch_check
 from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
 
 __all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
@@ -184,7 +185,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
         criterion.smooth()  # a criterion gradient steps cannot follow, refused before the source loads too
     with Progress(args.quiet) as progress:  # on a terminal's stderr; the epochs print their own lines
         progress.phase(f"loading {args.source}")
-        source = load_source(args.source, args.resolution, args.views, **splat_pose_options(args))
+        check = epoch_check(config, args.seeds) if isinstance(args.seeds, int) and args.seeds >= 1 else None
+        source = load_source(args.source, args.resolution, args.views, check=check, **splat_pose_options(args))
     if criterion is None:  # a poses criterion: the room's oracles need the source
         criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
     if method.differentiable:

@@ -16,14 +16,14 @@ import dataclasses
 import math
 import os
 import time
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.criteria import Criterion, Views
-from waldo_jax.errors import WaldoError, host_memory_bytes
+from waldo_jax.errors import MIN_RESOLUTION, WaldoError, host_memory_bytes
 from waldo_jax.search import (
     ExploreConfig,
     Initial,
@@ -49,6 +49,8 @@ __all__ = [
     "seed_keys",
     "generated_slots",
     "check_epoch_memory",
+    "check_epoch_pixels",
+    "epoch_check",
     "check_search_memory",
     "memory_bytes",
     "EPOCH_BYTES_PER_PIXEL",
@@ -79,22 +81,51 @@ def memory_bytes() -> int:
 def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> None:
     """Refuses a run whose batched epoch (seeds x children_per_epoch renders) would not fit in memory,
     with the largest --seeds that would (see `EPOCH_BYTES_PER_PIXEL`)."""
-    pixels = source.intrinsics.width * source.intrinsics.height
+    check_epoch_pixels(source.intrinsics.width, source.intrinsics.height, config, seeds)
+
+
+def epoch_check(config: ExploreConfig, seeds: int) -> Callable[[int, int, int], None]:
+    """`check_epoch_pixels` for a source not loaded yet: `load_source(..., check=)` calls it with the
+    renders' width, height and the training views' count before it renders or reads any image, so a
+    size the epoch cannot hold is refused before the source's own work (its training views' renders)."""
+
+    def check(width: int, height: int, n_train: int) -> None:
+        try:
+            resolved = config.resolve(n_train)
+        except ValueError:
+            return  # a budget these views exceed: the caller's own check says so, with the source's name
+        check_epoch_pixels(width, height, resolved, seeds)
+
+    return check
+
+
+def check_epoch_pixels(width: int, height: int, config: ExploreConfig, seeds: int) -> None:
+    """`check_epoch_memory` for renders of width x height (a resolved `config`)."""
+    pixels = width * height
     per_seed = config.children_per_epoch * pixels * EPOCH_BYTES_PER_PIXEL
     available = memory_bytes()
     if seeds * per_seed > available:
         views = (
             f"one epoch renders {seeds} x {config.children_per_epoch} views of "
-            f"{source.intrinsics.width}x{source.intrinsics.height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
+            f"{width}x{height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
             f"more than the {available / 2**30:.1f} GiB at hand"
         )
         if per_seed <= available:
             raise WaldoError(
                 f"--seeds {seeds}: {views}; at most --seeds {available // per_seed} here (or a lower --resolution)"
             )
-        side = max(source.intrinsics.width, source.intrinsics.height)
+        side = max(width, height)
         fits = int(side * math.sqrt(available / per_seed))
-        raise WaldoError(f"--resolution {side}: {views}; pass --resolution {fits} or less")
+        children = available // (pixels * EPOCH_BYTES_PER_PIXEL)
+        if fits >= MIN_RESOLUTION:
+            raise WaldoError(
+                f"--resolution {side}: {views}; pass --resolution {fits} or less (or at most --children-per-epoch "
+                f"{children} at this resolution)"
+            )
+        raise WaldoError(
+            f"--children-per-epoch {config.children_per_epoch}: {views}; at most --children-per-epoch {children} "
+            "at this resolution"
+        )
 
 
 def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, config: ExploreConfig, objective, progress):

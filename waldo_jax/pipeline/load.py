@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -27,6 +27,7 @@ def load_source(
     up: Optional[np.ndarray] = None,
     orbit: Optional[str] = None,
     images: bool = True,
+    check: Optional[Callable[[int, int, int], None]] = None,
 ) -> Source:
     """The Source of a SOURCE string: `procedural[:SEED]`, a NeRF run directory, or a splat scene
     (a `.ply`, a reference 3DGS folder or a splat run; `waldo_jax.pipeline.splat_sources`).
@@ -36,7 +37,9 @@ def load_source(
     `cameras` (a transforms.json-like poses file, a COLMAP model or a nerfstudio run) gives a splat
     scene its training poses; `up` and `orbit` place the ring of views of a splat scene without cameras
     (`splat_source`). `images=False` leaves a run's or a splat scene's training images out (None), for
-    callers that only render.
+    callers that only render. `check(width, height, n_train)` is called with the renders' size and the
+    training views' count before any image is rendered or read (`experiment.epoch_check`: a size the
+    search cannot hold is refused before the source's own work).
 
     Raises:
       SourceError: a bad spec, a missing run directory, a bad checkpoint, `views` with a run,
@@ -49,9 +52,9 @@ def load_source(
     if (up is not None or orbit is not None) and not splat:
         raise SourceError(f"--up/--orbit place the ring of views of a splat scene without cameras; {spec} has its own")
     if seed is not None:
-        return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views)
+        return procedural_source(seed, resolution, DEFAULT_PROCEDURAL_VIEWS if views is None else views, check=check)
     if views is not None:
         raise SourceError(f"--views is for procedural sources; {spec} explores from the views it was trained on")
     if splat:
-        return splat_source(spec, resolution, cameras, up=up, orbit=orbit, images=images)
-    return run_source(spec, resolution, images=images)
+        return splat_source(spec, resolution, cameras, up=up, orbit=orbit, images=images, check=check)
+    return run_source(spec, resolution, images=images, check=check)

@@ -271,14 +271,18 @@ def procedural_source(
     views: int = DEFAULT_PROCEDURAL_VIEWS,
     scene: Optional[Scene] = None,
     room=None,
+    check: Optional[Callable[[int, int, int], None]] = None,
 ) -> Source:
     """The procedural room `seed` with `views` training views at resolution x resolution.
 
-    `scene` and `room` (from `waldo_jax.procedural.room_scene`) skip building them again.
+    `scene` and `room` (from `waldo_jax.procedural.room_scene`) skip building them again; `check` is
+    `load_source`'s, called before the training views are rendered.
     """
     resolution = DEFAULT_PROCEDURAL_RESOLUTION if resolution is None else int(resolution)
     check_resolution(resolution)
     check_views(views)
+    if check is not None:
+        check(resolution, resolution, views)
     if scene is None or room is None:
         try:
             scene, room = room_scene(seed, num_views=views, resolution=resolution, num_samples=_ROOM_SAMPLES)
@@ -371,7 +375,12 @@ def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarr
     return resize_images(images, intrinsics.width, intrinsics.height), ""
 
 
-def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = True) -> Source:
+def run_source(
+    run_dir: str,
+    resolution: Optional[int] = None,
+    images: bool = True,
+    check: Optional[Callable[[int, int, int], None]] = None,
+) -> Source:
     """A trained run directory (`waldo train` / `waldo demo` output) as a Source.
 
     Args:
@@ -379,6 +388,7 @@ def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = Tr
       resolution: longer side of the renders in pixels (default: the training images' size, at most
         `RUN_RESOLUTION`).
       images: read (or, for the procedural room, render) the training images; False leaves them None.
+      check: `load_source`'s, called with the renders' size before any image is read or rendered.
     """
     run = Path(run_dir)
     if not run.is_dir():
@@ -394,6 +404,8 @@ def run_source(run_dir: str, resolution: Optional[int] = None, images: bool = Tr
         intrinsics = intrinsics.with_max_side(int(resolution))
     elif max(intrinsics.width, intrinsics.height) > RUN_RESOLUTION:
         intrinsics = intrinsics.with_max_side(RUN_RESOLUTION)
+    if check is not None:
+        check(intrinsics.width, intrinsics.height, len(record.c2w))
     field = TrainedField.from_checkpoint(checkpoint)
     info = {
         "run_dir": str(run.resolve()),

@@ -27,7 +27,7 @@ import functools
 import math
 import warnings
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -340,6 +340,7 @@ def splat_source(
     images: bool = True,
     up: Optional[np.ndarray] = None,
     orbit: Optional[str] = None,
+    check: Optional[Callable[[int, int, int], None]] = None,
 ):
     """A splat scene (`.ply`, reference-layout folder or splat run) as a `Source`.
 
@@ -352,6 +353,7 @@ def splat_source(
       images: read (or, without photos, render) the training views' images; False leaves them None.
       up: the scene's up [3] for a ring of views (`--up`; default: `splat_upright` decides).
       orbit: "object", "surround" or "auto"/None (`--orbit`): orbit the splats or stand inside them.
+      check: `load_source`'s, called with the renders' size and the views' count before any render.
 
     Raises:
       WaldoError (SceneFormatError, SourceError, ...): the file or folder cannot be read, or `up`/`orbit`
@@ -409,6 +411,8 @@ def splat_source(
         info["ring"] = ring
     side = min(max(intrinsics.width, intrinsics.height), SPLAT_RESOLUTION) if resolution is None else resolution
     intrinsics = intrinsics.with_max_side(int(side))
+    if check is not None:
+        check(intrinsics.width, intrinsics.height, len(c2w))
     background = np.asarray(record.get("background", config.background) if record else config.background, np.float32)
     config = SplatRenderConfig(**{**config.__dict__, "background": tuple(float(v) for v in background)})
     max_pairs = calibrate_max_pairs(splats, c2w, intrinsics, config)
