@@ -179,7 +179,7 @@ def test_one_seed_that_cannot_fit_is_told_the_resolution_that_would(monkeypatch)
         experiment.check_epoch_memory(source(64), many, 1)
 
 
-@pytest.mark.parametrize("kind", ["procedural", "splats"])
+@pytest.mark.parametrize("kind", ["procedural", "splats", "path"])
 def test_a_size_the_epoch_cannot_hold_is_refused_before_the_source_renders(kind, tmp_path, capsys, monkeypatch):
     """--resolution 4096: the room rendered its 24 training views (the splats their calibration views) at
     that size for minutes before the epoch's memory check refused it; the check now comes first."""
@@ -192,12 +192,16 @@ def test_a_size_the_epoch_cannot_hold_is_refused_before_the_source_renders(kind,
     monkeypatch.setattr(sources, "room_scene", never)
     monkeypatch.setattr(splat_sources, "calibrate_max_pairs", never)
     monkeypatch.setattr(experiment, "memory_bytes", lambda: 4 << 30)
+    import waldo_jax.pipeline.path_run as path_run
+
+    monkeypatch.setattr(path_run, "memory_bytes", lambda: 4 << 30)
     spec = "procedural"
     if kind == "splats":
         spec = str(tmp_path / "tiny.ply")
         write_splat_ply(spec, _tiny_splats())
-    argv = ["explore", spec, "--resolution", "4096", "--out", str(tmp_path / "new"), "--quiet"]
-    _cli_refuses(argv, "--resolution 4096: one epoch renders 1 x", capsys, tmp_path)
+    command, expected = ("path", "one path's 24 frames of 4096x4096") if kind == "path" else ("explore", "one epoch")
+    argv = [command, spec, "--resolution", "4096", "--out", str(tmp_path / "new"), "--quiet"]
+    _cli_refuses(argv, f"--resolution 4096: {expected}", capsys, tmp_path)
 
 
 @pytest.mark.slow

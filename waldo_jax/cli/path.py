@@ -32,6 +32,7 @@ from waldo_jax.pipeline import INITIAL_MODES, load_source
 from waldo_jax.pipeline.path_run import (
     PathRunOptions,
     check_nerfstudio_export,
+    path_check,
     read_explore_anchors,
     run_path,
     write_path_outputs,
@@ -218,7 +219,8 @@ def cmd_path(args: argparse.Namespace) -> int:
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     with Progress(args.quiet) as progress:  # phases on a terminal's stderr: loading, compiling, searching...
         progress.phase(f"loading {args.source}")
-        source = load_source(args.source, args.resolution, args.views, **splat_pose_options(args))
+        check = path_check(config, args.seeds)  # refused before the source renders its training views
+        source = load_source(args.source, args.resolution, args.views, check=check, **splat_pose_options(args))
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
         video = (
             source

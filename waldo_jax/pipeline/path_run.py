@@ -15,6 +15,7 @@ criterion, its direction and range.
 from __future__ import annotations
 
 import dataclasses
+import math
 import textwrap
 import time
 import warnings
@@ -30,7 +31,7 @@ from waldo_jax.scenes.camera_paths import NgpFrame, instant_ngp_camera_path, ner
 from waldo_jax.search.path import PathLimits, path_c2w, straight_path
 from waldo_jax.search.path_search import PathConfig, aggregate_scores, search_path, search_path_seeds
 from waldo_jax.criteria import Criterion
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MIN_RESOLUTION, WaldoError
 from waldo_jax.pipeline.experiment import (
     EPOCH_BYTES_PER_PIXEL,
     initial_scores,
@@ -54,6 +55,7 @@ __all__ = [
     "paths_per_call",
     "evaluate_path",
     "check_nerfstudio_export",
+    "path_check",
     "gif_frame_ms",
 ]
 
@@ -74,8 +76,43 @@ def frame_function(source: Source, criterion: Criterion) -> jax.tree_util.Partia
 
 def paths_per_call(source: Source, config: PathConfig) -> int:
     """Paths scored per vectorised call so that one call's frames fit in memory (`EPOCH_BYTES_PER_PIXEL`)."""
-    per_path = config.frames * source.intrinsics.width * source.intrinsics.height * EPOCH_BYTES_PER_PIXEL
+    return _paths_fitting(source.intrinsics.width, source.intrinsics.height, config)
+
+
+def _paths_fitting(width: int, height: int, config: PathConfig) -> int:
+    per_path = config.frames * width * height * EPOCH_BYTES_PER_PIXEL
     return int(memory_bytes() // max(per_path, 1))
+
+
+def _check_path_pixels(width: int, height: int, config: PathConfig, seeds: int) -> int:
+    """The paths that fit one call (`paths_per_call`), refused when fewer than `seeds`."""
+    fits = _paths_fitting(width, height, config)
+    if fits < 1:  # not even one path: the size is the input to change
+        per_path = config.frames * width * height * EPOCH_BYTES_PER_PIXEL
+        side = int(max(width, height) * math.sqrt(memory_bytes() / per_path))
+        raise WaldoError(
+            f"--resolution {max(width, height)}: one path's {config.frames} frames of {width}x{height} take about "
+            f"{per_path / 2**30:,.1f} GiB at once, more than the {memory_bytes() / 2**30:.1f} GiB at hand; pass "
+            + (f"--resolution {side} or less, or fewer --frames" if side >= MIN_RESOLUTION else "fewer --frames")
+        )
+    if fits < seeds:
+        raise WaldoError(
+            f"--seeds {seeds}: one path's {config.frames} frames of {width}x{height} for every seed at once do not "
+            f"fit in memory here; at most --seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)"
+        )
+    return fits
+
+
+def path_check(config: PathConfig, seeds: int) -> Callable[[int, int, int], None]:
+    """`run_path`'s memory check for a source not loaded yet (`load_source(..., check=)`): called with the
+    renders' size before the source renders or reads its training views."""
+
+    def check(width: int, height: int, n_train: int) -> None:
+        del n_train
+        if config.paths_per_call is None and isinstance(seeds, int) and seeds >= 1:
+            _check_path_pixels(width, height, config.resolve(), seeds)
+
+    return check
 
 
 def read_explore_anchors(run_dir: str) -> np.ndarray:
@@ -213,13 +250,8 @@ def run_path(
     if seeds < 1:
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
     if config.paths_per_call is None:
-        fits = paths_per_call(source, config)  # paths of all seeds at once: the seeds are vmapped
-        if fits < seeds:
-            raise WaldoError(
-                f"--seeds {seeds}: one path's {config.frames} frames of {source.intrinsics.width}x"
-                f"{source.intrinsics.height} for every seed at once do not fit in memory here; at most "
-                f"--seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)"
-            )
+        # paths of all seeds at once: the seeds are vmapped
+        fits = _check_path_pixels(source.intrinsics.width, source.intrinsics.height, config, seeds)
         config = dataclasses.replace(
             config, paths_per_call=min(fits // seeds, max(config.paths_per_epoch, config.initial_paths))
         )
