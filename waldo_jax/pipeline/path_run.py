@@ -109,8 +109,13 @@ def path_check(config: PathConfig, seeds: int) -> Callable[[int, int, int], None
 
     def check(width: int, height: int, n_train: int) -> None:
         del n_train
-        if config.paths_per_call is None and isinstance(seeds, int) and seeds >= 1:
-            _check_path_pixels(width, height, config.resolve(), seeds)
+        if config.paths_per_call is not None or not isinstance(seeds, int) or seeds < 1:
+            return  # a given size per call, or seeds `run_path` refuses with its own message
+        try:
+            resolved = config.resolve()
+        except ValueError:
+            return  # settings `run_path` refuses with its own message
+        _check_path_pixels(width, height, resolved, seeds)
 
     return check
 
