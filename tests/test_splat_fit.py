@@ -56,6 +56,7 @@ def test_the_refusal_names_the_image_size_and_the_memory(lego, monkeypatch):
     assert not called  # nothing made before the check
 
 
+@pytest.mark.slow
 def test_a_large_step_is_timed_and_the_blocks_still_end_on_densifications(lego, monkeypatch):
     lines = []
     plain = _fit(lego, log=lines.append)
@@ -72,6 +73,7 @@ def test_a_large_step_is_timed_and_the_blocks_still_end_on_densifications(lego, 
     assert abs(timed.history[-1]["loss"] - plain.history[-1]["loss"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_a_max_pairs_that_would_not_fit_is_capped_and_counted(lego, monkeypatch):
     calls = []
     measured = fit._max_pairs
