@@ -2,7 +2,7 @@
 mutation probability against the dense exact search, on rooms other than the eight of the reachable
 table (so that the table's rooms are not tuned on).
 
-For each room (built as `waldo demo` builds it, `room_reachable.room_rows` does the same), the reachable
+For each room (built as `waldo demo` builds it: `room_reachable.demo_room`), the reachable
 best visible share (`paper_cells.reachable_visibility`) and, per EGPS setting, K seeds at the low budget
 (one vmapped call, the same scored training views): each seed's best visible share and whether it is
 within `--tolerance` of the reachable best. A setting is `rank_bias/nabla_scale/move_probability`, the
@@ -27,10 +27,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
-from paper_cells import reachable_visibility  # noqa: E402
-from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
-from waldo_jax.pipeline import initial_scores, procedural_source, score_function, seed_keys  # noqa: E402
-from waldo_jax.pipeline.demo import SETTINGS, room_scenes  # noqa: E402
+from room_reachable import add_room_arguments, demo_room  # noqa: E402
+from waldo_jax.pipeline import initial_scores, score_function, seed_keys  # noqa: E402
 from waldo_jax.search import ExploreConfig, Initial, egps, explore_seeds  # noqa: E402
 
 PAPER = "1/0.1/0.1"
@@ -47,11 +45,7 @@ def parse_setting(text: str) -> egps.Params:
 
 
 def room_rows(seed: int, args) -> list:
-    settings = SETTINGS["full"]
-    scene, room, _ = room_scenes(seed, settings)
-    source = procedural_source(seed, settings.resolution, settings.views, scene=scene, room=room)
-    reach = reachable_visibility(source, args.samples, 0.9)
-    criterion = make_criterion("waldo_visible", CriterionContext(room=room, source=source.spec))
+    source, criterion, reach = demo_room(seed, args.samples)
     scores, _ = initial_scores(source, criterion, "images")
     initial = Initial(c2w=source.train_c2w, scores=scores)
     score_fn = score_function(source, criterion)
@@ -88,11 +82,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rooms", default="8,9,10,11", help="room seeds (not the reachable table's 0-7)")
     parser.add_argument("--settings", default=";".join(DEFAULT_SETTINGS), help="';'-separated")
-    parser.add_argument("--seeds", type=int, default=8)
-    parser.add_argument("--samples", type=int, default=32768, help="camera centres of the dense search")
-    parser.add_argument("--tolerance", type=float, default=0.03)
-    parser.add_argument("--load-threshold", type=float, default=1.0)
-    parser.add_argument("--out", default=None)
+    add_room_arguments(parser)
     args = parser.parse_args(argv)
     refuse_existing_out(args.out)
     quiet = wait_for_quiet(args.load_threshold)

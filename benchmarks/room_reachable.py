@@ -33,12 +33,27 @@ from waldo_jax.search import ExploreConfig  # noqa: E402
 METHODS = ("grs", "pibs", "egps", "map-elites")
 
 
-def room_rows(seed: int, args) -> list:
+def demo_room(seed: int, samples: int):
+    """(source, criterion `waldo_visible`, the reachable best of `samples` centres) of room `seed` as
+    `waldo demo` builds it (also `egps_settings.py`'s)."""
     settings = SETTINGS["full"]
     scene, room, _ = room_scenes(seed, settings)
     source = procedural_source(seed, settings.resolution, settings.views, scene=scene, room=room)
-    reach = reachable_visibility(source, args.samples, 0.9)
     criterion = make_criterion("waldo_visible", CriterionContext(room=room, source=source.spec))
+    return source, criterion, reachable_visibility(source, samples, 0.9)
+
+
+def add_room_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags this script and `egps_settings.py` share: seeds, dense samples, tolerance, load, output."""
+    parser.add_argument("--seeds", type=int, default=8)
+    parser.add_argument("--samples", type=int, default=32768, help="camera centres of the dense search")
+    parser.add_argument("--tolerance", type=float, default=0.03)
+    parser.add_argument("--load-threshold", type=float, default=1.0)
+    parser.add_argument("--out", default=None)
+
+
+def room_rows(seed: int, args) -> list:
+    source, criterion, reach = demo_room(seed, args.samples)
     rows = []
     for method in args.methods.split(","):
         run = run_explore(source, criterion, ExploreConfig(method=method, budget="low"), seed=0, seeds=args.seeds)
@@ -83,11 +98,7 @@ def main(argv=None) -> None:
     others = ",".join(str(seed) for seed in range(8) if seed != DEMO_ROOM_SEED)
     parser.add_argument("--rooms", default=f"{DEMO_ROOM_SEED},{others}", help="room seeds, the demo's first")
     parser.add_argument("--methods", default=",".join(METHODS))
-    parser.add_argument("--seeds", type=int, default=8)
-    parser.add_argument("--samples", type=int, default=32768, help="camera centres of the dense search")
-    parser.add_argument("--tolerance", type=float, default=0.03)
-    parser.add_argument("--load-threshold", type=float, default=1.0)
-    parser.add_argument("--out", default=None)
+    add_room_arguments(parser)
     args = parser.parse_args(argv)
     refuse_existing_out(args.out)
     quiet = wait_for_quiet(args.load_threshold)
