@@ -22,7 +22,16 @@ from waldo_jax.nerf.train import EVAL_MAX_PIXELS, HeldOut, TrainResult, evaluate
 from waldo_jax.scenes import load_splits
 from waldo_jax.types import RunOptions, Scene
 
-__all__ = ["TRAIN_JSON", "SAMPLER_CHOICES", "Sampling", "load_splits", "train_stats", "train_run", "train_scene_run"]
+__all__ = [
+    "TRAIN_JSON",
+    "SAMPLER_CHOICES",
+    "Sampling",
+    "load_splits",
+    "train_stats",
+    "train_run",
+    "evaluate_run",
+    "train_scene_run",
+]
 
 TRAIN_JSON = "train.json"
 SAMPLER_CHOICES = ("auto",) + SAMPLERS  # auto = occupancy
@@ -126,11 +135,37 @@ def train_run(
     )
     stats = _save_run(out, result, scene, seed, scene_path)
     if test_scene is not None:  # the trained field is on disk first: an interrupted evaluation loses no training
-        if io.keep_output_dir(out) and progress:
-            print(f"wrote {out / CHECKPOINT_NAME} (kept if the evaluation is interrupted)", flush=True)
-        result = evaluate_held_out(result, test_scene, eval_max_pixels, progress)
-        stats = _save_run(out, result, scene, seed, scene_path)
+        result, stats = evaluate_run(result, (scene, test_scene), out, seed, scene_path, eval_max_pixels, progress)
     return result, stats
+
+
+def evaluate_run(
+    result: TrainResult,
+    scenes: Tuple[Scene, Scene],
+    out: Path,
+    seed: int,
+    scene_path: Optional[str] = None,
+    eval_max_pixels: Optional[int] = EVAL_MAX_PIXELS,
+    progress: bool = True,
+) -> Tuple[TrainResult, Dict[str, Any]]:
+    """`train_run`'s second half, for a run trained by `train_run` without a test scene: the held-out
+    evaluation (`evaluate_held_out`), then OUT/checkpoint.ckpt and OUT/train.json written again with it.
+    When `out` is a command's own output folder it is kept from then on (`io.keep_output_dir`).
+
+    Args:
+      result: the run's `TrainResult`.
+      scenes: (the training scene, the held-out views).
+      out, seed, scene_path, eval_max_pixels, progress: as `train_run`.
+
+    Returns:
+      (the evaluated `TrainResult`, the train.json contents).
+    """
+    scene, test_scene = scenes
+    out = Path(out)
+    if io.keep_output_dir(out) and progress:
+        print(f"wrote {out / CHECKPOINT_NAME} (kept if the evaluation is interrupted)", flush=True)
+    result = evaluate_held_out(result, test_scene, eval_max_pixels, progress)
+    return result, _save_run(out, result, scene, seed, scene_path)
 
 
 def _save_run(out: Path, result: TrainResult, scene: Scene, seed: int, scene_path: Optional[str]) -> Dict[str, Any]:

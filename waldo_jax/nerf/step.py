@@ -31,6 +31,7 @@ __all__ = [
     "TrainData",
     "TrainInputs",
     "TrainState",
+    "chunk_end",
     "chunk_fn",
     "first_rays",
     "init_train_state",
@@ -295,37 +296,50 @@ def make_occupancy_update(config: TrainConfig, warmup: bool) -> Callable:
     return update
 
 
-def _periods(config: TrainConfig, warmup: bool) -> int:
-    """Periods of `occupancy_update_every` steps in a chunk: the warm-up chunk spans the warm-up."""
-    every = config.occupancy_update_every
-    if warmup:
-        return max(1, -(-config.occupancy_warmup // every))
-    return max(1, round(config.chunk / every))
+def _periods(config: TrainConfig) -> int:
+    """Periods of `occupancy_update_every` steps in a chunk program (`config.chunk` steps, rounded)."""
+    return max(1, round(config.chunk / config.occupancy_update_every))
 
 
 def warmup_steps(config: TrainConfig) -> int:
-    """Steps of the warm-up chunk (0 when there is no warm-up): `occupancy_warmup` rounded up to whole periods."""
-    return _periods(config, True) * config.occupancy_update_every if config.occupancy_warmup > 0 else 0
+    """Steps of the warm-up (0 when there is none): `occupancy_warmup` rounded up to whole periods. Every
+    occupancy update before this step samples every cell; the rays marched stay those of the first chunk."""
+    if config.occupancy_warmup <= 0:
+        return 0
+    every = config.occupancy_update_every
+    return max(1, -(-config.occupancy_warmup // every)) * every
 
 
-def _select(active: Array, new, old):
-    """`new` where `active`, else `old`, leaf by leaf (a select, not a branch: no host sync)."""
-    return jax.tree.map(lambda a, b: jnp.where(active, a, b), new, old)
+def chunk_end(config: TrainConfig, done: int) -> int:
+    """The step at which the chunk starting at step `done` ends: a chunk program's periods, cut at the end
+    of the warm-up (the rays marched are chosen again only after it) and at `config.steps`."""
+    end = done + _periods(config) * config.occupancy_update_every
+    warm = warmup_steps(config)
+    if done < warm:
+        end = min(end, warm)
+    return min(end, config.steps)
 
 
 @functools.lru_cache(maxsize=None)
-def chunk_fn(config: TrainConfig, rays_per_batch: int, warmup: bool) -> Callable:
+def chunk_fn(config: TrainConfig, rays_per_batch: int) -> Callable:
     """A chunk of periods (update, then `occupancy_update_every` steps) in one jitted `lax.scan`
-    (cached per config, R and phase; the state is donated).
+    (cached per config and R; the state is donated).
+
+    One program serves every chunk of a run at that R, the warm-up's included: a period's update samples
+    every cell while `state.step < warmup_steps(config)` (a `lax.cond`, once a period), and the steps
+    from `end_step` on are skipped by a `lax.cond` (not computed and discarded), so a short chunk (the
+    last, or the warm-up's tail) costs only its own steps. On a GPU each `lax.cond` reads its predicate
+    on the host, once a step: as the scan's own loop test does.
 
     Returns:
-      chunk(state, train_key, data, hparams, render_config, total_steps) -> (state, metrics), as
-      `run_chunk` (hparams as arrays, total_steps int32 []).
+      chunk(state, train_key, data, hparams, render_config, end_step) -> (state, metrics), as
+      `run_chunk` (hparams as arrays, end_step int32 []).
     """
     step = make_train_step(config, rays_per_batch)
-    update = make_occupancy_update(config, warmup)
+    updates = (make_occupancy_update(config, False), make_occupancy_update(config, True))
+    warm = warmup_steps(config)
 
-    def chunk(state, train_key, data, hparams, render_config, total_steps):
+    def chunk(state, train_key, data, hparams, render_config, end_step):
         skipped = {
             "loss": jnp.float32(jnp.nan),
             "psnr": jnp.float32(jnp.nan),
@@ -335,15 +349,21 @@ def chunk_fn(config: TrainConfig, rays_per_batch: int, warmup: bool) -> Callable
         }
 
         def one_step(state, _):
-            new_state, metrics = step(state, train_key, data, hparams, render_config)
-            active = state.step < total_steps
-            return _select(active, new_state, state), _select(active, metrics, skipped)
+            return jax.lax.cond(
+                state.step < end_step,
+                lambda s: step(s, train_key, data, hparams, render_config),
+                lambda s: (s, skipped),
+                state,
+            )
+
+        def update(state):
+            return jax.lax.cond(state.step < warm, updates[1], updates[0], state, train_key)
 
         def period(state, _):
-            state = _select(state.step < total_steps, update(state, train_key), state)
+            state = jax.lax.cond(state.step < end_step, update, lambda s: s, state)
             return jax.lax.scan(one_step, state, None, length=config.occupancy_update_every)
 
-        state, metrics = jax.lax.scan(period, state, None, length=_periods(config, warmup))
+        state, metrics = jax.lax.scan(period, state, None, length=_periods(config))
         return state, jax.tree.map(lambda m: m.reshape(-1), metrics)
 
     return jax.jit(chunk, donate_argnums=(0,))
@@ -370,27 +390,27 @@ class TrainInputs(NamedTuple):
 def run_chunk(
     inputs: TrainInputs,
     config: TrainConfig,
-    total_steps: int,
+    end_step: int,
     rays_per_batch: Optional[int] = None,
-    warmup: bool = False,
 ) -> Tuple[TrainState, Dict]:
-    """Runs one chunk of whole periods (those steps with step >= total_steps are discarded) in one jitted scan.
+    """Runs one chunk program from `inputs.state` (its steps from `end_step` on are skipped) in one jitted scan.
 
     The input state (`inputs.state`) must start a period (`state.step` a multiple of
-    `occupancy_update_every`); its buffers are donated: do not use it afterwards.
+    `occupancy_update_every`); its buffers are donated: do not use it afterwards. `train` ends each
+    chunk at `chunk_end(config, step)`.
 
     Returns:
-      (state, metrics) with metrics {"loss", "psnr"} float32 [steps] (NaN for discarded steps) and
-      {"rays", "samples", "rows"} int32 [steps] (0 for discarded steps).
+      (state, metrics) with metrics {"loss", "psnr"} float32 [steps] (NaN for skipped steps) and
+      {"rays", "samples", "rows"} int32 [steps] (0 for skipped steps).
     """
     rays = config.rays_per_batch if rays_per_batch is None else int(rays_per_batch)
-    return chunk_fn(config, rays, bool(warmup))(
+    return chunk_fn(config, rays)(
         inputs.state,
         inputs.train_key,
         inputs.data,
         inputs.hparams.as_arrays(),
         inputs.render_config,
-        jnp.int32(total_steps),
+        jnp.int32(end_step),
     )
 
 

@@ -22,6 +22,7 @@ from waldo_jax.nerf.step import (
     TrainData,
     TrainInputs,
     TrainState,
+    chunk_end,
     chunk_fn,
     first_rays,
     init_train_state,
@@ -174,11 +175,13 @@ class _Timing:
         return self.all_rays / max(self.train_seconds, 1e-9)  # every chunk compiled
 
 
-def _timed_chunk(program, inputs: TrainInputs, total, timing: _Timing):
-    """Runs one chunk from `inputs.state` (the host sync of the chunk) and times it: (state, metrics on the host)."""
+def _timed_chunk(program, inputs: TrainInputs, end_step: int, timing: _Timing):
+    """Runs one chunk from `inputs.state` up to `end_step` (the host sync of the chunk) and times it:
+    (state, metrics on the host)."""
     programs = program._cache_size()
     start = time.perf_counter()
-    state, metrics = program(inputs.state, inputs.train_key, inputs.data, inputs.hparams, inputs.render_config, total)
+    end = jnp.int32(end_step)
+    state, metrics = program(inputs.state, inputs.train_key, inputs.data, inputs.hparams, inputs.render_config, end)
     metrics = jax.device_get(metrics)  # the host sync of this chunk
     elapsed = time.perf_counter() - start
     timing.add(elapsed, int(np.sum(metrics["rays"])), compiled=program._cache_size() > programs)
@@ -234,14 +237,13 @@ def _train_chunks(
 
     history: List[Dict[str, Any]] = []
     timing = _Timing()
-    total = jnp.int32(config.steps)
     rays = first_rays(config)
     done, stopped = 0, False
     bar = tqdm(total=config.steps, disable=not progress, unit="step", dynamic_ncols=True)
     try:
         while done < config.steps:
-            warmup = done == 0 and warmup_steps(config) > 0
-            state, metrics = _timed_chunk(chunk_fn(config, rays, warmup), inputs, total, timing)
+            warmup = done < warmup_steps(config)
+            state, metrics = _timed_chunk(chunk_fn(config, rays), inputs, chunk_end(config, done), timing)
             inputs = inputs._replace(state=state)
             taken = int(np.sum(np.isfinite(metrics["loss"])))
             done += taken
@@ -249,7 +251,8 @@ def _train_chunks(
             history.append(entry)
             bar.update(taken)
             bar.set_postfix(loss=f"{entry['loss']:.4g}", psnr=f"{entry['psnr']:.2f}", rays=rays)
-            rays = next_rays(config, metrics, rays)
+            if done >= warmup_steps(config):  # R stays the first chunk's through the warm-up
+                rays = next_rays(config, metrics, rays)
             if test_scene is not None and _evaluates_after(config, done, taken):
                 psnr = evaluate(state.params, state.sampler_state, config, test_scene)["psnr"]
                 history.append({"step": done, "seconds": timing.train_seconds, "psnr_test": psnr})

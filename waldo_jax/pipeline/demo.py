@@ -22,6 +22,7 @@ room"), and of the others room 6's NeRF renders him best where the searches find
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import datetime
 import functools
@@ -39,9 +40,9 @@ from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.errors import WaldoError
 from waldo_jax.metrics import image_psnr, masked_psnr
 from waldo_jax.nerf.config import TrainConfig
-from waldo_jax.nerf.runs import train_run
+from waldo_jax.nerf.runs import evaluate_run, train_run
 from waldo_jax.nerf.trained import TrainedField
-from waldo_jax.pipeline.experiment import run_explore
+from waldo_jax.pipeline.experiment import prepare_explore, run_prepared
 from waldo_jax.pipeline.figures import criterion_caption, methods_sheet
 from waldo_jax.pipeline.outputs import write_outputs
 from waldo_jax.pipeline.sources import NERF_GRADIENT, Source, field_renderer, render_in, room_renderer
@@ -208,8 +209,11 @@ def room_train_config(scene: Scene, settings: DemoSettings) -> TrainConfig:
     return config.replace(field=dataclasses.replace(config.field, hashgrid=hashgrid))
 
 
-def train_room_nerf(scene: Scene, test_scene: Scene, settings: DemoSettings, seed: int, run_dir: Path, progress: bool):
-    """The room's NeRF (`room_train_config`) trained into the existing folder `run_dir`.
+def train_room_nerf(
+    scene: Scene, test_scene: Optional[Scene], settings: DemoSettings, seed: int, run_dir: Path, progress: bool
+):
+    """The room's NeRF (`room_train_config`) trained into the existing folder `run_dir` (evaluated on
+    `test_scene`; None: not evaluated, see `waldo_jax.nerf.runs.evaluate_run`).
 
     Returns:
       (the `TrainResult`, its train.json contents), as `waldo_jax.nerf.runs.train_run`.
@@ -436,34 +440,71 @@ def _method_stats(run, results: Dict[str, Any], source: Source):
     }, (nerf, truth)
 
 
-def _run_methods(out: Path, source: Source, criteria, settings: DemoSettings, seed: int, say):
-    """GRS, PIBS and EGPS at the low budget by the exact criterion, then EGPS on the NeRF's renders by the
-    finder (`RENDERS_KEY`), `settings.seeds` seeds each, written to out/<key>/: (runs, stats, close-ups)
-    by key. `criteria`: (the exact criterion, the finder)."""
+def _method_rows(exact, finder):
+    """(key, method, criterion, scores renders) of the demo's searches: GRS, PIBS and EGPS at the low budget
+    by the exact criterion, then EGPS on the NeRF's renders by the finder (`RENDERS_KEY`) when there is one."""
+    rows = [(m, m, exact, False) for m in METHOD_ORDER]
+    return rows + ([(RENDERS_KEY, RENDERS_METHOD, finder, True)] if finder else [])
+
+
+def _run_methods(out: Path, source: Source, prepared, rows, settings: DemoSettings, seed: int, say):
+    """The searches of `rows` (`_method_rows`), `settings.seeds` seeds each, from their preparations
+    (`_Preparing`'s futures, in the same order), written to out/<key>/: (runs, stats, close-ups) by key."""
     runs, methods, closeups = {}, {}, {}
-    exact, finder = criteria
-    rows = [(m, m, exact) for m in METHOD_ORDER] + ([(RENDERS_KEY, RENDERS_METHOD, finder)] if finder else [])
-    for key, method, criterion in rows:
-        what = "" if criterion is exact else f" on the NeRF's renders ({criterion.name} finder)"
+    for (key, method, criterion, on_renders), ready in zip(rows, prepared):
+        what = f" on the NeRF's renders ({criterion.name} finder)" if on_renders else ""
         say(f"[demo] {method.upper()}{what}: {settings.seeds} seeds at the low budget ...", flush=True)
-        explore_config = ExploreConfig(method=method, budget="low", min_separation=settings.min_separation)
-        run = run_explore(source, criterion, explore_config, seed=seed, seeds=settings.seeds)
-        (out / key).mkdir()
-        results = write_outputs(run, out / key, title=f"{method.upper()} on procedural:{seed}, {criterion.name}")
-        methods[key], closeups[key] = _method_stats(run, results, source)
-        methods[key]["scores_renders"] = criterion is finder
-        methods[key]["criterion"] = criterion.name
+        run = run_prepared(ready.result()._replace(source=source))
+        title = f"{method.upper()} on procedural:{seed}, {criterion.name}"
+        runs[key], methods[key], closeups[key] = _method_outputs(out, key, run, source, on_renders, title)
         m = methods[key]
-        runs[key] = run
         say(
             f"[demo] {method.upper()}{what}: CVIR {m['cvir_mean']:.0f} ± {m['cvir_std']:.0f} %, "
-            f"mCVIR {m['mcvir_mean']:.0f} ± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible in "
-            "the best views "
+            f"mCVIR {m['mcvir_mean']:.0f} ± {m['mcvir_std']:.0f} %; Waldo {m['best_visible_mean']:.0%} visible "
+            "in the best views "
             f"({m['found_seeds']}/{settings.seeds} found), NeRF {m['best_psnr_mean']:.1f} dB there, "
             f"{m['closeup_psnr_mean']:.1f} dB on Waldo's close-up",
             flush=True,
         )
     return runs, methods, closeups
+
+
+class _Preparing:
+    """The methods' searches prepared (`prepare_explore`: checks, the training views' scores, the compile)
+    on threads, all at once: their compiles, each on one core, overlap one another and the searches that
+    run meanwhile (the quick demo's three took 9 s one after another on the 2-core CPU). A context
+    manager: on leaving it (Ctrl-C included) the preparations not started are cancelled."""
+
+    def __init__(self, source: Source, rows, settings: DemoSettings, seed: int):
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(rows), thread_name_prefix="prepare")
+        self._futures = [
+            self._pool.submit(
+                prepare_explore,
+                source,
+                criterion,
+                ExploreConfig(method=method, budget="low", min_separation=settings.min_separation),
+                seed,
+                settings.seeds,
+            )
+            for _, method, criterion, _ in rows
+        ]
+
+    def __enter__(self):
+        return self._futures
+
+    def __exit__(self, *exc):
+        self._pool.shutdown(wait=exc[0] is None, cancel_futures=True)
+        return False
+
+
+def _method_outputs(out: Path, key: str, run, source: Source, scores_renders: bool, title: str):
+    """A method's folder out/<key>/ written (`title` its figures'), and its (run, stats, close-ups)."""
+    (out / key).mkdir()
+    results = write_outputs(run, out / key, title=title)
+    stats, closeups = _method_stats(run, results, source)
+    stats["scores_renders"] = scores_renders
+    stats["criterion"] = run.criterion.name
+    return run, stats, closeups
 
 
 def _label(key: str) -> str:
@@ -544,11 +585,13 @@ def run_demo(
     t_scene = time.perf_counter()
     say(f"[demo] training the hash-grid NeRF ({settings.train_steps} steps) ...", flush=True)
     (out / "nerf").mkdir()
-    trained, stats = train_room_nerf(scene, test_scene, settings, seed, out / "nerf", progress)
-    stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
-    t_train = time.perf_counter()
-
-    source = nerf_source(out / "nerf", seed, scene, room, TrainedField.from_result(trained, scene), stats["psnr_test"])
+    # With the render step given, the held-out evaluation leaves the field as it is: it runs while the
+    # searches are prepared (`_Preparing`), their compiles and its own side by side. A calibrated step
+    # (render_step_scale None) changes the field's renders: the evaluation comes first.
+    calibrated = settings.render_step_scale is None
+    trained, stats = train_room_nerf(scene, test_scene if calibrated else None, settings, seed, out / "nerf", progress)
+    field = TrainedField.from_result(trained, scene)
+    source = nerf_source(out / "nerf", seed, scene, room, field, stats.get("psnr_test"))
     context = CriterionContext(room=room, source=source.spec, train_c2w=source.train_c2w)
     criterion = make_criterion(settings.criterion, context)
     finder = None
@@ -556,7 +599,14 @@ def run_demo(
         reference = waldo_reference(room)
         io.save_png(out / "waldo_reference.png", reference)
         finder = make_criterion(RENDERS_CRITERION, dataclasses.replace(context, target=reference))
-    runs, methods, closeups = _run_methods(out, source, (criterion, finder), settings, seed, say)
+    rows = _method_rows(criterion, finder)
+    with _Preparing(source, rows, settings, seed) as prepared:
+        if not calibrated:
+            trained, stats = evaluate_run(trained, (scene, test_scene), out / "nerf", seed, progress=progress)
+            source = dataclasses.replace(source, info={**source.info, "psnr_test": stats["psnr_test"]})
+        stats = {k: v for k, v in stats.items() if k != "history"}  # the loss history stays in nerf/train.json
+        t_train = time.perf_counter()
+        runs, methods, closeups = _run_methods(out, source, prepared, rows, settings, seed, say)
 
     # One sheet like the paper's qualitative figures: training views, then each method's best views (by
     # the exact criterion; the finder's row has its own scores, in egps_on_renders/contact_sheet.png).

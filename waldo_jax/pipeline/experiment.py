@@ -16,7 +16,7 @@ import dataclasses
 import math
 import os
 import time
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -45,7 +45,10 @@ __all__ = [
     "score_function",
     "objective_function",
     "initial_scores",
+    "PreparedSearch",
+    "prepare_explore",
     "run_explore",
+    "run_prepared",
     "seed_keys",
     "generated_slots",
     "check_epoch_memory",
@@ -268,6 +271,75 @@ class ExploreRun:
         return self.results[0]
 
 
+class PreparedSearch(NamedTuple):
+    """A search ready to run (`prepare_explore`): its checks passed and its program compiled.
+
+    Attributes:
+      source, criterion, config: what runs (config resolved).
+      seed, seeds: the first seed and how many.
+      scores: float32 [N] the training views' scores; initial: what they were computed on.
+      start: the search's `Initial`; score_fn, objective: what it calls (objective None unless `+refine`).
+      progress: the per-epoch lines.
+      seconds: wall-clock of the preparation (checks, initial scores, the compile).
+    """
+
+    source: Source
+    criterion: Criterion
+    config: ExploreConfig
+    seed: int
+    seeds: int
+    scores: np.ndarray
+    initial: str
+    start: Initial
+    score_fn: Callable
+    objective: Optional[Callable]
+    progress: bool
+    seconds: float
+
+
+def prepare_explore(
+    source: Source,
+    criterion: Criterion,
+    config: ExploreConfig,
+    seed: int = 0,
+    seeds: int = 1,
+    initial: str = "images",
+    progress: bool = False,
+) -> PreparedSearch:
+    """Everything `run_explore` does before its search runs: the settings resolved and checked, the
+    training views scored, and the search's program compiled (XLA's memory analysis checked against the
+    memory at hand). Arguments as `run_explore`. Pure of side effects but the compile cache, so several
+    can be prepared on threads at once (their compiles then overlap: `waldo demo` does)."""
+    if seeds < 1:
+        raise WaldoError(f"--seeds must be >= 1, got {seeds}")
+    start = time.perf_counter()
+    if get_method(config.method).differentiable:  # the source's renderer sets the gradient mode it allows
+        config = config.with_options(
+            refine=refine_for_source(config.refine_config(), source, criterion, default_cost=False)
+        )
+    config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
+    check_epoch_memory(source, config, seeds)
+    objective = objective_function(source, criterion) if get_method(config.method).differentiable else None
+    scores, initial_used = initial_scores(source, criterion, initial)
+    start_init = Initial(c2w=source.train_c2w, scores=scores)
+    score_fn = score_function(source, criterion)
+    check_search_memory(seed, seeds, score_fn, start_init, config, objective, progress)
+    return PreparedSearch(
+        source,
+        criterion,
+        config,
+        seed,
+        seeds,
+        scores,
+        initial_used,
+        start_init,
+        score_fn,
+        objective,
+        progress,
+        time.perf_counter() - start,
+    )
+
+
 def run_explore(
     source: Source,
     criterion: Criterion,
@@ -291,20 +363,15 @@ def run_explore(
       setup_seconds: time already spent loading the source (reported under seconds.setup).
       progress: print one line per epoch (`explore`'s `progress`).
     """
-    if seeds < 1:
-        raise WaldoError(f"--seeds must be >= 1, got {seeds}")
-    start = time.perf_counter()
-    if get_method(config.method).differentiable:  # the source's renderer sets the gradient mode it allows
-        config = config.with_options(
-            refine=refine_for_source(config.refine_config(), source, criterion, default_cost=False)
-        )
-    config = dataclasses.replace(config, direction=criterion.direction).resolve(source.n_train)
-    check_epoch_memory(source, config, seeds)
-    objective = objective_function(source, criterion) if get_method(config.method).differentiable else None
-    scores, initial_used = initial_scores(source, criterion, initial)
-    start_init = Initial(c2w=source.train_c2w, scores=scores)
-    score_fn = score_function(source, criterion)
-    check_search_memory(seed, seeds, score_fn, start_init, config, objective, progress)
+    return run_prepared(prepare_explore(source, criterion, config, seed, seeds, initial, progress), setup_seconds)
+
+
+def run_prepared(prepared: PreparedSearch, setup_seconds: float = 0.0) -> ExploreRun:
+    """Runs a prepared search (`prepare_explore`) and renders the top-k views: `run_explore`'s second half.
+    Its seconds.search counts the preparation's time and the search's."""
+    source, config, seed, seeds = prepared.source, prepared.config, prepared.seed, prepared.seeds
+    score_fn, start_init, objective, progress = prepared.score_fn, prepared.start, prepared.objective, prepared.progress
+    start = time.perf_counter() - prepared.seconds
     if seeds == 1:
         results = [
             jax.device_get(
@@ -352,12 +419,12 @@ def run_explore(
     }
     return ExploreRun(
         source=source,
-        criterion=criterion,
+        criterion=prepared.criterion,
         config=config,
         seeds=list(range(seed, seed + seeds)),
         results=results,
-        scores_train=scores,
-        initial=initial_used,
+        scores_train=prepared.scores,
+        initial=prepared.initial,
         top_images=top_images,
         top_truth=top_truth,
         seconds=seconds,
