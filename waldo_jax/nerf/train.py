@@ -100,13 +100,13 @@ class TrainResult(NamedTuple):
       occupancy: the occupancy grid (sampler state), or None for the dense sampler.
       history: one dict per chunk {"step", "loss", "psnr", "rays", "samples", "rays_marched", "warmup",
         "seconds"} (means over the chunk's steps of the batch loss, PSNR, rays trained and field
-        evaluations that counted; R, the rays marched per step; whether the chunk was the warm-up;
+        evaluations that counted; R, the rays marched per step; whether the chunk was in the warm-up;
         training wall-clock so far), plus {"step", "seconds", "psnr_test"} for held-out evaluations.
       psnr_test: held-out PSNR (dB) at the end, as the run renders (its `config.render_step_scale`),
         or None without a test scene.
       seconds: wall-clock of the training loop (compilation included, evaluations excluded).
       compile_seconds: wall-clock of the chunks that compiled a program (one per rung of rays marched
-        and per phase; their training time included).
+        (the warm-up's chunks share it); their training time included).
       rays_per_second: rays trained per second in the chunks that did not compile.
       steps: steps taken.
       config: the static configuration, with the calibrated `render_step_scale` (see `train`).
