@@ -8,6 +8,7 @@ import waldo_jax  # noqa: F401  (XLA flags before the first computation)
 
 import jax
 import numpy as np
+import pytest
 
 from waldo_jax.criteria import CriterionContext, make_criterion
 from waldo_jax.pipeline import load_source
@@ -17,6 +18,7 @@ from waldo_jax.search import ExploreConfig
 METHODS = ("grs", "pibs", "egps")
 
 
+@pytest.mark.slow
 def test_searches_prepared_on_threads_equal_run_explore():
     """Three methods prepared side by side on three threads (their compiles overlapping), then run one by
     one, give bit for bit what `run_explore` gives for each, run after them on the main thread."""
