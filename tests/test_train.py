@@ -142,6 +142,29 @@ def test_same_seed_same_params_other_seed_differs(lego_small, sampler):
     assert chunk_fn(config, 128)._cache_size() == 1
 
 
+@pytest.mark.filterwarnings("ignore:Mean of empty slice")
+def test_chunks_count_steps_by_the_state_not_by_finite_losses(lego_small, monkeypatch):
+    """A run whose every loss is NaN (a diverged field) still ends after `config.steps` steps, chunk by
+    chunk: the loop counts the steps the state took (counting finite losses, it never moved on)."""
+    config = _tiny_config(lego_small, "occupancy")
+    real = tr.chunk_fn
+
+    def nan_losses(config, rays):
+        program = real(config, rays)
+
+        def run(*args):
+            state, metrics = program(*args)
+            return state, {**metrics, "loss": jnp.full_like(metrics["loss"], jnp.nan)}
+
+        run._cache_size = program._cache_size
+        return run
+
+    monkeypatch.setattr(tr, "chunk_fn", nan_losses)
+    result = tr.train(jax.random.key(3), lego_small, config, progress=False)
+    assert result.steps == config.steps == 5
+    assert [h["step"] for h in result.history if "loss" in h] == [2, 5]
+
+
 # A warm-up (6 steps) longer than a chunk program's period (3 steps): two chunks in the warm-up.
 _LONG_WARMUP = dict(steps=11, chunk=4, occupancy_update_every=3, occupancy_warmup=4)
 

@@ -245,7 +245,9 @@ def _train_chunks(
             warmup = done < warmup_steps(config)
             state, metrics = _timed_chunk(chunk_fn(config, rays), inputs, chunk_end(config, done), timing)
             inputs = inputs._replace(state=state)
-            taken = int(np.sum(np.isfinite(metrics["loss"])))
+            # The steps taken from the state's own count (a step whose loss is NaN still counts, so the
+            # next chunk starts where this one ended).
+            taken = int(jax.device_get(state.step)) - done
             done += taken
             entry = _chunk_entry(metrics, done, taken, rays, warmup, timing.train_seconds)
             history.append(entry)
