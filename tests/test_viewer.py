@@ -281,7 +281,13 @@ def test_chromium_draws_the_served_page_and_the_export(donut_viewer, donut_explo
     if _chromium() is None:
         pytest.skip("no chromium / chromium-browser on PATH (Debian: apt-get install chromium)")
     viewer, _ = donut_viewer
-    served = _screenshot(viewer.url, tmp_path / "served.png")
+    # The served page gets its scene over viser's websocket in real time, which chromium's virtual time
+    # does not wait for: on a loaded machine a first screenshot can come before the scene (seen once in
+    # CI: 0.3 % drawn). Up to three tries; the exported page holds its scene and is taken once.
+    for attempt in range(3):
+        served = _screenshot(viewer.url, tmp_path / f"served_{attempt}.png")
+        if _drawn_share(served) >= 0.05:
+            break
     out, _ = donut_explore
     target = tmp_path / "donut.html"
     assert main(["view", str(out), "--export", str(target), "--quiet"]) == 0
