@@ -21,7 +21,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -32,14 +32,18 @@ from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.pipeline.load import load_source
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural, room_renderer
-from waldo_jax.procedural import RoomCameraConfig, make_room, room_scene, waldo_visibility_batch
+from waldo_jax.procedural import RoomCameraConfig, make_room, training_cameras, waldo_visibility_batch
 from waldo_jax.types import Intrinsics
 from waldo_jax.scenes import read_poses_file
 
 __all__ = ["add_command", "cmd_render", "MAX_RENDER_POSES", "RENDER_GROUP_PIXELS"]
 
 MAX_RENDER_POSES = 100_000  # one `waldo render` call; its PNG names have at least four digits
-RENDER_GROUP_PIXELS = 2**24  # pixels rendered per call (~200 MB of float32 colour): bounds memory
+# Rays rendered per call (whole views, or strips of rows of a larger view): bounds memory (~20 MB of
+# float32 output a call) and makes the first time estimate come after seconds, not after the whole render.
+RENDER_GROUP_PIXELS = 2**20
+ESTIMATE_EVERY_S = 60.0  # a progress line with the time left at most this often (after the first timed call)
+SHEET_CELL = 256  # the contact sheet's views are box-filtered down to at most this side
 
 
 def add_command(subparsers) -> None:
@@ -169,9 +173,7 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
     progress.say(f"rendering {len(c2w)} views at {intrinsics.width}x{intrinsics.height} ...")
     start = time.perf_counter()
     with progress:
-        _write_groups(
-            lambda poses: renderer(jnp.asarray(poses), intrinsics).rgba[..., :3], c2w, intrinsics, out, names, progress
-        )
+        _write_groups(renderer, c2w, intrinsics, out, names, progress)
     seconds = time.perf_counter() - start
     for path in stale:
         path.unlink()
@@ -183,19 +185,87 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
     return 0
 
 
-def _write_groups(render_group, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names, progress: Progress) -> None:
-    """Renders `c2w` in groups of one size (the last padded by repeating a pose: one compiled program,
-    memory bounded by RENDER_GROUP_PIXELS however many poses) and writes out/names[i]."""
-    group = max(1, min(len(c2w), RENDER_GROUP_PIXELS // (intrinsics.width * intrinsics.height)))
-    progress.phase("rendering (the first group compiles)", total=len(c2w), unit="view")
+def render_calls(count: int, intrinsics: Intrinsics) -> Tuple[int, int]:
+    """How `count` views of `intrinsics` are rendered: (views per call, rows per call). Views of at most
+    RENDER_GROUP_PIXELS pixels go several to a call (rows = the height); a larger view goes a strip of
+    rows at a time (one view a call), so every call has one shape (one compiled program)."""
+    width, height = intrinsics.width, intrinsics.height
+    if width * height <= RENDER_GROUP_PIXELS:
+        return max(1, min(count, RENDER_GROUP_PIXELS // (width * height))), height
+    return 1, max(1, min(height, RENDER_GROUP_PIXELS // width))
+
+
+def strip_intrinsics(intrinsics: Intrinsics, first_row: int, rows: int) -> Intrinsics:
+    """The camera of rows [first_row, first_row + rows) of `intrinsics`'s image: the same rays (the
+    principal point moved up by first_row), `rows` high."""
+    return dataclasses.replace(intrinsics, height=rows, cy=intrinsics.cy - first_row)
+
+
+class _Estimate:
+    """Progress lines with the time left: after the first call that compiles nothing (the second), then
+    at most every ESTIMATE_EVERY_S seconds; the work is counted in calls, all of one shape."""
+
+    def __init__(self, calls: int, what: str, progress: Progress):
+        self.calls, self.what, self.progress = calls, what, progress
+        self.done, self.start, self.timed_from, self.last_line = 0, time.perf_counter(), None, None
+
+    def call_done(self) -> None:
+        self.done += 1
+        now = time.perf_counter()
+        if self.done == 1:
+            self.first, self.timed_from = now - self.start, now
+            return
+        if self.done == self.calls or (self.last_line is not None and now - self.last_line < ESTIMATE_EVERY_S):
+            return
+        left = (now - self.timed_from) / (self.done - 1) * (self.calls - self.done)
+        first = f" (the first, compiling, took {self.first:.1f} s)" if self.last_line is None else ""
+        self.progress.say(f"{self.what}: {self.done} of {self.calls} calls done{first}; about {_duration(left)} left")
+        self.last_line = now
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _write_groups(
+    renderer, c2w: np.ndarray, intrinsics: Intrinsics, out: Path, names, progress: Progress, sheet=None
+) -> None:
+    """Renders `c2w` with `renderer(c2w, intrinsics) -> Views` in calls of one shape (`render_calls`: the
+    last group padded by repeating a pose; a large view in strips of rows) and writes out/names[i];
+    appends each view made small (`_sheet_cell`) to the list `sheet` when given. Memory is bounded
+    by RENDER_GROUP_PIXELS however many and however large the views."""
+    group, rows = render_calls(len(c2w), intrinsics)
+    strips = -(-intrinsics.height // rows)
+    estimate = _Estimate(-(-len(c2w) // group) * strips, f"{len(c2w)} views", progress)
+    progress.phase("rendering (the first call compiles)", total=len(c2w), unit="view")
     for first in range(0, len(c2w), group):
         part = c2w[first : first + group]
-        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)])
-        images = np.asarray(jax.device_get(render_group(padded)))[: len(part)]
+        padded = jnp.asarray(np.concatenate([part, np.repeat(part[-1:], group - len(part), 0)]))
+        pieces = []
+        for strip in range(strips):
+            views = renderer(padded, strip_intrinsics(intrinsics, strip * rows, rows))
+            pieces.append(np.asarray(jax.device_get(views.rgba[..., :3])))
+            estimate.call_done()
+        images = np.concatenate(pieces, axis=1)[: len(part), : intrinsics.height]
         for name, image in zip(names[first : first + group], images):
             io.save_png(out / name, image)
+            if sheet is not None:
+                sheet.append(_sheet_cell(image))
         progress.advance(len(part))
     progress.close()
+
+
+def _sheet_cell(image: np.ndarray) -> np.ndarray:
+    """`image` box-filtered by an integer factor to at most SHEET_CELL pixels a side (as it is if smaller)."""
+    factor = -(-max(image.shape[:2]) // SHEET_CELL)
+    if factor == 1:
+        return image
+    h, w = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
+    return image[:h, :w].reshape(h // factor, factor, w // factor, factor, -1).mean(axis=(1, 3))
 
 
 def _render_procedural(args: argparse.Namespace, seed: int) -> int:
@@ -207,32 +277,35 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     args.samples = 128 if args.samples is None else args.samples
     if not 1 <= args.samples <= 1024:
         raise WaldoError(f"--samples must be between 1 and 1024, got {args.samples}")
-    out = io.prepare_output_dir(args.out, force=args.force)
-    start = time.perf_counter()
+    room = make_room(seed)
+    intrinsics = Intrinsics.from_fov(args.resolution, args.resolution, RoomCameraConfig().fov_x)
     try:
-        with Progress(args.quiet) as progress:
-            progress.phase(f"rendering {args.views} views (compiling first)")
-            scene, room = room_scene(
-                seed,
-                num_views=args.views,
-                resolution=args.resolution,
-                num_samples=args.samples,
-                camera_config=RoomCameraConfig(),
-            )
+        c2w = np.asarray(
+            training_cameras(jax.random.fold_in(jax.random.key(seed), 1), room, args.views, intrinsics), np.float32
+        )
     except ValueError as e:
         raise WaldoError(str(e)) from None
+    out = io.prepare_output_dir(args.out, force=args.force)
+    names = [f"view_{i:03d}.png" for i in range(args.views)]
+    stale = io.stale_files(out, r"view_\d{3,}\.png", names)  # --force: an earlier render's views
+    progress = Progress(args.quiet)
+    samples = args.views * args.resolution**2 * args.samples
+    progress.say(
+        f"rendering {args.views} views of procedural:{seed} at {args.resolution}x{args.resolution}, "
+        f"{args.samples} samples a ray ({samples / 1e9:,.2f} G samples) ..."
+    )
+    start, cells = time.perf_counter(), []
+    with progress:
+        _write_groups(room_renderer(room, args.samples), c2w, intrinsics, out, names, progress, sheet=cells)
     seconds = time.perf_counter() - start
-    visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(scene.c2w), scene.intrinsics))
-    stale = io.stale_files(out, r"view_\d{3,}\.png", scene.file_names)  # --force: an earlier render's views
-    for name, image in zip(scene.file_names, scene.images):
-        io.save_png(out / name, image)
+    visibility = np.asarray(waldo_visibility_batch(room, jnp.asarray(c2w), intrinsics))
     for path in stale:
         path.unlink()
     labels = [f"{i}: waldo {v:.0%}" for i, v in enumerate(visibility)]
     io.save_png(
         out / "contact_sheet.png",
         io.contact_sheet(
-            list(scene.images),
+            cells,
             labels=labels,
             caption="View: Waldo visible, the share of his projected area in frame and unoccluded (exact, from the "
             "room's geometry)",
@@ -240,10 +313,10 @@ def _render_procedural(args: argparse.Namespace, seed: int) -> int:
     )
     io.write_transforms(
         out / "transforms.json",
-        scene.c2w,
-        scene.intrinsics,
-        scene.file_names,
-        extra={"waldo_procedural_seed": seed, "aabb": scene.aabb.tolist()},
+        c2w,
+        intrinsics,
+        names,
+        extra={"waldo_procedural_seed": seed, "aabb": np.asarray(room.aabb).tolist()},
     )
     io.write_json(
         out / "room.json",
