@@ -198,13 +198,14 @@ def _field_fn(field_config, gradient: str = "forward"):
 # the marched renderer's own backward pass (`render.marched_vjp`), one pass over the composited samples.
 NERF_GRADIENT = "reverse"
 # Renders one refinement gradient of a NeRF source counts as (`Source.gradient_cost`): the ratio of a
-# reverse-mode gradient's time to a render and exact score's, rounded up: 3.76 for saliency on the fox
-# NeRF at 64 px (4 poses) on the shared 2-core CPU, where forward mode took 10.57 in the same run
-# (benchmarks/gradient_cost.py; benchmarks/results/gradient_cost_fox_reverse_cpu_loaded.json; 3.80 on the
-# idle CPU, gradient_cost_fox_reverse_cpu.json; 4.83 at 32 px, gradient_cost_fox32_reverse_cpu.json). Of the
-# 3.76, the render's gradient is about 3 renders (the render, then a pass over its samples that evaluates
-# the field again and pulls back through it) and CSNet's gradient about 1.
-NERF_GRADIENT_COST = 4
+# reverse-mode gradient's time to a render and exact score's, rounded up: 2.41-2.55 for saliency on the
+# fox NeRF at 64 px (4 poses) on the 2-core CPU, against 3.72-3.76 for the code before, in the same runs
+# (benchmarks/gradient_cost.py; benchmarks/results/gradient_cost_fox_ab_cpu.json). What made it cheaper:
+# the hash grid's derivative with respect to the point by a rule (`nerf.hashgrid.encode`) and CSNet's
+# reverse mode through the same taps as its forward (`criteria.csnet.model`); the render's gradient is
+# now about 2 renders (the render, then a pass that evaluates the field again and pulls back through it)
+# and CSNet's about 0.7.
+NERF_GRADIENT_COST = 3
 
 
 def field_renderer(field: TrainedField, gradient: str = "forward") -> jax.tree_util.Partial:
