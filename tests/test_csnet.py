@@ -19,6 +19,7 @@ from flax import traverse_util
 from PIL import Image
 
 from conftest import require_scene, require_weights
+from waldo_jax import autodiff
 from waldo_jax.criteria import csnet
 from waldo_jax.criteria.csnet import convert as csnet_convert
 from waldo_jax.criteria.csnet import model as csnet_model
@@ -314,9 +315,15 @@ def test_depthwise_gradient_matches_grouped_conv():
     for a, b in zip(ours, reference):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
     tangents = (weights, jnp.ones_like(kernel))
-    ours = jax.jvp(loss(csnet_model.depthwise3x3), (x, kernel), tangents)[1]
     reference = jax.jvp(loss(grouped), (x, kernel), tangents)[1]
+    ours = jax.jvp(loss(csnet_model.depthwise3x3), (x, kernel), tangents)[1]
     np.testing.assert_allclose(float(ours), float(reference), rtol=1e-4)
+    with autodiff.tangents("forward"):  # refinement's forward mode: autodiff through the taps themselves
+        ours = jax.jvp(loss(csnet_model.depthwise3x3), (x, kernel), tangents)[1]
+    np.testing.assert_allclose(float(ours), float(reference), rtol=1e-4)
+    with pytest.raises(ValueError, match="sideways"):
+        with autodiff.tangents("sideways"):
+            pass
 
 
 def test_upsample_gradient_is_autodiffs_in_both_modes():
@@ -338,6 +345,15 @@ def test_upsample_gradient_is_autodiffs_in_both_modes():
                 plain = jax.jvp(lambda v: csnet_model._upsample_axis_taps(v, factor, axis), (x,), (x[::-1],))
                 assert np.array_equal(np.asarray(ours[0]), np.asarray(plain[0]))
                 np.testing.assert_allclose(np.asarray(ours[1]), np.asarray(plain[1]), rtol=1e-6, atol=1e-6)
+    up = jnp.asarray(rng.standard_normal((1, 3, 4, 2)), jnp.float32)
+    with autodiff.tangents("forward"):
+        forward = jax.jvp(lambda v: csnet_model.upsample(v, 2), (up,), (up,))[1]
+    np.testing.assert_allclose(
+        np.asarray(forward),
+        np.asarray(jax.jvp(lambda v: csnet_model.upsample(v, 2), (up,), (up,))[1]),
+        rtol=1e-6,
+        atol=1e-6,
+    )
 
 
 GOCTAVE_CASES = [  # torch prefix, Flax path, in splits, out splits, kernel, stride

@@ -3,7 +3,7 @@
 Layers, bottom to top; a module may import from a lower layer or from its own package, never upward
 and never sideways into another package of its layer:
 
-  0 core      types, errors, _xla_flags, version
+  0 core      types, errors, _xla_flags, version, autodiff
   1 base      paths, environment, io, cameras, metrics
   2 data      scenes (one module per format), weights; search (poses and scores only: no renderer,
               no criterion)
@@ -34,6 +34,7 @@ LAYERS = {
     "waldo_jax.errors": 0,
     "waldo_jax._xla_flags": 0,
     "waldo_jax.version": 0,
+    "waldo_jax.autodiff": 0,
     "waldo_jax.paths": 1,
     "waldo_jax.environment": 1,
     "waldo_jax.io": 1,

@@ -153,8 +153,8 @@ def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, confi
 # with benchmarks/gradient_cost.py: 1.7 for the room's oracle on poses; 4.9 for saliency on the
 # room's renders and 11.5 on a trained fox NeRF's (64 px), the costlier taken for every render (and
 # for "posed" combinations, which render). Sources that differentiate in reverse mode carry their own
-# measured cost (`Source.gradient_cost`): a NeRF run 4 (`sources.NERF_GRADIENT_COST`, 3.76 measured
-# against 10.57 in forward mode), splats `splat_sources.SPLAT_GRADIENT_COST`.
+# measured cost (`Source.gradient_cost`): a NeRF run 3 (`sources.NERF_GRADIENT_COST`, 2.4 to 2.6
+# measured; 3.76 against 10.57 in forward mode before its rules), splats `splat_sources.SPLAT_GRADIENT_COST`.
 GRADIENT_COSTS = {"poses": 2, "images": 12, "renders": 12, "posed": 12}
 
 

@@ -198,8 +198,8 @@ def _field_fn(field_config, gradient: str = "forward"):
 # the marched renderer's own backward pass (`render.marched_vjp`), one pass over the composited samples.
 NERF_GRADIENT = "reverse"
 # Renders one refinement gradient of a NeRF source counts as (`Source.gradient_cost`): the ratio of a
-# reverse-mode gradient's time to a render and exact score's, rounded up: 2.41-2.55 for saliency on the
-# fox NeRF at 64 px (4 poses) on the 2-core CPU, against 3.72-3.76 for the code before, in the same runs
+# reverse-mode gradient's time to a render and exact score's, rounded up: 2.36-2.55 for saliency on the
+# fox NeRF at 64 px (4 poses) on the 2-core CPU, against 3.12-3.76 for the code before, alternately in one session
 # (benchmarks/gradient_cost.py; benchmarks/results/gradient_cost_fox_ab_cpu.json). What made it cheaper:
 # the hash grid's derivative with respect to the point by a rule (`nerf.hashgrid.encode`) and CSNet's
 # reverse mode through the same taps as its forward (`criteria.csnet.model`); the render's gradient is

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import optax
 import optimistix as optx
 
+from waldo_jax import autodiff
 from waldo_jax.cameras import pose_to_c2w
 from waldo_jax.errors import ConfigError
 from waldo_jax.search import grs
@@ -201,7 +202,8 @@ def values_and_gradients(
     def along(direction):
         return jax.jvp(values, (offsets,), (jnp.broadcast_to(direction, offsets.shape),))
 
-    value, tangents = jax.vmap(along, out_axes=(None, 0))(jnp.eye(6, dtype=offsets.dtype))
+    with autodiff.tangents("forward"):  # rules whose fast form is the forward one (CSNet's) take it
+        value, tangents = jax.vmap(along, out_axes=(None, 0))(jnp.eye(6, dtype=offsets.dtype))
     return value, tangents.T
 
 

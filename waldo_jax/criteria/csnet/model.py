@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
+from waldo_jax import autodiff
 from waldo_jax.criteria.csnet.config import DILATIONS, CSNetConfig, Splits
 from waldo_jax.types import Array
 
@@ -133,9 +134,11 @@ def upsample(x: Array, factor: int) -> Array:
     """Bilinear upsampling of x [N, H, W, C] by an integer factor.
 
     This is PyTorch's `interpolate(scale_factor=factor, mode="bilinear", align_corners=False)`,
-    whose source index (o + 0.5) / f - 0.5 is clamped to [0, n - 1].
+    whose source index (o + 0.5) / f - 0.5 is clamped to [0, n - 1]. Differentiates through its rule
+    (`_upsample_axis`), or through the taps themselves inside `autodiff.tangents("forward")`.
     """
-    return _upsample_axis(_upsample_axis(x, factor, 1), factor, 2)
+    axis_fn = _upsample_axis_taps if autodiff.forward_tangents() else _upsample_axis
+    return axis_fn(axis_fn(x, factor, 1), factor, 2)
 
 
 def _taps(x: Array, kernel: Array) -> Array:
@@ -149,7 +152,6 @@ def _taps(x: Array, kernel: Array) -> Array:
     return out
 
 
-@jax.custom_jvp
 def depthwise3x3(x: Array, kernel: Array) -> Array:
     """Depthwise 3x3 conv with zero padding 1: x [N, H, W, C], kernel [3, 3, 1, C] -> [N, H, W, C].
 
@@ -158,11 +160,17 @@ def depthwise3x3(x: Array, kernel: Array) -> Array:
     mode as fast: the plain transpose of nine shifted products is nine padded copies of the cotangent,
     five times slower on CPU than the forward (CSNet's gradient with respect to its image took seven
     of its forwards); the rule's transpose is these nine shifted products with the kernel flipped.
+    Inside `autodiff.tangents("forward")` autodiff pushes the tangents through the taps themselves.
     """
+    return _taps(x, kernel) if autodiff.forward_tangents() else _depthwise3x3(x, kernel)
+
+
+@jax.custom_jvp
+def _depthwise3x3(x: Array, kernel: Array) -> Array:
     return _taps(x, kernel)
 
 
-@functools.partial(depthwise3x3.defjvp, symbolic_zeros=True)
+@functools.partial(_depthwise3x3.defjvp, symbolic_zeros=True)
 def _depthwise3x3_jvp(primals, tangents):
     """The input's tangent goes through the transpose of the flipped-kernel taps (the same linear map,
     as the conv with the flipped kernel is this one's adjoint), so that reverse mode, which transposes
