@@ -216,6 +216,41 @@ def refine_fox_table() -> str:
     )
 
 
+REFINE_FOX_HIGH = "methods_fox_refine_high_dec02_cpu.json"
+
+
+def refine_fox_high_table() -> str:
+    """EGPS against `egps+refine` on fox at the high budget with the cheaper reverse-mode gradient (issue 45),
+    both in one run (REFINE_FOX_HIGH)."""
+    data = _json(REFINE_FOX_HIGH)
+    cost = data["gradient_cost"]["fox"]
+    egps = {cell["budget"]: cell for cell in data["cells"] if cell["method"] == "egps"}
+    lines = [
+        "| budget | method | refined poses x steps | children | gradient evaluations x renders each | "
+        "CVIR % [95 % CI] | mCVIR % [95 % CI] |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for cell in data["cells"]:
+        c, m, k = cell["cost"], cell["mcvir"], cell["cvir"]
+        grads = (
+            f"{c['gradient_evaluations']} x {c['renders_per_gradient_evaluation']}" if c["gradient_evaluations"] else ""
+        )
+        refine = cell.get("refine")
+        shape = f"{refine['poses']} x {refine['steps']}" if refine else ""
+        above = refine and m["ci95"][0] > egps[cell["budget"]]["mcvir"]["ci95"][1]
+        lines.append(
+            f"| {cell['budget']} | {cell['method']}{' **(> EGPS)**' if above else ''} | {shape} | {c['children']} | "
+            f"{grads} | {k['mean']:.1f} [{k['ci95'][0]:.1f}, {k['ci95'][1]:.1f}] | "
+            f"{m['mean']:.1f} [{m['ci95'][0]:.1f}, {m['ci95'][1]:.1f}] |"
+        )
+    return "\n".join(lines) + (
+        f"\n\n{data['settings']['seeds']} seeds per cell; a gradient measured at {cost['ratio']:.2f} renders "
+        f"({cost['resolution'][1]}x{cost['resolution'][0]} px, {cost['gradient_mode']} mode), charged "
+        f"{data['cells'][-1]['cost']['renders_per_gradient_evaluation']}; **(> EGPS)**: mCVIR interval wholly above "
+        f"EGPS's. From `benchmarks/results/{REFINE_FOX_HIGH}`."
+    )
+
+
 def waldo_found_table() -> str:
     """Waldo found: per room and method, the seeds whose best view shows him >= 90 % visible."""
     data = _json("methods_room_found_cpu_loaded.json")
@@ -677,6 +712,7 @@ BLOCKS: Dict[str, Callable[[], str]] = {
     "paths": paths_table,
     "waldo-found": waldo_found_table,
     "refine-fox": refine_fox_table,
+    "refine-fox-high": refine_fox_high_table,
     "demo-closeups": demo_closeups_table,
     "demo-waldo-pixels": demo_waldo_pixels_table,
     "demo-rooms": demo_rooms_table,
