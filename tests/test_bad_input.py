@@ -634,7 +634,8 @@ def test_a_full_disk_leaves_no_half_written_file_and_one_line(tmp_path, capsys, 
 
     monkeypatch.setattr(io_module, "_open_temp", open_temp)
     out = tmp_path / "views"
-    status = main(["render", "procedural", "--views", "3", "--resolution", "16", "--samples", "16", "--out", str(out)])
+    args = ["render", "procedural", "--views", "3", "--resolution", "16", "--samples", "16", "--quiet"]
+    status = main([*args, "--out", str(out)])  # --quiet: stderr holds the error alone
     err = capsys.readouterr().err.strip()
     assert status == 1 and len(err.splitlines()) == 1 and "No space left on device" in err, err
     assert "Traceback" not in err

@@ -163,7 +163,7 @@ def test_an_interrupt_while_writing_removes_the_new_folder(tmp_path, capsys, mon
     _interrupt_on_call(monkeypatch, io, "write_bytes", 2, KeyboardInterrupt())
     out = tmp_path / "deep" / "views"
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    assert main([*RENDER, "--out", str(out)]) == 130
+    assert main([*RENDER, "--quiet", "--out", str(out)]) == 130  # stderr: the interruption alone
     assert {s: signal.getsignal(s) for s in handlers} == handlers
     err = capsys.readouterr().err.strip()
     assert err == f"waldo: interrupted (removed the unfinished output folder {tmp_path / 'deep'})", err
