@@ -250,26 +250,37 @@ def test_errors_are_one_line(tmp_path, capsys):
     assert "no_such_run" in capsys.readouterr().err
 
 
+def test_demo_refuses_an_unknown_method_on_renders_before_making_its_folder(tmp_path, capsys):
+    """`--search-renders` takes a method of the exact rows' kind; another is refused before anything runs."""
+    settings = DemoSettings(views=10, resolution=24, train_steps=20, seeds=2, search_renders="cma")
+    with pytest.raises(WaldoError, match="search_renders must be one of grs, pibs, egps, map-elites"):
+        run_demo(tmp_path / "demo", settings=settings, progress=False)
+    assert not (tmp_path / "demo").exists()
+    assert main(["demo", "--search-renders", "cma", "--out", str(tmp_path / "cli")]) == 1
+    assert "unknown --search-renders 'cma': expected one of grs, pibs, egps, map-elites" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()
+
+
 def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     settings = DemoSettings(
-        views=10, resolution=24, train_steps=20, seeds=2, test_views=2, render_step_scale=3.0, search_renders=True
+        views=10, resolution=24, train_steps=20, seeds=2, test_views=2, render_step_scale=3.0, search_renders="grs"
     )
     out = run_demo(tmp_path / "demo", settings=settings, progress=False)
     report = (out / "report.md").read_text()
     for method in ("GRS", "PIBS", "EGPS"):
         assert f"| {method} |" in report
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["methods"]) == {"grs", "pibs", "egps", "egps_on_renders"} and summary["seeds"] == [
+    assert set(summary["methods"]) == {"grs", "pibs", "egps", "grs_on_renders"} and summary["seeds"] == [
         DEMO_ROOM_SEED,
         DEMO_ROOM_SEED + 1,
     ]
     assert summary["room_seed"] == DEMO_ROOM_SEED and summary["criterion"] == "waldo_found"
-    # The row on renders: EGPS by the finder on the NeRF's images, its best views checked by the oracle.
-    renders = summary["methods"]["egps_on_renders"]
+    # The row on renders: GRS by the finder on the NeRF's images, its best views checked by the oracle.
+    renders = summary["methods"]["grs_on_renders"]
     assert renders["scores_renders"] is True and renders["criterion"] == "waldo"
     assert not any(summary["methods"][m]["scores_renders"] for m in ("grs", "pibs", "egps"))
-    assert "| EGPS on renders |" in report and (out / "waldo_reference.png").is_file()
-    for method in ("grs", "pibs", "egps", "egps_on_renders"):  # Waldo's share, the NeRF's PSNR at each best view
+    assert "| GRS on renders |" in report and (out / "waldo_reference.png").is_file()
+    for method in ("grs", "pibs", "egps", "grs_on_renders"):  # Waldo's share, the NeRF's PSNR at each best view
         m = summary["methods"][method]
         assert len(m["waldo_psnr_per_seed"]) == 2  # over Waldo's pixels; None where he has none
         assert all(v is None or np.isfinite(v) for v in m["waldo_psnr_per_seed"])

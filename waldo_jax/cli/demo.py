@@ -1,5 +1,5 @@
-"""`waldo demo [--out DIR] [--quick] [--seed S] [--train-steps N] [--min-separation DEG] [--search-renders]`:
-the procedural room end to end (`waldo_jax.pipeline.demo`)."""
+"""`waldo demo [--out DIR] [--quick] [--seed S] [--train-steps N] [--min-separation DEG]
+[--search-renders [METHOD]]`: the procedural room end to end (`waldo_jax.pipeline.demo`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import dataclasses
 from waldo_jax.cli.conventions import add_quiet
 from waldo_jax.cli.shots import add_shot_arguments, shot_separation
 from waldo_jax.errors import check_int
-from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS, run_demo
+from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, RENDERS_METHOD, RENDERS_METHODS, SETTINGS, run_demo
 
 __all__ = ["add_command", "cmd_demo"]
 
@@ -42,10 +42,14 @@ def add_command(subparsers) -> None:
     )
     demo.add_argument(
         "--search-renders",
-        action="store_true",
-        help="also run EGPS scored by the waldo finder on the NeRF's renders (the paper's setting; its best views "
-        "checked by the exact oracle). It renders every view it scores: about 2,200 NeRF renders, several minutes "
-        "on 2 CPU cores",
+        nargs="?",
+        const=RENDERS_METHOD,
+        default=None,
+        choices=RENDERS_METHODS,
+        metavar="METHOD",
+        help=f"also run METHOD (default {RENDERS_METHOD}; one of {', '.join(RENDERS_METHODS)}) scored by the waldo "
+        "finder on the NeRF's renders (the paper's setting; its best views checked by the exact oracle). It renders "
+        "every view it scores: about 2,200 NeRF renders, several minutes on 2 CPU cores",
     )
     add_shot_arguments(demo, grid=False)
     add_quiet(demo)
