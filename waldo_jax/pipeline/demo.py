@@ -80,7 +80,7 @@ METHOD_ORDER = ("grs", "pibs", "egps")
 # The row that searches the NeRF's renders (the paper's setting): a method scored by the `waldo` finder
 # with a reference image of Waldo; its best views are checked by the exact oracle like the others'. GRS by
 # default: scored by the finder on the room's own (analytic) views, GRS found him in 7 of 8 seeds of room 6,
-# MAP-Elites in 5, EGPS in 2 (it closes in on one partial match; benchmarks/finder_methods.py,
+# MAP-Elites in 5, EGPS in 2 (it narrows onto one view early; benchmarks/finder_methods.py,
 # benchmarks/results/finder_methods_room6_cpu_loaded.json).
 RENDERS_METHOD, RENDERS_SUFFIX, RENDERS_CRITERION = "grs", "_on_renders", "waldo"
 RENDERS_METHODS = ("grs", "pibs", "egps", "map-elites")
