@@ -47,8 +47,9 @@ def add_command(subparsers) -> None:
         default=None,
         choices=RENDERS_METHODS,
         metavar="METHOD",
-        help=f"also run METHOD (default {RENDERS_METHOD}; one of {', '.join(RENDERS_METHODS)}) scored by the waldo "
-        "finder on the NeRF's renders (the paper's setting; its best views checked by the exact oracle). It renders "
+        help=f"also run METHOD ({RENDERS_METHOD} when the flag is given alone; one of "
+        f"{', '.join(RENDERS_METHODS)}) scored by the waldo finder on the NeRF's renders (the paper's setting; its "
+        "best views checked by the exact oracle). It renders "
         "every view it scores: about 2,200 NeRF renders, several minutes on 2 CPU cores",
     )
     add_shot_arguments(demo, grid=False)
