@@ -1,5 +1,5 @@
 """Reachable, not only found: the best visible share of Waldo any camera of the search space reaches, per room,
-beside what each method reaches at the low budget.
+beside what each method reaches at the low budget (`--budget high`: the high).
 
 For each room seed (the demo's room first), the room is built as `waldo demo` builds it (its settings: Waldo's
 size, the training cameras) and its analytic source explored with `waldo_visible` (exact: the visible fraction
@@ -56,7 +56,7 @@ def room_rows(seed: int, args) -> list:
     source, criterion, reach = demo_room(seed, args.samples)
     rows = []
     for method in args.methods.split(","):
-        run = run_explore(source, criterion, ExploreConfig(method=method, budget="low"), seed=0, seeds=args.seeds)
+        run = run_explore(source, criterion, ExploreConfig(method=method, budget=args.budget), seed=0, seeds=args.seeds)
         best = [float(r.metrics.best[-1]) for r in run.results]
         gaps = [reach["best"] - b for b in best]
         rows.append(
@@ -98,6 +98,7 @@ def main(argv=None) -> None:
     others = ",".join(str(seed) for seed in range(8) if seed != DEMO_ROOM_SEED)
     parser.add_argument("--rooms", default=f"{DEMO_ROOM_SEED},{others}", help="room seeds, the demo's first")
     parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--budget", default="low", choices=("low", "high"), help="the searches' budget")
     add_room_arguments(parser)
     args = parser.parse_args(argv)
     refuse_existing_out(args.out)

@@ -32,6 +32,7 @@ from waldo_jax.search import (
     explore,
     explore_seeds,
     get_method,
+    result_bytes,
     search_memory,
 )
 from waldo_jax.pipeline.sources import Source
@@ -62,7 +63,9 @@ __all__ = [
 INITIAL_MODES = ("images", "renders")
 # Working memory of one epoch per rendered pixel (renders, criterion activations, the search's own
 # arrays), an upper estimate: `waldo explore procedural --criterion saliency --resolution 128` grew by
-# 134 MB per extra seed (50 children of 128x128 each: 164 bytes per pixel) on the 2-core CPU.
+# 134 MB per extra seed (50 children of 128x128 each: 164 bytes per pixel) on the 2-core CPU, when the
+# seeds rendered at once. They now render one after another (`score_function`): one seed's epoch is
+# what is rendered at once, and what every seed keeps is in XLA's analysis (`check_search_memory`).
 EPOCH_BYTES_PER_PIXEL = 256
 
 
@@ -82,8 +85,8 @@ def memory_bytes() -> int:
 
 
 def check_epoch_memory(source: Source, config: ExploreConfig, seeds: int) -> None:
-    """Refuses a run whose batched epoch (seeds x children_per_epoch renders) would not fit in memory,
-    with the largest --seeds that would (see `EPOCH_BYTES_PER_PIXEL`)."""
+    """Refuses a run whose epoch (children_per_epoch renders of one seed at once: seeds render one after
+    another) would not fit in memory, with the resolution or children that would (`EPOCH_BYTES_PER_PIXEL`)."""
     check_epoch_pixels(source.intrinsics.width, source.intrinsics.height, config, seeds)
 
 
@@ -103,48 +106,61 @@ def epoch_check(config: ExploreConfig, seeds: int) -> Callable[[int, int, int], 
 
 
 def check_epoch_pixels(width: int, height: int, config: ExploreConfig, seeds: int) -> None:
-    """`check_epoch_memory` for renders of width x height (a resolved `config`)."""
+    """`check_epoch_memory` for renders of width x height (a resolved `config`). `seeds` does not count:
+    each seed's epoch renders on its own (`score_function`); `check_search_memory` counts what they keep."""
+    del seeds
     pixels = width * height
     per_seed = config.children_per_epoch * pixels * EPOCH_BYTES_PER_PIXEL
     available = memory_bytes()
-    if seeds * per_seed > available:
-        views = (
-            f"one epoch renders {seeds} x {config.children_per_epoch} views of "
-            f"{width}x{height} at once, about {seeds * per_seed / 2**30:.1f} GiB, "
-            f"more than the {available / 2**30:.1f} GiB at hand"
-        )
-        if per_seed <= available:
-            raise WaldoError(
-                f"--seeds {seeds}: {views}; at most --seeds {available // per_seed} here (or a lower --resolution)"
-            )
-        side = max(width, height)
-        fits = int(side * math.sqrt(available / per_seed))
-        children = available // (pixels * EPOCH_BYTES_PER_PIXEL)
-        if fits >= MIN_RESOLUTION:
-            raise WaldoError(
-                f"--resolution {side}: {views}; pass --resolution {fits} or less (or at most --children-per-epoch "
-                f"{children} at this resolution)"
-            )
+    if per_seed <= available:
+        return
+    views = (
+        f"one epoch renders {config.children_per_epoch} views of {width}x{height} at once, about "
+        f"{per_seed / 2**30:.1f} GiB, more than the {available / 2**30:.1f} GiB at hand"
+    )
+    side = max(width, height)
+    fits = int(side * math.sqrt(available / per_seed))
+    children = available // (pixels * EPOCH_BYTES_PER_PIXEL)
+    if fits >= MIN_RESOLUTION:
         raise WaldoError(
-            f"--children-per-epoch {config.children_per_epoch}: {views}; at most --children-per-epoch {children} "
-            "at this resolution"
+            f"--resolution {side}: {views}; pass --resolution {fits} or less (or at most --children-per-epoch "
+            f"{children} at this resolution)"
         )
+    raise WaldoError(
+        f"--children-per-epoch {config.children_per_epoch}: {views}; at most --children-per-epoch {children} "
+        "at this resolution"
+    )
 
 
 def check_search_memory(seed: int, seeds: int, score_fn, initial: Initial, config: ExploreConfig, objective, progress):
     """Refuses a search whose compiled program needs more memory than the device has (XLA's analysis of
     the whole scan: the population of every epoch, the renders and the criterion's activations), before
     it runs; the compile is the one the run reuses."""
-    keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
-    need = search_memory(keys, score_fn, initial, config=config, objective_fn=objective, progress=progress)
     # XLA's figure is what the program may take at once: set against the memory free now (the host's
     # on a CPU, not `memory_bytes`' half of it, a rule of thumb for the epoch's working set).
     available = memory_bytes() if jax.devices()[0].platform != "cpu" else host_memory_bytes()
+    if seeds > 1 and available:
+        # What every seed keeps, from the search's shapes before anything compiles: a count of seeds
+        # past it is refused before XLA is asked to compile it (past 2**31 slots XLA cannot index).
+        kept = result_bytes(score_fn, initial, config=config, objective_fn=objective)
+        if seeds * kept > available:
+            raise WaldoError(
+                f"--seeds {seeds}: each seed keeps {kept / 2**10:,.0f} KiB of results ({config.epochs} epochs x "
+                f"{config.children_per_epoch} children and the training views), {seeds * kept / 2**30:,.1f} "
+                f"GiB for all, more than the {available / 2**30:.1f} GiB at hand; at most --seeds "
+                f"{available // kept} here"
+            )
+    keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
+    need = search_memory(keys, score_fn, initial, config=config, objective_fn=objective, progress=progress)
     if need is not None and available and need > available:
+        # Most of a many-seed search's need is what its seeds keep, in proportion to their number.
+        fits = seeds * available // need
+        seeds_hint = f"about --seeds {fits} at most here, or " if fits >= 1 and seeds > 1 else ""
         raise WaldoError(
             f"--epochs {config.epochs} x --children-per-epoch {config.children_per_epoch} x --seeds {seeds}: "
             f"the compiled search needs {need / 2**30:,.1f} GiB (XLA's own analysis), more than the "
-            f"{available / 2**30:.1f} GiB at hand; fewer epochs, children or seeds, or a lower --resolution"
+            f"{available / 2**30:.1f} GiB at hand; {seeds_hint}fewer epochs, children or seeds, or a lower "
+            "--resolution"
         )
 
 
@@ -185,19 +201,32 @@ def _score_views(render, criterion: Criterion, intrinsics, c2w):
     return criterion.evaluate(scene_views(render, intrinsics, c2w))
 
 
+# A search of several seeds (`explore_seeds`) vmaps its scoring over them. Views that are rendered are
+# rendered and scored one seed's population at a time instead: a renderer's blocks are sized for one
+# call, and vmapped they grew by the number of seeds (`waldo demo --search-renders`, 8 seeds of GRS on the
+# room NeRF's renders: 12.9 GiB by XLA's analysis, 17.5 GB at its peak on the 2-core CPU). The same
+# scores bit for bit (tests/test_seeds_render_one_by_one.py). Not the refinement's objective: reverse
+# mode does not pass through a sequential vmap.
+_score_views_per_seed = jax.custom_batching.sequential_vmap(_score_views)
+
+
 def score_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
     """c2w [P, 4, 4] -> scores [P]: the criterion of the source's views (rendered where it scores
-    pixels: `scoring_renderer`)."""
-    return jax.tree_util.Partial(_score_views, scoring_renderer(source, criterion), criterion, source.intrinsics)
+    pixels: `scoring_renderer`). Vmapped over seeds, rendered views are scored one seed at a time."""
+    render = scoring_renderer(source, criterion)
+    score = _score_views if render is None else _score_views_per_seed
+    return jax.tree_util.Partial(score, render, criterion, source.intrinsics)
 
 
 def objective_function(source: Source, criterion: Criterion) -> jax.tree_util.Partial:
-    """The `+refine` methods' objective: `score_function` of the criterion's smooth stand-in.
+    """The `+refine` methods' objective: the criterion's smooth stand-in of the source's views, as
+    `score_function` but vmapped over seeds as one batch (it is differentiated).
 
     Raises:
       CriterionError: the criterion has no smooth stand-in (`Criterion.smooth`).
     """
-    return score_function(source, criterion.smooth())
+    smooth = criterion.smooth()
+    return jax.tree_util.Partial(_score_views, scoring_renderer(source, smooth), smooth, source.intrinsics)
 
 
 def scoring_renderer(source: Source, criterion: Criterion) -> Optional[jax.tree_util.Partial]:

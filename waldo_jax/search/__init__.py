@@ -30,6 +30,7 @@ from waldo_jax.search.explore import budget_children as budget_children
 from waldo_jax.search.explore import explore as explore
 from waldo_jax.search.explore import explore_loop as explore_loop
 from waldo_jax.search.explore import explore_seeds as explore_seeds
+from waldo_jax.search.explore import result_bytes as result_bytes
 from waldo_jax.search.explore import search_memory as search_memory
 from waldo_jax.search.metrics import EpochMetrics as EpochMetrics
 from waldo_jax.search.metrics import cvir as cvir

@@ -14,6 +14,7 @@ and the budgets: see docs/design.md, section "Search > The exploration loop".
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Callable, Dict, Mapping, Optional, Tuple, Union
 
@@ -52,6 +53,7 @@ __all__ = [
     "explore_loop",
     "explore_seeds",
     "search_memory",
+    "result_bytes",
 ]
 
 # Total images (training + generated) of the paper's budgets, inclusive bounds.
@@ -663,6 +665,30 @@ def search_memory(
         progress=bool(progress),
     ).compile()
     return program_memory(compiled)
+
+
+def result_bytes(
+    score_fn: Callable[[Array], Array],
+    initial: Initial,
+    method: Union[str, SearchMethod, None] = None,
+    config: Optional[ExploreConfig] = None,
+    params=None,
+    objective_fn: Optional[Callable[[Array], Array]] = None,
+) -> int:
+    """Bytes of one seed's `Result` (its population, scores and metrics), from the search's shapes alone
+    (`jax.eval_shape`: traced, not compiled): what every seed of `explore_seeds` keeps, at least."""
+    search_method, method_config, config, params, start, objective = _prepare(
+        initial, method, config, params, objective_fn
+    )
+    shapes = jax.eval_shape(
+        functools.partial(_search_jit, method=search_method, method_config=method_config, config=config),
+        jax.random.key(0),
+        _as_partial(score_fn),
+        objective,
+        start,
+        params,
+    )
+    return int(sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(shapes)))
 
 
 def program_memory(compiled) -> Optional[int]:
