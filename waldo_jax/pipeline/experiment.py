@@ -65,7 +65,7 @@ INITIAL_MODES = ("images", "renders")
 # arrays), an upper estimate: `waldo explore procedural --criterion saliency --resolution 128` grew by
 # 134 MB per extra seed (50 children of 128x128 each: 164 bytes per pixel) on the 2-core CPU, when the
 # seeds rendered at once. They now render one after another (`score_function`): one seed's epoch is
-# what is rendered at once, and what every seed keeps is in XLA's analysis (`check_search_memory`).
+# what is rendered at once; what every seed keeps is counted by `check_search_memory`.
 EPOCH_BYTES_PER_PIXEL = 256
 
 
