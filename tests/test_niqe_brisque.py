@@ -364,14 +364,12 @@ def test_criteria_jit_batch_and_failure_scores(criteria):
             traces.append(images.shape)
             return criterion.apply(p, images)
 
+        # (Batches of 1, 8 and 64 and bit-for-bit repeats: test_criteria_all's contract, which compiles
+        # each batch shape once; here, one program on the real fox view and its failure cases.)
         score = jax.jit(counted)
         out = np.asarray(score(criterion.params, jnp.asarray(several)))
-        again = np.asarray(score(criterion.params, jnp.asarray(several)))
-        np.testing.assert_array_equal(out, again)  # deterministic, bit for bit
-        single = np.asarray(score(criterion.params, jnp.asarray(several[:1])))
-        score(criterion.params, jnp.asarray(several[1:2]))  # same shape, new values: no new trace
-        assert len(traces) == 2, traces  # one trace per batch shape
-        np.testing.assert_allclose(single[0], out[0], rtol=1e-5)
+        score(criterion.params, jnp.asarray(several[::-1]))  # same shape, new values: no new trace
+        assert len(traces) == 1, traces  # one trace per batch shape
         print(
             f"{name} on fox 0001 (256 px): clean {out[0]:.2f}, blurred sigma 1/2/4: {np.round(out[1:4], 2)}, "
             f"black {out[4]:.2f}, white {out[5]:.2f}, NaN {out[6]:.2f}"
@@ -382,7 +380,7 @@ def test_criteria_jit_batch_and_failure_scores(criteria):
         if name == "niqe":  # a size change traces once more
             score(criterion.params, jnp.zeros((1, 96, 128, 3)))
             score(criterion.params, jnp.ones((1, 96, 128, 3)))
-            assert len(traces) == 3, traces
+            assert len(traces) == 2, traces
             with pytest.raises(ValueError, match="at least 96x96"):
                 criterion.score_images(jnp.zeros((1, 95, 200, 3)))
 
