@@ -261,6 +261,33 @@ def test_demo_refuses_an_unknown_method_on_renders_before_making_its_folder(tmp_
     assert not (tmp_path / "cli").exists()
 
 
+def test_demo_on_renders_trains_longer_unless_told(monkeypatch, tmp_path):
+    """`waldo demo --search-renders` trains the full demo's NeRF RENDERS_TRAIN_STEPS steps (the finder judges
+    Waldo by its pictures); `--train-steps` still wins, `--quick` keeps its own, and the report's command
+    line names only what differs from these defaults."""
+    from waldo_jax.cli import demo as demo_cli
+    from waldo_jax.pipeline import demo as demo_pipeline
+
+    seen = []
+    monkeypatch.setattr(demo_cli, "run_demo", lambda out, settings, **kw: seen.append(settings) or tmp_path)
+    for argv in (["demo"], ["demo", "--search-renders"], ["demo", "--search-renders", "egps", "--train-steps", "300"]):
+        assert main([*argv, "--out", str(tmp_path / "x")]) == 0
+    assert main(["demo", "--quick", "--search-renders", "--out", str(tmp_path / "q")]) == 0
+    full, quick = demo_pipeline.SETTINGS["full"], demo_pipeline.SETTINGS["quick"]
+    assert [(s.train_steps, s.search_renders) for s in seen] == [
+        (full.train_steps, None),
+        (demo_pipeline.RENDERS_TRAIN_STEPS, "grs"),
+        (300, "egps"),
+        (quick.train_steps, "grs"),
+    ]
+    assert demo_pipeline.RENDERS_TRAIN_STEPS > full.train_steps
+    assert demo_pipeline._command(False, DEMO_ROOM_SEED, seen[1]) == "waldo demo --search-renders"
+    assert (
+        demo_pipeline._command(False, DEMO_ROOM_SEED, seen[2]) == "waldo demo --train-steps 300 --search-renders egps"
+    )
+    assert demo_pipeline._command(False, DEMO_ROOM_SEED, seen[0]) == "waldo demo"
+
+
 def test_demo_writes_report_never_overwrites_and_its_nerf_explores(tmp_path):
     settings = DemoSettings(
         views=10, resolution=24, train_steps=20, seeds=2, test_views=2, render_step_scale=3.0, search_renders="grs"
