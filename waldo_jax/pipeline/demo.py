@@ -187,7 +187,7 @@ SETTINGS = {
 # The full demo's training steps when it also searches the NeRF's renders: the finder then judges Waldo by
 # the NeRF's pictures of his whole views, which 1,200 steps render worse than his part-hidden ones (the row
 # found him in 4 of 8 seeds; at 2,400 steps in 6 of 8, EGPS's Waldo-pixel PSNR >= 20 dB in 8 of 8, and the
-# demo took 671 s on the 2-core CPU: docs/results.md, "The row on renders").
+# demo took 671 s on the 2-core CPU: docs/results.md, "Waldo up close", "At 2,400 steps ...").
 RENDERS_TRAIN_STEPS = 2400
 
 
