@@ -199,6 +199,11 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         )
     if bench == "perf":
         return f"the collected performance report: {data.get('mode')}"
+    if bench == "room_reachable":
+        return (
+            f"per room ({s.get('rooms')}), the dense search's best visible share of Waldo beside "
+            f"{(s.get('methods') or '').replace(',', ', ')} at the {s.get('budget', 'low')} budget"
+        )
     if bench == "before_packed_renderer":
         return "baseline: the renderer and training step before the packed ones, on the same runs and settings"
     if bench.startswith("waldo demo"):

@@ -3,11 +3,14 @@ beside what each method reaches at the low budget (`--budget high`: the high).
 
 For each room seed (the demo's room first), the room is built as `waldo demo` builds it (its settings: Waldo's
 size, the training cameras) and its analytic source explored with `waldo_visible` (exact: the visible fraction
-of Waldo) by GRS, PIBS, EGPS and MAP-Elites, K seeds each. The reachable best is a dense exact search: `--samples`
-camera centres uniform in the box of the training cameras' centres (where GRS draws; the other methods start
-from the same cameras), each aimed at Waldo (`paper_cells.reachable_visibility`: occlusion depends on the centre
-alone, so aiming at him is the best a camera there can do, up to the frame). Per method and room: each seed's best
-visible share, its gap to the reachable best, and the seeds within `--tolerance` (0.03) of it.
+of Waldo) by GRS, PIBS, EGPS, MAP-Elites and EGPS+refine, K seeds each. EGPS+refine is EGPS whose last
+epoch's last children are gradient steps from the best poses on the oracle's smooth stand-in, scored
+exactly; each gradient counts as `GRADIENT_COSTS["poses"]` renders, within the same budget. The reachable
+best is a dense exact search: `--samples` camera centres uniform in the box of the training cameras'
+centres (where GRS draws; the other methods start from the same cameras), each aimed at Waldo
+(`paper_cells.reachable_visibility`: occlusion depends on the centre alone, so aiming at him is the best a
+camera there can do, up to the frame). Per method and room: each seed's best visible share, its gap to the
+reachable best, and the seeds within `--tolerance` (0.03) of it.
 
   python benchmarks/room_reachable.py --out benchmarks/results/room_reachable_cpu.json
 """
@@ -26,11 +29,11 @@ import numpy as np  # noqa: E402
 from bench_common import emit_with_load, header, refuse_existing_out, wait_for_quiet  # noqa: E402
 from paper_cells import reachable_visibility  # noqa: E402
 from waldo_jax.criteria import CriterionContext, make_criterion  # noqa: E402
-from waldo_jax.pipeline import procedural_source, run_explore  # noqa: E402
+from waldo_jax.pipeline import gradient_cost_for, procedural_source, run_explore  # noqa: E402
 from waldo_jax.pipeline.demo import DEMO_ROOM_SEED, SETTINGS, room_scenes  # noqa: E402
-from waldo_jax.search import ExploreConfig  # noqa: E402
+from waldo_jax.search import ExploreConfig, RefineConfig  # noqa: E402
 
-METHODS = ("grs", "pibs", "egps", "map-elites")
+METHODS = ("grs", "pibs", "egps", "map-elites", "egps+refine")
 
 
 def demo_room(seed: int, samples: int):
@@ -56,7 +59,10 @@ def room_rows(seed: int, args) -> list:
     source, criterion, reach = demo_room(seed, args.samples)
     rows = []
     for method in args.methods.split(","):
-        run = run_explore(source, criterion, ExploreConfig(method=method, budget=args.budget), seed=0, seeds=args.seeds)
+        # A +refine method's gradients cost what `waldo explore` charges for this criterion (its default).
+        options = {"refine": RefineConfig(gradient_cost=gradient_cost_for(criterion))} if "+refine" in method else {}
+        config = ExploreConfig(method=method, budget=args.budget, options=options)
+        run = run_explore(source, criterion, config, seed=0, seeds=args.seeds)
         best = [float(r.metrics.best[-1]) for r in run.results]
         gaps = [reach["best"] - b for b in best]
         rows.append(
@@ -68,6 +74,7 @@ def room_rows(seed: int, args) -> list:
                 "gap": gaps,
                 "within_tolerance": int(sum(g <= args.tolerance for g in gaps)),
                 "seeds": args.seeds,
+                "cost": run.config.cost(source.n_train),
             }
         )
         print(
@@ -106,12 +113,15 @@ def main(argv=None) -> None:
     result = header("room_reachable")
     result["settings"] = vars(args)
     rows = [row for seed in args.rooms.split(",") for row in room_rows(int(seed), args)]
-    egps = [r for r in rows if r["method"] == "egps"]
-    within = sum(r["within_tolerance"] for r in egps)
-    total = sum(r["seeds"] for r in egps)
+    by_method = {
+        method: [sum(r[k] for r in rows if r["method"] == method) for k in ("within_tolerance", "seeds")]
+        for method in dict.fromkeys(r["method"] for r in rows)
+    }
+    within, total = by_method.get("egps", [0, 0])
     result.update(
         {
             "rows": rows,
+            "within_tolerance_by_method": by_method,
             "egps_within_tolerance": [within, total],
             "egps_within_share": within / max(total, 1),
             "table": table(rows, args.tolerance),

@@ -682,13 +682,26 @@ def room_reachable_table() -> str:
         if max(row["best_visible"]) > row["reachable"]["best"]:
             above.setdefault(row["method"], []).append(str(row["room"]))
     beyond = "; ".join(f"{m} in room{'s' * (len(r) > 1)} {', '.join(r)}" for m, r in above.items())
+    costs = {row["method"]: row["cost"] for row in data["rows"] if "cost" in row}
+    refined = [
+        f"{m}: {c['gradient_evaluations']} gradient evaluations a seed at {c['renders_per_gradient_evaluation']} "
+        f"renders each and {c['children']} children, {c['renders']} renders in all"
+        for m, c in costs.items()
+        if c["gradient_evaluations"]
+    ]
+    plain = sorted({c["renders"] for c in costs.values() if not c["gradient_evaluations"]})
+    budget = (
+        f" Every method within the same budget ({'/'.join(map(str, plain))} renders a seed; {'; '.join(refined)})."
+        if refined
+        else ""
+    )
     return data["table"] + (
         f"\n\nSeeds within {tol:g} of the reachable best over all rooms: {summary}. The reachable best is a dense "
         f"exact search of {data['settings']['samples']} camera centres in the training cameras' box, each aimed at "
         "Waldo: a lower bound of the true best (a method that does not aim exactly at him can do a little better"
         + (f": {beyond}" if beyond else "")
         + "). Rooms as `waldo demo` builds them, criterion `waldo_visible`, "
-        f"{data['rows'][0]['seeds']} seeds per method, low budget. From `benchmarks/results/{ROOM_REACHABLE}`."
+        f"{data['rows'][0]['seeds']} seeds per method, low budget.{budget} From `benchmarks/results/{ROOM_REACHABLE}`."
     )
 
 
