@@ -199,6 +199,12 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         )
     if bench == "perf":
         return f"the collected performance report: {data.get('mode')}"
+    if bench == "suite_profile":
+        programs = data.get("programs") or {}
+        return (
+            f"the test suite's {data.get('tests')} tests: {data.get('test_seconds')} test-seconds, "
+            f"{programs.get('compiled')} programs compiled ({programs.get('compiled_again')} compiled again)"
+        )
     if bench == "room_reachable":
         return (
             f"per room ({s.get('rooms')}), the dense search's best visible share of Waldo beside "

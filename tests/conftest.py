@@ -190,14 +190,19 @@ def pytest_unconfigure(config):
 _CACHE_KEY = pytest.StashKey[str]()
 
 
-# `WALDO_TEST_COMPILE_LOG=FILE pytest ...` appends one JSON line per test to FILE: its wall time and
-# the seconds JAX spent in this process tracing, lowering and compiling (JAX's own monitoring
-# events; subprocesses not included). For the suite-time work: which tests are compile-bound.
+# `WALDO_TEST_COMPILE_LOG=FILE pytest ...` appends one JSON line per test to FILE: its wall time, the
+# seconds JAX spent in this process tracing, lowering and compiling (JAX's own monitoring events;
+# subprocesses not included), and under `programs` each program XLA was asked for, as [name, the
+# persistent cache's key, loaded from the cache, seconds XLA compiled it]. For the suite-time work
+# (`benchmarks/suite_profile.py` reads it): which tests are compile-bound, and which programs are
+# compiled more than once in a run.
 _COMPILE_LOG = os.environ.get("WALDO_TEST_COMPILE_LOG")
 _compile_seconds: dict = {}
+_programs: list = []
 
 if _COMPILE_LOG:
     import jax.monitoring
+    from jax._src import compiler as _compiler  # private: the cache's read and write, wrapped to log keys
 
     def _on_duration(event, seconds, **kwargs):
         if event.startswith("/jax/core/compile/"):
@@ -205,6 +210,19 @@ if _COMPILE_LOG:
             _compile_seconds[name] = _compile_seconds.get(name, 0.0) + seconds
 
     jax.monitoring.register_event_duration_secs_listener(_on_duration)
+    _read, _write = _compiler._cache_read, _compiler._cache_write
+
+    def _logged_read(module_name, cache_key, *args, **kwargs):
+        executable, seconds = _read(module_name, cache_key, *args, **kwargs)
+        if executable is not None:
+            _programs.append([module_name, cache_key, True, seconds])
+        return executable, seconds
+
+    def _logged_write(cache_key, compile_time_secs, module_name, *args, **kwargs):
+        _programs.append([module_name, cache_key, False, round(compile_time_secs, 3)])
+        return _write(cache_key, compile_time_secs, module_name, *args, **kwargs)
+
+    _compiler._cache_read, _compiler._cache_write = _logged_read, _logged_write
 
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_protocol(item, nextitem):
@@ -212,10 +230,12 @@ if _COMPILE_LOG:
         import time
 
         _compile_seconds.clear()
+        _programs.clear()
         start = time.perf_counter()
         yield
         record = {"test": item.nodeid, "seconds": round(time.perf_counter() - start, 2)}
         record.update({k: round(v, 2) for k, v in _compile_seconds.items()})
+        record["programs"] = list(_programs)
         with FileLock(_COMPILE_LOG + ".lock"), open(_COMPILE_LOG, "a") as log:
             log.write(json.dumps(record) + "\n")
 
