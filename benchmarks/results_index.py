@@ -202,7 +202,7 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     if bench == "suite_profile":
         programs = data.get("programs") or {}
         return (
-            f"the test suite's {data.get('tests')} tests: {data.get('test_seconds')} test-seconds, "
+            f"the test suite's run: {data.get('tests')} test records, {data.get('test_seconds')} test-seconds, "
             f"{programs.get('compiled')} programs compiled ({programs.get('compiled_again')} compiled again)"
         )
     if bench == "room_reachable":
@@ -213,7 +213,10 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     if bench == "before_packed_renderer":
         return "baseline: the renderer and training step before the packed ones, on the same runs and settings"
     if bench.startswith("waldo demo"):
-        return "`waldo demo` end to end (full settings): stage times, CVIR / mCVIR per method"
+        settings = "--quick settings" if "--quick" in bench else "full settings"
+        if data.get("runs"):
+            return f"`waldo demo` ({settings}) first runs at two commits, A against B: wall and stage times"
+        return f"`waldo demo` end to end ({settings}): stage times, CVIR / mCVIR per method"
     if bench.startswith("waldo train"):
         info = data.get("train_json") or {}
         return (
