@@ -8,13 +8,13 @@ reports, per test file and for the run:
 - the test-seconds (setup, call and teardown of every test, summed over the workers) and the part
   spent tracing, lowering and compiling in the test process (subprocesses are not seen);
 - the programs: asked for, loaded from the run's persistent cache, compiled; distinct cache keys;
-  and the *compiled again* ones, a key compiled by an earlier test as well (two workers at once, or a
+  and the *compiled again* ones, a key compiled before in the same run (two workers at once, or a
   program under `JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`, which is not stored), with their seconds:
   the part of the compile time that sharing could still remove;
 - the program names with the most compile seconds, and how many distinct programs each has.
 
   WALDO_TEST_COMPILE_LOG=/tmp/suite.jsonl python -m pytest -n 2 tests
-  python benchmarks/suite_profile.py /tmp/suite.jsonl --wall 2809.6 --out benchmarks/results/suite_profile_cpu.json
+  python benchmarks/suite_profile.py /tmp/suite.jsonl --wall 1721.2 --out benchmarks/results/suite_profile_cpu.json
 
 `--wall` is the run's wall time as pytest printed it (the log holds test times only).
 """
