@@ -48,7 +48,7 @@ def read_log(path: Path) -> list:
                 record = json.loads(line)
             except json.JSONDecodeError as e:
                 raise SystemExit(f"suite_profile: {path}, line {number}: not JSON ({e.msg})") from None
-            if not isinstance(record, dict) or not isinstance(record.get("test"), str):
+            if not _is_record(record):
                 raise SystemExit(f"suite_profile: {path}, line {number}: not a test record")
             records.append(record)
     if not records:
@@ -56,9 +56,25 @@ def read_log(path: Path) -> list:
     return records
 
 
+def _is_record(record) -> bool:
+    """A test's line as tests/conftest.py writes it: its node id, and each program as [name, key, hit, seconds]."""
+    if not isinstance(record, dict) or not isinstance(record.get("test"), str):
+        return False
+    programs = record.get("programs", [])
+    return isinstance(programs, list) and all(
+        isinstance(p, list)
+        and len(p) == 4
+        and isinstance(p[0], str)
+        and isinstance(p[1], str)
+        and isinstance(p[2], bool)
+        and (p[3] is None or isinstance(p[3], (int, float)))
+        for p in programs
+    )
+
+
 def profile(records: list) -> dict:
     """The run's and each file's seconds and program counts (see the module docstring)."""
-    files: dict = collections.defaultdict(lambda: collections.Counter())
+    files: dict = collections.defaultdict(collections.Counter)
     compiled_keys: dict = collections.Counter()
     by_name: dict = collections.defaultdict(lambda: {"compiled": 0, "seconds": 0.0, "keys": set()})
     totals = collections.Counter()

@@ -49,8 +49,14 @@ def test_counts_programs_compiled_again_and_loaded(tmp_path):
 
 @pytest.mark.parametrize(
     "text, message",
-    [(None, "no such file"), ("", "holds no test records"), ("{]\n", "line 1: not JSON"), ("[1]\n", "not a test")],
-    ids=["missing", "empty", "not-json", "not-a-record"],
+    [
+        (None, "no such file"),
+        ("", "holds no test records"),
+        ("{]\n", "line 1: not JSON"),
+        ("[1]\n", "not a test"),
+        ('{"test": "t.py::a", "programs": [["jit_f", "k"]]}\n', "line 1: not a test record"),
+    ],
+    ids=["missing", "empty", "not-json", "not-a-record", "short-program"],
 )
 def test_a_bad_log_is_one_line_naming_it(tmp_path, capsys, text, message):
     log = tmp_path / "log.jsonl"
