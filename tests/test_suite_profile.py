@@ -47,6 +47,23 @@ def test_counts_programs_compiled_again_and_loaded(tmp_path):
     assert top["jit_f"] == {"name": "jit_f", "compiled": 2, "distinct": 2, "seconds": 3.5}
 
 
+def test_the_tier_sets_the_target(tmp_path):
+    log = tmp_path / "log.jsonl"
+    log.write_text(_record("tests/test_a.py::one", 1.0, []) + "\n")
+    whole = suite_profile.main([str(log), "--wall", "9"])
+    fast = suite_profile.main([str(log), "--wall", "9", "--tier", "fast"])
+    assert (whole["settings"]["tier"], whole["settings"]["target_s"], whole["target_test_seconds"]) == (
+        "suite",
+        480.0,
+        960.0,
+    )
+    assert (fast["settings"]["tier"], fast["settings"]["target_s"], fast["target_test_seconds"]) == (
+        "fast",
+        60.0,
+        120.0,
+    )
+
+
 @pytest.mark.parametrize(
     "text, message",
     [
