@@ -202,7 +202,8 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     if bench == "suite_profile":
         programs = data.get("programs") or {}
         return (
-            f"the test suite's run: {data.get('tests')} test records, {data.get('test_seconds')} test-seconds, "
+            f"the test suite's {(data.get('settings') or {}).get('tier', 'suite')} tier: {data.get('tests')} test "
+            f"records, {data.get('test_seconds')} test-seconds, "
             f"{programs.get('compiled')} programs compiled ({programs.get('compiled_again')} compiled again)"
         )
     if bench == "room_reachable":
