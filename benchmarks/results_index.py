@@ -215,6 +215,8 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         return "baseline: the renderer and training step before the packed ones, on the same runs and settings"
     if bench.startswith("waldo demo"):
         settings = "--quick settings" if "--quick" in bench else "full settings"
+        if data.get("runs") and {r.get("run") for r in data["runs"]} >= {"full", "--quick"}:
+            return "`waldo demo` and `--quick` first runs (`--quick` at two commits, A against B): wall and stage times"
         if data.get("runs"):
             return f"`waldo demo` ({settings}) first runs at two commits, A against B: wall and stage times"
         return f"`waldo demo` end to end ({settings}): stage times, CVIR / mCVIR per method"
