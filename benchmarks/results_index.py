@@ -215,8 +215,10 @@ def _what(name: str, data: Dict[str, Any]) -> str:
         return "baseline: the renderer and training step before the packed ones, on the same runs and settings"
     if bench.startswith("waldo demo"):
         settings = "--quick settings" if "--quick" in bench else "full settings"
+        codes = {r.get("code") for r in data.get("runs") or []}
         if data.get("runs") and {r.get("run") for r in data["runs"]} >= {"full", "--quick"}:
-            return "`waldo demo` and `--quick` first runs (`--quick` at two commits, A against B): wall and stage times"
+            what = "two commits" if len(codes) <= 2 else f"{len(codes)} variants of the code or settings"
+            return f"`waldo demo` and `--quick` first runs (`--quick` at {what}, A against B): wall and stage times"
         if data.get("runs"):
             return f"`waldo demo` ({settings}) first runs at two commits, A against B: wall and stage times"
         return f"`waldo demo` end to end ({settings}): stage times, CVIR / mCVIR per method"
