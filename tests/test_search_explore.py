@@ -8,6 +8,7 @@ children, so each method compiles in about a second.
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -75,6 +76,39 @@ def test_scan_equals_python_loop(method):
     # The run did something: 8 training views + 3 epochs of children, and it improved.
     assert np.asarray(scanned.population.valid).sum() > 8
     assert float(scanned.cvir) > 0.0
+
+
+def test_the_methods_share_one_compiled_finish():
+    """A search runs as two programs, the epochs and the finish (top-k, metrics, archive); the finish's
+    static config holds only what it reads, so the paper's three methods with one config compile it once,
+    for one key and for a batch of keys, and a search equals its two parts run by hand."""
+    module = sys.modules["waldo_jax.search.explore"]
+    config = dataclasses.replace(CONFIG, top_k=3)  # no other test finishes with it: a program of its own
+    key, keys = jax.random.key(4), jax.random.split(jax.random.key(4), 2)
+    programs = (module._finish_jit, module._finish_seeds_jit)
+    before = [p._cache_size() for p in programs]
+    for method in ("grs", "pibs", "egps"):
+        one = explore(key, toy_score, INITIAL, method, config)
+        explore_seeds(keys, toy_score, INITIAL, method, config)
+        assert [p._cache_size() - b for p, b in zip(programs, before)] == [1, 1], method
+    search_method, method_config, resolved, params, start, _ = module._prepare(INITIAL, "egps", config, None, None)
+    population = module._scan_jit(
+        key,
+        jax.tree_util.Partial(toy_score),
+        None,
+        start,
+        params,
+        method=search_method,
+        method_config=method_config,
+        config=resolved,
+    )
+    assert_same(one, module._finish(population, resolved), atol=1e-6)  # the whole config, unjitted
+    # The memory check (`search_memory`) counts the larger of the two programs' needs.
+    statics = dict(method=search_method, method_config=method_config, config=resolved)
+    epochs = module._scan_jit.lower(key, jax.tree_util.Partial(toy_score), None, start, params, **statics).compile()
+    finishing = module._finish_jit.lower(population, config=module._finish_static(resolved)).compile()
+    need = module.search_memory(key, toy_score, INITIAL, "egps", config)
+    assert need >= max(module.program_memory(epochs), module.program_memory(finishing)) > 0
 
 
 @pytest.mark.slow

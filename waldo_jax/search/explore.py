@@ -520,6 +520,32 @@ def _finish(population: Population, config: ExploreConfig) -> Result:
     )
 
 
+def _scan(
+    key: PRNGKey,
+    score_fn,
+    objective,
+    start: _Start,
+    params,
+    method: SearchMethod,
+    method_config,
+    config: ExploreConfig,
+    progress: bool = False,
+    run: Array = 0,
+    runs: int = 1,
+) -> Population:
+    """Algorithm 1's epochs as one `lax.scan`: the final population (`_finish` makes the `Result`)."""
+    population = _init(start, config)
+    carry = (population, _init_state(key, population, params, method, method_config))
+
+    def body(carry, epoch):
+        return _epoch_step(
+            key, score_fn, objective, carry, epoch, params, method, method_config, config, progress, run, runs
+        ), None
+
+    (population, _), _ = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
+    return population
+
+
 def _search(
     key: PRNGKey,
     score_fn,
@@ -533,16 +559,43 @@ def _search(
     run: Array = 0,
     runs: int = 1,
 ) -> Result:
-    population = _init(start, config)
-    carry = (population, _init_state(key, population, params, method, method_config))
-
-    def body(carry, epoch):
-        return _epoch_step(
-            key, score_fn, objective, carry, epoch, params, method, method_config, config, progress, run, runs
-        ), None
-
-    (population, _), _ = jax.lax.scan(body, carry, jnp.arange(1, config.epochs + 1, dtype=jnp.int32))
+    """The whole search, pure: `_scan` then `_finish` (`explore` runs them as two programs)."""
+    population = _scan(key, score_fn, objective, start, params, method, method_config, config, progress, run, runs)
     return _finish(population, config)
+
+
+def _scan_seeds(
+    keys: PRNGKey,
+    score_fn,
+    objective,
+    start: _Start,
+    params,
+    method: SearchMethod,
+    method_config,
+    config: ExploreConfig,
+    progress: bool = False,
+) -> Population:
+    """`_scan` vmapped over keys [K]: the K final populations (leading axis K)."""
+    runs = keys.shape[0]
+    return jax.vmap(
+        lambda key, run: _scan(
+            key, score_fn, objective, start, params, method, method_config, config, progress, run, runs
+        )
+    )(keys, jnp.arange(runs, dtype=jnp.int32))
+
+
+def _finish_seeds(populations: Population, config: ExploreConfig) -> SeedsResult:
+    """`_finish` vmapped over K populations, with the mean / std of CVIR, mCVIR and dCVIR over them."""
+    results = jax.vmap(lambda population: _finish(population, config))(populations)
+    return SeedsResult(
+        results=results,
+        cvir_mean=jnp.mean(results.cvir),
+        cvir_std=jnp.std(results.cvir),
+        mcvir_mean=jnp.mean(results.mcvir),
+        mcvir_std=jnp.std(results.mcvir),
+        dcvir_mean=jnp.mean(results.dcvir),
+        dcvir_std=jnp.std(results.dcvir),
+    )
 
 
 def _search_seeds(
@@ -556,30 +609,59 @@ def _search_seeds(
     config: ExploreConfig,
     progress: bool = False,
 ) -> SeedsResult:
-    runs = keys.shape[0]
-    results = jax.vmap(
-        lambda key, run: _search(
-            key, score_fn, objective, start, params, method, method_config, config, progress, run, runs
-        )
-    )(keys, jnp.arange(runs, dtype=jnp.int32))
-    return SeedsResult(
-        results=results,
-        cvir_mean=jnp.mean(results.cvir),
-        cvir_std=jnp.std(results.cvir),
-        mcvir_mean=jnp.mean(results.mcvir),
-        mcvir_std=jnp.std(results.mcvir),
-        dcvir_mean=jnp.mean(results.dcvir),
-        dcvir_std=jnp.std(results.dcvir),
+    """`_search` for keys [K], pure: `_scan_seeds` then `_finish_seeds`."""
+    populations = _scan_seeds(keys, score_fn, objective, start, params, method, method_config, config, progress)
+    return _finish_seeds(populations, config)
+
+
+def _finish_static(config: ExploreConfig) -> ExploreConfig:
+    """The part of `config` that `_finish` reads (epochs, children, top-k, top-n, separation, grid), the rest
+    at its defaults: the finishing program's static argument, so that searches that differ only in their
+    method or its options share one compiled finish (the direction is the population's own, static)."""
+    return ExploreConfig(
+        epochs=config.epochs,
+        children_per_epoch=config.children_per_epoch,
+        top_k=config.top_k,
+        top_n=config.top_n,
+        min_separation=config.min_separation,
+        grid=config.grid,
     )
 
 
 _STATIC = ("method", "method_config", "config", "progress")
-_search_jit = jax.jit(_search, static_argnames=_STATIC)
-_search_seeds_jit = jax.jit(_search_seeds, static_argnames=_STATIC)
+# A search runs as two compiled programs: the epochs (`_scan`: the method, the criterion and the render
+# inside) and the finish (`_finish`: top-k, metrics, archive), whose static config holds only what it reads
+# (`_finish_static`). Searches that differ in their method or criterion but not in their shapes and
+# top-k settings (the paper's three methods on one scene) then compile the finish once, not per method.
+_scan_jit = jax.jit(_scan, static_argnames=_STATIC)
+_scan_seeds_jit = jax.jit(_scan_seeds, static_argnames=_STATIC)
 _init_jit = jax.jit(_init, static_argnames=("config",))
 _init_state_jit = jax.jit(_init_state, static_argnames=("method", "method_config"))
 _epoch_step_jit = jax.jit(_epoch_step, static_argnames=_STATIC)
 _finish_jit = jax.jit(_finish, static_argnames=("config",))
+_finish_seeds_jit = jax.jit(_finish_seeds, static_argnames=("config",))
+
+
+def _programs(key: PRNGKey):
+    """(the epochs' program, the finishing program) of a search with one key [] or keys [K]."""
+    return (_scan_jit, _finish_jit) if jnp.ndim(key) == 0 else (_scan_seeds_jit, _finish_seeds_jit)
+
+
+def _run_search(key, score_fn, objective, start: _Start, params, method, method_config, config, progress: bool):
+    """The search with key [] (a `Result`) or keys [K] (a `SeedsResult`): its two programs in turn."""
+    scan, finish = _programs(key)
+    populations = scan(
+        key,
+        score_fn,
+        objective,
+        start,
+        params,
+        method=method,
+        method_config=method_config,
+        config=config,
+        progress=progress,
+    )
+    return finish(populations, config=_finish_static(config))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -619,16 +701,16 @@ def explore(
     search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
-    return _search_jit(
+    return _run_search(
         key,
         _as_partial(score_fn),
         objective,
         start,
         params,
-        method=search_method,
-        method_config=method_config,
-        config=config,
-        progress=bool(progress),
+        search_method,
+        method_config,
+        config,
+        bool(progress),
     )
 
 
@@ -643,28 +725,27 @@ def search_memory(
     progress: bool = False,
 ) -> Optional[int]:
     """Bytes the compiled search needs: its arguments, outputs and temporaries by XLA's own analysis of
-    the program `explore` (one key) or `explore_seeds` (keys [K]) would run, with the same arguments.
+    the programs `explore` (one key) or `explore_seeds` (keys [K]) would run, with the same arguments: the
+    epochs' program, or the finishing one with the epochs' arguments still held, whichever needs more.
 
-    It compiles that program without running it; the compile is cached, so the run that follows with the
-    same arguments does not compile again. None where the backend gives no analysis
+    It compiles those programs without running them; the compiles are cached, so the run that follows
+    with the same arguments does not compile again. None where the backend gives no analysis
     (`program_memory`).
     """
     search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
-    jitted = _search_jit if jnp.ndim(key) == 0 else _search_seeds_jit
-    compiled = jitted.lower(
-        key,
-        _as_partial(score_fn),
-        objective,
-        start,
-        params,
-        method=search_method,
-        method_config=method_config,
-        config=config,
-        progress=bool(progress),
-    ).compile()
-    return program_memory(compiled)
+    scan, finish = _programs(key)
+    statics = dict(method=search_method, method_config=method_config, config=config, progress=bool(progress))
+    arguments = (key, _as_partial(score_fn), objective, start, params)
+    epochs = scan.lower(*arguments, **statics).compile()
+    populations = jax.eval_shape(functools.partial(scan, **statics), *arguments)
+    finishing = finish.lower(populations, config=_finish_static(config)).compile()
+    need, held = program_memory(epochs), program_memory(epochs, ("argument_size_in_bytes",))
+    finish_need = program_memory(finishing)
+    if need is None or held is None or finish_need is None:
+        return None
+    return max(need, finish_need + held)
 
 
 def result_bytes(
@@ -681,7 +762,7 @@ def result_bytes(
         initial, method, config, params, objective_fn
     )
     shapes = jax.eval_shape(
-        functools.partial(_search_jit, method=search_method, method_config=method_config, config=config),
+        functools.partial(_search, method=search_method, method_config=method_config, config=config),
         jax.random.key(0),
         _as_partial(score_fn),
         objective,
@@ -691,18 +772,19 @@ def result_bytes(
     return int(sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(shapes)))
 
 
-def program_memory(compiled) -> Optional[int]:
+def program_memory(
+    compiled, parts: Tuple[str, ...] = ("argument_size_in_bytes", "output_size_in_bytes", "temp_size_in_bytes")
+) -> Optional[int]:
     """Bytes a compiled program (`jax.jit(f).lower(...).compile()`) needs by XLA's analysis: arguments,
-    outputs and temporaries, or None where the backend gives none. XLA's figure is one device's: a
-    program split over a CPU's host devices counts every device's part, since they all take from the
-    host's memory; on accelerators, each with its own, it is the one device's."""
+    outputs and temporaries (or the `parts` of the analysis named), or None where the backend gives none.
+    XLA's figure is one device's: a program split over a CPU's host devices counts every device's part,
+    since they all take from the host's memory; on accelerators, each with its own, it is the one device's."""
     try:
         analysis = compiled.memory_analysis()
     except (NotImplementedError, RuntimeError):  # pragma: no cover - backends without the analysis
         return None
     if analysis is None:
         return None
-    parts = ("argument_size_in_bytes", "output_size_in_bytes", "temp_size_in_bytes")
     per_device = int(sum(max(int(getattr(analysis, name, 0) or 0), 0) for name in parts))
     devices = {d for s in jax.tree.leaves(compiled.output_shardings) for d in s.device_set}
     on_host = devices and all(d.platform == "cpu" for d in devices)
@@ -742,7 +824,7 @@ def explore_loop(
             config=config,
             progress=bool(progress),
         )
-    return _finish_jit(carry[0], config=config)
+    return _finish_jit(carry[0], config=_finish_static(config))
 
 
 def explore_seeds(
@@ -768,14 +850,14 @@ def explore_seeds(
     search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
-    return _search_seeds_jit(
+    return _run_search(
         keys,
         _as_partial(score_fn),
         objective,
         start,
         params,
-        method=search_method,
-        method_config=method_config,
-        config=config,
-        progress=bool(progress),
+        search_method,
+        method_config,
+        config,
+        bool(progress),
     )
