@@ -166,6 +166,10 @@ def test_the_suites_fast_compiles_give_the_answers_of_xlas_default_compiles(tmp_
     assert float(result.stdout.split()[0]) < 1e-5
     assert main(EXPLORE + ["--out", str(tmp_path / "fast")]) == 0
     default, fast = (json.loads((tmp_path / run / "results.json").read_text()) for run in ("default", "fast"))
-    assert [t["c2w"] for t in fast["topk"]] == [t["c2w"] for t in default["topk"]]
+    # The same views (rank, epoch, training view or not), their poses equal to float32 rounding: the two
+    # emitters may round a child's matrix differently in its last bit.
+    same = ("rank", "epoch", "training_view")
+    assert [[t[k] for k in same] for t in fast["topk"]] == [[t[k] for k in same] for t in default["topk"]]
+    np.testing.assert_allclose([t["c2w"] for t in fast["topk"]], [t["c2w"] for t in default["topk"]], atol=1e-6)
     for key in ("scores_train", "scores_generated"):
         np.testing.assert_allclose(fast[key], default[key], rtol=1e-5)
