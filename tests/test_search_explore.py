@@ -78,6 +78,7 @@ def test_scan_equals_python_loop(method):
     assert float(scanned.cvir) > 0.0
 
 
+@pytest.mark.slow
 def test_the_methods_share_one_compiled_finish():
     """A search runs as two programs, the epochs and the finish (top-k, metrics, archive); the finish's
     static config holds only what it reads, so the paper's three methods with one config compile it once,

@@ -4,7 +4,8 @@
 training views, every epoch the method is asked for `children_per_epoch` poses, `score_fn` scores them
 (c2w [children_per_epoch, 4, 4] -> scores; render + criterion, composed by the caller) and they are
 written into the population; the top-k views come back with CVIR / mCVIR and per-epoch curves. The
-whole search is one `jax.lax.scan` inside one `jax.jit`; `explore_loop` runs the same epochs as a
+epochs are one `jax.lax.scan` inside one `jax.jit`, the finish (top-k, metrics, archive) a second
+program that searches of other methods share; `explore_loop` runs the same epochs as a
 Python loop, `explore_seeds` vmaps it over a batch of keys. `score_fn` is part of the compilation
 cache key: define it once, or pass arrays through a `jax.tree_util.Partial`. `budget_children` turns
 the paper's "low" / "high" budgets into children per epoch. Randomness, fixed shapes, `Partial`
@@ -678,7 +679,7 @@ def explore(
     objective_fn: Optional[Callable[[Array], Array]] = None,
     progress: bool = False,
 ) -> Result:
-    """Runs one search (Algorithm 1) as a single compiled `lax.scan` over epochs.
+    """Runs one search (Algorithm 1) as a compiled `lax.scan` over epochs, then its compiled finish.
 
     Args:
       key: PRNG key (`jax.random.key(seed)`); epoch e uses `fold_in(key, e)`, a method's initial
@@ -837,7 +838,7 @@ def explore_seeds(
     objective_fn: Optional[Callable[[Array], Array]] = None,
     progress: bool = False,
 ) -> SeedsResult:
-    """`explore` for a batch of keys [K], vmapped in one compiled call.
+    """`explore` for a batch of keys [K], vmapped: one compiled call for the epochs, one for the finish.
 
     Args:
       keys: [K] PRNG keys (e.g. `jax.random.split(jax.random.key(seed), K)`).
