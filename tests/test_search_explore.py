@@ -87,11 +87,13 @@ def test_the_methods_share_one_compiled_finish():
     config = dataclasses.replace(CONFIG, top_k=3)  # no other test finishes with it: a program of its own
     key, keys = jax.random.key(4), jax.random.split(jax.random.key(4), 2)
     programs = (module._finish_jit, module._finish_seeds_jit)
-    before = [p._cache_size() for p in programs]
+    before, sizes = [p._cache_size() for p in programs], []
     for method in ("grs", "pibs", "egps"):
         one = explore(key, toy_score, INITIAL, method, config)
         explore_seeds(keys, toy_score, INITIAL, method, config)
-        assert [p._cache_size() - b for p, b in zip(programs, before)] == [1, 1], method
+        sizes.append([p._cache_size() for p in programs])
+    # GRS compiled each finish (for one key and for a batch), PIBS and EGPS none.
+    assert [s - b for s, b in zip(sizes[0], before)] == [1, 1] and sizes[0] == sizes[1] == sizes[2], sizes
     search_method, method_config, resolved, params, start, _ = module._prepare(INITIAL, "egps", config, None, None)
     population = module._scan_jit(
         key,
