@@ -547,24 +547,6 @@ def _scan(
     return population
 
 
-def _search(
-    key: PRNGKey,
-    score_fn,
-    objective,
-    start: _Start,
-    params,
-    method: SearchMethod,
-    method_config,
-    config: ExploreConfig,
-    progress: bool = False,
-    run: Array = 0,
-    runs: int = 1,
-) -> Result:
-    """The whole search, pure: `_scan` then `_finish` (`explore` runs them as two programs)."""
-    population = _scan(key, score_fn, objective, start, params, method, method_config, config, progress, run, runs)
-    return _finish(population, config)
-
-
 def _scan_seeds(
     keys: PRNGKey,
     score_fn,
@@ -597,22 +579,6 @@ def _finish_seeds(populations: Population, config: ExploreConfig) -> SeedsResult
         dcvir_mean=jnp.mean(results.dcvir),
         dcvir_std=jnp.std(results.dcvir),
     )
-
-
-def _search_seeds(
-    keys: PRNGKey,
-    score_fn,
-    objective,
-    start: _Start,
-    params,
-    method: SearchMethod,
-    method_config,
-    config: ExploreConfig,
-    progress: bool = False,
-) -> SeedsResult:
-    """`_search` for keys [K], pure: `_scan_seeds` then `_finish_seeds`."""
-    populations = _scan_seeds(keys, score_fn, objective, start, params, method, method_config, config, progress)
-    return _finish_seeds(populations, config)
 
 
 def _finish_static(config: ExploreConfig) -> ExploreConfig:
@@ -762,8 +728,13 @@ def result_bytes(
     search_method, method_config, config, params, start, objective = _prepare(
         initial, method, config, params, objective_fn
     )
+
+    def search(*arguments):  # the two programs' shapes, traced together (nothing compiles)
+        population = _scan(*arguments, method=search_method, method_config=method_config, config=config)
+        return _finish(population, config)
+
     shapes = jax.eval_shape(
-        functools.partial(_search, method=search_method, method_config=method_config, config=config),
+        search,
         jax.random.key(0),
         _as_partial(score_fn),
         objective,
