@@ -257,6 +257,32 @@ def test_rays_marched_adapt_to_the_budget(lego_small):
     assert rays_ladder(config.replace(sampler="dense")) == (1024,)
 
 
+@pytest.mark.slow
+def test_first_rays_above_the_fitted_rung_train_the_same_rays(lego_small):
+    """`first_rays` sets the warm-up's rung; the budget keeps the rays it kept on the fitted (lower)
+    rung, in the order they were drawn: a step trains the same rays, to the loss's rounding."""
+    config = _tiny_config(lego_small, "occupancy", rays_per_batch=1024)
+    fitted = tr.first_rays(config)
+    assert fitted < 1024 and tr.first_rays(config.replace(first_rays=1024)) == 1024
+    inputs = tr.training_inputs(jax.random.key(5), lego_small, config)
+    args = (inputs.train_key, inputs.data, inputs.hparams, inputs.render_config)
+    update = jax.jit(make_occupancy_update(config, True))
+    state = update(inputs.state, inputs.train_key)  # the warm-up's grid: every cell sampled
+    (low, low_metrics), (high, high_metrics) = (
+        jax.jit(make_train_step(config, r))(state, *args) for r in (fitted, 1024)
+    )
+    assert int(low_metrics["rays"]) == int(high_metrics["rays"]) < fitted  # the fitted rung overflowed already
+    assert int(low_metrics["samples"]) == int(high_metrics["samples"])
+    assert float(low_metrics["loss"]) == pytest.approx(float(high_metrics["loss"]), rel=1e-5)
+    for a, b in zip(jax.tree.leaves(low.params), jax.tree.leaves(high.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    for bad in (3, 96, 2048, 1000):  # not the ladder's: below 128, past rays_per_batch, not a power of 2
+        with pytest.raises(TrainConfigError, match="first_rays must be rays_per_batch"):
+            config.replace(first_rays=bad)
+    with pytest.raises(TrainConfigError, match="first_rays must be rays_per_batch"):
+        config.replace(sampler="dense", first_rays=512)
+
+
 def test_packed_training_loss_and_gradients_equal_the_per_ray_reference(lego_small):
     """The occupancy sampler's packed rows (the training composite) against the [rays x samples]
     composite of the same marched samples: loss and gradients equal to relative 1e-5."""

@@ -81,6 +81,12 @@ class TrainConfig:
         ray may keep in occupied space (occupancy; capped at the K candidates that cross the grid,
         so a large value means no cap, as in Instant-NGP).
       samples_per_batch: occupancy sampler: field evaluations per step (packed rows across rays).
+      first_rays: occupancy sampler: the rays the steps march until the warm-up ends, a rung of the
+        ladder (`rays_per_batch` halved, down to 128); None: the rung whose rays fill the budget
+        with the grid all occupied. Each rung the run marches compiles its own program; rays past
+        those the budget holds are marched and left out, so a rung above the one the budget fills
+        trains the same rays (the pixels are drawn in the same order) and costs only their
+        marching: a short run that starts on the rung it will keep compiles one program less.
       eval_samples: rendering (held-out PSNR, `waldo render`, `waldo explore`): the most samples a
         ray keeps in occupied space (occupancy), or the samples across the field's box (dense).
       chunk: steps between host syncs (progress bar, history, the rays marched per step); rounded
@@ -114,6 +120,7 @@ class TrainConfig:
     rays_per_batch: int = 1024
     num_samples: int = 64
     samples_per_batch: int = 2**15
+    first_rays: Optional[int] = None
     eval_samples: int = 128
     chunk: int = 50
     loss: str = "mse"
@@ -142,6 +149,16 @@ class TrainConfig:
             "occupancy_update_every",
         ):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+        if self.first_rays is not None:
+            object.__setattr__(self, "first_rays", _positive_int("first_rays", self.first_rays))
+            ratio, rest = divmod(self.rays_per_batch, self.first_rays)
+            low = min(128, self.rays_per_batch)
+            if rest or ratio & (ratio - 1) or self.first_rays < low or (ratio > 1 and self.sampler != "occupancy"):
+                raise TrainConfigError(
+                    f"TrainConfig.first_rays must be rays_per_batch ({self.rays_per_batch}) halved down to "
+                    f"{low} at the least (the occupancy sampler's ladder; the dense sampler's is rays_per_batch "
+                    f"alone), got {self.first_rays}"
+                )
         for name in ("eval_every", "occupancy_warmup"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name), minimum=0))
         object.__setattr__(self, "aabb_scale", _positive_float("aabb_scale", self.aabb_scale))

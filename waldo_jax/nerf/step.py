@@ -433,7 +433,10 @@ def _fit_rays(config: TrainConfig, rows_per_ray: float) -> int:
 
 
 def first_rays(config: TrainConfig) -> int:
-    """R of the first chunk: the grid is all occupied, so a ray crossing the box keeps about S samples."""
+    """R of the first chunk: `config.first_rays` where given, else the grid is all occupied, so a ray
+    crossing the box keeps about S samples."""
+    if config.first_rays is not None:
+        return config.first_rays
     if config.sampler != "occupancy":
         return config.rays_per_batch
     samples = make_sampler(config).march.max_samples
