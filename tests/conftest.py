@@ -14,11 +14,12 @@ from pathlib import Path
 from typing import Callable
 
 os.environ.setdefault("JAX_ENABLE_X64", "0")
-# XLA's legacy CPU fusion emitters (`waldo_jax._xla_flags`, docs/design.md "Faster CPU compiles on
-# request"): the suite compiles ~2,200 programs and runs short ones, so on the 2-core CPU it takes
-# about a fifth less time. Set before waldo_jax is imported (below), inherited by the subprocesses
-# (notebooks, sharding, benchmarks). `WALDO_FAST_COMPILE=0 pytest ...` runs the suite with XLA's
-# default emitters; tests/test_xla_guard.py checks both settings give the same answers.
+# XLA's legacy CPU fusion emitters and LLVM's optimisation level 1 (`waldo_jax._xla_flags`,
+# docs/design.md "Faster CPU compiles on request"): the suite compiles ~5,000 programs and runs short
+# ones, so on the 2-core CPU it takes about a fifth less time (the emitters), then a tenth less (level 1).
+# Set before waldo_jax is imported (below), inherited by the subprocesses (notebooks, sharding,
+# benchmarks). `WALDO_FAST_COMPILE=0 pytest ...` runs the suite with XLA's defaults;
+# tests/test_xla_guard.py checks both settings give the same answers.
 os.environ.setdefault("WALDO_FAST_COMPILE", "1")
 # One persistent XLA compilation cache for the whole run (created in `pytest_configure` below, shared
 # by the xdist workers and every subprocess they start): the CLI, notebook and benchmark tests start

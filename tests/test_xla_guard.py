@@ -87,14 +87,17 @@ def test_matmuls_run_at_full_float32_precision_unless_the_user_chooses():
 
 
 def test_fast_cpu_compiles_only_when_asked():
-    """`WALDO_FAST_COMPILE=1` adds XLA's legacy CPU fusion emitters; unset or 0 leaves XLA's default;
-    a setting of the user's own wins."""
-    flag = "--xla_cpu_use_fusion_emitters"
-    assert flag not in _flags_after_import({})
-    assert flag not in _flags_after_import({"WALDO_FAST_COMPILE": "0"})
-    assert f"{flag}=false" in _flags_after_import({"WALDO_FAST_COMPILE": "1"}).split()
-    own = _flags_after_import({"WALDO_FAST_COMPILE": "1", "XLA_FLAGS": f"{flag}=true"}).split()
-    assert own.count(f"{flag}=true") == 1 and f"{flag}=false" not in own
+    """`WALDO_FAST_COMPILE=1` adds XLA's legacy CPU fusion emitters and LLVM's optimisation level 1;
+    unset or 0 leaves XLA's default; a setting of the user's own wins, flag by flag."""
+    flags = {"--xla_cpu_use_fusion_emitters": ("false", "true"), "--xla_backend_optimization_level": ("1", "2")}
+    for flag, (ours, theirs) in flags.items():
+        assert flag not in _flags_after_import({})
+        assert flag not in _flags_after_import({"WALDO_FAST_COMPILE": "0"})
+        assert f"{flag}={ours}" in _flags_after_import({"WALDO_FAST_COMPILE": "1"}).split()
+        own = _flags_after_import({"WALDO_FAST_COMPILE": "1", "XLA_FLAGS": f"{flag}={theirs}"}).split()
+        assert own.count(f"{flag}={theirs}") == 1 and f"{flag}={ours}" not in own
+        other = next(f for f in flags if f != flag)
+        assert f"{other}={flags[other][0]}" in own
 
 
 def test_one_cpu_device_per_usable_core_unless_set():

@@ -13,7 +13,8 @@
     128 px on the 2-core CPU: 2.3 -> 1.2 s a view). Programs that are not split run on the first
     device as before.
   * CPU, only when asked (`WALDO_FAST_COMPILE=1`): XLA's legacy CPU fusion emitters
-    (`--xla_cpu_use_fusion_emitters=false`), which compile faster and run the NeRF field slower; the
+    (`--xla_cpu_use_fusion_emitters=false`) and LLVM's optimisation level 1 instead of 3
+    (`--xla_backend_optimization_level=1`), which compile faster and run the NeRF field slower; the
     test suite turns it on (tests/conftest.py).
 
 A user's own setting of any of these is left alone. `apply()` adds the flags to XLA_FLAGS,
@@ -34,6 +35,8 @@ _DETERMINISM_FLAGS = ("--xla_gpu_deterministic_ops", "--xla_gpu_exclude_nondeter
 # fox training step 145 ms instead of 108 ms (docs/design.md, "Faster CPU compiles on request").
 # jaxlib knows the flag from 0.7 (the oldest that pyproject allows) on.
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters"
+# With it, LLVM's level 1 (level 0 compiles faster still but its programs run slower by more).
+_FAST_COMPILE_LEVEL_FLAG = "--xla_backend_optimization_level"
 _HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
 # More host devices than this replicate a scene's arrays (a copy per device) for little more speed.
 MAX_CPU_DEVICES = 8
@@ -84,8 +87,11 @@ def _wanted_flags(flags: str) -> list:
         wanted.append(f"{_YNN_FLAG}=")
     if _env_on("WALDO_DETERMINISTIC", "1") and not any(flag in flags for flag in _DETERMINISM_FLAGS):
         wanted.append(f"{_DETERMINISM_FLAGS[0]}=true")
-    if _env_on("WALDO_FAST_COMPILE", "0") and _FAST_COMPILE_FLAG not in flags:
-        wanted.append(f"{_FAST_COMPILE_FLAG}=false")
+    if _env_on("WALDO_FAST_COMPILE", "0"):
+        if _FAST_COMPILE_FLAG not in flags:
+            wanted.append(f"{_FAST_COMPILE_FLAG}=false")
+        if _FAST_COMPILE_LEVEL_FLAG not in flags:
+            wanted.append(f"{_FAST_COMPILE_LEVEL_FLAG}=1")
     if _HOST_DEVICES_FLAG not in flags and cpu_devices() > 1:
         wanted.append(f"{_HOST_DEVICES_FLAG}={cpu_devices()}")
     return wanted
