@@ -216,6 +216,9 @@ def _what(name: str, data: Dict[str, Any]) -> str:
     if bench.startswith("waldo demo"):
         settings = "--quick settings" if "--quick" in bench else "full settings"
         codes = {r.get("code") for r in data.get("runs") or []}
+        flags = {r.get("xla_flags") for r in data.get("runs") or [] if "xla_flags" in r}
+        if len(flags) > 1:
+            return "`waldo demo` and `--quick` first runs of one commit under two XLA settings: wall and stage times"
         if data.get("runs") and {r.get("run") for r in data["runs"]} >= {"full", "--quick"}:
             what = "two commits" if len(codes) <= 2 else f"{len(codes)} variants of the code or settings"
             return f"`waldo demo` and `--quick` first runs (`--quick` at {what}, A against B): wall and stage times"
