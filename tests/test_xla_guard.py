@@ -100,6 +100,22 @@ def test_fast_cpu_compiles_only_when_asked():
         assert f"{other}={flags[other][0]}" in own
 
 
+def test_the_fast_compiles_leave_a_gpus_code_generation_alone(monkeypatch):
+    """LLVM's level, which XLA's GPU code generation reads too, is added only where no GPU can be used:
+    with a JAX GPU plugin installed only under `JAX_PLATFORMS=cpu`; the CPU emitters' flag either way."""
+    from waldo_jax import _xla_flags
+
+    monkeypatch.setenv("WALDO_FAST_COMPILE", "1")
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    level, emitters = "--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false"
+    monkeypatch.setattr(_xla_flags, "_gpu_possible", lambda: True)
+    assert emitters in _xla_flags._wanted_flags("") and level not in _xla_flags._wanted_flags("")
+    monkeypatch.undo()
+    monkeypatch.setenv("WALDO_FAST_COMPILE", "1")
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert not _xla_flags._gpu_possible() and level in _xla_flags._wanted_flags("")
+
+
 def test_one_cpu_device_per_usable_core_unless_set():
     """A CPU gets as many XLA host devices as this process may use cores (at most 8), `WALDO_CPU_DEVICES`
     sets the number, a count in the user's XLA_FLAGS wins, and one device adds no flag."""

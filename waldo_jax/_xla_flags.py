@@ -13,9 +13,10 @@
     128 px on the 2-core CPU: 2.3 -> 1.2 s a view). Programs that are not split run on the first
     device as before.
   * CPU, only when asked (`WALDO_FAST_COMPILE=1`): XLA's legacy CPU fusion emitters
-    (`--xla_cpu_use_fusion_emitters=false`) and LLVM's optimisation level 1 instead of 3
-    (`--xla_backend_optimization_level=1`), which compile faster and run the NeRF field slower; the
-    test suite turns it on (tests/conftest.py).
+    (`--xla_cpu_use_fusion_emitters=false`) and, where no GPU can be used (`JAX_PLATFORMS=cpu`, or no
+    JAX GPU plugin installed), LLVM's optimisation level 1 instead of 3
+    (`--xla_backend_optimization_level=1`, which XLA's GPU code generation would read too); they
+    compile faster and run the NeRF field slower; the test suite turns them on (tests/conftest.py).
 
 A user's own setting of any of these is left alone. `apply()` adds the flags to XLA_FLAGS,
 `full_precision_matmuls()` sets the precision. Why, with what was measured: see docs/design.md,
@@ -74,6 +75,20 @@ def _backends_started() -> bool:
         return False
 
 
+def _gpu_possible() -> bool:
+    """Whether this process may run on a GPU: `JAX_PLATFORMS` does not name the CPU alone and a JAX GPU
+    plugin (the `jax_plugins` namespace: CUDA, ROCm) is installed. Starts no backend."""
+    if os.environ.get("JAX_PLATFORMS", "").strip().lower() == "cpu":
+        return False
+    try:
+        import pkgutil
+
+        import jax_plugins
+    except ImportError:
+        return False
+    return any(True for _ in pkgutil.iter_modules(jax_plugins.__path__))
+
+
 def _env_on(name: str, default: str) -> bool:
     """Whether the environment variable `name` is on (unset or empty: `default`)."""
     value = os.environ.get(name, "").strip().lower() or default
@@ -90,7 +105,7 @@ def _wanted_flags(flags: str) -> list:
     if _env_on("WALDO_FAST_COMPILE", "0"):
         if _FAST_COMPILE_FLAG not in flags:
             wanted.append(f"{_FAST_COMPILE_FLAG}=false")
-        if _FAST_COMPILE_LEVEL_FLAG not in flags:
+        if _FAST_COMPILE_LEVEL_FLAG not in flags and not _gpu_possible():
             wanted.append(f"{_FAST_COMPILE_LEVEL_FLAG}=1")
     if _HOST_DEVICES_FLAG not in flags and cpu_devices() > 1:
         wanted.append(f"{_HOST_DEVICES_FLAG}={cpu_devices()}")
