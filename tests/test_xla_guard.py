@@ -88,13 +88,15 @@ def test_matmuls_run_at_full_float32_precision_unless_the_user_chooses():
 
 def test_fast_cpu_compiles_only_when_asked():
     """`WALDO_FAST_COMPILE=1` adds XLA's legacy CPU fusion emitters and LLVM's optimisation level 1;
-    unset or 0 leaves XLA's default; a setting of the user's own wins, flag by flag."""
+    unset or 0 leaves XLA's default; a setting of the user's own wins, flag by flag. (`JAX_PLATFORMS=cpu`,
+    so that a GPU machine's plugin does not withhold the level: that case is the test below.)"""
     flags = {"--xla_cpu_use_fusion_emitters": ("false", "true"), "--xla_backend_optimization_level": ("1", "2")}
+    cpu = {"JAX_PLATFORMS": "cpu"}
     for flag, (ours, theirs) in flags.items():
-        assert flag not in _flags_after_import({})
-        assert flag not in _flags_after_import({"WALDO_FAST_COMPILE": "0"})
-        assert f"{flag}={ours}" in _flags_after_import({"WALDO_FAST_COMPILE": "1"}).split()
-        own = _flags_after_import({"WALDO_FAST_COMPILE": "1", "XLA_FLAGS": f"{flag}={theirs}"}).split()
+        assert flag not in _flags_after_import(cpu)
+        assert flag not in _flags_after_import({**cpu, "WALDO_FAST_COMPILE": "0"})
+        assert f"{flag}={ours}" in _flags_after_import({**cpu, "WALDO_FAST_COMPILE": "1"}).split()
+        own = _flags_after_import({**cpu, "WALDO_FAST_COMPILE": "1", "XLA_FLAGS": f"{flag}={theirs}"}).split()
         assert own.count(f"{flag}={theirs}") == 1 and f"{flag}={ours}" not in own
         other = next(f for f in flags if f != flag)
         assert f"{other}={flags[other][0]}" in own
@@ -108,10 +110,10 @@ def test_the_fast_compiles_leave_a_gpus_code_generation_alone(monkeypatch):
     monkeypatch.setenv("WALDO_FAST_COMPILE", "1")
     monkeypatch.delenv("JAX_PLATFORMS", raising=False)
     level, emitters = "--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false"
-    monkeypatch.setattr(_xla_flags, "_gpu_possible", lambda: True)
+    real = _xla_flags._gpu_possible
+    monkeypatch.setattr(_xla_flags, "_gpu_possible", lambda: True)  # as with a CUDA plugin installed
     assert emitters in _xla_flags._wanted_flags("") and level not in _xla_flags._wanted_flags("")
-    monkeypatch.undo()
-    monkeypatch.setenv("WALDO_FAST_COMPILE", "1")
+    monkeypatch.setattr(_xla_flags, "_gpu_possible", real)
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     assert not _xla_flags._gpu_possible() and level in _xla_flags._wanted_flags("")
 

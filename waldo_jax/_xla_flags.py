@@ -76,8 +76,9 @@ def _backends_started() -> bool:
 
 
 def _gpu_possible() -> bool:
-    """Whether this process may run on a GPU: `JAX_PLATFORMS` does not name the CPU alone and a JAX GPU
-    plugin (the `jax_plugins` namespace: CUDA, ROCm) is installed. Starts no backend."""
+    """Whether this process may run on an accelerator: `JAX_PLATFORMS` does not name the CPU alone and a
+    JAX plugin is installed (anything in the `jax_plugins` namespace: CUDA, ROCm, ...). Imports none of
+    them and starts no backend."""
     if os.environ.get("JAX_PLATFORMS", "").strip().lower() == "cpu":
         return False
     try:
