@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import warnings
 
 import numpy as np
@@ -20,6 +21,7 @@ from test_bad_input import _snapshot, _write_run, _write_scene
 import waldo_jax.errors as errors
 import waldo_jax.pipeline.experiment as experiment
 from waldo_jax.cli import main
+from waldo_jax.errors import WaldoError
 from waldo_jax.io import MAX_JSON_DEPTH, json_depth, parse_json
 from waldo_jax.splats.io import write_splat_ply
 from waldo_jax.splats.model import make_splats
@@ -237,16 +239,66 @@ def test_the_issues_hundred_million_epochs_are_one_line(tmp_path, capsys):
 # Degenerate fields: a warning line and a flag in the results.
 
 
-@pytest.mark.slow
-def test_all_transparent_splats_warn_and_are_flagged(tmp_path):
-    from waldo_jax.pipeline.splat_sources import splat_source
+def _huge_splats(**kw):
+    splats = _tiny_splats(**kw)
+    return splats.replace(log_scales=np.full_like(np.asarray(splats.log_scales), 100.0))
 
-    write_splat_ply(tmp_path / "point_cloud.ply", _tiny_splats(opacity_logit=-20.0))
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "make, says",
+    [
+        (lambda: _tiny_splats(opacity_logit=-20.0), "are transparent"),
+        (lambda: _tiny_splats(opacity_logit=-200.0), "are transparent"),  # opacity exactly 0 in float32
+        (lambda: _tiny_splats(n=2), None),  # too few to find an up: the file family's axis, not an error
+        (_huge_splats, "64 opaque ones have a scale past exp(40)"),
+    ],
+    ids=["transparent", "opacity-zero", "two-splats", "scales-overflow"],
+)
+def test_splats_that_cannot_show_warn_and_are_flagged(tmp_path, make, says):
+    """Every kind of splat scene the renderer would draw as the background alone (transparent, or scales
+    whose covariance overflows float32) loads with a warning and `degenerate` in its info; a scene of
+    two splats loads with the file family's up (too few to find one) instead of a traceback."""
+    from waldo_jax.pipeline.splat_sources import splat_source, splat_upright
+    from waldo_jax.splats.io import load_splat_model
+
+    write_splat_ply(tmp_path / "point_cloud.ply", make())
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         source = splat_source(str(tmp_path / "point_cloud.ply"), resolution=16)
-    assert "transparent" in source.info["degenerate"]
+    if says is None:
+        assert "degenerate" not in source.info
+        upright = splat_upright(load_splat_model(tmp_path / "point_cloud.ply"))
+        assert upright.rule == "format axis" and "too few" in upright.reason
+        return
+    assert says in source.info["degenerate"]
     assert any("every render is the background alone" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize(
+    "record, says",
+    [
+        ([1, 2], "a splat run record must be a JSON object, not list"),
+        ({"background": "abc"}, "'background' must be 3 numbers in [0, 1], got 'abc'"),
+        ({"background": [5, 5, 5]}, "'background' must be 3 numbers in [0, 1]"),
+        ({"background": [1, 0]}, "'background' must be 3 numbers"),
+        ({"scene_path": 5}, "'scene_path' must be a path, got 5"),
+        ({"downscale": 0}, "'downscale' must be a whole number >= 1"),
+        ({"steps": 1e400}, "'steps' must be a whole number >= 0, got inf"),
+    ],
+    ids=["list", "background-text", "background-range", "background-short", "scene-path", "downscale", "steps"],
+)
+def test_a_splat_runs_record_is_checked_key_by_key(tmp_path, record, says):
+    """A splat run's train.json, read back for its background, scene and figures, is refused by name and key
+    when it holds the wrong kind of value (each once ended in a traceback, or a background of 5 rendered)."""
+    from waldo_jax.pipeline.splat_sources import splat_source
+
+    run = tmp_path / "run"
+    (run / "point_cloud" / "iteration_1").mkdir(parents=True)
+    write_splat_ply(run / "point_cloud" / "iteration_1" / "point_cloud.ply", _tiny_splats())
+    (run / "train.json").write_text(json.dumps(record).replace("Infinity", "1e400"))
+    with pytest.raises(WaldoError, match=re.escape(f"{run / 'train.json'}: {says}")):
+        splat_source(str(run), resolution=16)
 
 
 @pytest.mark.slow
@@ -283,3 +335,54 @@ def test_a_run_with_an_empty_occupancy_grid_warns_and_is_flagged(tmp_path):
         source = run_source(str(tmp_path / "run"), resolution=16)
     assert "occupancy grid is empty" in source.info["degenerate"]
     assert any("marks no cell occupied" in str(w.message) for w in caught)
+
+
+# --------------------------------------------------------------------------------------------------
+# Images in another colour space: converted where Pillow can, refused where it cannot.
+
+
+@pytest.mark.parametrize("suffix", [".tiff", ".jpg"])
+def test_a_cmyk_image_reads_as_its_colours_not_its_ink(tmp_path, suffix):
+    """imageio hands a CMYK file's four ink channels over as they are: read as RGBA they were the image's
+    negative (a score then judged the negative). Read as Pillow converts it, it matches the RGB original."""
+    from PIL import Image
+
+    from waldo_jax.io import read_image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (32, 40, 3), dtype=np.uint8)
+    Image.fromarray(rgb).convert("CMYK").save(tmp_path / f"cmyk{suffix}")
+    got = read_image(tmp_path / f"cmyk{suffix}")
+    assert got.shape == (32, 40, 3)
+    tolerance = 1.5 / 255 if suffix == ".tiff" else 0.2  # JPEG is lossy; the negative is off by ~0.5 on average
+    assert float(np.abs(got - rgb / 255.0).mean()) < tolerance
+
+
+def test_a_lab_image_is_refused_by_name(tmp_path):
+    from PIL import Image
+
+    from waldo_jax.io import read_image
+
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).convert("LAB").save(tmp_path / "lab.tiff")
+    with pytest.raises(WaldoError, match=r"lab\.tiff: a LAB image \(another colour space"):
+        read_image(tmp_path / "lab.tiff")
+
+
+def test_frames_that_share_an_image_file_warn(tmp_path):
+    """Frames naming one image file (a copy-paste slip: one photo for eight poses) load with one warning that
+    names the file and how many frames share it; distinct files load without it."""
+    from waldo_jax.scenes import load_scene
+
+    _write_scene(tmp_path / "scene")
+    path = tmp_path / "scene" / "transforms.json"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        load_scene(tmp_path / "scene")
+    meta = json.loads(path.read_text())
+    for frame in meta["frames"]:
+        frame["file_path"] = "images/0.png"
+    path.write_text(json.dumps(meta))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_scene(tmp_path / "scene")
+    shared = [str(w.message) for w in caught if "share" in str(w.message)]
+    assert len(shared) == 1 and "8 of 8 frames share 1 image files" in shared[0] and "0.png" in shared[0]

@@ -349,6 +349,36 @@ def test_ascii_ply(tmp_path):
         read_ply_points(tmp_path / "bad.ply")
 
 
+@pytest.mark.parametrize("count", [3, 2**63, 10**30], ids=["one-more", "2**63", "10**30"])
+def test_a_ply_header_promising_more_vertices_than_the_file_holds_is_refused(tmp_path, count):
+    """A binary PLY's vertex count is checked against the file's bytes before NumPy reads it (a count past
+    2**63 once overflowed a C integer with a traceback)."""
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {count}\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n"
+    )
+    (tmp_path / "p.ply").write_bytes(header.encode() + np.zeros((2, 3), "<f4").tobytes())
+    says = rf"p\.ply: malformed PLY vertex data \(the header's {count} vertices need"
+    with pytest.raises(SceneFormatError, match=says):
+        read_ply_points(tmp_path / "p.ply")
+
+
+def test_a_ply_header_is_parsed_in_linear_time_and_bounded(tmp_path):
+    """47,000 extra properties (a 1 MiB header) parse in well under a second (a quadratic duplicate check
+    once took 22 s), and a header without its end in the first MiB is said to be one."""
+    import time
+
+    from waldo_jax.scenes.ply import parse_ply_header
+
+    lines = "".join(f"property uchar e{i}\n" for i in range(47000))
+    raw = ("ply\nformat binary_little_endian 1.0\nelement vertex 1\n" + lines + "end_header\n").encode()
+    start = time.perf_counter()
+    header = parse_ply_header(raw, "big.ply")
+    assert time.perf_counter() - start < 1.0 and len(header.element("vertex").properties) == 47000
+    with pytest.raises(SceneFormatError, match=r"long\.ply: PLY header without 'end_header' in its first 1,048,576"):
+        parse_ply_header(b"ply\n" + b"comment x\n" * 200000, "long.ply")
+
+
 def _blender_scene(folder, rgba, background_split="train"):
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "train").mkdir(exist_ok=True)

@@ -81,6 +81,16 @@ def test_quaternion_round_trip_and_convention():
     np.testing.assert_allclose(rotation_of_qvec(qvec_of_rotation(half_turn)), half_turn, atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [1e-300, 1e300])
+def test_a_quaternion_of_any_finite_size_keeps_its_direction(scale):
+    """A quaternion's squares once overflowed (1e300: the identity came back, with a warning naming no
+    file) or underflowed; its direction is what counts. Zero and non-finite ones are refused."""
+    np.testing.assert_allclose(rotation_of_qvec([scale, scale, 0, 0]), rotation_of_qvec([1, 1, 0, 0]), atol=1e-12)
+    for bad in ([0, 0, 0, 0], [math.inf, 0, 0, 0], [math.nan, 1, 0, 0]):
+        with pytest.raises(ValueError, match="zero or not finite"):
+            rotation_of_qvec(bad)
+
+
 @pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
 def test_colmap_round_trip_all_pinhole_models(tmp_path, binary):
     models = sorted(PINHOLE_LIKE_MODELS)

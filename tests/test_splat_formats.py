@@ -21,7 +21,7 @@ from PIL import Image
 from conftest import _missing
 from waldo_jax import paths
 from waldo_jax.cameras import look_at
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import SceneFormatError, WaldoError
 from waldo_jax.pipeline.splat_sources import is_splat_spec
 from waldo_jax.splats import formats as F
 from waldo_jax.splats.io import SH_C0, load_splat_model, read_splat_ply, write_splat_ply
@@ -473,6 +473,14 @@ def _sog_zip(tmp_path, edit):
     return _write_sog(tmp_path / "bad_sog", meta, files, bundle=True).read_bytes()
 
 
+_MIB2 = bytes(2**21)
+
+
+def _with(name, data):
+    """An edit of a SOG's files that replaces file `name` by `data`."""
+    return lambda meta, files: files.update({name: data})
+
+
 BROKEN = {
     "unknown": ("x.dat", lambda t: b"hello, world" * 10, r"not a splat file of any format read here \(formats read: "),
     "splat size": ("x.splat", lambda t: bytes(33), r"not a splat file of any format read here"),
@@ -500,6 +508,30 @@ BROKEN = {
     "sog codebook": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["scales"].update(codebook=[1, 2])),
                      r"scales\.codebook must be 256 finite numbers"),
     "sog json": ("meta.json", lambda t: b'{"means": 1, "scales": 2, "quats": 3, "sh0": [', r"not a splat file of any"),
+    # Sizes and types a header or meta.json gives: refused before anything that large is inflated or decoded.
+    "gzip bomb": ("x.spz", lambda t: gzip.compress(gzip.decompress(_spz_v3(t)) + bytes(64 * 2**20), 1),
+                  r"the SPZ stream inflates past what its 20 splats need"),
+    "spz count": ("x.spz", lambda t: gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 2**31 - 1, 3, 12, 0, 0)),
+                  r"reading its 2,147,483,647 splats \(an SPZ file, SH degree 3\) would take .* GiB"),
+    "v4 count": ("x.spz", lambda t: _spz_v4(t)[:8] + struct.pack("<I", 2**31 - 1) + _spz_v4(t)[12:],
+                 r"reading its 2,147,483,647 splats \(an SPZ file"),
+    "sog image size": ("x.sog", lambda t: _sog_zip(t, _with("scales.webp", _webp(np.zeros((256, 256, 4))))),
+                       r"the SOG's image 'scales\.webp' is 256x256: expected at most 16,388 texels"),
+    "sog member size": ("x.sog", lambda t: _sog_zip(t, lambda m, f: f.update({"sh0.webp": f["sh0.webp"] + _MIB2})),
+                        r"the SOG's file 'sh0\.webp' holds more than 1 MiB"),
+    "sog centroid width": ("x.sog", lambda t: _sog_zip(t, _with("shN_centroids.webp", _webp(np.zeros((1, 100, 4))))),
+                           r"shN centroid image is 100 wide, expected 192"),
+    "sog count huge": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m.update(count=2**40)),
+                       r"reading its 1,099,511,627,776 splats \(a SOG"),
+    "sog files empty": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["quats"].update(files=[])),
+                        r"'quats' must be an object with a 'files' list of at least 1 file"),
+    "sog file names": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["means"].update(files=[5, 6])),
+                       r"'means' must be an object with a 'files' list of at least 2 file"),
+    "sog v1 shape": ("x.sog", lambda t: _sog_zip(t, lambda m, f: (m.pop("version"), m.pop("count"),
+                                                                   m["means"].update(shape=5))),
+                     r"no positive splat count \(got None\)"),
+    "sog big int": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m.update(count=10**400)),
+                    r"no positive splat count \(got inf\)"),
 }  # fmt: skip
 
 
@@ -508,7 +540,7 @@ def test_broken_file_is_one_clear_line(tmp_path, case):
     name, build, message = BROKEN[case]
     path = tmp_path / name
     path.write_bytes(build(tmp_path))
-    with pytest.raises(SceneFormatError, match=message) as info:
+    with pytest.raises(WaldoError, match=message) as info:
         load_splat_model(path)
     text = str(info.value)
     assert text.startswith(f"{path}: ") and "\n" not in text

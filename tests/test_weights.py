@@ -192,6 +192,77 @@ def test_reader_refuses_code_and_reports_corruption(tmp_path):
         read_torch_file(tmp_path / "nope.pth")
 
 
+_EVIL = b"cos\nsystem\n(S'touch {marker}'\ntR."
+
+
+@pytest.mark.parametrize("position", range(5))
+def test_no_pickle_of_a_legacy_file_runs_code(tmp_path, position):
+    """Code in any of the legacy format's five pickles (magic number, protocol, system info, object,
+    storage keys) is refused before it runs: the marker file is never made."""
+    marker = tmp_path / "ran"
+    parts = [
+        pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2),
+        pickle.dumps(1001, protocol=2),
+        pickle.dumps({"little_endian": True}, protocol=2),
+        pickle.dumps({}, protocol=2),
+        pickle.dumps([], protocol=2),
+    ]
+    parts[position] = _EVIL.replace(b"{marker}", str(marker).encode())
+    evil = tmp_path / "evil.pth"
+    evil.write_bytes(b"".join(parts))
+    with pytest.raises(TorchPickleError, match="evil.pth: refusing to unpickle os.system"):
+        read_torch_file(evil)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "offset, size, stride",
+    [(0, (1000,), (-1000000,)), (0, (-5,), (1,)), (-3, (2,), (1,)), (0, (2, 2), (1,)), (0, (2.5,), (1,))],
+    ids=["negative-stride", "negative-size", "negative-offset", "stride-per-dimension", "float-size"],
+)
+def test_a_tensor_header_outside_its_storage_is_refused(tmp_path, offset, size, stride):
+    """A tensor's offset, sizes and strides must address its storage: a negative stride once read
+    memory outside it (a crash), a negative size raised from NumPy."""
+    storage = _FakeStorage("0", np.arange(10, dtype=np.float32))
+    path = tmp_path / "bad.pth"
+    path.write_bytes(
+        b"".join(
+            [
+                pickle.dumps(0x1950A86A20F9469CFC6C, protocol=2),
+                pickle.dumps(1001, protocol=2),
+                pickle.dumps({"little_endian": True}, protocol=2),
+                _dumps(collections.OrderedDict(w=_FakeTensor(storage, offset, size, stride))),
+                pickle.dumps(["0"], protocol=2),
+                struct.pack("<q", 10) + storage.array.tobytes(),
+            ]
+        )
+    )
+    with pytest.raises(TorchPickleError, match="bad.pth.*(non-negative|overruns)"):
+        read_torch_file(path)
+
+
+def test_a_zip_member_that_inflates_past_its_storage_is_not_read_whole(tmp_path, monkeypatch):
+    """A storage member is decompressed only as far as its tensor needs, and the object pickle at most
+    `MAX_PICKLE_BYTES`: a small zip of a huge member neither fills the memory nor fails to load."""
+    from waldo_jax.weights import torch_pickle
+
+    path = tmp_path / "bomb.pth"
+    write_zip(path, {"w": np.arange(4, dtype=np.float32)})
+    with zipfile.ZipFile(path, "a", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("archive/data/0_padding", b"")
+    # Rewrite the storage member as its 16 bytes followed by 64 MiB of zeros (a 64 KiB deflated member).
+    rebuilt = tmp_path / "rebuilt.pth"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(rebuilt, "w", compression=zipfile.ZIP_DEFLATED) as dst:
+        for name in src.namelist():
+            data = src.read(name)
+            dst.writestr(name, data + bytes(64 * 2**20) if name == "archive/data/0" else data)
+    assert rebuilt.stat().st_size < 2**20
+    np.testing.assert_array_equal(state_dict(read_torch_file(rebuilt))["w"], np.arange(4, dtype=np.float32))
+    monkeypatch.setattr(torch_pickle, "MAX_PICKLE_BYTES", 16)
+    with pytest.raises(TorchPickleError, match="rebuilt.pth: archive/data.pkl inflates past"):
+        read_torch_file(rebuilt)
+
+
 def test_reader_reads_the_real_checkpoints():
     csnet = state_dict(read_torch_file(require_weights("csnet/csnet-L-x1.pth.tar")))
     assert len(csnet) == 739

@@ -339,6 +339,13 @@ def json_depth(raw: bytes) -> int:
     return deepest
 
 
+def _json_int(text: str):
+    """A JSON integer as an int while it fits 64 bits (20 characters with the sign), else as the float it
+    rounds to (inf past 1.8e308): readers then refuse it as a number out of range, by its key, instead of
+    overflowing in a cast (and Python's int() refuses texts of more than 4,300 digits)."""
+    return int(text) if len(text) <= 20 else float(text)
+
+
 def parse_json(
     raw: str | bytes,
     path: str | os.PathLike,
@@ -359,7 +366,7 @@ def parse_json(
     if depth > MAX_JSON_DEPTH:
         raise fail(f"{what} nests {depth} levels deep (at most {MAX_JSON_DEPTH})")
     try:
-        return json.loads(data.decode("utf-8"))
+        return json.loads(data.decode("utf-8"), parse_int=_json_int)
     except UnicodeDecodeError as e:
         raise fail(f"{what} is not UTF-8 text ({e.reason} at byte {e.start})") from None
     except json.JSONDecodeError as e:
@@ -444,6 +451,13 @@ def write_transforms(
 # Reading images.
 
 
+# Pillow modes whose channels are not R, G, B (A): converted to RGB by Pillow (CMYK, YCbCr), or refused
+# (LAB, HSV: Pillow has no conversion of its own). imageio returns the stored channels, which read as RGB
+# would score a CMYK photo as its negative.
+_CONVERTED_COLOUR_MODES = ("CMYK", "YCbCr")
+_OTHER_COLOUR_MODES = ("LAB", "HSV")
+
+
 def read_image(
     path: str | os.PathLike, keep_alpha: bool = False, what: str = "image file", min_side: int = MIN_RESOLUTION
 ) -> np.ndarray:
@@ -461,15 +475,23 @@ def read_image(
     path = check_input_file(path, what)
     try:
         with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
-            width, height = header.size
+            width, height, mode = *header.size, header.mode
     except Exception:  # not a format Pillow knows: imageio may still read it; its size is checked below
-        width = height = None
+        width = height = mode = None
     if width is not None:
         _check_image_size(path, width, height, min_side)
+    if mode in _OTHER_COLOUR_MODES:
+        raise WaldoError(
+            f"{path}: a {mode} image (another colour space: its channels are not red, green and blue); save it as RGB"
+        )
     try:
         with warnings.catch_warnings():  # imageio's plugin probing warns about deprecated plugins on junk files
             warnings.simplefilter("ignore", DeprecationWarning)
-            image = np.asarray(iio.imread(path))
+            if mode in _CONVERTED_COLOUR_MODES:  # imageio hands their channels over as they are stored
+                with Image.open(path) as stored:
+                    image = np.asarray(stored.convert("RGB"))
+            else:
+                image = np.asarray(iio.imread(path))
     except Exception as exc:  # imageio raises many types, some with installation advice on later lines
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise WaldoError(f"{path}: not a readable image ({first[:160]})") from None

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import struct
 from pathlib import Path
@@ -288,6 +289,15 @@ def _check_version(path: Path, header: Dict[str, Any]) -> None:
         )
 
 
+def _info(path: Path, info: Any) -> Dict[str, Any]:
+    """The header's free-form `info` object (None counts as empty); a CheckpointError for anything else."""
+    if info is None:
+        return {}
+    if not isinstance(info, dict):
+        raise CheckpointError(path, f"corrupt checkpoint (its 'info' is a {type(info).__name__}, not an object)")
+    return dict(info)
+
+
 def _array_table(path: Path, header: Dict[str, Any], payload_start: int, file_size: int) -> Dict[str, Dict]:
     """The validated array table, by name; checks the file size against it."""
     try:
@@ -301,7 +311,7 @@ def _array_table(path: Path, header: Dict[str, Any], payload_start: int, file_si
                 "offset": int(entry["offset"]),
                 "nbytes": int(entry["nbytes"]),
             }
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise CheckpointError(path, f"corrupt checkpoint (bad array table: {e!r})") from None
     expected = payload_start + payload_bytes + _DIGEST_BYTES
     if file_size < expected:
@@ -309,7 +319,11 @@ def _array_table(path: Path, header: Dict[str, Any], payload_start: int, file_si
     if file_size > expected:
         raise CheckpointError(path, f"corrupt checkpoint ({file_size} bytes, expected {expected}: trailing data)")
     for name, e in entries.items():
-        count = int(np.prod(e["shape"], dtype=np.int64))
+        if e["dtype"].kind not in "biuf" or e["dtype"].itemsize == 0:  # numbers only: no objects, text or complex
+            raise CheckpointError(path, f"corrupt checkpoint (array {name}: dtype {e['dtype']} is not a number type)")
+        if min(e["shape"], default=0) < 0:
+            raise CheckpointError(path, f"corrupt checkpoint (array {name}: negative shape {list(e['shape'])})")
+        count = math.prod(e["shape"])  # Python integers: a huge shape cannot wrap around
         if e["nbytes"] != count * e["dtype"].itemsize or e["offset"] < 0 or e["offset"] + e["nbytes"] > payload_bytes:
             raise CheckpointError(path, f"corrupt checkpoint (array {name}: inconsistent size or offset)")
     return entries
@@ -381,7 +395,7 @@ def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRe
             background=None if background is None else np.asarray(background, np.float32).reshape(3),
             metadata=dict(scene.get("metadata", {})),
         )
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise CheckpointError(path, f"corrupt checkpoint (bad scene record: {e!r})") from None
 
 
@@ -478,7 +492,7 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
         occupancy=occupancy,
         config=config,
         scene=scene,
-        info=dict(header.get("info", {})),
+        info=_info(path, header.get("info", {})),
         path=str(path),
         format_version=FORMAT_VERSION,
     )

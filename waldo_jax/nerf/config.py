@@ -281,7 +281,7 @@ class TrainConfig:
             hashgrid = HashGridConfig(**field.pop("hashgrid"))
             values["field"] = NGPFieldConfig(hashgrid=hashgrid, **field)
             return cls(**values)
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as e:
             raise TrainConfigError(f"invalid training config: {e}") from None
 
 

@@ -282,11 +282,37 @@ def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c
 # The source.
 
 
+# The keys of a splat run's train.json that are read back, each with its test and what it must be.
+_RECORD_KEYS = {
+    "scene_path": (lambda v: isinstance(v, str), "a path"),
+    "split": (lambda v: isinstance(v, str), "a split name"),
+    "downscale": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1, "a whole number >= 1"),
+    "steps": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a whole number >= 0"),
+    "psnr_test": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool), "a number"),
+    "background": (
+        lambda v: (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0.0 <= c <= 1.0 for c in v)
+        ),
+        "3 numbers in [0, 1]",
+    ),
+}
+
+
 def _read_train_json(folder: Path) -> Optional[dict]:
+    """A splat run's train.json, None where there is none; a SourceError naming it and the key when it is no
+    object or a key read back (`_RECORD_KEYS`; null is absent) holds the wrong kind of value."""
     path = folder / TRAIN_JSON
     if not path.is_file():
         return None
-    return read_json_file(path, "splat run record")
+    record = read_json_file(path, "splat run record")
+    if not isinstance(record, dict):
+        raise SourceError(f"{path}: a splat run record must be a JSON object, not {type(record).__name__}")
+    for key, (ok, what) in _RECORD_KEYS.items():
+        if record.get(key) is not None and not ok(record[key]):
+            raise SourceError(f"{path}: {key!r} must be {what}, got {record[key]!r}")
+    return record
 
 
 def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarray], str]:
@@ -314,20 +340,36 @@ def _run_images(record: dict, names, intrinsics: Intrinsics) -> Tuple[Optional[n
 # A splat below this opacity adds less than one 8-bit step to any pixel: a scene of only such splats
 # renders the background alone.
 MIN_VISIBLE_OPACITY = 1.0 / 255.0
+# A splat whose largest log-scale is above this has a covariance (the scale squared, times the projection's
+# focal / depth squared) past float32's range: the renderer finds it non-finite and leaves it out.
+MAX_SHOWN_LOG_SCALE = 40.0
 
 
 def _flag_transparent(spec: str, splats: Splats, info: Dict[str, Any]) -> None:
-    """Warns, and flags `info["degenerate"]`, when no valid splat is opaque enough to show (every render
-    would be the background alone)."""
+    """Warns, and flags `info["degenerate"]`, when no valid splat can show (every render would be the
+    background alone): each is transparent (opacity under 1/255), or so large that its covariance overflows
+    float32 (a log-scale above `MAX_SHOWN_LOG_SCALE`), or has a non-finite centre."""
     valid = np.asarray(splats.valid, bool)
-    opacity = np.asarray(jax.nn.sigmoid(splats.logits))[valid] if valid.any() else np.zeros(0)
-    if opacity.size and float(opacity.max()) >= MIN_VISIBLE_OPACITY:
+    opacity = np.asarray(jax.nn.sigmoid(splats.logits), np.float32)[valid]
+    log_scales = np.asarray(splats.log_scales, np.float32)[valid]
+    means = np.asarray(splats.means, np.float32)[valid]
+    with np.errstate(invalid="ignore"):
+        opaque = opacity >= MIN_VISIBLE_OPACITY
+        sized = np.all(np.isfinite(log_scales), -1) & (np.max(log_scales, -1, initial=-np.inf) <= MAX_SHOWN_LOG_SCALE)
+    placed = np.all(np.isfinite(means), -1)
+    if np.any(opaque & sized & placed):
         return
-    highest = f"{float(opacity.max()):.2g}" if opacity.size else "none"
-    why = (
-        f"all {int(valid.sum())} splats are transparent (highest opacity {highest}, under 1/255): every "
-        "render is the background alone"
-    )
+    count = int(valid.sum())
+    if not opaque.any():
+        highest = f"{float(opacity.max()):.2g}" if opacity.size else "none"
+        why = f"all {count} splats are transparent (highest opacity {highest}, under 1/255)"
+    else:
+        why = (
+            f"none of the {count} splats can show: {int((~opaque).sum())} are transparent (opacity under 1/255), "
+            f"{int((opaque & ~sized).sum())} opaque ones have a scale past exp({MAX_SHOWN_LOG_SCALE:g}) (their "
+            f"covariance overflows float32), {int((opaque & sized & ~placed).sum())} a non-finite centre"
+        )
+    why += ": every render is the background alone"
     info["degenerate"] = why
     warnings.warn(f"{spec}: {why}", stacklevel=3)
 

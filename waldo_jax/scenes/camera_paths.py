@@ -345,7 +345,7 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
             width = int(waldo.get("render_width", default.width))
             height = int(waldo.get("render_height", default.height))
             fov = float(meta["path"][0]["fov"])
-    except (KeyError, TypeError, ValueError, IndexError, np.linalg.LinAlgError) as e:
+    except (KeyError, TypeError, ValueError, IndexError, np.linalg.LinAlgError, OverflowError) as e:
         raise ValueError(f"malformed camera path ({type(e).__name__}: {e})") from None
     if len(c2w) == 0:
         raise ValueError("the camera path has no frames")

@@ -19,6 +19,7 @@ read; the writer writes none (and an empty points3D file, so that COLMAP opens t
 
 from __future__ import annotations
 
+import math
 import mmap
 import os
 import struct
@@ -113,8 +114,16 @@ class ColmapImage(NamedTuple):
 
 
 def rotation_of_qvec(qvec: Sequence[float]) -> np.ndarray:
-    """The [3, 3] rotation of a quaternion (w, x, y, z), normalised first (must not be zero)."""
-    w, x, y, z = np.asarray(qvec, np.float64) / np.linalg.norm(qvec)
+    """The [3, 3] rotation of a quaternion (w, x, y, z), normalised first (must be finite and not zero).
+
+    Divided by its largest component before its norm, so that components past 1e154 (whose squares
+    overflow float64) keep their direction instead of collapsing to the identity."""
+    q = np.asarray(qvec, np.float64)
+    largest = float(np.max(np.abs(q))) if q.size else 0.0
+    if not (math.isfinite(largest) and largest > 0.0):
+        raise ValueError(f"quaternion {list(map(float, q))} is zero or not finite")
+    q = q / largest
+    w, x, y, z = q / np.linalg.norm(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

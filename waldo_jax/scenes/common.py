@@ -295,7 +295,7 @@ def extent_problem(aabb: Any, near: Any, far: Any) -> Optional[str]:
     try:
         box = np.asarray(aabb, np.float64).reshape(2, 3)
         near, far = float(near), float(far)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return f"scene box {aabb!r} / near {near!r} / far {far!r} are not numbers of the right shape"
     if not (np.all(np.isfinite(box)) and np.max(np.abs(box)) <= MAX_COORDINATE):
         return f"scene box {_box_text(box)} is not finite or lies beyond {MAX_COORDINATE:g} (rescale the scene)"

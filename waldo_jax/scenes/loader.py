@@ -33,7 +33,7 @@ def _check_downscale(downscale: Any) -> Optional[float]:
         return None
     try:
         factor = float(downscale)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneArgumentError(f"downscale must be a number >= 1, got {downscale!r}") from None
     if not math.isfinite(factor) or factor < 1.0:
         raise SceneArgumentError(f"downscale must be a number >= 1 (no upsampling), got {downscale!r}")
@@ -44,7 +44,7 @@ def _check_background(background: Any) -> np.ndarray:
     """`background` as float32 [3] finite RGB (one number is repeated)."""
     try:
         bg = np.asarray(background, np.float32).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         bg = np.zeros(0, np.float32)
     if bg.shape == (1,):
         bg = np.repeat(bg, 3)

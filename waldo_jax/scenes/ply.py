@@ -5,6 +5,7 @@ positions of a point cloud, with its vertex colours on request (ASCII or binary)
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 import re
@@ -98,6 +99,8 @@ def parse_ply_header(raw: bytes, path: str | os.PathLike) -> PlyHeader:
         newline = raw.find(b"\n", pos, _MAX_HEADER_BYTES)
         if newline < 0 and raw[pos:].strip() == b"end_header":  # a file that ends with its header
             newline = len(raw)
+        if newline < 0 and len(raw) > _MAX_HEADER_BYTES:
+            raise SceneFormatError(path, f"PLY header without 'end_header' in its first {_MAX_HEADER_BYTES:,} bytes")
         if newline < 0:
             raise SceneFormatError(path, "not a PLY file (no 'ply' magic or no 'end_header')")
         line = raw[pos:newline].decode("ascii", errors="replace").strip()
@@ -122,8 +125,7 @@ def parse_ply_header(raw: bytes, path: str | os.PathLike) -> PlyHeader:
     if fmt not in _FORMATS:
         raise SceneFormatError(path, f"unsupported PLY format {fmt!r}")
     for name, _, props in elements:
-        names = [p for p, _ in props]
-        twice = sorted({p for p in names if names.count(p) > 1})
+        twice = sorted(p for p, uses in collections.Counter(p for p, _ in props).items() if uses > 1)
         if twice:
             raise SceneFormatError(path, f"PLY element {name!r} has the properties {', '.join(twice)} twice")
     return PlyHeader(fmt, tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements), min(pos, len(raw)))
@@ -193,7 +195,11 @@ def read_ply_points(path: str | os.PathLike, colors: bool = False):
                 raise ValueError(f"{len(table)} vertex lines, header says {count}")
         else:
             order = "<" if header.format == "binary_little_endian" else ">"
-            data = np.frombuffer(raw, dtype=vertex.dtype(order), count=count, offset=header.offset_of("vertex"))
+            offset, row = header.offset_of("vertex"), vertex.dtype(order).itemsize
+            if offset + count * row > len(raw):  # a count past the file, checked before NumPy sees it
+                need = offset + count * row
+                raise ValueError(f"the header's {count} vertices need {need} bytes, the file has {len(raw)}")
+            data = np.frombuffer(raw, dtype=vertex.dtype(order), count=count, offset=offset)
             table = np.stack([data[k].astype(np.float64) for k in wanted], -1)
     except (ValueError, IndexError, KeyError, UnicodeDecodeError, TypeError) as e:
         raise SceneFormatError(path, f"malformed PLY vertex data ({e})") from None

@@ -34,7 +34,7 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     """A validated [4, 4] camera-to-world matrix of a poses file (16 numbers or [3, 4] accepted)."""
     try:
         m = np.asarray(matrix, np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneFormatError(path, f"{what} is not a matrix of numbers") from None
     if m.shape == (16,):
         m = m.reshape(4, 4)

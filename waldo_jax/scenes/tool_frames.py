@@ -118,7 +118,7 @@ def ngp_frame(meta: Dict[str, Any], start: NgpFrame = NgpFrame()) -> NgpFrame:
     if "aabb" in meta:
         try:
             box = np.asarray(meta["aabb"], np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             box = np.zeros(0)
         if box.shape != (2, 3) or not np.all(np.isfinite(box)):
             raise ValueError(f"'aabb' must be [[min x, y, z], [max x, y, z]] of finite numbers, got {meta['aabb']!r}")
@@ -186,7 +186,7 @@ def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
     try:
         transform = np.asarray(meta["transform"], np.float64)
         scale = float(meta["scale"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise ValueError('expected nerfstudio\'s dataparser_transforms.json: {"transform": 3x4, "scale": s}') from None
     if transform.shape == (3, 4):
         transform = _homogeneous(transform)
@@ -213,7 +213,7 @@ def nerfstudio_applied(meta: Dict[str, Any], folder: Optional[Path] = None) -> T
     if "applied_transform" in meta:
         try:
             applied = np.asarray(meta["applied_transform"], np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             applied = np.zeros(0)
         if applied.shape != (3, 4) or not np.all(np.isfinite(applied)):
             raise ValueError("'applied_transform' must be a finite 3x4 matrix")

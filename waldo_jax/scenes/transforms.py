@@ -88,7 +88,7 @@ def _check_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     """Validates one camera-to-world matrix: [4, 4], finite, rigid. Returns it as float64."""
     try:
         m = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneFormatError(path, f"{what}: transform_matrix is not a 4x4 matrix of numbers") from None
     if m.shape != (4, 4):
         raise SceneFormatError(path, f"{what}: transform_matrix has shape {list(m.shape)}, expected 4x4")
@@ -201,15 +201,38 @@ def _existing_frames(
         else:
             found.append((frame, image))
     if not found:
+        first = folder / missing[0]
         raise SceneFormatError(
-            path, f"none of the {len(frames)} image files listed exist (first: {folder / missing[0]})"
+            path,
+            f"none of the {len(frames)} image files listed exist (first: {first}"
+            + (", a directory)" if first.is_dir() else ")"),
         )
     if missing:
+        directories = [m for m in missing if (folder / m).is_dir()]
+        what = f"; {folder / directories[0]} is a directory" if directories else ""
         warnings.warn(
-            f"{path}: skipped {len(missing)} of {len(frames)} frames whose image file is missing (first: {missing[0]})",
+            f"{path}: skipped {len(missing)} of {len(frames)} frames whose image file is missing (first: "
+            f"{missing[0]}{what})",
             stacklevel=4,
         )
+    _warn_shared_images(found, path)
     return found, len(missing)
+
+
+def _warn_shared_images(found: List[Tuple[Dict[str, Any], Path]], path: Path) -> None:
+    """Warns once when frames name the same image file: one photo then trains, or judges, several poses."""
+    users: Dict[Path, int] = {}
+    for _, image in found:
+        key = image.resolve()
+        users[key] = users.get(key, 0) + 1
+    shared = {image: n for image, n in users.items() if n > 1}
+    if shared:
+        first = next(iter(shared))
+        warnings.warn(
+            f"{path}: {sum(shared.values())} of {len(found)} frames share {len(shared)} image files (first: {first}, "
+            f"named by {shared[first]} frames): each is one photo for several poses",
+            stacklevel=5,
+        )
 
 
 # ----------------------------------------------------------------------------------------------

@@ -130,7 +130,7 @@ def read_colmap_cameras(path: str | os.PathLike) -> SplatCameras:
             if any(v != 0.0 for v in camera.extra_params):
                 distorted.append(camera)
         qvec = np.asarray(image.qvec, np.float64)
-        if not np.all(np.isfinite(qvec)) or not np.all(np.isfinite(image.tvec)) or np.linalg.norm(qvec) < 1e-12:
+        if not np.all(np.isfinite(qvec)) or not np.all(np.isfinite(image.tvec)) or np.max(np.abs(qvec)) == 0.0:
             raise SceneFormatError(images_path, f"{what}: zero or non-finite quaternion or translation")
         poses.append(check_rigid(colmap_c2w(image), images_path, what))
         intrinsics.append(pinholes[image.camera_id])
@@ -263,7 +263,7 @@ def _nerfstudio_frames(transforms: Path) -> SplatCameras:
         distorted += any(number(camera, k, transforms) for k in _DISTORTION_KEYS)
         try:
             c2w = np.asarray(frame.get("transform_matrix"), np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             c2w = np.zeros(0)
         if c2w.shape == (3, 4):
             c2w = np.concatenate([c2w, [[0.0, 0.0, 0.0, 1.0]]])

@@ -69,7 +69,7 @@ def _numbers(value: Any, shape: Tuple[int, ...]) -> Optional[np.ndarray]:
     """`value` as float64 of `shape` when it is nested lists of JSON numbers, else None."""
     try:
         array = np.array(value, dtype=object)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return None
     if array.shape != shape or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in array.flat):
         return None

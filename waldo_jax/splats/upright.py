@@ -312,7 +312,7 @@ def estimate_upright(
     keep = np.all((means >= low) & (means <= high), axis=1) & (weights > 0)
     points, w = means[keep], weights[keep]
     if len(points) < 3 or float(w.sum()) <= 0:
-        raise ValueError(f"{len(points)} splats with opacity inside their robust bounds: too few to find an up")
+        return _too_few(len(points), format_up, up, layout)
     centre = 0.5 * (low + high)
     diagonal = max(float(np.linalg.norm(high - low)), 1e-12)
     radius = 0.5 * diagonal
@@ -330,6 +330,20 @@ def estimate_upright(
         layout_name, layout_reason, more = _layout(points, w, centre, radius, up, config)
         details.update(more)
     return Upright(up, rule, reason, layout_name, layout_reason, plane, details)
+
+
+def _too_few(count: int, format_up, up, layout: Optional[str]) -> Upright:
+    """The decision for a scene of fewer than 3 splats with opacity inside their robust bounds (or none
+    opaque at all): the given up, else the file family's axis (else +z), and the object layout."""
+    why = f"{count} splats with opacity inside their robust bounds, too few to find an up"
+    if up is not None:
+        up, rule, reason = _unit(np.asarray(up, np.float64)), "given", "given (--up)"
+    elif format_up is not None:
+        up, rule, reason = _unit(np.asarray(format_up[0], np.float64)), "format axis", f"{why}: {format_up[1]}"
+    else:
+        up, rule, reason = np.array([0.0, 0.0, 1.0]), "format axis", f"{why}: +z"
+    layout_reason = "given (--orbit)" if layout is not None else f"{why}: orbit them"
+    return Upright(up, rule, reason, layout or "object", layout_reason, None, {"splats_used": int(count)})
 
 
 def _refine_plane(points, w, n, d0, tolerance: float):

@@ -19,6 +19,7 @@ import os
 import pickle
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Dict, Tuple
 
@@ -30,6 +31,11 @@ __all__ = ["TorchPickleError", "read_torch_file", "state_dict"]
 
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
+# The object pickle of a zip checkpoint (names and tensor headers, no data) and one tensor storage: far above any
+# criterion's weights, far below this machine's memory.
+MAX_PICKLE_BYTES = 64 * 2**20
+MAX_STORAGE_BYTES = 4 * 2**30
+MAX_FILE_BYTES = 4 * 2**30
 
 _STORAGE_DTYPES = {
     "DoubleStorage": np.float64,
@@ -78,6 +84,17 @@ class _LazyTensor:
         data = self.storage.data
         if data is None:
             raise TorchPickleError(f"storage {self.storage.key!r} has no data in the file")
+        numbers = (self.offset, *self.size, *self.stride)
+        if (
+            len(self.size) != len(self.stride)
+            or not all(isinstance(n, int) and not isinstance(n, bool) for n in numbers)
+            or min(numbers, default=0) < 0
+        ):
+            # torch writes non-negative sizes, strides and offsets; anything else would read outside the storage.
+            raise TorchPickleError(
+                f"tensor of size {self.size}, stride {self.stride} at offset {self.offset}: "
+                "sizes, strides and offset must be non-negative integers, one stride per dimension"
+            )
         itemsize = data.dtype.itemsize
         needed = self.offset + sum((n - 1) * s for n, s in zip(self.size, self.stride)) + 1 if all(self.size) else 0
         if needed > data.size:
@@ -131,12 +148,29 @@ class _Unpickler(pickle.Unpickler):
     def persistent_load(self, pid):
         if not isinstance(pid, tuple) or not pid or pid[0] != "storage":
             raise TorchPickleError(f"{self._path}: unknown persistent id {pid!r}")
-        storage_type, key, numel = pid[1], str(pid[2]), int(pid[4])
+        storage_type, key, numel = pid[1], str(pid[2]), pid[4]
         if not isinstance(storage_type, _StorageType):
             raise TorchPickleError(f"{self._path}: unsupported storage type {storage_type!r}")
+        if not isinstance(numel, int) or isinstance(numel, bool) or numel < 0:
+            raise TorchPickleError(f"{self._path}: storage {key!r} of {numel!r} elements (not a count)")
         if key not in self._storages:
             self._storages[key] = _Storage(storage_type, key, numel)
         return self._storages[key]
+
+
+class _PlainUnpickler(pickle.Unpickler):
+    """For the legacy format's small pickles around the object (magic number, protocol, system info,
+    storage keys): plain numbers, strings and containers only, so no global and no persistent id."""
+
+    def __init__(self, file, path: str):
+        super().__init__(file, encoding="latin1")
+        self._path = path
+
+    def find_class(self, module: str, name: str):
+        raise TorchPickleError(f"{self._path}: refusing to unpickle {module}.{name} (not a plain tensor checkpoint)")
+
+    def persistent_load(self, pid):
+        raise TorchPickleError(f"{self._path}: unexpected persistent id {pid!r} outside the object pickle")
 
 
 class _Opaque:
@@ -172,17 +206,21 @@ def _materialise(obj: Any) -> Any:
 def _read_legacy(raw: bytes, path: str) -> Any:
     f = io.BytesIO(raw)
     storages: Dict[str, _Storage] = {}
-    magic = pickle.load(f)
+    magic = _PlainUnpickler(f, path).load()
     if magic != _LEGACY_MAGIC:
         raise TorchPickleError(f"{path}: not a torch checkpoint (bad magic number)")
-    protocol = pickle.load(f)
+    protocol = _PlainUnpickler(f, path).load()
     if protocol != _LEGACY_PROTOCOL:
         raise TorchPickleError(f"{path}: unsupported legacy torch protocol {protocol!r}")
-    sys_info = pickle.load(f)
+    sys_info = _PlainUnpickler(f, path).load()
+    if not isinstance(sys_info, dict):
+        raise TorchPickleError(f"{path}: corrupt (its system information is a {type(sys_info).__name__}, not a dict)")
     if not sys_info.get("little_endian", True):
         raise TorchPickleError(f"{path}: big-endian torch checkpoints are not supported")
     obj = _Unpickler(f, storages, path).load()
-    keys = pickle.load(f)
+    keys = _PlainUnpickler(f, path).load()
+    if not isinstance(keys, (list, tuple)):
+        raise TorchPickleError(f"{path}: corrupt (the storage keys are a {type(keys).__name__}, not a list)")
     for key in keys:
         storage = storages.get(str(key))
         if storage is None:
@@ -202,6 +240,16 @@ def _read_legacy(raw: bytes, path: str) -> Any:
     return obj
 
 
+def _read_member(archive: zipfile.ZipFile, name: str, limit: int, path: str, exact: bool = True) -> bytes:
+    """At most `limit` bytes of a zip member, decompressed no further (a member inflating to more is refused
+    when `exact`, else cut there); KeyError where there is no such member."""
+    with archive.open(name) as member:
+        data = member.read(limit + 1 if exact else limit)
+    if exact and len(data) > limit:
+        raise TorchPickleError(f"{path}: {name} inflates past {limit / 2**20:.0f} MiB (not a weights pickle)")
+    return data
+
+
 def _read_zip(path: str) -> Any:
     storages: Dict[str, _Storage] = {}
     with zipfile.ZipFile(path) as archive:
@@ -210,14 +258,20 @@ def _read_zip(path: str) -> Any:
         if len(pickles) != 1:
             raise TorchPickleError(f"{path}: a zip torch checkpoint holds one */data.pkl, found {len(pickles)}")
         root = pickles[0][: -len("data.pkl")]
-        obj = _Unpickler(io.BytesIO(archive.read(pickles[0])), storages, path).load()
+        obj = _Unpickler(io.BytesIO(_read_member(archive, pickles[0], MAX_PICKLE_BYTES, path)), storages, path).load()
         for key, storage in storages.items():
             member = f"{root}data/{key}"
+            nbytes = storage.numel * storage.type.dtype.itemsize
+            if nbytes > MAX_STORAGE_BYTES:
+                raise TorchPickleError(
+                    f"{path}: storage {member} of {nbytes / 2**30:.1f} GiB "
+                    f"(at most {MAX_STORAGE_BYTES / 2**30:.0f} GiB)"
+                )
             try:
-                data = archive.read(member)
+                # Only the bytes the storage needs are decompressed: a member that inflates to more is not read whole.
+                data = _read_member(archive, member, nbytes, path, exact=False)
             except KeyError:
                 raise TorchPickleError(f"{path}: storage file {member} is missing") from None
-            nbytes = storage.numel * storage.type.dtype.itemsize
             if len(data) < nbytes:
                 raise TorchPickleError(f"{path}: storage {member} has {len(data)} bytes, expected {nbytes}")
             storage.data = np.frombuffer(data[:nbytes], dtype=storage.type.dtype.newbyteorder("<"))
@@ -241,13 +295,21 @@ def read_torch_file(path: str | os.PathLike) -> Any:
     path = os.fspath(path)
     if not Path(path).is_file():
         raise DataNotFoundError(f"torch checkpoint not found: {path}")
+    size = Path(path).stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise TorchPickleError(
+            f"{path}: {size / 2**30:.1f} GiB (a criterion's weights file is at most {MAX_FILE_BYTES / 2**30:.0f} GiB)"
+        )
     try:
         if zipfile.is_zipfile(path):
             obj = _read_zip(path)
         else:
             obj = _read_legacy(Path(path).read_bytes(), path)
-    except TorchPickleError:
-        raise
+        return _materialise(obj)
+    except TorchPickleError as exc:
+        if str(exc).startswith(path):
+            raise
+        raise TorchPickleError(f"{path}: {exc}") from None  # a tensor's own check names no file
     except (
         pickle.UnpicklingError,
         EOFError,
@@ -258,9 +320,11 @@ def read_torch_file(path: str | os.PathLike) -> Any:
         KeyError,
         struct.error,
         zipfile.BadZipFile,
+        zlib.error,
+        NotImplementedError,  # a zip compression method the standard library lacks
+        RecursionError,  # containers nested past Python's stack
     ) as exc:
         raise TorchPickleError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
-    return _materialise(obj)
 
 
 def state_dict(obj: Any, path: str = "checkpoint") -> Dict[str, np.ndarray]:

@@ -203,7 +203,7 @@ def _head_splits(layers: List[Any], num_blocks: int, source: str) -> _HeadSplits
     fuse_out = _splits(raw_out, f"entry {num_blocks + 2} (head out)", source)
     try:
         dils = np.asarray(raw_dils, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         dils = np.zeros((0,))
     if dils.shape != (len(fuse_ms), len(DILATIONS)):
         raise WeightsError(

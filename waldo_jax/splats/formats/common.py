@@ -14,7 +14,7 @@ from typing import Dict
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.errors import SceneFormatError, WaldoError, check_memory
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 
 SH_C0 = 0.28209479177387814
@@ -73,6 +73,22 @@ def finish_splats(path: Path, what: str, means, log_scales, quats, logits, sh) -
         listed = ", ".join(f"{k} ({v} rows)" for k, v in bad.items())
         raise SceneFormatError(path, f"{what} decodes to non-finite values in {n} splats: {listed}")
     return make_splats(**arrays)
+
+
+# A decoder's peak memory per float of the splats it returns: the file's bytes, float64 intermediates and the
+# float32 result (measured below 3 on the formats' readers; 4 leaves room).
+_DECODE_PEAK_FACTOR = 4
+
+
+def check_splat_count(path: Path, count: int, degree: int, what: str) -> None:
+    """A MemoryBudgetError, before anything is decoded, when `count` splats of SH degree `degree` (a count
+    read from a header) would not fit this machine's free memory."""
+    floats = 3 + 3 + 4 + 1 + 3 * sh_coefficients(min(int(degree), MAX_SH_DEGREE))
+    check_memory(
+        float(count) * floats * 4 * _DECODE_PEAK_FACTOR,
+        f"{path}: reading its {count:,} splats ({what}, SH degree {degree})",
+        "convert a part of the scene, or read it on a machine with more memory",
+    )
 
 
 def read_splat_bytes(path: Path, what: str) -> bytes:

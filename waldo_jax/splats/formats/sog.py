@@ -21,12 +21,16 @@ from typing import Optional
 
 import numpy as np
 
-from waldo_jax.io import parse_json
+from waldo_jax.io import MAX_JSON_BYTES, parse_json
 from waldo_jax.errors import SceneFormatError, check_input_file
-from waldo_jax.splats.formats.common import finish_splats, opacity_logits
+from waldo_jax.splats.formats.common import check_splat_count, finish_splats, opacity_logits
 from waldo_jax.splats.model import Splats, sh_coefficients
 
 _SOG_BANDS_V1 = {192: 1, 512: 2, 960: 3}
+# A WebP image's file per texel (lossless WebP of noise-like data takes about 4 bytes a texel), and the
+# centroid image's height: labels are 16 bits, so at most 65,536 centroids in rows of 64.
+_IMAGE_FILE_BYTES_PER_TEXEL = 8
+_MAX_CENTROID_ROWS = 65536 // 64
 
 
 class _SogFiles:
@@ -38,38 +42,66 @@ class _SogFiles:
         if path.suffix.lower() != ".json":
             try:
                 self.zip = zipfile.ZipFile(path)
-            except (OSError, zipfile.BadZipFile, ValueError) as e:
+            except (OSError, zipfile.BadZipFile, ValueError, OverflowError) as e:
                 raise SceneFormatError(path, f"not a readable .sog zip ({e})") from None
 
-    def read(self, name: str) -> bytes:
+    def read(self, name: str, limit: int) -> bytes:
+        """The bytes of file `name`, refused past `limit` bytes before more than that is read or inflated."""
+        if not isinstance(name, str) or not name or "\0" in name:
+            raise SceneFormatError(self.path, f"SOG meta.json names a file {name!r} (not a file name)")
         try:
             if self.zip is not None:
-                return self.zip.read(name)
-            target = self.path.parent / name
-            if not target.resolve().is_relative_to(self.path.parent.resolve()):
-                raise SceneFormatError(self.path, f"SOG file {name!r} lies outside the SOG's folder")
-            return target.read_bytes()
+                size = self.zip.getinfo(name).file_size
+                with self.zip.open(name) as member:
+                    data = member.read(min(size, limit) + 1)  # the size in the zip's directory may lie
+            else:
+                target = self.path.parent / name
+                if not target.resolve().is_relative_to(self.path.parent.resolve()):
+                    raise SceneFormatError(self.path, f"SOG file {name!r} lies outside the SOG's folder")
+                size = target.stat().st_size
+                data = b"" if size > limit else target.read_bytes()
         except KeyError:
             raise SceneFormatError(self.path, f"the SOG lacks its file {name!r}") from None
-        except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as e:
+        except (OSError, zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as e:
             raise SceneFormatError(self.path, f"cannot read the SOG's file {name!r} ({e})") from None
+        if max(size, len(data)) > limit:
+            raise SceneFormatError(
+                self.path, f"the SOG's file {name!r} holds more than {limit / 2**20:,.0f} MiB (its splats need less)"
+            )
+        return data
 
-    def image(self, name: str) -> np.ndarray:
-        """The RGBA texels of WebP image `name`, uint8 [height, width, 4]."""
+    def image(self, name: str, max_texels: int, width: Optional[int] = None) -> np.ndarray:
+        """The RGBA texels of WebP image `name`, uint8 [height, width, 4]; its size read from its header is
+        refused before decoding when it holds more than `max_texels` texels (or is not `width` wide)."""
         from PIL import Image
 
+        raw = self.read(name, _IMAGE_FILE_BYTES_PER_TEXEL * max_texels + 2**20)
         try:
-            with Image.open(io.BytesIO(self.read(name))) as image:
+            with Image.open(io.BytesIO(raw)) as image:
+                w, h = image.size
+                if w * h > max_texels or (width is not None and w != width):
+                    wanted = f"{width} wide, " if width is not None else ""
+                    raise SceneFormatError(
+                        self.path,
+                        f"the SOG's image {name!r} is {w}x{h}: expected {wanted}at most {max_texels:,} texels "
+                        "for its splats",
+                    )
                 return np.asarray(image.convert("RGBA"))
-        except (OSError, ValueError, Image.DecompressionBombError) as e:
+        except (OSError, ValueError, Image.DecompressionBombError, OverflowError) as e:
             raise SceneFormatError(self.path, f"the SOG's image {name!r} cannot be decoded ({e})") from None
 
     def texels(self, name: str, count: int) -> np.ndarray:
         """The first `count` texels of image `name` in row-major order, uint8 [count, 4]."""
-        texels = self.image(name).reshape(-1, 4)
+        texels = self.image(name, _max_texels(count)).reshape(-1, 4)
         if len(texels) < count:
             raise SceneFormatError(self.path, f"the SOG's image {name!r} has {len(texels)} texels for {count} splats")
         return texels[:count]
+
+
+def _max_texels(count: int) -> int:
+    """The most texels an image of `count` splats may hold: writers make it about sqrt(count) square,
+    rounded up to whole blocks; twice the count and a 4096 x 4 margin is far above what they write."""
+    return 2 * count + 4 * 4096
 
 
 def _inverse_log(v: np.ndarray) -> np.ndarray:
@@ -77,17 +109,20 @@ def _inverse_log(v: np.ndarray) -> np.ndarray:
         return np.sign(v) * (np.exp(np.abs(v)) - 1.0)
 
 
-def _sog_field(meta: dict, key: str, path: Path):
+def _sog_field(meta: dict, key: str, path: Path, files: int = 1):
     value = meta.get(key)
-    if not isinstance(value, dict) or not isinstance(value.get("files"), list):
-        raise SceneFormatError(path, f"SOG meta.json: '{key}' must be an object with a 'files' list")
+    names = value.get("files") if isinstance(value, dict) else None
+    if not isinstance(names, list) or len(names) < files or not all(isinstance(n, str) for n in names):
+        raise SceneFormatError(
+            path, f"SOG meta.json: '{key}' must be an object with a 'files' list of at least {files} file name(s)"
+        )
     return value
 
 
 def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
     try:
         array = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         array = np.zeros(0)
     if array.ndim != 1 or (count is not None and len(array) != count) or not np.all(np.isfinite(array)):
         raise SceneFormatError(path, f"SOG meta.json: {what} must be {count or 'a list of'} finite numbers")
@@ -97,21 +132,22 @@ def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
 def decode_sog(path: Path):
     """(Splats, details line, extras) of a SOG scene: a bundled `.sog` or a `meta.json` beside its WebP images."""
     files = _SogFiles(path)
-    raw = files.read("meta.json" if files.zip is not None else path.name)
+    raw = files.read("meta.json" if files.zip is not None else path.name, MAX_JSON_BYTES)
     meta = parse_json(raw, path, "SOG meta.json", lambda problem: SceneFormatError(path, f"SOG meta.json: {problem}"))
     if not isinstance(meta, dict):
         raise SceneFormatError(path, "SOG meta.json must hold a JSON object")
     version = meta.get("version", 1)
     if version not in (1, 2):
         raise SceneFormatError(path, f"SOG version {version!r} is not read (versions 1 and 2 are)")
-    means_meta = _sog_field(meta, "means", path)
-    count = meta.get("count") if version == 2 else (means_meta.get("shape") or [None])[0]
+    means_meta = _sog_field(meta, "means", path, files=2)
+    shape = means_meta.get("shape")
+    count = meta.get("count") if version == 2 else (shape[0] if isinstance(shape, list) and shape else None)
     if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
         raise SceneFormatError(path, f"SOG meta.json: no positive splat count (got {count!r})")
+    shn = meta.get("shN")
+    check_splat_count(path, count, 3 if isinstance(shn, dict) else 0, "a SOG")  # SH degree at most 3
     mins, maxs = (_numbers(path, means_meta.get(k), 3, f"means.{k}") for k in ("mins", "maxs"))
     names = means_meta["files"]
-    if len(names) < 2:
-        raise SceneFormatError(path, "SOG meta.json: means needs two files (means_l, means_u)")
     lo, hi = files.texels(names[0], count), files.texels(names[1], count)
     quantised = lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]
     span = np.where(maxs - mins == 0, 1.0, maxs - mins)
@@ -152,7 +188,7 @@ def _sog_rest(path: Path, files: _SogFiles, shn: dict, version: int, count: int,
     names = shn.get("files")
     if not isinstance(names, list) or len(names) < 2:
         raise SceneFormatError(path, "SOG meta.json: shN needs two files (centroids, labels)")
-    grid = files.image(names[0])
+    grid = files.image(names[0], 64 * 15 * _MAX_CENTROID_ROWS)
     height, width = grid.shape[:2]
     if version == 2:
         degree = shn.get("bands")

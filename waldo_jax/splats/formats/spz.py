@@ -21,6 +21,7 @@ import numpy as np
 from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
 from waldo_jax.io import write_bytes
 from waldo_jax.splats.formats.common import (
+    check_splat_count,
     finish_splats,
     opacity_logits,
     read_splat_bytes,
@@ -130,13 +131,43 @@ def _zstd_decompress(path: Path, data: bytes, size: int) -> bytes:
         raise SceneFormatError(path, f"corrupt SPZ zstd stream ({e})") from None
 
 
+# Bytes a version 1-3 stream may hold after its sections (extension records: a few dozen in practice).
+_MAX_TRAILING_BYTES = 2**20
+
+
+def _section_sizes(version: int, n: int, degree: int) -> list:
+    dim = sh_coefficients(degree) - 1
+    return [n * (6 if version == 1 else 9), n, 3 * n, 3 * n, n * (4 if version >= 3 else 3), 3 * n * dim]
+
+
+def _gunzip(path: Path, raw: bytes) -> bytes:
+    """A gzipped SPZ stream inflated no further than its header's splats need (and their extension records):
+    the header is read first, its count checked against the memory, then the rest inflated up to that size."""
+    try:
+        stream = zlib.decompressobj(wbits=31)
+        head = stream.decompress(raw, 16)
+        if len(head) == 16 and struct.unpack_from("<I", head)[0] == _NGSP:
+            version, n, degree = struct.unpack_from("<IIB", head, 4)
+            if 1 <= version <= 3 and 0 < n <= 2**31 - 1 and degree <= _SPZ_MAX_DEGREE:
+                check_splat_count(path, n, degree, "an SPZ file")
+                limit = sum(_section_sizes(version, n, degree)) + _MAX_TRAILING_BYTES
+                body = stream.decompress(stream.unconsumed_tail, limit)
+                if stream.unconsumed_tail or len(stream.decompress(b"", 1)):
+                    raise SceneFormatError(
+                        path, f"the SPZ stream inflates past what its {n} splats need ({16 + limit} bytes)"
+                    )
+                if not stream.eof:
+                    raise SceneFormatError(path, "corrupt SPZ gzip stream (it ends before its end marker: cut?)")
+                return head + body
+        return head + stream.decompress(stream.unconsumed_tail, 16)  # a header the caller refuses by name
+    except zlib.error as e:
+        raise SceneFormatError(path, f"corrupt SPZ gzip stream ({e})") from None
+
+
 def _spz_sections(path: Path, raw: bytes):
     """(header fields, the six sections' bytes, extension records) of an SPZ file of any version."""
     if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as e:
-            raise SceneFormatError(path, f"corrupt SPZ gzip stream ({e})") from None
+        raw = _gunzip(path, raw)
     if len(raw) < 16 or struct.unpack_from("<I", raw)[0] != _NGSP:
         raise SceneFormatError(path, "not an SPZ file (no NGSP magic)")
     version, n, degree, frac, flags = struct.unpack_from("<IIBBB", raw, 4)
@@ -146,8 +177,8 @@ def _spz_sections(path: Path, raw: bytes):
         raise SceneFormatError(path, f"SPZ header claims {n} splats")
     if degree > _SPZ_MAX_DEGREE:
         raise SceneFormatError(path, f"SPZ SH degree {degree} (the format's are 0 to {_SPZ_MAX_DEGREE})")
-    dim = sh_coefficients(degree) - 1
-    sizes = [n * (6 if version == 1 else 9), n, 3 * n, 3 * n, n * (4 if version >= 3 else 3), 3 * n * dim]
+    check_splat_count(path, n, degree, "an SPZ file")
+    sizes = _section_sizes(version, n, degree)
     header = {"version": version, "count": n, "degree": degree, "fractional_bits": frac, "flags": flags}
     if version < 4:
         need = 16 + sum(sizes)
