@@ -386,3 +386,54 @@ def test_frames_that_share_an_image_file_warn(tmp_path):
         load_scene(tmp_path / "scene")
     shared = [str(w.message) for w in caught if "share" in str(w.message)]
     assert len(shared) == 1 and "8 of 8 frames share 1 image files" in shared[0] and "0.png" in shared[0]
+
+
+def test_an_ngp_camera_path_with_a_scale_or_rotation_that_cannot_be_inverted_is_refused():
+    """waldo's own Instant-NGP export read back (`waldo render --poses`): an ngp_scale past float64 (a huge
+    integer) once rendered views at the origin without a word, a zero quaternion warned of a division."""
+    from waldo_jax.cameras import look_at
+    from waldo_jax.scenes.camera_paths import instant_ngp_camera_path, read_camera_path
+    from waldo_jax.scenes.tool_frames import NgpFrame
+    from waldo_jax.types import Intrinsics
+
+    c2w = np.stack(
+        [np.asarray(look_at(np.array([3.0, 0.5, float(i)]), np.zeros(3), np.array([0, 1.0, 0]))) for i in (0, 1)]
+    )
+    c2w = np.concatenate([c2w[:, :3], np.tile([[[0, 0, 0, 1.0]]], (2, 1, 1))], 1)
+    intrinsics = Intrinsics.from_fov(32, 32, 0.8)
+    text = json.dumps(instant_ngp_camera_path(c2w, intrinsics, 24, frame=NgpFrame.create()))
+    np.testing.assert_allclose(read_camera_path(json.loads(text), intrinsics)[0], c2w, atol=2e-5)
+    big = json.loads(text)
+    big["waldo"]["ngp_scale"] = 1
+    big = parse_json(json.dumps(big).replace('"ngp_scale": 1', '"ngp_scale": 1' + "0" * 400), "path.json")
+    with pytest.raises(ValueError, match=r"ngp_scale inf .* is not finite"):
+        read_camera_path(big, intrinsics)
+    zero = json.loads(text)
+    zero["path"][0]["R"] = [0, 0, 0, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(ValueError, match=r"quaternion \[0.0, 0.0, 0.0, 0.0\] is zero or not finite"):
+            read_camera_path(zero, intrinsics)
+
+
+@pytest.mark.parametrize(
+    "points, says",
+    [
+        (np.zeros((1, 3)), r"sparse_pc\.ply: its 1 points lie at one spot"),
+        (np.full((5, 3), 1e300), r"sparse_pc\.ply: PLY vertices have coordinates beyond float32's range"),
+    ],
+    ids=["one-spot", "past-float32"],
+)
+def test_a_point_cloud_that_gives_no_scene_box_is_blamed_by_name(tmp_path, points, says):
+    """The scene box of a transforms.json without one comes from its sparse_pc.ply: points at one spot or past
+    float32 are that file's fault, and the message names it (it once blamed transforms.json's near/far)."""
+    from waldo_jax.scenes import load_scene
+
+    _write_scene(tmp_path / "scene", camera_model="OPENCV")  # a nerfstudio file: its box comes from the PLY
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty double x\nproperty double y\n"
+    header += "property double z\nend_header\n"
+    (tmp_path / "scene" / "sparse_pc.ply").write_bytes(
+        header.format(len(points)).encode() + np.asarray(points, "<f8").tobytes()
+    )
+    with pytest.raises(WaldoError, match=says):
+        load_scene(tmp_path / "scene")

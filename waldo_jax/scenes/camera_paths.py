@@ -37,6 +37,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
+from waldo_jax.scenes.colmap import rotation_of_qvec
 from waldo_jax.scenes.tool_frames import (
     MITSUBA_TO_OPENGL,
     NERFSTUDIO_COLMAP_APPLIED_TRANSFORM,
@@ -100,14 +101,9 @@ def _quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
 
 
 def _rotation_xyzw(q) -> np.ndarray:
-    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """The rotation of Instant-NGP's quaternion (x, y, z, w); a ValueError for a zero or non-finite one."""
+    x, y, z, w = np.asarray(q, np.float64).reshape(4)
+    return rotation_of_qvec([w, x, y, z])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -301,6 +297,8 @@ def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
 
 def _ngp_back(meta: Dict[str, Any], waldo: Dict[str, Any]) -> np.ndarray:
     frame = NgpFrame.create(float(waldo["ngp_scale"]), waldo["ngp_offset"], bool(waldo.get("ngp_from_mitsuba", False)))
+    if not (frame.scale > 0 and math.isfinite(frame.scale)) or not all(map(math.isfinite, frame.offset)):
+        raise ValueError(f"the waldo block's ngp_scale {frame.scale:g} / ngp_offset {list(frame.offset)} is not finite")
     keys: Sequence[Dict[str, Any]] = meta["path"]
     if "frames" in waldo:  # the last keyframe repeats the last frame
         keys = keys[: int(waldo["frames"])]

@@ -206,7 +206,10 @@ def read_ply_points(path: str | os.PathLike, colors: bool = False):
     table = table.reshape(-1, len(wanted))
     if not np.all(np.isfinite(table[:, :3])):
         raise SceneFormatError(path, "PLY vertices have non-finite coordinates")
-    points = table[:, :3].astype(np.float32)
+    with np.errstate(over="ignore"):
+        points = table[:, :3].astype(np.float32)
+    if not np.all(np.isfinite(points)):
+        raise SceneFormatError(path, "PLY vertices have coordinates beyond float32's range (about 3.4e38)")
     if not colors:
         return points
     if not has_colours:

@@ -321,6 +321,13 @@ def load_transforms(
                 raise SceneFormatError(ply, "PLY file has no vertices")
             lo, hi = np.percentile(points, PLY_PERCENTILES, axis=0)
             aabb = _pad_box(lo, hi, PLY_PAD)
+            spread = float(np.linalg.norm(hi - lo))
+            if not spread > 1e-6 * max(1.0, float(np.linalg.norm(lo))):  # all at one spot: no box to march
+                raise SceneFormatError(
+                    ply,
+                    f"its {len(points)} points lie at one spot ({np.round(lo, 6).tolist()}), so they give "
+                    f"{path.name} no scene box; remove the file (the cameras then bound the scene) or add points",
+                )
             metadata.update(aabb_source=relative(ply, folder), ply_points=int(len(points)))
         else:
             origins = np.concatenate([c2w_all[:, :3, 3], camera_focus(c2w_all)[None]])

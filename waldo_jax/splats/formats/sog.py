@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from waldo_jax.io import MAX_JSON_BYTES, parse_json
+from waldo_jax.io import parse_json
 from waldo_jax.errors import SceneFormatError, check_input_file
 from waldo_jax.splats.formats.common import check_splat_count, finish_splats, opacity_logits
 from waldo_jax.splats.model import Splats, sh_coefficients
@@ -30,6 +31,8 @@ _SOG_BANDS_V1 = {192: 1, 512: 2, 960: 3}
 # A WebP image's file per texel (lossless WebP of noise-like data takes about 4 bytes a texel), and the
 # centroid image's height: labels are 16 bits, so at most 65,536 centroids in rows of 64.
 _IMAGE_FILE_BYTES_PER_TEXEL = 8
+# meta.json holds a few codebooks of 256 numbers: kilobytes.
+_MAX_META_BYTES = 16 * 2**20
 _MAX_CENTROID_ROWS = 65536 // 64
 
 
@@ -52,8 +55,10 @@ class _SogFiles:
         try:
             if self.zip is not None:
                 size = self.zip.getinfo(name).file_size
-                with self.zip.open(name) as member:
-                    data = member.read(min(size, limit) + 1)  # the size in the zip's directory may lie
+                data = b""
+                if size <= limit:
+                    with self.zip.open(name) as member:
+                        data = member.read(limit + 1)  # the size in the zip's directory may lie
             else:
                 target = self.path.parent / name
                 if not target.resolve().is_relative_to(self.path.parent.resolve()):
@@ -70,21 +75,21 @@ class _SogFiles:
             )
         return data
 
-    def image(self, name: str, max_texels: int, width: Optional[int] = None) -> np.ndarray:
+    def image(self, name: str, max_texels: int) -> np.ndarray:
         """The RGBA texels of WebP image `name`, uint8 [height, width, 4]; its size read from its header is
-        refused before decoding when it holds more than `max_texels` texels (or is not `width` wide)."""
+        refused before decoding when it holds more than `max_texels` texels."""
         from PIL import Image
 
         raw = self.read(name, _IMAGE_FILE_BYTES_PER_TEXEL * max_texels + 2**20)
         try:
-            with Image.open(io.BytesIO(raw)) as image:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # its size is checked below
+                image = Image.open(io.BytesIO(raw))
+            with image:
                 w, h = image.size
-                if w * h > max_texels or (width is not None and w != width):
-                    wanted = f"{width} wide, " if width is not None else ""
+                if w * h > max_texels:
                     raise SceneFormatError(
-                        self.path,
-                        f"the SOG's image {name!r} is {w}x{h}: expected {wanted}at most {max_texels:,} texels "
-                        "for its splats",
+                        self.path, f"the SOG's image {name!r} is {w}x{h}: expected at most {max_texels:,} texels"
                     )
                 return np.asarray(image.convert("RGBA"))
         except (OSError, ValueError, Image.DecompressionBombError, OverflowError) as e:
@@ -132,7 +137,7 @@ def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
 def decode_sog(path: Path):
     """(Splats, details line, extras) of a SOG scene: a bundled `.sog` or a `meta.json` beside its WebP images."""
     files = _SogFiles(path)
-    raw = files.read("meta.json" if files.zip is not None else path.name, MAX_JSON_BYTES)
+    raw = files.read("meta.json" if files.zip is not None else path.name, _MAX_META_BYTES)
     meta = parse_json(raw, path, "SOG meta.json", lambda problem: SceneFormatError(path, f"SOG meta.json: {problem}"))
     if not isinstance(meta, dict):
         raise SceneFormatError(path, "SOG meta.json must hold a JSON object")
