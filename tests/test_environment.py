@@ -43,6 +43,19 @@ BAD = [
     ("WALDO_CPU_DEVICES", "0"),
     ("WALDO_COMPILE_CACHE", "/etc/passwd"),  # a file: not a folder for the cache
     ("JAX_COMPILATION_CACHE_DIR", "/etc/passwd"),
+    # Kinds the names alone let through: digits int() refuses, blank values, JAX modes waldo_jax cannot run
+    # under, values XLA reads as the right type but cannot use, folders whose permission bits lie (root, /proc).
+    ("TF_CPP_MIN_LOG_LEVEL", "--1"),
+    ("WALDO_CPU_DEVICES", "²"),
+    ("JAX_PLATFORMS", " "),
+    ("JAX_PLATFORM_NAME", "banana"),
+    ("JAX_NUM_CPU_DEVICES", "-5"),
+    ("JAX_ENABLE_X64", "1"),
+    ("JAX_DEBUG_INFS", "1"),
+    ("XLA_FLAGS", "--xla_force_host_platform_device_count=0"),
+    ("XLA_FLAGS", "--xla_backend_optimization_level=99"),
+    ("XLA_FLAGS", "--xla_dump_to=/proc/waldo_dump"),
+    ("JAX_COMPILATION_CACHE_DIR", "/proc/waldo_cache"),
 ]
 
 

@@ -16,10 +16,16 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     XLA does not take as a flag, a value it cannot read), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
     `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
-  * JAX's: `JAX_PLATFORMS` (names from the known platforms), `JAX_COMPILATION_CACHE_DIR` (a folder that
-    exists or can be made; JAX itself only warns at each program it cannot cache) and every `JAX_*`
-    configuration variable, which JAX itself checks when it is imported: `import_jax` turns its refusal
-    into the same one line.
+  * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_NUM_CPU_DEVICES`,
+    `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be made, tried by making one there; JAX
+    itself only warns at each program it cannot cache), `JAX_ENABLE_X64` and `JAX_DEBUG_INFS` (off only:
+    waldo_jax computes in 32 bits and uses infinities on purpose) and every `JAX_*` configuration
+    variable, which JAX itself checks when it is imported: `import_jax` turns its refusal into the same
+    one line.
+
+A value of blanks is refused (JAX and XLA would read it as a name); an empty one is unset. XLA flags
+whose values XLA reads by type only are checked for range too (`_XLA_VALUES`: the host device count,
+the optimisation level, the dump folder).
 
 `waldo_jax/__init__.py` runs `check_environment` and `import_jax` first of all; the `waldo` command
 prints the error as one line and exits 1 (`install_excepthook`).
@@ -95,9 +101,29 @@ def _fraction(value: str) -> Optional[str]:
     return None if 0.0 < x <= 1.0 else "expected a number in (0, 1]"
 
 
-def _level(value: str, top: int) -> Optional[str]:
+_INTEGER = re.compile(r"[+-]?[0-9]+")  # ASCII digits only: str.isdigit() also takes '²' and '٣', int() not all
+
+
+def _integer(value: str, low: int, high: int, also: Tuple[int, ...] = ()) -> Optional[str]:
+    """None for a whole number in [low, high] (or one of `also`), else what it takes."""
     v = value.strip()
-    return None if v.lstrip("-").isdigit() and 0 <= int(v) <= top else f"expected an integer 0..{top}"
+    if _INTEGER.fullmatch(v) and (low <= int(v) <= high or int(v) in also):
+        return None
+    return f"expected an integer {low}..{high}" + "".join(f" or {a}" for a in also)
+
+
+def _level(value: str, top: int) -> Optional[str]:
+    return _integer(value, 0, top)
+
+
+def _off_only(why: str) -> Callable[[str], Optional[str]]:
+    """A JAX switch waldo_jax cannot run under: an off word (or JAX's own check of the rest) only."""
+
+    def check(value: str) -> Optional[str]:
+        v = value.strip().lower()
+        return None if v in _OFF or v not in _ON else why
+
+    return check
 
 
 def _platforms(value: str) -> Optional[str]:
@@ -123,6 +149,12 @@ def _xla_flags(value: str) -> Optional[str]:
     unknown = [t for t in tokens if not xla_flag_known(_XLA_TOKEN.fullmatch(t).group(1))]
     if unknown:
         return f"{unknown[0]} is no flag this jaxlib knows: XLA would abort the process"
+    for token in tokens:
+        name, given = _XLA_TOKEN.fullmatch(token).groups()
+        if name in _XLA_VALUES and given is not None:
+            why = _XLA_VALUES[name](given[1:])
+            if why:
+                return f"--{name}={given[1:]}: {why}"
     return xla_flags_refused(value) if tokens else None
 
 
@@ -132,16 +164,31 @@ def _compile_cache(value: str) -> Optional[str]:
 
 
 def _writable_folder(value: str) -> Optional[str]:
-    """A writable folder, or one that can be made (its nearest existing parent a writable folder)."""
+    """A writable folder, or one that can be made (its nearest existing parent a writable folder). Tried by
+    making and removing a folder there: permission bits alone pass /proc and /sys for root."""
+    import tempfile
+
     path = Path(value).expanduser()
-    if path.exists():
-        return None if path.is_dir() and os.access(path, os.W_OK) else "not a writable folder"
-    parent = path.parent
+    if path.exists() and not path.is_dir():
+        return "not a writable folder"
+    parent = path
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
+    if not parent.is_dir():
         return f"cannot be made ({parent} is not a writable folder)"
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".waldo_probe_", dir=parent))
+    except OSError as e:
+        return "not a writable folder" if parent == path else f"cannot be made in {parent} ({e.strerror or e})"
     return None
+
+
+# Values of XLA flags that XLA takes but the process cannot run with (XLA itself parses only their type).
+_XLA_VALUES: Dict[str, Callable[[str], Optional[str]]] = {
+    "xla_force_host_platform_device_count": lambda v: _integer(v, 1, 256),
+    "xla_backend_optimization_level": lambda v: _integer(v, 0, 3),
+    "xla_dump_to": lambda v: None if v in ("-", "sponge") else _writable_folder(v),
+}
 
 
 # name -> (check of a set value: None or the problem, what it takes)
@@ -152,7 +199,7 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "WALDO_DETERMINISTIC": (_switch, "deterministic GPU kernels, default on"),
     "WALDO_FAST_COMPILE": (_switch, "faster XLA:CPU compiles, default off"),
     "WALDO_CPU_DEVICES": (
-        lambda v: None if v.strip().isdigit() and 1 <= int(v) <= 256 else "expected an integer 1..256",
+        lambda v: _integer(v, 1, 256),
         "the CPU devices XLA makes, default the usable cores up to 8",
     ),
     "WALDO_COMPILE_CACHE": (_compile_cache, "the `waldo` command's compilation cache: on, off or a folder"),
@@ -167,7 +214,17 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "TF_CPP_MAX_VLOG_LEVEL": (lambda v: _level(v, 10), "XLA's verbose log level"),
     "CUDA_VISIBLE_DEVICES": (_cuda_devices, "the GPUs JAX may use"),
     "JAX_PLATFORMS": (_platforms, "the backends JAX may start"),
+    "JAX_PLATFORM_NAME": (_platforms, "the backend JAX starts (deprecated for JAX_PLATFORMS)"),
+    "JAX_NUM_CPU_DEVICES": (lambda v: _integer(v, 1, 256, also=(-1,)), "the CPU devices JAX makes"),
     "JAX_COMPILATION_CACHE_DIR": (_writable_folder, "JAX's persistent compilation cache"),
+    "JAX_ENABLE_X64": (
+        _off_only("waldo_jax computes in 32 bits (indices and results assume it): unset it or set it to 0"),
+        "64-bit types by default",
+    ),
+    "JAX_DEBUG_INFS": (
+        _off_only("the searches use infinities on purpose (the fitness of unusable slots): unset it"),
+        "stop at the first infinity",
+    ),
 }
 
 
@@ -177,9 +234,9 @@ def environment_problems(environ: Optional[Mapping[str, str]] = None) -> List[st
     problems = []
     for name, (check, what) in VARIABLES.items():
         value = environ.get(name)
-        if value is None or (value.strip() == "" and name != "CUDA_VISIBLE_DEVICES"):
-            continue
-        why = check(value)
+        if value is None or value == "" or name == "CUDA_VISIBLE_DEVICES" and value.strip() == "":
+            continue  # empty is unset for these (as JAX and XLA read them); CUDA's blank hides every GPU
+        why = check(value) if value.strip() else "blank (unset it, or give a value)"
         if why:
             shown = value if len(value) <= 80 else value[:77] + "..."
             problems.append(f"{name}={shown} ({what}): {why}")
