@@ -269,3 +269,34 @@ def test_a_kept_output_folder_and_the_folders_made_for_it_are_left_by_an_interru
     assert io.keep_output_dir(kept)
     assert io.discard_unfinished(io.created_output_dirs()[before:]) == [other.absolute()]
     assert kept.is_dir() and sorted(os.listdir(tmp_path)) == ["deep"]
+
+
+@pytest.mark.parametrize("delay", [0.5, 1.2])
+def test_a_signal_while_the_command_starts_ends_it_cleanly(tmp_path, delay):
+    """Ctrl-C while `python -m waldo_jax` imports JAX (before `main` installs its handlers) ends the command
+    at once with status 130 and one line: it once printed a 30-line import traceback, or was dropped in a
+    garbage-collection callback of JAX's and the command went on to write its output."""
+    out = tmp_path / "out"
+    argv = ["render", "procedural", "--views", "1", "--resolution", "8", "--samples", "4", "--out", str(out)]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "waldo_jax", *argv], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    output, _ = proc.communicate(timeout=120)
+    _assert_clean(proc.returncode, output.decode(errors="replace"), signal.SIGINT)
+    assert not out.exists()
+
+
+def test_only_the_waldo_command_guards_its_start(monkeypatch):
+    """A process that imports waldo_jax as a library (a notebook, pytest) keeps its own signal handlers."""
+    from waldo_jax import _startup
+
+    monkeypatch.setattr(sys, "argv", ["/usr/bin/python3", "script.py"])
+    monkeypatch.setattr(sys, "orig_argv", ["/usr/bin/python3", "script.py"])
+    assert not _startup.is_waldo_command()
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/waldo", "demo"])
+    assert _startup.is_waldo_command()
+    monkeypatch.setattr(sys, "argv", ["/x/waldo_jax/__main__.py"])
+    monkeypatch.setattr(sys, "orig_argv", ["python", "-m", "waldo_jax", "demo"])
+    assert _startup.is_waldo_command()

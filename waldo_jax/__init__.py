@@ -1,6 +1,10 @@
 """waldo_jax: exploring NeRF scene spaces in JAX ("Finding Waldo", Skartados, Yucel et al., MMSys'24)."""
 
-from waldo_jax import environment as _environment
+from waldo_jax import _startup
+
+_startup.guard_startup()  # the `waldo` command: Ctrl-C while JAX imports ends it at once, cleanly
+
+from waldo_jax import environment as _environment  # noqa: E402
 
 # The environment variables waldo_jax, JAX and XLA read, checked before JAX starts (one line naming a bad one).
 _environment.install_excepthook()
