@@ -56,6 +56,15 @@ CASES = [
     ),
     ("train-out-name-too-long", ["train", "{tmp}/scene", "--out", "{tmp}/" + LONG], "300 bytes"),
     ("explore-out-name-too-long", ["explore", "procedural", "--out", "{tmp}/" + LONG], "300 bytes"),
+    # A path whose names each fit but whose whole (with the files written inside) passes PATH_MAX: a training
+    # once ran to its end and then failed to write its checkpoint, leaving 17 empty folders.
+    (
+        "train-out-path-too-long",
+        ["train", "{tmp}/scene", "--out", "{tmp}/" + "/".join(["d" * 250] * 16)],
+        "passes this system's limit of",
+    ),
+    ("render-out-empty", ["render", "procedural", "--out", ""], "the output folder is empty text"),
+    ("weights-dst-empty", ["weights", "convert", "{tmp}/run", ""], "the output folder is empty text"),
     ("render-into-an-earlier-run", ["render", "{tmp}/tiny_run", "--poses", "train", "--out", "{tmp}/run"], "not empty"),
     # Sizes a user can ask for: each with its limit.
     (

@@ -437,3 +437,26 @@ def test_a_point_cloud_that_gives_no_scene_box_is_blamed_by_name(tmp_path, point
     )
     with pytest.raises(WaldoError, match=says):
         load_scene(tmp_path / "scene")
+
+
+@pytest.mark.parametrize(
+    "flags, says",
+    [
+        (["--epochs", "1073741823", "--children-per-epoch", "2"], "past the 2,147,483,647 that int32 counts"),
+        (
+            ["--epochs", "1", "--children-per-epoch", "4", "--method", "egps+refine", "--refine-steps", "2147483647"],
+            "for its gradient steps (--refine-poses x --refine-steps x --gradient-cost)",
+        ),
+        (
+            ["--epochs", "1", "--children-per-epoch", "4", "--method", "egps+refine", "--gradient-cost", "2147483647"],
+            "past the 2,147,483,647 that int32 counts",
+        ),
+    ],
+    ids=["epochs-x-children", "refine-steps", "gradient-cost"],
+)
+def test_counts_whose_product_passes_int32_are_refused_by_their_flags(tmp_path, capsys, flags, says):
+    """Each flag alone fits int32; their product, the run's views and renders, did not (an OverflowError from
+    JAX's indexing, or a search that ran on for ever)."""
+    argv = ["explore", "procedural:1", "--views", "4", "--resolution", "16", "--top-k", "2", "--criterion"]
+    argv += ["colorfulness", *flags, "--out", str(tmp_path / "new"), "--quiet"]
+    _cli_refuses(argv, says, capsys, tmp_path)

@@ -272,8 +272,12 @@ def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bo
     and `prepare_output_dir` once everything is validated, so a bad argument leaves no empty folder
     and a long computation (training) is never lost to an output folder it cannot write.
 
-    Checks: every name in the path fits the file system's limit, the folder is a directory (or does
-    not exist yet) and is empty unless `force`, and it (or its nearest existing parent) is writable."""
+    Checks: the path is not empty, every name in it fits the file system's limit and the whole path,
+    with the files the commands write inside it (`OUTPUT_DEPTH_BYTES`), its path limit; it is no dangling
+    link; the folder is a directory (or does not exist yet) and is empty unless `force`, and it (or its
+    nearest existing parent) is writable."""
+    if not os.fspath(path).strip():
+        raise WaldoError("the output folder is empty text: name a folder (. for this one)")
     path = Path(path)
     existing = path.absolute()
     while not os.path.exists(existing) and existing != existing.parent:
@@ -285,6 +289,14 @@ def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bo
                 f"{part[:24]}...: a name of {len(os.fsencode(part))} bytes in --out; this file system "
                 f"allows at most {name_max}"
             )
+    full, path_max = len(os.fsencode(os.path.abspath(path))), _path_max(existing)
+    if full + OUTPUT_DEPTH_BYTES > path_max:
+        raise WaldoError(
+            f"{str(path)[:24]}...: an output folder path of {full} bytes; with the files written inside it (up "
+            f"to {OUTPUT_DEPTH_BYTES} bytes more) it passes this system's limit of {path_max} bytes"
+        )
+    if os.path.islink(path) and not path.exists():
+        raise WaldoError(f"{path}: a link to {os.readlink(path)!r}, which does not exist (or loops)")
     if path.exists() and not path.is_dir():
         raise WaldoError(f"{path}: exists and is not a directory")
     if not existing.is_dir():
@@ -295,6 +307,19 @@ def check_output_dir(path: str | os.PathLike, force: bool = False, can_force: bo
         advice = "choose another --out or pass --force" if can_force else "choose another --out"
         raise WaldoError(f"{path}: output directory exists and is not empty ({advice})")
     return path
+
+
+# The longest path a command writes below its output folder, a temporary file of an atomic write included
+# (e.g. "closeups/.egps_closeup_07.png.<pid>.<8 hex>.tmp"): 128 bytes leaves room.
+OUTPUT_DEPTH_BYTES = 128
+
+
+def _path_max(folder: Path) -> int:
+    """The longest path (bytes) the system allows for files under the existing `folder` (4096 if it cannot be asked)."""
+    try:
+        return int(os.pathconf(folder, "PC_PATH_MAX"))
+    except (AttributeError, OSError, ValueError):
+        return 4096
 
 
 def _name_max(folder: Path) -> int:

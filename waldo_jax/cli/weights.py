@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 import waldo_jax.criteria  # noqa: F401  (registers the converters)
+from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError
 from waldo_jax.weights import CONVERTERS, convert_all, load_model
@@ -39,7 +39,7 @@ def add_command(subparsers) -> None:
 
 def cmd_weights_convert(args: argparse.Namespace) -> int:
     """`waldo weights convert`: writes DST/<model>/<model>.npz for each model and checks it loads."""
-    dst = Path(args.dst)
+    dst = io.check_output_dir(args.dst, force=True)  # an existing folder is fine: each model's file is checked
     models = args.model
     if not args.force:
         for model in models or CONVERTERS:

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import camera_focus, pose_to_c2w
+from waldo_jax.errors import MAX_INT32
 from waldo_jax.search.archive import Archive, ViewGrid, archive_of, coverage, qd_score
 from waldo_jax.search.method import SearchMethod, split_for_state
 from waldo_jax.search.metrics import EpochMetrics, epoch_metrics, population_cvir, population_mcvir, shot_gains
@@ -226,6 +227,19 @@ class ExploreConfig:
                 )
             resolved = dataclasses.replace(self, children_per_epoch=children)
         capacity = int(n_train) + resolved.epochs * resolved.children_per_epoch
+        renders = capacity + resolved.gradient_renders()
+        if renders > MAX_INT32:  # slots and render counts are int32 under jit; each flag alone may fit
+            refined = (
+                f" and {resolved.gradient_renders():,} for its gradient steps (--refine-poses x --refine-steps x "
+                "--gradient-cost)"
+                if resolved.gradient_renders()
+                else ""
+            )
+            raise ValueError(
+                f"the run would render {renders:,} views, {capacity:,} held ({n_train} training + {resolved.epochs} "
+                f"epochs (--epochs) x {resolved.children_per_epoch} children (--children-per-epoch)){refined}: "
+                f"past the {MAX_INT32:,} that int32 counts"
+            )
         if resolved.top_k > capacity:
             raise ValueError(
                 f"top_k (--top-k) {resolved.top_k} exceeds the {capacity} views of the run ({n_train} training "
