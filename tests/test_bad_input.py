@@ -64,6 +64,29 @@ CASES = [
         "passes this system's limit of",
     ),
     ("render-out-empty", ["render", "procedural", "--out", ""], "the output folder is empty text"),
+    # Floats that leave float32 (where they are used) only in a product or below its smallest number: a
+    # guard of 1e-300 passed every view, edges of 1e39 and speeds of 1e38 overflowed into a wrong verdict,
+    # a render step of 1e-40 was accepted after the run folder was made.
+    (
+        "train-render-step-scale-tiny",
+        ["train", "{tmp}/scene", "--out", "{tmp}/new", "--render-step-scale=1e-40"],
+        "--render-step-scale must be between 0.01 and 100",
+    ),
+    (
+        "explore-guard-underflows",
+        ["explore", "procedural", "--out", "{tmp}/new", "--criterion", "colorfulness", "--guard", "opacity:1e-300"],
+        "must be 0 or a number float32 holds",
+    ),
+    (
+        "explore-distance-edge-overflows",
+        ["explore", "procedural", "--out", "{tmp}/new", "--method", "map-elites", "--distance-edges=1e38,1e39"],
+        "--distance-edges must be a finite number",
+    ),
+    (
+        "path-speed-times-frames-overflows",
+        ["path", "procedural", "--out", "{tmp}/new", "--frames", "4", "--max-speed=1e38", "--min-travel=1e38"],
+        "--frames x --max-speed must be a finite number",
+    ),
     ("weights-dst-empty", ["weights", "convert", "{tmp}/run", ""], "the output folder is empty text"),
     ("render-into-an-earlier-run", ["render", "{tmp}/tiny_run", "--poses", "train", "--out", "{tmp}/run"], "not empty"),
     # Sizes a user can ask for: each with its limit.

@@ -174,6 +174,13 @@ def test_bad_input_is_one_line_and_exit_1(tmp_path, capsys):
     line = _one_error_line(capsys, ["view", str(other), "--export", str(tmp_path / "snap.png")])
     assert "--export" in line and not (tmp_path / "snap.png").exists()
     assert "--port" in _one_error_line(capsys, ["view", str(other), "--port", "70000"])
+    # A host this machine cannot listen on (viser tried port after port for ever), seconds without end, and
+    # --seconds beside --export (which serves nothing): each refused before the scene loads.
+    for host, says in (("999.1.1.1", "not an address this machine can resolve"), ("192.0.2.1", "cannot listen")):
+        assert f"--host {host}: {says}" in _one_error_line(capsys, ["view", str(other), "--host", host])
+    assert "--seconds inf" in _one_error_line(capsys, ["view", str(other), "--seconds", "inf"])
+    line = _one_error_line(capsys, ["view", str(other), "--seconds", "1", "--export", str(tmp_path / "s.html")])
+    assert "give one" in line and not (tmp_path / "s.html").exists()
 
 
 class _Scripts(html.parser.HTMLParser):

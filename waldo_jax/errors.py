@@ -94,6 +94,8 @@ def check_float32(
         number = math.nan
     if not (math.isfinite(number) and abs(number) <= _FLOAT32_MAX):
         raise NumberError(f"{what} must be a finite number (float32 holds |x| <= {_FLOAT32_MAX:.4g}), got {shown}")
+    if number != 0 and np.float32(number) == 0 and not positive:  # 1e-300 is 0 there: no threshold, no scale
+        raise NumberError(f"{what} must be 0 or a number float32 holds (|x| >= {_FLOAT32_TINY:.3g}), got {shown}")
     if positive and not number > 0:
         raise NumberError(f"{what} must be a positive number, got {shown}")
     if positive and not np.float32(number) > 0:

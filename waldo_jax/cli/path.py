@@ -175,6 +175,8 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
     check_float32(args.fps, "--fps", minimum=0.01, maximum=1000.0)  # what a video's frame rate can be
     if not 0 <= args.min_opacity <= 1:
         raise WaldoError(f"--min-opacity must lie between 0 and 1, got {args.min_opacity}")
+    check_float32(args.min_travel, "--min-travel")
+    check_float32(args.frames * args.max_speed, "--frames x --max-speed")  # the path's longest travel, float32
     if not (0 <= args.min_travel <= args.frames * args.max_speed):
         raise WaldoError(
             f"--min-travel must lie between 0 and --frames x --max-speed = "

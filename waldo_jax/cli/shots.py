@@ -67,6 +67,8 @@ def view_grid(args: argparse.Namespace) -> ViewGrid:
         raise WaldoError(
             f"--distance-edges must be comma-separated numbers such as 0.75,1.33, got {edges_text!r}"
         ) from None
+    for edge in edges:  # the grid's edges are float32 under jit: 1e39 is infinite there, 1e-50 zero
+        check_float32(edge, "--distance-edges", positive=edge > 0)
     try:
         return ViewGrid(azimuth_cells=int(match.group(1)), elevation_cells=int(match.group(2)), distance_edges=edges)
     except ValueError as e:

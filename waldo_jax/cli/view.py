@@ -43,12 +43,44 @@ def add_command(subparsers) -> None:
     p.set_defaults(handler=cmd_view)
 
 
+# A year: "serve until then" past it is "serve until Ctrl-C" (leave --seconds out).
+MAX_SECONDS = 365 * 24 * 3600.0
+
+
+def check_host(host: str) -> None:
+    """Refuses a --host this machine cannot listen on (not an address, or none of its own) by binding a socket
+    there (any port) and closing it: viser, given one, tried port after port for ever. A taken --port is
+    left to viser, which moves to the next free one."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError, OSError) as e:
+        raise WaldoError(f"--host {host}: not an address this machine can resolve ({e})") from None
+    problem = None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind(address)
+                return
+            except OSError as e:
+                problem = e
+    raise WaldoError(
+        f"--host {host}: cannot listen there ({problem.strerror or problem}): not an address of this machine"
+    )
+
+
 def _check(args: argparse.Namespace) -> None:
     """Refuses bad flags before anything is loaded, served or written."""
     if not 0 <= args.port <= 65535:
         raise WaldoError(f"--port {args.port}: expected 0 .. 65535")
-    if args.seconds is not None and not args.seconds > 0:
-        raise WaldoError(f"--seconds {args.seconds}: expected a positive number")
+    if args.seconds is not None and not 0 < args.seconds <= MAX_SECONDS:  # inf and 1e400 served for ever
+        raise WaldoError(f"--seconds {args.seconds}: expected a positive number of seconds, at most {MAX_SECONDS:g}")
+    if args.export is not None and args.seconds is not None:
+        raise WaldoError("--seconds bounds the serving; --export writes a file and serves nothing: give one")
+    if args.export is None:
+        check_host(args.host)
     if args.export is not None:
         target = Path(args.export)
         if target.suffix.lower() not in (".html", ".htm"):

@@ -40,6 +40,7 @@ from waldo_jax.criteria.base import (
     views_of_args,
     worst_score,
 )
+from waldo_jax.errors import NumberError, check_float32
 from waldo_jax.types import Array
 
 __all__ = ["opacity", "mean_opacity", "constrained", "weighted", "build_criterion", "parse_guard", "spec_names"]
@@ -247,6 +248,10 @@ def parse_guard(spec: str) -> Tuple[str, float]:
         threshold = None
     if not sep or not name or threshold is None or not np.isfinite(threshold):
         raise CriterionError(f"bad --guard {spec!r}: expected NAME:THRESHOLD, e.g. opacity:0.9")
+    try:
+        threshold = check_float32(threshold, f"the threshold of --guard {spec!r}")  # scores are float32
+    except NumberError as e:
+        raise CriterionError(str(e)) from None
     return name, threshold
 
 

@@ -53,6 +53,10 @@ def _positive_int(name: str, value: Any, minimum: int = 1) -> int:
     return int(value)
 
 
+# The render's marching step over the training's: 0.01 marches 100x the samples, 100 a hundredth of them.
+RENDER_STEP_SCALES = (0.01, 100.0)
+
+
 def _positive_float(name: str, value: Any, allow_zero: bool = False) -> float:
     """A finite number that stays finite (and, unless `allow_zero`, > 0) in float32, where it is used."""
     try:
@@ -165,7 +169,13 @@ class TrainConfig:
         object.__setattr__(self, "steps_per_diagonal", _positive_float("steps_per_diagonal", self.steps_per_diagonal))
         object.__setattr__(self, "cone_angle", _positive_float("cone_angle", self.cone_angle, allow_zero=True))
         if self.render_step_scale is not None:
-            object.__setattr__(self, "render_step_scale", _positive_float("render_step_scale", self.render_step_scale))
+            scale = _positive_float("render_step_scale", self.render_step_scale)
+            if not RENDER_STEP_SCALES[0] <= scale <= RENDER_STEP_SCALES[1]:  # 1e-40 made the step's inverse overflow
+                raise TrainConfigError(
+                    f"TrainConfig.render_step_scale must be between {RENDER_STEP_SCALES[0]:g} and "
+                    f"{RENDER_STEP_SCALES[1]:g} (the render's marching step over the training's), got {scale:g}"
+                )
+            object.__setattr__(self, "render_step_scale", scale)
         object.__setattr__(self, "occupancy_decay", _positive_float("occupancy_decay", self.occupancy_decay))
         if self.occupancy_decay > 1.0:
             raise TrainConfigError(f"TrainConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")

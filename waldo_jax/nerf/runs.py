@@ -17,7 +17,7 @@ import jax
 from waldo_jax import io
 from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
-from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS, SAMPLERS, TrainConfig
+from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS, SAMPLERS, TrainConfig, TrainConfigError
 from waldo_jax.nerf.train import EVAL_MAX_PIXELS, HeldOut, TrainResult, evaluate_held_out, train
 from waldo_jax.scenes import load_splits
 from waldo_jax.types import RunOptions, Scene
@@ -224,10 +224,11 @@ def train_scene_run(
     _positive("--downscale", options.downscale)
     _positive("--render-step-scale", render_step_scale)
     if eval_max_pixels is not None and not 1 <= eval_max_pixels <= MAX_INT32:
-        raise WaldoError(f"--eval-max-pixels must be a positive number of pixels, got {eval_max_pixels}")
+        raise WaldoError(
+            f"--eval-max-pixels must be a number of pixels between 1 and {MAX_INT32}, got {eval_max_pixels}"
+        )
     out = io.check_output_dir(out, force=options.force)
     train_scene, test_scene = load_splits(scene_path, options.downscale, stacklevel=3)
-    out = io.prepare_output_dir(out, force=options.force)
     overrides: Dict[str, Any] = {
         "sampler": "occupancy" if sampling.samples == "auto" else sampling.samples,
         "pixel_sampling": sampling.pixels,
@@ -236,7 +237,11 @@ def train_scene_run(
         overrides["steps"] = steps
     if render_step_scale is not None:
         overrides["render_step_scale"] = render_step_scale
-    config = TrainConfig.preset(preset, train_scene, **overrides)
+    try:  # the whole config checked before the run folder is made
+        config = TrainConfig.preset(preset, train_scene, **overrides)
+    except TrainConfigError as e:
+        raise TrainConfigError(str(e).replace("TrainConfig.render_step_scale", "--render-step-scale")) from None
+    out = io.prepare_output_dir(out, force=options.force)
     result, stats = train_run(
         options.seed,
         train_scene,
