@@ -36,6 +36,12 @@ CASES = [
     ),
     ("demo-seed-overflow", ["demo", "--out", "{tmp}/new", "--seed", BIG], BIG),
     ("procedural-negative-seed", ["explore", "procedural:-1", "--out", "{tmp}/new"], "procedural:-1"),
+    # Seeds and sources by their text: int() took "", "1_0", "+1" and Arabic-Indic digits; an empty or
+    # mis-cased SOURCE was blamed on a checkpoint inside it, or on the flags.
+    ("procedural-seed-underscore", ["render", "procedural:1_0", "--out", "{tmp}/new"], "SEED a whole number in digits"),
+    ("procedural-seed-empty", ["render", "procedural:", "--out", "{tmp}/new"], "SEED a whole number in digits"),
+    ("explore-empty-source", ["explore", "", "--out", "{tmp}/new"], "SOURCE is empty"),
+    ("render-miscased-source", ["render", "Procedural", "--views", "1", "--out", "{tmp}/new"], "spelt procedural"),
     ("procedural-seed-overflow", ["render", f"procedural:{BIG}", "--out", "{tmp}/new"], BIG),
     ("demo-into-an-earlier-run", ["demo", "--out", "{tmp}/run"], "{tmp}/run"),
     ("demo-zero-train-steps", ["demo", "--out", "{tmp}/new", "--train-steps", "0"], "--train-steps"),

@@ -30,7 +30,7 @@ import numpy as np
 from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
-from waldo_jax.pipeline.load import load_source
+from waldo_jax.pipeline.load import check_source_spec, load_source
 from waldo_jax.pipeline.sources import DEFAULT_PROCEDURAL_VIEWS, check_views, parse_procedural, room_renderer
 from waldo_jax.procedural import RoomCameraConfig, make_room, training_cameras, waldo_visibility_batch
 from waldo_jax.types import Intrinsics
@@ -86,6 +86,7 @@ def add_command(subparsers) -> None:
 
 def cmd_render(args: argparse.Namespace) -> int:
     """`waldo render`: the procedural room's training views, or poses rendered by any SOURCE's renderer."""
+    check_source_spec(args.source)
     seed = parse_procedural(args.source, args.seed)
     if seed is not None and args.poses is None:
         return _render_procedural(args, seed)

@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 
 from waldo_jax.cli.conventions import Progress, add_quiet
+from waldo_jax.errors import MIN_RESOLUTION
 from waldo_jax.scenes import load_scene
 from waldo_jax.scenes.common import SPLITS
 
@@ -104,6 +105,13 @@ def cmd_scene_info(args: argparse.Namespace) -> int:
         scene = load_scene(args.path, downscale=args.downscale, split=args.split)
     for w in caught:  # warnings (e.g. skipped frames) go to stderr, never into the JSON
         print(f"waldo: warning: {w.message}", file=sys.stderr)
+    if min(scene.width, scene.height) < MIN_RESOLUTION:  # `train` and the searches refuse such images
+        how = f"--downscale {args.downscale:g} leaves" if args.downscale else "the scene has"
+        print(
+            f"waldo: warning: {args.path}: {how} {scene.width}x{scene.height} images; training and searches "
+            f"need sides of at least {MIN_RESOLUTION} pixels",
+            file=sys.stderr,
+        )
     summary = scene.summary()
     if args.json:
         print(json.dumps(summary))

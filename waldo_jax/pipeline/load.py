@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Callable, Optional
 
 import numpy as np
@@ -16,7 +17,22 @@ from waldo_jax.pipeline.sources import (
 )
 from waldo_jax.pipeline.splat_sources import is_splat_spec, splat_source
 
-__all__ = ["load_source"]
+__all__ = ["check_source_spec", "load_source"]
+
+
+def check_source_spec(spec: str) -> None:
+    """A SourceError for a SOURCE that names nothing: empty text, or neither procedural[:SEED] nor an
+    existing file or folder (before any reader reports a checkpoint it looked for inside it)."""
+    if not str(spec).strip():
+        raise SourceError("SOURCE is empty: give procedural[:SEED], a NeRF run folder or a splat scene")
+    if parse_procedural(spec) is None and not os.path.lexists(spec):
+        hint = (
+            " (the procedural room is spelt procedural, in lower case)" if spec.lower().startswith("procedural") else ""
+        )
+        raise SourceError(
+            f"SOURCE {spec!r}: no such file or folder, and not procedural[:SEED] (a NeRF run folder or a splat "
+            f"scene is read from disk){hint}"
+        )
 
 
 def load_source(
@@ -45,6 +61,7 @@ def load_source(
       SourceError: a bad spec, a missing run directory, a bad checkpoint, `views` with a run,
         `cameras` with anything but a splat scene (or another `WaldoError` of the file it reads).
     """
+    check_source_spec(spec)
     seed = parse_procedural(spec)
     splat = seed is None and is_splat_spec(spec)
     if cameras is not None and not splat:

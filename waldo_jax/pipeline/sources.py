@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional, Tuple
@@ -245,12 +246,14 @@ def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
     """
     if source != "procedural" and not source.startswith("procedural:"):
         return None
-    spec = source.partition(":")[2]
-    if spec:
-        try:
-            spec_seed = int(spec)
-        except ValueError:
-            raise SourceError(f"bad source {source!r}: expected procedural or procedural:SEED with an integer SEED")
+    colon, spec = source.partition(":")[1:]
+    if colon:
+        # ASCII digits only: int() also took "", " 1", "+1", "1_0" and Arabic-Indic digits as seeds.
+        if not re.fullmatch(r"[0-9]+", spec):
+            raise SourceError(
+                f"bad source {source!r}: expected procedural or procedural:SEED with SEED a whole number in digits"
+            )
+        spec_seed = int(spec)
         check_seed(spec_seed, f"the seed of source {source!r}")
         if seed is not None and seed != spec_seed:
             raise SourceError(f"source {source!r} and --seed {seed} disagree")

@@ -34,9 +34,9 @@ def _check_downscale(downscale: Any) -> Optional[float]:
     try:
         factor = float(downscale)
     except (TypeError, ValueError, OverflowError):
-        raise SceneArgumentError(f"downscale must be a number >= 1, got {downscale!r}") from None
+        raise SceneArgumentError(f"downscale (--downscale) must be a number >= 1, got {downscale!r}") from None
     if not math.isfinite(factor) or factor < 1.0:
-        raise SceneArgumentError(f"downscale must be a number >= 1 (no upsampling), got {downscale!r}")
+        raise SceneArgumentError(f"downscale (--downscale) must be a number >= 1 (no upsampling), got {downscale!r}")
     return factor
 
 

@@ -92,7 +92,10 @@ def weights_file(weights_dir: Optional[str | os.PathLike], model: str, filename:
     Raises:
       DataNotFoundError: naming the expected file and how to point at another folder.
     """
-    path = resolve_weights_dir(weights_dir) / model / filename
+    folder = resolve_weights_dir(weights_dir)
+    if folder.exists() and not folder.is_dir():
+        raise DataNotFoundError(f"weights folder {folder}: a file, not a folder (pass --weights DIR)")
+    path = folder / model / filename
     if not path.is_file():
         raise DataNotFoundError(
             f"weights file not found: expected {path} (model {model!r}); pass --weights DIR or set WALDO_WEIGHTS "
@@ -222,6 +225,8 @@ def convert_all(
       WaldoError: unknown model name; DataNotFoundError / WeightsError from the readers.
     """
     src, dst = Path(src), Path(dst)
+    if src.exists() and not src.is_dir():
+        raise DataNotFoundError(f"weights folder {src}: a file, not a folder")
     if not src.is_dir():
         raise DataNotFoundError(f"weights folder not found: {src}")
     if models is None:
