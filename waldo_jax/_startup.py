@@ -20,10 +20,11 @@ _STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
 def is_waldo_command() -> bool:
-    """Whether this process is the `waldo` command: its console script, or `python -m waldo_jax`."""
+    """Whether this process is the `waldo` command: its console script, or `python -m waldo_jax[.cli]`."""
     script = os.path.basename(sys.argv[0]) if sys.argv else ""
     orig = list(getattr(sys, "orig_argv", []))
-    return script in ("waldo", "waldo.exe") or any(orig[i : i + 2] == ["-m", "waldo_jax"] for i in range(len(orig) - 1))
+    modules = (["-m", "waldo_jax"], ["-m", "waldo_jax.cli"])
+    return script in ("waldo", "waldo.exe") or any(orig[i : i + 2] in modules for i in range(len(orig) - 1))
 
 
 def _end(signum, frame) -> None:  # pragma: no cover - runs in a process being interrupted
