@@ -283,7 +283,7 @@ def test_splats_that_cannot_show_warn_and_are_flagged(tmp_path, make, says):
         ({"background": [5, 5, 5]}, "'background' must be 3 numbers in [0, 1]"),
         ({"background": [1, 0]}, "'background' must be 3 numbers"),
         ({"scene_path": 5}, "'scene_path' must be a path, got 5"),
-        ({"downscale": 0}, "'downscale' must be a whole number >= 1"),
+        ({"downscale": 0}, "'downscale' must be a number >= 1"),
         ({"steps": 1e400}, "'steps' must be a whole number >= 0, got inf"),
     ],
     ids=["list", "background-text", "background-range", "background-short", "scene-path", "downscale", "steps"],

@@ -30,8 +30,7 @@ def check_source_spec(spec: str) -> None:
             " (the procedural room is spelt procedural, in lower case)" if spec.lower().startswith("procedural") else ""
         )
         raise SourceError(
-            f"SOURCE {spec!r}: no such file or folder, and not procedural[:SEED] (a NeRF run folder or a splat "
-            f"scene is read from disk){hint}"
+            f"SOURCE {spec!r} does not exist: no file or folder of that name, and not procedural[:SEED]{hint}"
         )
 
 

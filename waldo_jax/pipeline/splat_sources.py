@@ -286,7 +286,10 @@ def _report(splats: Splats, intrinsics: Intrinsics, config: SplatRenderConfig, c
 _RECORD_KEYS = {
     "scene_path": (lambda v: isinstance(v, str), "a path"),
     "split": (lambda v: isinstance(v, str), "a split name"),
-    "downscale": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1, "a whole number >= 1"),
+    "downscale": (
+        lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 1 <= v < math.inf,
+        "a number >= 1",
+    ),
     "steps": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a whole number >= 0"),
     "psnr_test": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool), "a number"),
     "background": (
