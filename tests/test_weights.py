@@ -242,14 +242,13 @@ def test_a_tensor_header_outside_its_storage_is_refused(tmp_path, offset, size, 
 
 
 def test_a_zip_member_that_inflates_past_its_storage_is_not_read_whole(tmp_path, monkeypatch):
-    """A storage member is decompressed only as far as its tensor needs, and the object pickle at most
-    `MAX_PICKLE_BYTES`: a small zip of a huge member neither fills the memory nor fails to load."""
+    """A storage member longer than its tensor loads (its tensor's bytes are used), and an object pickle
+    inflating past `MAX_PICKLE_BYTES` is refused by name. (That the long member is inflated only as far as
+    the tensor needs is `_read_member`'s bounded read; the peak memory is not measured here.)"""
     from waldo_jax.weights import torch_pickle
 
     path = tmp_path / "bomb.pth"
     write_zip(path, {"w": np.arange(4, dtype=np.float32)})
-    with zipfile.ZipFile(path, "a", compression=zipfile.ZIP_DEFLATED) as archive:
-        archive.writestr("archive/data/0_padding", b"")
     # Rewrite the storage member as its 16 bytes followed by 64 MiB of zeros (a 64 KiB deflated member).
     rebuilt = tmp_path / "rebuilt.pth"
     with zipfile.ZipFile(path) as src, zipfile.ZipFile(rebuilt, "w", compression=zipfile.ZIP_DEFLATED) as dst:
