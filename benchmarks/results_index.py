@@ -176,6 +176,13 @@ def _what(name: str, data: Dict[str, Any]) -> str:
             f"ms per training step against the field's forward + backward: {data.get('scene')}, "
             f"{data.get('samples_per_batch')} samples a step"
         )
+    if bench.startswith("field_pass"):
+        grid = data.get("hashgrid") or {}
+        return (
+            f"the hash-grid field's forward and forward + backward passes, ms: {data.get('points')} points, "
+            f"L {grid.get('L')}, T {grid.get('T')}, N_max {grid.get('N_max')}"
+            + (f" (this change against {data['baseline_commit']})" if "baseline_commit" in data else "")
+        )
     if bench == "criteria_throughput":
         return (
             f"images/s of every image criterion: batch {data.get('batch')} at {data.get('size')}^2 "

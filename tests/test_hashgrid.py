@@ -113,7 +113,9 @@ def test_small_config_layout():
     np.testing.assert_array_equal(SMALL.layout.offsets, [0, 125, 1853])
 
 
-@pytest.mark.parametrize("kwargs", [dict(L=0), dict(T=0), dict(N_min=32, N_max=16), dict(F=1.5)])
+@pytest.mark.parametrize(
+    "kwargs", [dict(L=0), dict(T=0), dict(N_min=32, N_max=16), dict(F=1.5), dict(L=16, T=2**26, F=2)]
+)
 def test_invalid_config_raises(kwargs):
     with pytest.raises(ValueError):
         HashGridConfig(**kwargs)
@@ -266,16 +268,18 @@ def test_encode_is_differentiable_in_position():
 
 
 def _autodiff_encode(table, x01, config):
-    """`encode` without its derivative rule: autodiff through the clip, floor and weight products."""
+    """`encode` without its derivative rule or its gather: autodiff through the clip, floor and weight
+    products, the table indexed by its rows."""
     rows, weights = grid_indices(x01, config)
-    return jnp.einsum("lc,lcf->lf", weights, table[rows]).reshape(-1)
+    return jnp.sum(weights[:, :, None] * table[rows], axis=1).reshape(-1)
 
 
 def test_encode_rule_gives_autodiffs_derivatives_in_both_modes():
     """`encode`'s rule for the point's derivative (the trilinear weights' own, on the gathered corners)
     gives what autodiff gives, to float rounding, in reverse and forward mode, inside and outside the
-    cube (where the clamp's derivative is 0) and on every level; the table's gradient (training) is
-    bit for bit autodiff's, and the features under jvp are those without."""
+    cube (where the clamp's derivative is 0) and on every level; the table's gradient (training, through
+    the flat gather's scatter) is bit for bit autodiff's through the table's rows, and the features
+    under jvp are those without."""
     table = jnp.asarray(_rng(20).normal(size=(ODD_T.n_rows, ODD_T.F)), jnp.float32)
     points = jnp.asarray(_rng(21).uniform(-0.2, 1.2, (64, 3)), jnp.float32)
     weights = jnp.asarray(_rng(22).normal(size=(64, ODD_T.L * ODD_T.F)), jnp.float32)

@@ -88,8 +88,11 @@ class HashGridConfig:
             object.__setattr__(self, name, int(value))
         if self.N_max < self.N_min:
             raise ValueError(f"HashGridConfig needs N_max >= N_min, got N_min={self.N_min}, N_max={self.N_max}")
-        if self.T > 2**31 or self.L * self.T >= 2**31:
-            raise ValueError(f"HashGridConfig table too large for int32 indices: L={self.L}, T={self.T}")
+        if self.T > 2**31 or self.L * self.T * self.F >= 2**31:
+            raise ValueError(
+                f"HashGridConfig table too large for int32 indices: L={self.L}, T={self.T}, F={self.F} "
+                "(L * T * F must stay below 2**31)"
+            )
 
     @classmethod
     def from_aabb_scale(cls, aabb_scale: float = 1.0, **overrides) -> "HashGridConfig":
@@ -227,15 +230,34 @@ def encode(table: Array, x01: Array, config: HashGridConfig) -> Array:
     """
     table = jnp.asarray(table)  # [n_rows, F]
     rows, _ = grid_indices(x01, config)  # [L, 8]: integers, no derivative
-    # One gather for all levels; rows are in bounds by construction.
-    corners = table.at[rows].get(mode="promise_in_bounds")  # [L, 8, F]
-    return _interpolate_at(corners, x01, config)
+    return _interpolate_at(_gather_rows(table, rows), x01, config)
+
+
+def _gather_rows(table: Array, rows: Array) -> Array:
+    """The table's rows [L, 8, F] at `rows` [L, 8] (in bounds by construction): one gather for all levels.
+
+    The gather reads the table as one flat vector, F values from element row * F, instead of indexing its
+    rows: the same values, and autodiff's transpose of it (the table's gradient, a scatter-add, vmapped
+    over a batch of points) then needs no relayout of the cotangents. On XLA:CPU indexing rows [n_rows, F]
+    made the scatter copy its updates first (a size-1 window axis laid out apart), about 2.7x slower
+    for the same sums in the same order (docs/performance.md, "The field's gather and interpolation").
+    """
+    features = table.shape[-1]
+    numbers = jax.lax.GatherDimensionNumbers(offset_dims=(2,), collapsed_slice_dims=(), start_index_map=(0,))
+    starts = (rows * features)[..., None]  # [L, 8, 1]: rows * F < 2**31 (HashGridConfig checks L * T * F)
+    return jax.lax.gather(
+        table.reshape(-1),
+        starts,
+        numbers,
+        slice_sizes=(features,),
+        mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS,
+    )  # [L, 8, F]
 
 
 def _interpolate(weights: Array, corner_features: Array, config: HashGridConfig) -> Array:
     """sum over corners of weight x feature, [L * F] in the features' dtype."""
     weights = weights.astype(corner_features.dtype)  # [L, 8]
-    features = jnp.einsum("lc,lcf->lf", weights, corner_features)  # [L, F]
+    features = jnp.sum(weights[:, :, None] * corner_features, axis=1)  # [L, F]
     return features.reshape(config.L * config.F)  # [L * F]
 
 
