@@ -239,8 +239,11 @@ def _gather_rows(table: Array, rows: Array) -> Array:
     The gather reads the table as one flat vector, F values from element row * F, instead of indexing its
     rows: the same values, and autodiff's transpose of it (the table's gradient, a scatter-add, vmapped
     over a batch of points) then needs no relayout of the cotangents. On XLA:CPU indexing rows [n_rows, F]
-    made the scatter copy its updates first (a size-1 window axis laid out apart), about 2.7x slower
-    for the same sums in the same order (docs/performance.md, "The field's gather and interpolation").
+    made the scatter copy its updates first (a size-1 window axis laid out apart): measured alone, about
+    2.7x slower for the same sums in the same order (tests/test_hashgrid.py compares the two gradients bit
+    for bit; inside a whole training step XLA may fuse the neighbouring operations differently, so a
+    trained field need not be the same to the bit). docs/performance.md, "The field's gather and
+    interpolation".
     """
     features = table.shape[-1]
     numbers = jax.lax.GatherDimensionNumbers(offset_dims=(2,), collapsed_slice_dims=(), start_index_map=(0,))
