@@ -183,6 +183,12 @@ def _what(name: str, data: Dict[str, Any]) -> str:
             f"L {grid.get('L')}, T {grid.get('T')}, N_max {grid.get('N_max')}"
             + (f" (this change against {data['baseline_commit']})" if "baseline_commit" in data else "")
         )
+    if bench == "compile_cache_writes":
+        cfg = data.get("settings") or {}
+        return (
+            f"ms per small program compiled into a compilation-cache folder of {cfg.get('entries')} programs: "
+            "JAX bounding the folder at every write against the `waldo` command's prune at start"
+        )
     if bench == "criteria_throughput":
         return (
             f"images/s of every image criterion: batch {data.get('batch')} at {data.get('size')}^2 "

@@ -13,8 +13,10 @@ from waldo_jax.environment import (
     EnvironmentVariableError,
     VARIABLES,
     check_environment,
+    COMPILE_CACHE_MAX_BYTES,
     compile_cache_folder,
     environment_problems,
+    prune_compile_cache,
     xla_flag_known,
     xla_flags_refused,
 )
@@ -150,6 +152,20 @@ def test_compile_cache_folder_default_off_path_and_jaxs_own(tmp_path):
     assert problem.startswith("WALDO_COMPILE_CACHE=") and "not a writable folder" in problem
 
 
+def test_prune_compile_cache_removes_the_oldest_programs_past_the_bound(tmp_path):
+    sizes = {"a": 300, "b": 200, "c": 100, "d": 50}  # oldest first
+    for age, (key, size) in enumerate(sizes.items()):
+        (tmp_path / f"{key}-cache").write_bytes(b"x" * size)
+        os.utime(tmp_path / f"{key}-cache", (1000 + age, 1000 + age))
+    (tmp_path / "a-atime").write_bytes((5000 * 10**9).to_bytes(8, "little"))  # read last (JAX's own record)
+    (tmp_path / "b-atime").write_bytes(b"")  # unreadable record: the file's times decide
+    (tmp_path / ".lockfile").write_text("")  # not a program: kept, not counted
+    assert prune_compile_cache(tmp_path, 10_000) == 0  # under the bound: nothing goes
+    assert prune_compile_cache(tmp_path, 400) == 2  # b, then c (a was read last): 650 -> 350 bytes
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".lockfile", "a-atime", "a-cache", "d-cache"]
+    assert prune_compile_cache(tmp_path / "missing", 0) == 0  # no folder: nothing to do, no error
+
+
 def _score(tmp_path, env_update, image):
     # Without the suite's own cache and its 0.2 s threshold (tests/conftest.py): the command's defaults.
     unset = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")
@@ -172,9 +188,13 @@ def test_a_command_fills_the_cache_and_a_rerun_loads_it_with_the_same_result(tmp
     first = _score(tmp_path, {"WALDO_COMPILE_CACHE": str(cache)}, image)
     entries = sorted(p.name for p in cache.iterdir())
     assert any(name.endswith("-cache") for name in entries), f"the first run cached no program: {entries}"
+    # An old program past the folder's bound (a sparse file: its size, not the disk's) goes at the next start.
+    with open(cache / "stale-cache", "wb") as f:
+        f.truncate(COMPILE_CACHE_MAX_BYTES + 1)
+    os.utime(cache / "stale-cache", (1, 1))
     again = _score(tmp_path, {"WALDO_COMPILE_CACHE": str(cache)}, image)
     assert again == first  # the same scores from the loaded programs
-    assert sorted(p.name for p in cache.iterdir()) == entries  # every program found: nothing new compiled
+    assert sorted(p.name for p in cache.iterdir()) == entries  # every program found, nothing new; the stale one gone
     # Off: nothing cached, not even in the default folder; on (unset): the default folder.
     _score(tmp_path, {"WALDO_COMPILE_CACHE": "off"}, image)
     assert not (tmp_path / "xdg" / "waldo_jax" / "jax_cache").exists()

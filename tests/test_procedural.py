@@ -117,6 +117,17 @@ def test_training_cameras_see_waldo_at_most_partly(room):
 
 
 @pytest.mark.slow
+def test_candidate_cameras_drawn_in_buckets_are_those_drawn_alone():
+    from waldo_jax.procedural.cameras import _candidates, _candidates_in
+
+    ranges = (np.float32((2.9, 3.4)), np.float32((1.0, 1.7)), np.float32(1.2), np.float32((0.2, 0.9)))
+    for n in (7, 128, 200):
+        key = jax.random.key(n)
+        alone = np.asarray(_candidates_in(key, n, np.float32(n), *ranges))  # exactly n slots: the draw for n
+        bucketed = _candidates(key, n, *ranges)  # 128 or 256 slots, cropped
+        assert bucketed.shape == (n, 4, 4) and np.array_equal(bucketed, alone)
+
+
 def test_too_strict_camera_filter_is_a_clear_error(room):
     with pytest.raises(ValueError, match="candidate cameras"):
         training_cameras(jax.random.key(1), room, 8, INTR, RoomCameraConfig(max_visibility=-1.0, oversample=1))

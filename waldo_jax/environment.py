@@ -54,6 +54,7 @@ __all__ = [
     "COMPILE_CACHE_MAX_BYTES",
     "compile_cache_folder",
     "enable_compile_cache",
+    "prune_compile_cache",
     "xla_flag_known",
     "xla_flags_refused",
     "install_excepthook",
@@ -269,9 +270,11 @@ def import_jax():
     return jax
 
 
-# The compilation cache's size bound (least recently used programs are evicted past it): the demo
-# writes about 4 MB, an explore of a NeRF tens of MB.
+# The compilation cache's size bound (the oldest programs are removed past it, once per process:
+# `prune_compile_cache`): the demo writes about 4 MB, an explore of a NeRF tens of MB.
 COMPILE_CACHE_MAX_BYTES = 2**30
+# JAX's cache files: the program, and the time it was last read (JAX writes it while it evicts itself).
+_CACHE_SUFFIX, _ATIME_SUFFIX = "-cache", "-atime"
 
 
 def compile_cache_folder(environ: Optional[Mapping[str, str]] = None) -> Optional[Path]:
@@ -299,10 +302,13 @@ def enable_compile_cache(environ: Optional[Mapping[str, str]] = None) -> Optiona
     instead of compiling them again (the results are the same: the cache key covers the program, the
     XLA flags, the jaxlib version and the device). Every program is cached, however short its compile
     (`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`, when set, decides instead), and the folder is bounded
-    by `COMPILE_CACHE_MAX_BYTES` (`JAX_COMPILATION_CACHE_MAX_SIZE`, when set). Call it before the
-    process's first compilation (JAX decides once whether it caches). A default folder that cannot be
-    made is a warning (the command runs without the cache); a folder named in `WALDO_COMPILE_CACHE`
-    that cannot be, an `EnvironmentVariableError`.
+    by `COMPILE_CACHE_MAX_BYTES`, pruned here once (`prune_compile_cache`): JAX's own bound lists the
+    folder and reads every program's last-read record before each program it writes (a small program
+    took 84-95 ms into a folder of 1,200 that way, 28-33 ms pruned once: `benchmarks/compile_cache_writes.py`
+    on the 2-core CPU). Where `JAX_COMPILATION_CACHE_MAX_SIZE` is set, JAX bounds the folder itself, as it
+    says. Call it before the process's first compilation (JAX decides once whether it caches). A
+    default folder that cannot be made is a warning (the command runs without the cache); a folder
+    named in `WALDO_COMPILE_CACHE` that cannot be, an `EnvironmentVariableError`.
     """
     environ = os.environ if environ is None else environ
     folder = compile_cache_folder(environ)
@@ -323,8 +329,53 @@ def enable_compile_cache(environ: Optional[Mapping[str, str]] = None) -> Optiona
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     if "JAX_COMPILATION_CACHE_MAX_SIZE" not in environ:
-        jax.config.update("jax_compilation_cache_max_size", COMPILE_CACHE_MAX_BYTES)
+        prune_compile_cache(folder, COMPILE_CACHE_MAX_BYTES)
+        jax.config.update("jax_compilation_cache_max_size", -1)  # no bound of JAX's: pruned above
     return folder
+
+
+def prune_compile_cache(folder: Path, max_bytes: int) -> int:
+    """Removes the oldest programs from the compilation cache `folder` until its programs take at most
+    `max_bytes`; returns how many were removed.
+
+    A program's age is the later of its file's modification and access times and the read time JAX
+    records beside it (`<key>-atime`, where JAX evicted itself before), so programs still loaded stay
+    longest. Files that vanish meanwhile (another process pruning) or cannot be removed are skipped:
+    the cache is an optimisation, never a reason to fail.
+    """
+    entries, total = [], 0
+    try:
+        paths = list(Path(folder).glob(f"*{_CACHE_SUFFIX}"))
+    except OSError:
+        return 0
+    for path in paths:
+        try:
+            st = path.stat()
+        except OSError:
+            continue
+        atime_path = path.with_name(path.name[: -len(_CACHE_SUFFIX)] + _ATIME_SUFFIX)
+        used = max(st.st_mtime_ns, st.st_atime_ns)
+        try:
+            used = max(used, int.from_bytes(atime_path.read_bytes()[:8], "little"))
+        except (OSError, ValueError):
+            pass
+        entries.append((used, path, atime_path, st.st_size))
+        total += st.st_size
+    removed = 0
+    for _, path, atime_path, size in sorted(entries, key=lambda e: (e[0], e[1].name)):
+        if total <= max_bytes:
+            break
+        try:
+            path.unlink()
+        except OSError:
+            continue
+        try:
+            atime_path.unlink(missing_ok=True)
+        except OSError:
+            pass
+        total -= size
+        removed += 1
+    return removed
 
 
 def _jaxlib_libraries() -> List[Path]:
