@@ -128,6 +128,7 @@ def test_candidate_cameras_drawn_in_buckets_are_those_drawn_alone():
         assert bucketed.shape == (n, 4, 4) and np.array_equal(bucketed, alone)
 
 
+@pytest.mark.slow
 def test_too_strict_camera_filter_is_a_clear_error(room):
     with pytest.raises(ValueError, match="candidate cameras"):
         training_cameras(jax.random.key(1), room, 8, INTR, RoomCameraConfig(max_visibility=-1.0, oversample=1))
