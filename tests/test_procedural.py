@@ -126,6 +126,10 @@ def test_candidate_cameras_drawn_in_buckets_are_those_drawn_alone():
         alone = np.asarray(_candidates_in(key, n, np.float32(n), *ranges))  # exactly n slots: the draw for n
         bucketed = _candidates(key, n, *ranges)  # 128 or 256 slots, cropped
         assert bucketed.shape == (n, 4, 4) and np.array_equal(bucketed, alone)
+    programs = _candidates_in._cache_size()  # the bucket of 128 slots has run (n = 7 and 128 above)
+    for n in (1, 60, 72, 127):  # other counts within it: no new program
+        _candidates(jax.random.key(n), n, *ranges)
+    assert _candidates_in._cache_size() == programs
 
 
 @pytest.mark.slow

@@ -353,16 +353,20 @@ def prune_compile_cache(folder: Path, max_bytes: int) -> int:
             st = path.stat()
         except OSError:
             continue
+        entries.append((max(st.st_mtime_ns, st.st_atime_ns), path, st.st_size))
+        total += st.st_size
+    if total <= max_bytes:  # the usual case: the read records are not opened
+        return 0
+    aged = []
+    for used, path, size in entries:
         atime_path = path.with_name(path.name[: -len(_CACHE_SUFFIX)] + _ATIME_SUFFIX)
-        used = max(st.st_mtime_ns, st.st_atime_ns)
         try:
             used = max(used, int.from_bytes(atime_path.read_bytes()[:8], "little"))
         except (OSError, ValueError):
             pass
-        entries.append((used, path, atime_path, st.st_size))
-        total += st.st_size
+        aged.append((used, path, atime_path, size))
     removed = 0
-    for _, path, atime_path, size in sorted(entries, key=lambda e: (e[0], e[1].name)):
+    for _, path, atime_path, size in sorted(aged, key=lambda e: (e[0], e[1].name)):
         if total <= max_bytes:
             break
         try:
