@@ -313,7 +313,7 @@ CASES = [
         "run: a directory",
     ),
     ("scene-a-symlink-loop", ["scene", "info", "{tmp}/loop"], "loop: a symbolic link that leads nowhere"),
-    ("train-scene-a-fifo", ["train", "{tmp}/fifo", "--out", "{tmp}/new"], "fifo: unknown scene format"),
+    ("train-scene-a-fifo", ["train", "{tmp}/fifo", "--out", "{tmp}/new"], "fifo: a FIFO, socket or device"),
     (
         "render-checkpoint-a-fifo",
         ["render", "{tmp}/fifo_run", "--poses", "train", "--out", "{tmp}/new"],
@@ -728,3 +728,76 @@ def test_render_force_replaces_an_earlier_render_without_stale_files(tmp_path, c
         "view_000.png",
         "view_001.png",
     ]
+
+
+def test_a_training_that_diverges_saves_no_run_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    """A field whose parameters end NaN (a scene's finite but absurd distortion did it) is not saved as a
+    run: one line naming the scene, exit status 1, and the output folder the command made is removed (it
+    had exited 0 with a checkpoint that every later command refused)."""
+    import jax
+    import jax.numpy as jnp
+
+    import waldo_jax.nerf.runs as runs
+
+    _write_scene(tmp_path / "scene")
+    real_train = runs.train
+
+    def diverging(*args, **kwargs):
+        result = real_train(*args, **kwargs)
+        return result._replace(params=jax.tree.map(lambda x: x * jnp.nan, result.params))
+
+    monkeypatch.setattr(runs, "train", diverging)
+    out = tmp_path / "new"
+    argv = ["train", str(tmp_path / "scene"), "--out", str(out), "--steps", "2", "--quiet"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"waldo: error: {tmp_path / 'scene'}: the training diverged") and "\n" not in err
+    assert f"removed the unfinished output folder {out}" in err
+    assert not out.exists()
+
+
+def test_only_waldos_own_warnings_reach_the_user(capsys):
+    """The command prints its own warnings, one line each; a library's (matplotlib's "identical low and
+    high zlims" on cameras at one height) and NumPy's arithmetic ones (an overflow in a cast, before the
+    input check names the input) are left out: they leaked as `waldo: warning:` lines."""
+    import matplotlib
+
+    from waldo_jax.cli import _show_warning
+    from waldo_jax.scenes import loader
+
+    _show_warning(UserWarning("a waldo note"), UserWarning, loader.__file__, 1)
+    _show_warning(UserWarning("identical low and high zlims"), UserWarning, matplotlib.__file__, 1)
+    _show_warning(RuntimeWarning("overflow encountered in cast"), RuntimeWarning, loader.__file__, 1)
+    assert capsys.readouterr().err == "waldo: warning: a waldo note\n"
+
+
+def test_a_name_with_control_characters_stays_one_line(tmp_path, capsys):
+    """A message quoting a path with a newline or a terminal escape is one line with them escaped, from
+    any reader (the CLI writes every error through `errors.one_line`)."""
+    odd = tmp_path / "scene\nwith\x1b[31mcolour"
+    assert main(["scene", "info", str(odd)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "\x1b" not in err
+    assert "scene\\nwith\\x1b[31mcolour" in err
+
+
+@pytest.mark.parametrize("name", ["JAX_PLATFORM_NAME", "JAX_DEFAULT_DEVICE"])
+def test_a_backend_named_by_any_of_jaxs_variables_is_checked(monkeypatch, name):
+    """`JAX_PLATFORM_NAME` / `JAX_DEFAULT_DEVICE=gpu` raised a RuntimeError at the first key: one line
+    naming its variable (`JAX_PLATFORMS=cuda`, an AssertionError inside JAX, in tests/test_environment.py)."""
+    from waldo_jax.cli import check_jax_platforms
+
+    monkeypatch.setenv(name, "gpu")
+    with pytest.raises(WaldoError, match=f"^{name}=gpu: this machine cannot start that backend"):
+        check_jax_platforms()
+
+
+@pytest.mark.parametrize("method, size", [("evosax:Open_ES", 3), ("evosax:DifferentialEvolution", 2)])
+def test_an_evosax_population_the_strategy_refuses_is_one_line(tmp_path, capsys, method, size):
+    """Mirrored strategies need an even population and DE four: evosax's AssertionError was a traceback."""
+    argv = ["explore", "procedural", "--criterion", "colorfulness", "--method", method, "--views", "2"]
+    argv += ["--children-per-epoch", str(size), "--epochs", "1", "--top-k", "1", "--resolution", "8"]
+    assert main([*argv, "--out", str(tmp_path / "new")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert f"cannot take a population of {size}" in err and "\n" not in err
+    assert not (tmp_path / "new").exists()

@@ -5,6 +5,7 @@ A synthetic 3-view scene and a tiny field keep these independent of the data fol
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -142,8 +143,6 @@ def test_trained_field_of_a_checkpoint_is_one_pytree_with_its_scene_settings(sav
     """`TrainedField.from_checkpoint`: params and occupancy are the leaves, the config is static, and near,
     far, box and background come from the training scene (black for an opaque one); it renders as the
     same field built by hand."""
-    import dataclasses
-
     from waldo_jax.nerf.trained import TrainedField, render_trained
 
     loaded = ckpt.load_checkpoint(saved)
@@ -161,6 +160,17 @@ def test_trained_field_of_a_checkpoint_is_one_pytree_with_its_scene_settings(sav
     np.testing.assert_array_equal(
         np.asarray(render_trained(field, c2w, intrinsics).rgb), np.asarray(render_trained(by_hand, c2w, intrinsics).rgb)
     )
+
+
+def test_a_relative_scene_path_is_recorded_whole(tmp_path, monkeypatch):
+    """A run trained from `cd a; waldo train scene` is read from any folder: its scene is recorded by its
+    whole path (a relative one was read from the reader's folder, where another scene of the same file
+    names was scored as the training images without a word)."""
+    monkeypatch.chdir(tmp_path)
+    scene = dataclasses.replace(_scene(), path="scenes/synthetic")
+    path = ckpt.save_checkpoint(tmp_path / "a.ckpt", _params(), _config(), scene)
+    monkeypatch.chdir("/")
+    assert ckpt.load_checkpoint(path).scene.path == str(tmp_path / "scenes" / "synthetic")
 
 
 def _dir_with(tmp_path, path):
@@ -227,8 +237,38 @@ def _c2w_entry(header):
         (lambda h: _c2w_entry(h).update(shape=[2**62, 2**62, 4]), "array scene/c2w: inconsistent size or offset"),
         (lambda h: h.update(info=5), "its 'info' is a int, not an object"),
         (lambda h: h["scene"].update(near=10**400), "near"),
+        # The metadata that a run's readers use, by key (each once a traceback in `waldo render`/`explore`).
+        (lambda h: h["scene"]["metadata"].update(nerfstudio_applied=5), "metadata 'nerfstudio_applied' is 5"),
+        (
+            lambda h: h["scene"]["metadata"].update(nerfstudio_applied={"transform": None, "scale": "x"}),
+            "metadata 'nerfstudio_applied'",
+        ),
+        (lambda h: h["scene"]["metadata"].update(scale="x"), "metadata 'scale' is \"x\", not a positive number"),
+        (lambda h: h["scene"]["metadata"].update(offset=[0, 0]), "metadata 'offset' is [0, 0], not 3 numbers"),
+        (lambda h: h["scene"]["metadata"].update(seed="abc"), "metadata 'seed' is \"abc\", not an integer"),
+        (lambda h: h["scene"]["metadata"].update(waldo_scale=9), "metadata 'waldo_scale' is 9"),
+        (lambda h: h["scene"]["metadata"].update(scene_file="/etc/passwd"), "metadata 'scene_file'"),
+        (lambda h: h["scene"].update(file_names=h["scene"]["file_names"][:1]), "lists 1 names for 3 training poses"),
+        (lambda h: h["scene"].update(file_names=[1, 2]), "file_names is not a list of names"),
     ],
-    ids=["object", "text", "complex", "negative-shape", "shape-wraps-int64", "info", "huge-int"],
+    ids=[
+        "object",
+        "text",
+        "complex",
+        "negative-shape",
+        "shape-wraps-int64",
+        "info",
+        "huge-int",
+        "applied-int",
+        "applied-scale-text",
+        "scale-text",
+        "offset-short",
+        "seed-text",
+        "waldo-scale-range",
+        "scene-file-absolute",
+        "names-short",
+        "names-numbers",
+    ],
 )
 def test_a_checkpoint_header_that_passes_its_digest_is_still_checked(saved, edit, says):
     """The array table and header fields are checked by kind even where the digest matches (each case once

@@ -53,6 +53,8 @@ BAD = [
     ("JAX_PLATFORM_NAME", "banana"),
     ("JAX_NUM_CPU_DEVICES", "-5"),
     ("JAX_ENABLE_X64", "1"),
+    ("JAX_ENABLE_X64", "t"),  # JAX's own other words for on: "t" and "y" (they got past, and crashed a search)
+    ("JAX_DEBUG_INFS", "y"),
     ("JAX_DEBUG_INFS", "1"),
     ("XLA_FLAGS", "--xla_force_host_platform_device_count=0"),
     ("XLA_FLAGS", "--xla_backend_optimization_level=99"),
@@ -66,6 +68,15 @@ def _run(env_update, *args):
     return subprocess.run(
         [sys.executable, "-m", "waldo_jax", *args], env=env, capture_output=True, text=True, timeout=300
     )
+
+
+@pytest.mark.slow
+def test_a_backend_jax_fails_to_start_by_an_assertion_is_one_line(tmp_path):
+    """`JAX_PLATFORMS=cuda` on a machine without one: JAX fails with a bare AssertionError, which was a traceback."""
+    result = _run({"JAX_PLATFORMS": "cuda"}, "render", "procedural", "--views", "1", "--out", str(tmp_path / "new"))
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert result.stderr.strip().splitlines()[-1].startswith("waldo: error: JAX_PLATFORMS=cuda: this machine cannot")
+    assert "Traceback" not in result.stderr and not (tmp_path / "new").exists()
 
 
 @pytest.mark.slow

@@ -107,6 +107,13 @@ def test_dense_threshold_is_inclusive():
     assert hashed.layout.is_dense.tolist() == [False] and hashed.n_rows == 511
 
 
+def test_the_finest_allowed_resolution_lays_out_without_overflow():
+    """(N + 1) ** 3 of the finest levels passes int64 near N = 2**21: the layout counts in Python ints."""
+    finest = HashGridConfig(N_max=2**20)
+    assert finest.resolutions[-1] == 2**20 and not finest.layout.is_dense[-1]
+    assert finest.n_rows == int(finest.layout.sizes.sum()) > 0
+
+
 def test_small_config_layout():
     assert SMALL.resolutions == (4, 11, 32)
     np.testing.assert_array_equal(SMALL.layout.sizes, [125, 1728, 4096])
@@ -114,7 +121,8 @@ def test_small_config_layout():
 
 
 @pytest.mark.parametrize(
-    "kwargs", [dict(L=0), dict(T=0), dict(N_min=32, N_max=16), dict(F=1.5), dict(L=16, T=2**26, F=2)]
+    "kwargs",
+    [dict(L=0), dict(T=0), dict(N_min=32, N_max=16), dict(F=1.5), dict(L=16, T=2**26, F=2), dict(N_max=2**20 + 1)],
 )
 def test_invalid_config_raises(kwargs):
     with pytest.raises(ValueError):

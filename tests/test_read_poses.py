@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -143,3 +144,33 @@ def test_unusable_files_are_refused_naming_the_file(tmp_path, content, problem):
     with pytest.raises(SceneFormatError, match=problem) as info:
         read_poses_file(path, DEFAULT)
     assert str(path) in str(info.value)
+
+
+_EYE = np.eye(4).tolist()
+
+
+@pytest.mark.parametrize(
+    "meta, problem",
+    [
+        ({"fl_x": 20, "w": 16, "h": 16, "k1": 1e30}, r"camera: distortion k1 = 1e\+30 gives non-finite rays"),
+        ({"fl_x": 20, "w": 16, "h": 16, "k1": -5}, r"camera: distortion k1 = -5 folds the image"),
+        ({"frames": [{"transform_matrix": [[str(v) for v in row] for row in _EYE]}]}, r"frame 0 .*not a matrix"),
+        ({"frames": [{"transform_matrix": [[bool(v) for v in row] for row in _EYE]}]}, r"frame 0 .*not a matrix"),
+        ({"frames": [{"transform_matrix": _EYE, "file_path": ["a.png"]}]}, r"'file_path' must be a string"),
+    ],
+    ids=["k1-huge", "k1-fold", "matrix-of-strings", "matrix-of-booleans", "file-path-list"],
+)
+def test_unusable_lenses_and_fields_of_the_wrong_type_are_refused(tmp_path, meta, problem):
+    """A lens whose rays are not finite (k1 = 1e30 rendered blank PNGs, exit 0) or that folds the image is
+    refused naming the file and the coefficient; a matrix of strings or booleans is refused, not converted."""
+    meta = {"frames": [{"transform_matrix": _EYE}], **meta}
+    path = _write(tmp_path, meta)
+    with pytest.raises(SceneFormatError, match=problem) as info:
+        read_poses_file(path, DEFAULT)
+    assert str(path) in str(info.value)
+
+
+def test_a_poses_file_that_is_a_fifo_is_refused_without_blocking(tmp_path):
+    os.mkfifo(tmp_path / "poses.json")
+    with pytest.raises(SceneFormatError, match=r"poses\.json: a FIFO"):
+        read_poses_file(tmp_path / "poses.json", DEFAULT)

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import re
+import signal
+import struct
 import warnings
 from pathlib import Path
 
@@ -536,3 +541,350 @@ def test_bad_arguments(tmp_path):
         load_scene(tmp_path, background=(1.0, 0.0))
     with pytest.raises(ValueError, match="max_images"):
         load_scene(tmp_path, max_images=0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input, by kind: every file a scene names or is, every field it reads.
+
+
+@contextlib.contextmanager
+def _within(seconds=20):
+    """Fails (instead of hanging the suite) when the body blocks, e.g. on a FIFO."""
+
+    def expire(*_):
+        raise TimeoutError(f"blocked for {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def _nerfstudio_scene(folder, n=8, extra=None, frames=None):
+    """A nerfstudio scene of n 8x8 images, cameras on a circle around the origin."""
+    if frames is None:
+        frames = []
+        for i in range(n):
+            angle = 2 * np.pi * i / n
+            c2w = np.eye(4)
+            c2w[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+            c2w[:3, 3] = 3.0 * c2w[:3, 2]
+            frames.append({"file_path": f"images/{i:03d}.png", "transform_matrix": c2w.tolist()})
+    return _transforms_scene(folder, frames=frames, extra={"camera_model": "OPENCV", **(extra or {})})
+
+
+def _fifo(path):
+    path.unlink(missing_ok=True)
+    os.mkfifo(path)
+
+
+def _loop(path):
+    path.unlink(missing_ok=True)
+    path.symlink_to(path.name)
+
+
+def _to_dev_zero(path):
+    path.unlink(missing_ok=True)
+    path.symlink_to("/dev/zero")
+
+
+@pytest.mark.parametrize(
+    "build, target, says",
+    [
+        (lambda d: _transforms_scene(d), "transforms.json", "FIFO"),
+        (lambda d: _transforms_scene(d), "./transforms.json", "FIFO"),  # the file itself, not its folder
+        (lambda d: _transforms_scene(d), "zero:transforms.json", "FIFO, socket or device"),
+        (lambda d: _llff_scene(d, [np.eye(3, 4)] * 2), "poses_bounds.npy", "FIFO"),
+        (lambda d: _llff_scene(d, [np.eye(3, 4)] * 2), "images_4/img01.png", "FIFO"),
+        (lambda d: _llff_scene(d, [np.eye(3, 4)] * 2), "loop:images_4/img01.png", "symbolic link loop"),
+        (lambda d: _transforms_scene(d), "images/001.png", "FIFO"),
+        (lambda d: _transforms_scene(d), "loop:images/001.png", "symbolic link loop"),
+        (lambda d: _nerfstudio_scene(d), "sparse_pc.ply", "FIFO"),
+        (lambda d: _blender_split_scene(d), "transforms_train.json", "FIFO"),
+    ],
+    ids=[
+        "transforms-folder",
+        "transforms-file",
+        "transforms-dev-zero",
+        "poses-bounds",
+        "llff-image",
+        "llff-image-loop",
+        "frame-image",
+        "frame-image-loop",
+        "sparse-pc",
+        "blender-split",
+    ],
+)
+def test_a_scene_file_that_is_no_regular_file_is_refused_by_what_it_is(tmp_path, build, target, says):
+    """A FIFO, a device or a link loop where a scene names a file is refused before it is opened (a FIFO
+    blocked the reader, /dev/zero filled the memory) and said as such, not as missing."""
+    build(tmp_path)
+    kind, _, name = target.rpartition(":")
+    path = tmp_path / name
+    {"": _fifo, "loop": _loop, "zero": _to_dev_zero}[kind](path)
+    scene_path = path if name.startswith("./") else tmp_path
+    with _within(), pytest.raises(SceneFormatError, match=re.escape(Path(name).name) + f".*{says}") as caught:
+        load_scene(scene_path)
+    assert "missing" not in str(caught.value) and "none of" not in str(caught.value)
+
+
+def _blender_split_scene(folder):
+    frames = [{"file_path": f"./train/r_{i}", "transform_matrix": _pose(tx=0.1 * i)} for i in range(2)]
+    for i in range(2):
+        _write_image(folder / "train" / f"r_{i}.png")
+    (folder / "transforms_test.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+
+
+def test_colmap_and_ply_files_that_are_fifos_are_refused(tmp_path):
+    from waldo_jax.scenes.colmap import ColmapCamera, ColmapImage, read_colmap_model, write_colmap_model
+
+    write_colmap_model(tmp_path, [ColmapCamera(1, "PINHOLE", 8, 8, (8.0, 8.0, 4.0, 4.0))], [], binary=False)
+    _fifo(tmp_path / "images.txt")
+    with _within(), pytest.raises(SceneFormatError, match=r"images\.txt: a FIFO"):
+        read_colmap_model(tmp_path, ".txt")
+    _fifo(tmp_path / "cloud.ply")
+    with _within(), pytest.raises(SceneFormatError, match=r"cloud\.ply: a FIFO"):
+        read_ply_points(tmp_path / "cloud.ply")
+    assert ColmapImage  # imported for the layout test below
+
+
+_MATRIX = _pose()
+
+
+@pytest.mark.parametrize(
+    "extra, frame_edit, says",
+    [
+        ({"camera_model": ["OPENCV"]}, None, r"'camera_model' must be a string, got list"),
+        ({"camera_model": {"name": "OPENCV"}}, None, r"'camera_model' must be a string, got dict"),
+        ({"camera_model": None}, None, r"'camera_model' must be a string, got NoneType"),
+        ({"fl_x": "8"}, None, r"'fl_x' must be a finite number, got str"),
+        ({"fl_x": True}, None, r"'fl_x' must be a finite number, got bool"),
+        ({"w": [8]}, None, r"'w' must be a finite number, got list"),
+        ({"k1": "0.1"}, None, r"'k1' must be a finite number"),
+        ({"aabb_scale": "1"}, None, r"'aabb_scale' must be a finite number"),
+        ({"aabb": [["0", "0", "0"], [1, 1, 1]]}, None, r"'aabb' must be"),
+        ({"applied_transform": [[True, False, False, 0]] * 3}, None, r"'applied_transform' must be a finite 3x4"),
+        ({"from_mitsuba": "yes"}, None, r"'from_mitsuba' must be true or false"),
+        ({"ply_file_path": 5, "camera_model": "OPENCV"}, None, r"'ply_file_path' must be a string, got int"),
+        ({"frames": {"0": {}}}, None, r"'frames' must be a list, got dict"),
+        ({}, {"file_path": 5}, r"frame 1: 'file_path' must be a string, got int"),
+        ({}, {"fl_x": "8"}, r"frame 1: 'fl_x' must be a finite number, got str"),
+        ({}, {"transform_matrix": [[str(v) for v in row] for row in _MATRIX]}, r"frame 1: transform_matrix is not"),
+        ({}, {"transform_matrix": [[bool(v) for v in row] for row in _MATRIX]}, r"frame 1: transform_matrix is not"),
+    ],
+    ids=lambda v: None if not isinstance(v, str) else v[:24],
+)
+def test_every_transforms_field_of_the_wrong_type_is_refused_by_name(tmp_path, extra, frame_edit, says):
+    """Each field the transforms reader reads is checked for its type (strings are strings, numbers are
+    numbers and not booleans, matrices hold numbers: "1" and true are refused, not converted)."""
+    _transforms_scene(tmp_path)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta.update(extra)
+    if frame_edit:
+        meta["frames"][1].update(frame_edit)
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(SceneFormatError, match=r"transforms\.json: " + says):
+        load_scene(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "name, says",
+    [
+        ("/", "names a folder"),
+        (".", "names a folder"),
+        ("..", "names a folder"),
+        ("images/", "names a folder"),
+        ("", "is empty"),
+        ("images/x.png\nwaldo: error: nothing is wrong", r"images/x\.png\\nwaldo: error: nothing is wrong"),
+        ("images/\x1b[31mred.png", r"images/\\x1b\[31mred\.png"),
+    ],
+    ids=["slash", "dot", "dot-dot", "trailing-slash", "empty", "newline", "ansi-escape"],
+)
+def test_a_file_path_that_names_no_file_is_refused_on_one_line(tmp_path, name, says):
+    """A frame's `file_path` must name a file: "/", "." or a name with control characters is refused by
+    name (it raised a ValueError), and the name is shown escaped, so that the error stays one line."""
+    _transforms_scene(tmp_path)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta["frames"][1]["file_path"] = name
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(SceneFormatError, match=r"frame 1: 'file_path' .*" + says) as caught:
+        load_scene(tmp_path)
+    assert str(caught.value).isprintable()
+
+
+def test_a_file_path_naming_a_folder_and_escaped_names_in_every_message(tmp_path):
+    """A frame image that is a folder is refused by name; a scene folder whose own name holds a newline gives
+    errors (and warnings) on one line."""
+    _transforms_scene(tmp_path / "a")
+    (tmp_path / "a" / "images" / "001.png").unlink()
+    (tmp_path / "a" / "images" / "001.png").mkdir()
+    with pytest.raises(SceneFormatError, match=r"001\.png: a directory"):
+        load_scene(tmp_path / "a")
+    odd = tmp_path / "b\nwaldo: error: forged"
+    _transforms_scene(odd)
+    (odd / "images" / "001.png").write_bytes(b"not a png")
+    with pytest.raises(SceneFormatError, match=r"b\\nwaldo: error: forged") as caught:
+        load_scene(odd)
+    assert str(caught.value).isprintable()
+
+
+def test_files_whose_content_is_another_format_are_refused_by_name(tmp_path):
+    """np.load reads what a file holds: an .npz archive named poses_bounds.npy (an AttributeError) or a
+    pickled object array is refused naming the file; so is a text file named .png or .ply."""
+    _llff_scene(tmp_path / "npz", [np.eye(3, 4)] * 2)
+    table = np.load(tmp_path / "npz" / "poses_bounds.npy")
+    np.savez(tmp_path / "npz" / "archive.npz", table)
+    os.replace(tmp_path / "npz" / "archive.npz", tmp_path / "npz" / "poses_bounds.npy")
+    with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: not a \.npy array: the file holds a NpzFile"):
+        load_scene(tmp_path / "npz")
+    _llff_scene(tmp_path / "pickle", [np.eye(3, 4)] * 2)
+    np.save(tmp_path / "pickle" / "poses_bounds.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: cannot read \.npy"):
+        load_scene(tmp_path / "pickle")
+    _transforms_scene(tmp_path / "png")
+    (tmp_path / "png" / "images" / "001.png").write_text("hello")
+    with pytest.raises(SceneFormatError, match=r"001\.png: cannot read image"):
+        load_scene(tmp_path / "png")
+    (tmp_path / "cloud.ply").write_bytes(np.zeros(4).tobytes())
+    with pytest.raises(SceneFormatError, match=r"cloud\.ply: not a PLY file"):
+        read_ply_points(tmp_path / "cloud.ply")
+
+
+@pytest.mark.parametrize(
+    "distortion, says",
+    [
+        ({"k1": 1e30}, r"k1 = 1e\+30 gives non-finite rays"),
+        ({"k1": -5.0}, r"k1 = -5 folds the image"),
+        ({"k2": -3.0}, r"k2 = -3 folds the image"),
+        ({"p1": 5.0}, r"p1 = 5 cannot be inverted"),
+    ],
+    ids=["k1-huge", "k1-fold", "k2-fold", "p1-fold"],
+)
+def test_distortion_that_folds_the_image_or_gives_non_finite_rays_is_refused(tmp_path, distortion, says):
+    """Finite distortion coefficients whose map is not one to one over the image (the radius stops
+    growing before the corner) or whose inverse overflows float32 (every ray NaN) are refused, naming the
+    file and the coefficient; a mild lens loads."""
+    _transforms_scene(tmp_path, extra=distortion)
+    with pytest.raises(SceneFormatError, match=r"transforms\.json: camera: distortion " + says):
+        load_scene(tmp_path)
+    _transforms_scene(tmp_path, extra={"k1": 0.05, "k2": -0.02, "p1": 0.001})
+    assert load_scene(tmp_path).intrinsics.has_distortion
+
+
+def test_colmap_images_txt_without_points_lines_keeps_every_image(tmp_path):
+    """images.txt with one line per image (its blank POINTS2D lines stripped) lost every second image; both
+    layouts now read every image, 2D points lines are still skipped, and a repeated image id is refused."""
+    from waldo_jax.scenes.colmap import ColmapCamera, ColmapImage, read_colmap_model, write_colmap_model
+
+    camera = ColmapCamera(1, "PINHOLE", 8, 8, (8.0, 8.0, 4.0, 4.0))
+    images = [ColmapImage(i + 1, (1.0, 0.0, 0.0, 0.0), (0.1 * i, 0.0, 4.0), 1, f"im {i}.png") for i in range(5)]
+    write_colmap_model(tmp_path, [camera], images, binary=False)
+    text = (tmp_path / "images.txt").read_text()
+    assert [im.name for im in read_colmap_model(tmp_path, ".txt")[1]] == [im.name for im in images]
+    (tmp_path / "images.txt").write_text("\n".join(line for line in text.splitlines() if line.strip()) + "\n")
+    assert [im.name for im in read_colmap_model(tmp_path, ".txt")[1]] == [im.name for im in images]
+    with_points = [line + ("\n1.5 2.5 -1 3.0 4.0 7" if line[:1].isdigit() else "") for line in text.splitlines()]
+    (tmp_path / "images.txt").write_text("\n".join(line for line in with_points if line.strip()) + "\n")
+    assert [im.image_id for im in read_colmap_model(tmp_path, ".txt")[1]] == [1, 2, 3, 4, 5]
+    repeated = [im._replace(image_id=1) for im in images[:2]]
+    write_colmap_model(tmp_path, [camera], repeated, binary=True)
+    with pytest.raises(SceneFormatError, match=r"images\.bin: image id 1 appears twice"):
+        read_colmap_model(tmp_path, ".bin")
+    cameras_bin = (tmp_path / "cameras.bin").read_bytes()
+    (tmp_path / "cameras.bin").write_bytes(cameras_bin[:32] + struct.pack("<d", 1e308) + cameras_bin[40:])
+    with pytest.raises(SceneFormatError, match=r"cameras\.bin: camera 1: PINHOLE parameter 0 is 1e\+308"):
+        read_colmap_model(tmp_path, ".bin")
+
+
+def test_cameras_at_one_point_warn_and_get_a_box_with_volume(tmp_path):
+    """A nerfstudio scene whose cameras all lie at one point (a panorama) spanned a 5e-10 box with
+    near/far 1e-11: it warns and gets a cube around the cameras."""
+    frames = []
+    for i in range(8):
+        angle = 2 * np.pi * i / 8
+        c2w = np.eye(4)
+        c2w[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+        frames.append({"file_path": f"images/{i:03d}.png", "transform_matrix": c2w.tolist()})
+    _nerfstudio_scene(tmp_path, frames=frames)
+    scene, caught = _load_recording(tmp_path)
+    assert [str(w.message) for w in caught if "all 8 cameras lie at one point" in str(w.message)]
+    assert np.all(scene.aabb[1] - scene.aabb[0] >= 1.0) and scene.near > 1e-3
+    assert "they all lie at one point" in scene.metadata["aabb_source"]
+
+
+@pytest.mark.parametrize("points", [[[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]])
+def test_a_point_cloud_on_a_line_or_plane_warns_and_boxes_the_cameras_too(tmp_path, points):
+    """A sparse_pc.ply whose points are collinear (or coplanar) gave a box 0.0004 thick: it warns, and the
+    box joins the cameras' box, so that no side is thin."""
+    _nerfstudio_scene(tmp_path)
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+    header += "property float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "sparse_pc.ply").write_bytes(header.encode() + np.asarray(points, "<f4").tobytes())
+    scene, caught = _load_recording(tmp_path)
+    assert [w for w in caught if "lie on a line or a plane" in str(w.message) and "sparse_pc.ply" in str(w.message)]
+    sides = scene.aabb[1] - scene.aabb[0]
+    assert sides.min() >= 0.099 * sides.max()
+
+
+def test_a_ply_file_path_that_names_no_point_cloud_warns_or_is_refused(tmp_path):
+    """`ply_file_path` naming a missing file was passed over silently: it warns (the cameras then bound the
+    scene); a folder or a FIFO there is refused by name."""
+    _nerfstudio_scene(tmp_path, extra={"ply_file_path": "points/missing.ply"})
+    scene, caught = _load_recording(tmp_path)
+    assert [w for w in caught if "'ply_file_path' names" in str(w.message) and "missing.ply" in str(w.message)]
+    assert scene.metadata["aabb_source"] == "camera origins and focus"
+    (tmp_path / "points" / "missing.ply").mkdir(parents=True)
+    with pytest.raises(SceneFormatError, match=r"missing\.ply: a directory"):
+        load_scene(tmp_path)
+    _nerfstudio_scene(tmp_path, extra={"ply_file_path": "/"})
+    with pytest.raises(SceneFormatError, match=r"'ply_file_path' '/' names a folder"):
+        load_scene(tmp_path)
+
+
+@pytest.mark.parametrize("fmt", ["instant-ngp", "nerfstudio", "llff"])
+def test_split_val_of_a_format_without_one_is_refused(tmp_path, fmt):
+    """--split val on a format that holds out only every 8th image as 'test' returned every image, the
+    held-out ones included: it is refused, naming the split."""
+    if fmt == "llff":
+        _llff_scene(tmp_path, [np.eye(3, 4)] * 2)
+    elif fmt == "nerfstudio":
+        _nerfstudio_scene(tmp_path)
+    else:
+        _transforms_scene(tmp_path)
+    assert detect_format(tmp_path) == fmt
+    with pytest.raises(SceneArgumentError, match=rf"split 'val' does not exist in {fmt} scenes"):
+        load_scene(tmp_path, split="val")
+
+
+def test_the_memory_check_counts_the_full_size_decode(tmp_path, monkeypatch):
+    """Images are decoded at full size (RGBA as float32 and its temporaries, 48 bytes a pixel) before they
+    are downscaled: the check counts that, not only the downscaled images kept."""
+    from waldo_jax import errors
+
+    folder = tmp_path / "scene"
+    _transforms_scene(folder, n=2)
+    for i in range(2):
+        iio.imwrite(folder / "images" / f"{i:03d}.png", np.full((128, 128, 4), 200, np.uint8))
+    kept = 2 * 16 * 16 * 4 * 4  # what the check counted before: 8 KiB
+    monkeypatch.setattr(errors, "host_memory_bytes", lambda: kept + 48 * 128 * 128 // 2)
+    with pytest.raises(errors.MemoryBudgetError, match=r"images of 16x16 .* decoded from 128x128 RGBA"):
+        load_scene(folder, downscale=8)
+    monkeypatch.setattr(errors, "host_memory_bytes", lambda: kept + 48 * 128 * 128)  # one decode at a time fits
+    assert load_scene(folder, downscale=8).images.shape == (2, 16, 16, 3)
+
+
+@pytest.mark.parametrize("suffix", [".Png", ".PNG", ".jpG"])
+def test_llff_image_extensions_in_any_case(tmp_path, suffix):
+    """LLFF images named *.Png gave "holds 0 images"."""
+    _llff_scene(tmp_path, [np.eye(3, 4)] * 2)
+    for path in sorted((tmp_path / "images_4").iterdir()):
+        if suffix.lower() == ".jpg":
+            iio.imwrite(path.with_suffix(suffix), iio.imread(path), extension=".jpg")
+            path.unlink()
+        else:
+            path.rename(path.with_suffix(suffix))
+    assert load_scene(tmp_path).n_images == 2

@@ -8,6 +8,7 @@ import gzip
 import io
 import json
 import math
+import os
 import struct
 import zipfile
 
@@ -21,7 +22,7 @@ from PIL import Image
 from conftest import _missing
 from waldo_jax import paths
 from waldo_jax.cameras import look_at
-from waldo_jax.errors import SceneFormatError, WaldoError
+from waldo_jax.errors import MemoryBudgetError, SceneFormatError, WaldoError
 from waldo_jax.pipeline.splat_sources import is_splat_spec
 from waldo_jax.splats import formats as F
 from waldo_jax.splats.io import SH_C0, load_splat_model, read_splat_ply, write_splat_ply
@@ -532,7 +533,104 @@ BROKEN = {
                      r"no positive splat count \(got None\)"),
     "sog big int": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m.update(count=10**400)),
                     r"no positive splat count \(got inf\)"),
+    # Decompression bounded by what the header needs, not by what a stream says of itself.
+    "v4 zstd bomb": ("x.spz", lambda t: _spz_v4_bomb(t, stated=True), r"SPZ stream 0 inflates past the 180 bytes"),
+    "v4 zstd lying size": ("x.spz", lambda t: _spz_v4_bomb(t, stated=False), r"corrupt SPZ zstd stream \(stream 0"),
+    # Container and codec errors of any kind: the file's error.
+    "sog encrypted": ("x.sog", lambda t: _encrypted(_sog_zip(t, lambda m, f: None)),
+                      r"cannot read the SOG's file 'meta\.json' \(RuntimeError: .*encrypted"),
+    "sog broken png": ("x.sog", lambda t: _sog_zip(t, _with("shN_centroids.webp", _broken_png())),
+                       r"the SOG's image 'shN_centroids\.webp' cannot be decoded \(SyntaxError: broken PNG"),
+    "sog tiff": ("x.sog", lambda t: _sog_zip(t, _with("scales.webp", _image_bytes("TIFF"))),
+                 r"the SOG's image 'scales\.webp' cannot be decoded \(not a WebP or PNG image\)"),
+    # Values checked in float32, where they are used.
+    "sog means beyond float32": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["means"].update(maxs=[90.0] * 3)),
+                                 r"means\.maxs \[90\.0, 90\.0, 90\.0\] give positions .* beyond float32"),
+    "sog codebook 1e300": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["sh0"].update(codebook=[1e300] * 256)),
+                           r"sh0\.codebook must be 256 finite numbers \(float32"),
+    # A header count that disagrees with the data.
+    "spz count fewer": ("x.spz", lambda t: _spz_count(t, 10), r"holds .* bytes after the sections of its header's 10"),
+    "spz trailing junk": ("x.spz", lambda t: _spz_v3(t) + b"junkjunk", r"8 bytes follow the SPZ gzip stream"),
+    "v4 trailing": ("x.spz", lambda t: _spz_v4(t) + bytes(7), r"7 bytes follow the SPZ's 6 streams"),
+    "compressed count fewer": ("x.ply", lambda t: _compressed_fewer(t),
+                               r"its elements \(chunk 2, vertex 300, sh 300\) need .*disagree with the data"),
+    "sog count fewer": ("x.sog", lambda t: _sog_zip(t, lambda m, f: (m.update(count=2), f.update(
+                        {k: _webp(np.zeros((8, 4, 4))) for k in f if k != "shN_centroids.webp"}))),
+                        r"is 4x8: its count 2 leaves more than four rows of texels unused"),
+    "sog sizes differ": ("x.sog", lambda t: _sog_zip(t, _with("sh0.webp", _webp(np.zeros((1, 3, 4))))),
+                         r"the SOG's images differ in size"),
+    # Types: a bool is not a number.
+    "sog version bool": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m.update(version=True)),
+                         r"SOG version True is not read"),
+    "sog bands bool": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["shN"].update(bands=True)),
+                       r"shN\.bands must be 1, 2 or 3, got True"),
+    "sog codebook bool": ("x.sog", lambda t: _sog_zip(t, lambda m, f: m["scales"].update(codebook=[True] * 256)),
+                          r"scales\.codebook must be 256 finite numbers"),
+    "splat named otherwise": ("x.bin", lambda t: F.write_antimatter_splat(t / "d.splat", _random_splats(4, 0))
+                              .read_bytes(), r"is told by its \.splat extension"),
 }  # fmt: skip
+
+
+def _spz_v4_bomb(tmp_path, stated: bool) -> bytes:
+    """A one-splat SPZ v4 whose position stream (180 bytes of 20 splats in the table) is a zstd frame of 64 MiB
+    of zeros, its size stated in the frame (`stated`) or a frame claiming 1 TiB for 180 bytes of data."""
+    n, sizes = 20, [20 * 9, 20, 60, 60, 80]
+    streams = [zstandard.ZstdCompressor(level=1).compress(bytes(size)) for size in sizes]
+    if stated:
+        buffer = io.BytesIO()
+        with zstandard.ZstdCompressor(level=1).stream_writer(buffer, size=64 * 2**20, closefd=False) as w:
+            for _ in range(64):
+                w.write(bytes(2**20))
+        streams[0] = buffer.getvalue()
+    else:
+        data = zstandard.ZstdCompressor(level=1, write_content_size=False).compress(bytes(sizes[0]))
+        descriptor = data[4]
+        assert descriptor & 0xC0 == 0 and not descriptor & 0x20  # no size stated, a window byte
+        streams[0] = data[:4] + bytes([descriptor | 0xC0, data[5]]) + struct.pack("<Q", 2**40) + data[6:]
+    header = struct.pack("<IIIBBBBI12x", 0x5053474E, 4, n, 0, 12, 0, len(streams), 32)
+    table = b"".join(struct.pack("<QQ", len(c), size) for c, size in zip(streams, sizes))
+    return header + table + b"".join(streams)
+
+
+def _encrypted(raw: bytes) -> bytes:
+    """A zip with the 'encrypted' flag set on every member (zipped with a password)."""
+    raw = bytearray(raw)
+    for signature, offset in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        i = raw.find(signature)
+        while i >= 0:
+            raw[i + offset] |= 1
+            i = raw.find(signature, i + 4)
+    return bytes(raw)
+
+
+def _image_bytes(fmt: str) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((1, 2, 4), np.uint8), "RGBA").save(buffer, fmt)
+    return buffer.getvalue()
+
+
+def _broken_png() -> bytes:
+    """A 192 x 1 PNG (a centroid image's size) whose IDAT length is 100 bytes short: decoding it reads a
+    chunk header from the middle of the data, and Pillow raises SyntaxError('broken PNG file')."""
+    buffer = io.BytesIO()
+    noise = np.random.default_rng(0).integers(0, 256, (1, 192, 4)).astype(np.uint8)
+    Image.fromarray(noise, "RGBA").save(buffer, "PNG")
+    raw = bytearray(buffer.getvalue())
+    i = raw.find(b"IDAT")
+    raw[i - 4 : i] = struct.pack(">I", struct.unpack(">I", raw[i - 4 : i])[0] - 100)
+    return bytes(raw)
+
+
+def _spz_count(tmp_path, count: int) -> bytes:
+    raw = bytearray(gzip.decompress(_spz_v3(tmp_path)))
+    struct.pack_into("<I", raw, 8, count)
+    return gzip.compress(bytes(raw))
+
+
+def _compressed_fewer(tmp_path) -> bytes:
+    """A compressed PLY of 400 splats (2 chunks) whose header says 300 (still 2 chunks)."""
+    raw = F.write_compressed_ply(tmp_path / "c.ply", _random_splats(400, 1)).read_bytes()
+    return raw.replace(b"element vertex 400", b"element vertex 300", 1).replace(b"element sh 400", b"element sh 300", 1)
 
 
 @pytest.mark.parametrize("case", list(BROKEN))
@@ -550,3 +648,63 @@ def test_compressed_ply_through_read_splat_ply_says_how_to_read_it(tmp_path):
     path = F.write_compressed_ply(tmp_path / "c.ply", _random_splats(4, 0))
     with pytest.raises(SceneFormatError, match=r"a compressed splat PLY .* read it with load_splat_model"):
         read_splat_ply(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sniffing, non-regular files and memory.
+
+
+def test_a_compressed_ply_with_a_long_header_is_sniffed_as_compressed(tmp_path):
+    """150 KB of comment lines (the header limit is 1 MiB): the sniffer once read 64 KiB, called it a plain
+    PLY, and the plain reader refused it."""
+    raw = F.write_compressed_ply(tmp_path / "c.ply", _random_splats(300, 0)).read_bytes()
+    pad = b"".join(b"comment %06d exported by some tool, padding padding padding\n" % i for i in range(2500))
+    path = tmp_path / "long.ply"
+    path.write_bytes(raw.replace(b"comment written by waldo_jax\n", pad, 1))
+    assert F.splat_format(path) == "compressed_ply"
+    np.testing.assert_array_equal(load_splat_model(path).splats.means, F.read_compressed_ply(tmp_path / "c.ply").means)
+
+
+def test_a_fifo_named_in_a_sog_folder_is_refused_not_waited_on(tmp_path):
+    """A SOG folder whose quats image is a FIFO: one line naming it (the reader once blocked forever)."""
+    meta, files = _sog_files()
+    path = _write_sog(tmp_path / "sog", meta, files, bundle=False)
+    (tmp_path / "sog" / "quats.webp").unlink()
+    os.mkfifo(tmp_path / "sog" / "quats.webp")
+    with pytest.raises(WaldoError, match=r"quats\.webp: a FIFO, socket or device"):
+        load_splat_model(path)
+
+
+@pytest.mark.parametrize("fmt", ["ply", "spz", "compressed_ply", "splat"])
+def test_header_count_check_is_the_readers_measured_peak(tmp_path, monkeypatch, fmt):
+    """The memory a count is checked against is each reader's measured peak per splat (`PEAK_BYTES_PER_SPLAT`:
+    a 583 KB .spz declaring 30M splats took 11.7 GB against a check of 5.4 GB), not 4 x the splats' floats:
+    on a machine with memory between the two the reader refuses before decoding."""
+    from waldo_jax.splats.formats import common
+
+    n, degree = 4000, 1
+    splats = _random_splats(n, degree, spread=1.0)
+    path = {
+        "ply": lambda: write_splat_ply(tmp_path / "s.ply", splats),
+        "spz": lambda: F.write_spz(tmp_path / "s.spz", splats, version=3),
+        "compressed_ply": lambda: F.write_compressed_ply(tmp_path / "c.ply", splats),
+        "splat": lambda: F.write_antimatter_splat(tmp_path / "s.splat", splats),
+    }[fmt]()
+    degree = 0 if fmt == "splat" else degree
+    need = common.peak_bytes(fmt, n, degree)
+    old = n * (3 + 3 + 4 + 1 + 3 * (degree + 1) ** 2) * 4 * 4
+    assert need > old
+    monkeypatch.setattr("waldo_jax.errors.host_memory_bytes", lambda: int(0.5 * (need + old)))
+    with pytest.raises(MemoryBudgetError, match=r"reading its 4,000 splats"):
+        F.read_splat_file(path)
+
+
+def test_a_sogs_images_count_in_its_memory_check(tmp_path, monkeypatch):
+    """A SOG's decoded images count by their texels, read from their headers (a 3 KB .sog of count 20M with
+    4473 x 4473 images took 7.9 GB): two splats in 4096-texel images need their images' memory."""
+    meta, files = _sog_files()
+    files.update({k: _webp(np.zeros((1, 4096, 4))) for k in files if k != "shN_centroids.webp"})
+    path = _write_sog(tmp_path / "sog", meta, files, bundle=True)
+    monkeypatch.setattr("waldo_jax.errors.host_memory_bytes", lambda: 100_000)
+    with pytest.raises(MemoryBudgetError, match=r"reading its 2 splats \(a SOG, SH degree 3\) would take"):
+        F.read_splat_file(path)

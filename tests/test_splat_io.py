@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +28,8 @@ from waldo_jax.splats.io import (
     write_splat_ply,
 )
 from waldo_jax.splats.model import make_splats, sh_coefficients
+from waldo_jax.splats.cameras_json import render_intrinsics
+from waldo_jax.splats.upright import extent_problem, robust_bounds
 from waldo_jax.types import Intrinsics
 
 DONUT_SPLATS = 45_624
@@ -311,6 +315,17 @@ BAD_PLY = {
     "list property": (_list_property, r"list properties \(vertex_indices\)"),
     "not float": (_uchar_opacity, r"splat properties must be float or double: opacity is uchar"),
     "compressed": (_case(extra_header=b"element chunk 0\nproperty float min_x"), r"a compressed splat PLY"),
+    # f_rest_* indices read as numbers: one index twice, or numbers that are not 0..M-1, refused by name.
+    "f_rest twice": (
+        _case(names=_REST_NAMES[:6] + ["f_rest_0", "f_rest_00"] + _REST_NAMES[7:9] + _REST_NAMES[10:]),
+        r"f_rest_0 and f_rest_00 are the same SH coefficient f_rest_0",
+    ),
+    "f_rest beyond": (
+        _case(names=_REST_NAMES[:6] + ["f_rest_00", "f_rest_01", "f_rest_02", "f_rest_09"] + _REST_NAMES[10:]),
+        r"not numbered 0\.\.3: missing f_rest_3 \(f_rest_09 given\)",
+    ),
+    # A header count smaller than the data: the rest is not silently left out.
+    "count fewer": (_case(count=3), r"112 bytes follow its 3 splats of 56 bytes"),
 }
 
 
@@ -508,3 +523,134 @@ def test_folder_without_a_scene_lists_what_was_looked_for(tmp_path):
         load_splat_model(tmp_path / "empty")
     with pytest.raises(SceneFormatError, match=r"missing: no such file or folder"):
         load_splat_model(tmp_path / "missing")
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs found by a bad-input hunt, one test per kind.
+
+
+@pytest.mark.parametrize("width", [1, 2])
+def test_zero_padded_f_rest_indices_are_read_by_number(tmp_path, width):
+    """f_rest_00 .. f_rest_08 (zero-padded, as some exporters write) are coefficients 0..8, read like
+    f_rest_0 .. f_rest_8 (once a KeyError traceback)."""
+    plain = _splat_table(m=9)
+    padded = plain.copy()
+    padded.dtype.names = [f"f_rest_{int(k[7:]):0{width}d}" if k.startswith("f_rest_") else k for k in plain.dtype.names]
+    a = read_splat_ply(_structured_ply(tmp_path / "plain.ply", plain))
+    b = read_splat_ply(_structured_ply(tmp_path / "padded.ply", padded))
+    np.testing.assert_array_equal(np.asarray(a.sh), np.asarray(b.sh))
+
+
+@pytest.mark.parametrize("value", [1e38, 1e-30])
+def test_quaternions_beyond_float32_squares_keep_their_rotation(tmp_path, value):
+    """rot_0..3 all 1e38 (their squares overflow float32) or 1e-30 (underflow) are the rotation of all 0.5;
+    they once became the identity (1e38) or a refused 'zero quaternion' (1e-30)."""
+    big, half = _splat_table(), _splat_table()
+    for i in range(4):
+        big[f"rot_{i}"], half[f"rot_{i}"] = value, 0.5
+    a = read_splat_ply(_structured_ply(tmp_path / "big.ply", big))
+    b = read_splat_ply(_structured_ply(tmp_path / "half.ply", half))
+    np.testing.assert_allclose(np.asarray(a.rotations()), np.asarray(b.rotations()), rtol=1e-6)
+    assert np.all(np.isfinite(np.asarray(a.quats)))
+
+
+def test_a_fifo_where_cameras_json_lies_is_refused_not_waited_on(tmp_path):
+    """A FIFO named cameras.json beside the PLY: one line naming it (a reader blocked on one forever)."""
+    ply = write_splat_ply(tmp_path / "s.ply", _random_splats(jax.random.key(0), 8, 0))
+    os.mkfifo(tmp_path / "cameras.json")
+    with pytest.raises(WaldoError, match=r"cameras\.json: a FIFO, socket or device"):
+        load_splat_model(ply)
+
+
+def _cameras(path, c2w, width=64, height=48, focal=51.5):
+    entries = [
+        {
+            "id": i,
+            "img_name": f"im{i}",
+            "width": width,
+            "height": height,
+            "position": m[:3, 3].tolist(),
+            "rotation": m[:3, :3].tolist(),
+            "fx": focal,
+            "fy": focal,
+        }
+        for i, m in enumerate(np.asarray(c2w, np.float64))
+    ]
+    path.write_text(json.dumps(entries))
+    return path
+
+
+def _opencv_ring(count=4, distance=5.0):
+    """c2w [count, 4, 4] in cameras.json's OpenCV axes, on a ring around the origin looking at it."""
+    poses = []
+    for i in range(count):
+        angle = 2 * np.pi * i / count
+        origin = np.array([distance * np.cos(angle), distance * np.sin(angle), 1.0])
+        gl = np.asarray(look_at(jnp.asarray(origin), jnp.zeros(3), jnp.array([0.0, 0.0, 1.0])), np.float64)
+        cv = np.eye(4)
+        cv[:3, :4] = gl[:3, :4]
+        cv[:3, 1:3] *= -1.0
+        poses.append(cv)
+    return np.stack(poses)
+
+
+@pytest.mark.parametrize("size", [(8, 65536), (65536, 8), (16, 9000)])
+def test_a_camera_no_render_size_can_show_is_refused_by_name(tmp_path, size):
+    """A camera whose shorter side falls under MIN_RESOLUTION at every render size (8 x 65536: 1 pixel wide
+    at 256) is refused naming cameras.json and the camera; one that fits some sizes is refused at the others
+    by `render_intrinsics`, naming the --resolution that fits."""
+    path = _cameras(tmp_path / "cameras.json", _opencv_ring(), width=size[0], height=size[1], focal=20000.0)
+    with pytest.raises(
+        SceneFormatError, match=r"cameras\.json: camera 0 \('im0'\): an image of .* renders, at most 4096"
+    ):
+        read_cameras_json(path)
+    fits = Intrinsics.create(8, 200, 400.0, 400.0)
+    assert render_intrinsics(fits, 200, path, "camera 0").width == 8
+    with pytest.raises(SceneFormatError, match=r"camera 0: an image of 8x200 pixels renders at 3x64 .*at least 200"):
+        render_intrinsics(fits, 64, path, "camera 0")
+
+
+def test_cameras_that_all_face_away_from_the_splats_warn(tmp_path):
+    """cameras.json written with OpenGL rotations (z backward) where OpenCV's are expected: no splat centre in
+    front of any camera, a warning line; the same cameras in OpenCV axes load silently."""
+    splats = _random_splats(jax.random.key(1), 32, 0)
+    splats = splats.replace(means=splats.means * 0.1)
+    ply = write_splat_ply(tmp_path / "s.ply", splats)
+    good = _opencv_ring()
+    _cameras(tmp_path / "cameras.json", good)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_splat_model(ply)
+    flipped = good.copy()
+    flipped[:, :3, 1:3] *= -1.0  # OpenGL rotations
+    _cameras(tmp_path / "cameras.json", flipped)
+    with pytest.warns(UserWarning, match=r"no splat centre is in front of any of the 4 cameras"):
+        load_splat_model(ply)
+
+
+@pytest.mark.parametrize("case", ["one splat", "one point"])
+def test_a_scene_of_one_point_warns_and_is_flagged(tmp_path, case):
+    """One splat, or every splat at one point: a ring of views cannot frame it (it once sat 2.6e-6 from the
+    centre, inside the near plane: every render the background, exit 0): a warning and `degenerate`."""
+    splats = _random_splats(jax.random.key(2), 1 if case == "one splat" else 16, 0)
+    splats = splats.replace(means=jnp.full_like(splats.means, 0.5))
+    ply = write_splat_ply(tmp_path / "s.ply", splats)
+    with pytest.warns(UserWarning, match=r"a scene of one point, which no view frames"):
+        model = load_splat_model(ply)
+    assert "every render of a ring around it is the background alone" in model.degenerate
+
+
+def test_robust_bounds_leave_far_strays_and_non_finite_means_out():
+    """A quarter of the splats at 1e30 set the 98 % quantile (and the ring) 1e30 away; robust bounds leave
+    them out, and the bounds of a scene without strays are the plain quantiles, bit for bit."""
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(2000, 3))
+    low, high = robust_bounds(means)
+    np.testing.assert_array_equal(low, np.quantile(means, 0.02, axis=0))
+    np.testing.assert_array_equal(high, np.quantile(means, 0.98, axis=0))
+    far = means.copy()
+    far[:500, 0] = 1e30
+    far[500, 1] = np.inf
+    low, high = robust_bounds(far)
+    assert np.all(np.abs(low) < 5) and np.all(np.abs(high) < 5), (low, high)
+    assert extent_problem(far) is None and extent_problem(np.ones((5, 3))) is not None

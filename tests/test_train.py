@@ -346,6 +346,12 @@ def test_preset_takes_box_and_aabb_scale_from_the_scene(lego_small):
     fox_like = TrainConfig.preset("quality", scaled)
     assert fox_like.aabb_scale == 4.0 and fox_like.field.hashgrid.N_max == 8192
     assert fox_like.cone_angle == pytest.approx(1 / 256)
+    # A scene's aabb_scale past Instant-NGP's 128 is refused by name before a hash grid is sized by it
+    # (1,024 made the quality preset's N_max = 2**21 overflow the layout: an AssertionError).
+    for huge in (129, 1024, 65536):
+        with pytest.raises(TrainConfigError, match=f"aabb_scale {huge} is outside"):
+            TrainConfig.preset("quality", dataclasses.replace(scaled, metadata={"aabb_scale": huge}))
+    assert TrainConfig.preset("quality", dataclasses.replace(scaled, metadata={"aabb_scale": 128})).aabb_scale == 128
     assert TrainConfig.preset("fast", lego_small, steps=7).steps == 7
     with pytest.raises(TrainConfigError, match="unknown preset 'best'"):
         TrainConfig.preset("best", lego_small)

@@ -311,6 +311,33 @@ def test_native_store_round_trip_and_errors(tmp_path):
     np.savez(tmp_path / "foreign.npz", a=np.zeros(2))
     with pytest.raises(WeightsError, match="not a waldo weights archive"):
         load_native(tmp_path / "foreign.npz", "m")
+    # Arrays of text or of NaN (a hand-edited archive: NaN weights scored every image -100 silently), and an
+    # archive whose members would inflate past any weights' size, refused before they are read.
+    for name, value, says in (
+        ("text", np.array(["x"]), "holds <U1 values, not numbers"),
+        ("nan", np.full(2, np.nan, np.float32), "holds NaN"),
+    ):
+        edited = save_native(tmp_path / name / "m.npz", "m", {**tree, "gamma": value}, {})
+        with pytest.raises(WeightsError, match=f"array 'gamma' {says}"):
+            load_native(edited, "m")
+    with zipfile.ZipFile(tmp_path / "bomb.npz", "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("a.npy", bytes(300 << 20))
+    with pytest.raises(WeightsError, match="would inflate to 300 MiB"):
+        load_native(tmp_path / "bomb.npz", "m")
+
+
+def test_an_opencv_yaml_file_nested_too_deep_or_out_of_range_is_one_error(tmp_path):
+    """Flow lists 20,000 deep recursed past Python's limit; a uint8 matrix holding 300 overflowed in NumPy."""
+    from waldo_jax.weights.opencv_yaml import read_opencv_storage
+
+    deep = tmp_path / "deep.yml"
+    deep.write_text("%YAML:1.0\n---\nrange: " + "[" * 20000 + "1" + "]" * 20000 + "\n")
+    with pytest.raises(WeightsError, match="deep.yml: malformed OpenCV YAML \\(nested too deep to read\\)"):
+        read_opencv_storage(deep)
+    wide = tmp_path / "wide.yml"
+    wide.write_text("%YAML:1.0\n---\nm: !!opencv-matrix\n   rows: 1\n   cols: 1\n   dt: u\n   data: [ 300 ]\n")
+    with pytest.raises(WeightsError, match="wide.yml: malformed OpenCV YAML \\(.*300"):
+        read_opencv_storage(wide)
 
 
 @pytest.mark.slow

@@ -60,8 +60,9 @@ __all__ = [
     "install_excepthook",
 ]
 
-_ON = ("1", "true", "yes", "on")
-_OFF = ("0", "false", "no", "off")
+# JAX's own words for a switch (`jax._src.config.bool_env`): "t" and "y" turn JAX_ENABLE_X64 on as well.
+_ON = ("1", "true", "yes", "on", "t", "y")
+_OFF = ("0", "false", "no", "off", "f", "n")
 # JAX's platform names (`JAX_PLATFORMS`, comma-separated, tried in order).
 _PLATFORMS = ("cpu", "gpu", "cuda", "rocm", "tpu", "metal", "neuron", "interpreter")
 _ALLOCATORS = ("default", "platform", "bfc", "cuda_async")

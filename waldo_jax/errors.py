@@ -15,6 +15,7 @@ from __future__ import annotations
 import errno
 import math
 import os
+import re
 import stat
 from pathlib import Path
 
@@ -38,6 +39,7 @@ __all__ = [
     "MemoryBudgetError",
     "host_memory_bytes",
     "check_memory",
+    "one_line",
 ]
 
 # The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
@@ -151,6 +153,19 @@ def check_resolution(value, what: str = "--resolution") -> int:
     return value
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def one_line(text: str) -> str:
+    """`text` with its control characters (a newline or terminal escape in a file name it quotes) written
+    as escapes, so that a message stays the one line it is meant to be and moves no cursor."""
+    return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
+
+
+def _a(what: str) -> str:
+    return f"{'an' if what[:1].lower() in 'aeiou' else 'a'} {what}"
+
+
 def check_input_file(path: str | os.PathLike, what: str = "file") -> Path:
     """`path` as a Path if it is a readable regular file (or a link to one); else an error that says
     what is wrong: `DataNotFoundError` when nothing is there, `WaldoError` for a directory, a FIFO or
@@ -162,12 +177,12 @@ def check_input_file(path: str | os.PathLike, what: str = "file") -> Path:
         raise DataNotFoundError(f"{path}: no such {what}") from None
     except OSError as e:
         if e.errno == errno.ELOOP:
-            raise WaldoError(f"{path}: a symbolic link loop, where a {what} was expected") from None
+            raise WaldoError(f"{path}: a symbolic link loop, where {_a(what)} was expected") from None
         raise WaldoError(f"{path}: cannot read this {what} ({e.strerror or e})") from None
     if stat.S_ISDIR(mode):
-        raise WaldoError(f"{path}: a directory, where a {what} was expected")
+        raise WaldoError(f"{path}: a directory, where {_a(what)} was expected")
     if not stat.S_ISREG(mode):
-        raise WaldoError(f"{path}: a FIFO, socket or device, where a {what} was expected")
+        raise WaldoError(f"{path}: a FIFO, socket or device, where {_a(what)} was expected")
     if not os.access(path, os.R_OK):
         raise WaldoError(f"{path}: cannot read this {what} (permission denied)")
     return path

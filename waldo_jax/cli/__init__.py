@@ -32,10 +32,11 @@ import sys
 import warnings
 from typing import List, Optional
 
+from waldo_jax import io
 from waldo_jax.cli import demo, explore, interrupt, path, render, scene, score, train, view, weights
 from waldo_jax.cli.conventions import Parser
 from waldo_jax.environment import enable_compile_cache
-from waldo_jax.errors import WaldoError, check_seed
+from waldo_jax.errors import WaldoError, check_seed, one_line
 from waldo_jax.version import package_version
 
 __all__ = ["main", "build_parser", "check_jax_platforms"]
@@ -74,9 +75,10 @@ def main(argv: Optional[List[str]] = None) -> int:
 def _run(argv: Optional[List[str]]) -> int:
     """Parses `argv` and runs its command; errors at the edges become one line and status 1."""
     parser = build_parser()
+    created_before = len(io.created_output_dirs())
     show = warnings.showwarning
     # Warnings are one line each, like errors: "waldo: warning: ..." (not Python's file:line form).
-    warnings.showwarning = lambda message, *rest, **kw: print(f"waldo: warning: {message}", file=sys.stderr)
+    warnings.showwarning = _show_warning
     try:
         args = parser.parse_args(argv)  # bad arguments: `UsageError`, one line like any bad input
         if getattr(args, "seed", None) is not None:  # before anything is created, trained or written
@@ -85,30 +87,54 @@ def _run(argv: Optional[List[str]]) -> int:
         check_jax_platforms()
         return int(args.handler(args) or 0)
     except WaldoError as e:
-        print(f"waldo: error: {e}", file=sys.stderr)
+        print(f"waldo: error: {one_line(str(e))}{_discarded(created_before)}", file=sys.stderr)
         return 1
     except OSError as e:  # the machine refused (disk full, permissions): name the file, no traceback
         where = f"{e.filename}: " if e.filename else ""
-        print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)
+        print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)  # the files written so far stay
         return 1
     finally:
         warnings.showwarning = show
 
 
-def check_jax_platforms() -> None:
-    """Refuses a `JAX_PLATFORMS` this machine cannot start (e.g. gpu without one), before any output
-    folder is created: JAX would raise at its first computation, after the command began writing."""
-    wanted = os.environ.get("JAX_PLATFORMS", "").strip()
-    if not wanted:
-        return
-    import jax
+_PACKAGE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-    try:
-        jax.devices()
-    except RuntimeError as e:
-        reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        reason = reason.split(" (set JAX_PLATFORMS")[0]
-        raise WaldoError(
-            f"JAX_PLATFORMS={wanted}: this machine cannot start that backend ({reason[:200]}); "
-            "unset JAX_PLATFORMS to run on what it has"
-        ) from None
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Prints waldo's own warnings as one line each. A library's own (matplotlib's "identical low and high
+    zlims" on a flat set of cameras) and NumPy's arithmetic warnings (an overflow in a cast, which the
+    input check that follows reports by the input's name) are not waldo's to say: they are left out."""
+    if issubclass(category, RuntimeWarning):
+        return
+    if not os.path.abspath(str(filename)).startswith(_PACKAGE_DIR + os.sep):
+        return
+    print(f"waldo: warning: {one_line(str(message))}", file=sys.stderr)
+
+
+def _discarded(created_before: int) -> str:
+    """Removes the output folders a command refused by a `WaldoError` (its input found wrong while it ran)
+    created and has not declared finished, as an interrupt does (`io.discard_unfinished`), and says so
+    for the error line. A failure of the machine (a full disk) keeps the whole files written before it."""
+    removed = io.discard_unfinished(io.created_output_dirs()[created_before:])
+    return f" (removed the unfinished output folder {', '.join(map(str, removed))})" if removed else ""
+
+
+def check_jax_platforms() -> None:
+    """Refuses a `JAX_PLATFORMS`, `JAX_PLATFORM_NAME` or `JAX_DEFAULT_DEVICE` naming a backend this machine
+    cannot start (e.g. gpu without one), before any output folder is created: JAX would raise at its first
+    computation, after the command began writing."""
+    for name in ("JAX_PLATFORMS", "JAX_PLATFORM_NAME", "JAX_DEFAULT_DEVICE"):
+        wanted = os.environ.get(name, "").strip()
+        if not wanted:
+            continue
+        import jax
+
+        try:  # any failure: JAX raises a RuntimeError for most, an AssertionError for JAX_PLATFORMS=cuda
+            jax.devices() if name == "JAX_PLATFORMS" else jax.devices(wanted.lower())
+        except Exception as e:
+            reason = (str(e).strip().splitlines() or [type(e).__name__])[0] or type(e).__name__
+            reason = reason.split(" (set JAX_PLATFORMS")[0]
+            raise WaldoError(
+                f"{name}={wanted}: this machine cannot start that backend ({reason[:200]}); "
+                f"unset {name} to run on what it has"
+            ) from None

@@ -94,7 +94,7 @@ class SceneRecord:
             near=float(scene.near),
             far=float(scene.far),
             file_names=tuple(str(f) for f in scene.file_names),
-            path=str(scene.path),
+            path=os.path.abspath(scene.path) if scene.path else "",  # a run is read from any folder
             format=str(scene.format),
             name=str(scene.name),
             split=str(scene.split),
@@ -378,6 +378,15 @@ def _templates(path: Path, config: TrainConfig, has_occupancy: bool) -> Tuple[An
     return params, occupancy
 
 
+def _file_names(names: Any, count: int) -> Tuple[str, ...]:
+    """The record's training image names: one string per training pose."""
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise ValueError("file_names is not a list of names")
+    if len(names) != count:
+        raise ValueError(f"file_names lists {len(names)} names for {count} training poses")
+    return tuple(names)
+
+
 def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRecord:
     try:
         background = scene.get("background")
@@ -387,7 +396,7 @@ def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRe
             aabb=np.asarray(scene["aabb"], np.float32).reshape(2, 3),
             near=float(scene["near"]),
             far=float(scene["far"]),
-            file_names=tuple(str(f) for f in scene["file_names"]),
+            file_names=_file_names(scene["file_names"], len(c2w)),
             path=str(scene.get("path", "")),
             format=str(scene.get("format", "")),
             name=str(scene.get("name", "")),
@@ -397,6 +406,62 @@ def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRe
         )
     except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise CheckpointError(path, f"corrupt checkpoint (bad scene record: {e!r})") from None
+
+
+def _is_number(value: Any, positive: bool = False) -> bool:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return ok and (value > 0 if positive else True)
+
+
+def _is_matrix(value: Any) -> bool:
+    """A 3x4 or 4x4 nested list of finite numbers."""
+    return (
+        isinstance(value, list)
+        and len(value) in (3, 4)
+        and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)
+    )
+
+
+def _is_inner_name(value: Any) -> bool:
+    """A relative path that stays inside its folder."""
+    return isinstance(value, str) and value != "" and not Path(value).is_absolute() and ".." not in Path(value).parts
+
+
+# What the readers of a run take from its scene record's metadata (`pipeline.sources.export_info`,
+# `run_source`, `procedural.room_from_metadata`, the occupancy grid): each key's test, and what it expects.
+_METADATA_KEYS = {
+    "aabb_scale": (lambda v: _is_number(v, positive=True), "a positive number"),
+    "scale": (lambda v: _is_number(v, positive=True), "a positive number"),
+    "offset": (lambda v: isinstance(v, list) and len(v) == 3 and all(map(_is_number, v)), "3 numbers"),
+    "from_mitsuba": (lambda v: isinstance(v, bool), "true or false"),
+    "scene_file": (  # Blender scenes list their split files
+        lambda v: all(map(_is_inner_name, v if isinstance(v, list) and v else [v])),
+        "a file name inside the scene's folder (or a list of them)",
+    ),
+    "downscale": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
+    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool), "an integer"),
+    "waldo_scale": (lambda v: _is_number(v) and 0.25 <= v <= 2.0, "a number in [0.25, 2]"),
+    "stripe_width": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
+    "nerfstudio_applied": (
+        lambda v: (
+            isinstance(v, dict)
+            and (v.get("transform") is None or _is_matrix(v.get("transform")))
+            and _is_number(v.get("scale", 1.0), positive=True)
+            and isinstance(v.get("source", ""), str)
+        ),
+        "an object of a 3x4 or 4x4 'transform' (or null), a positive 'scale' and a 'source' name",
+    ),
+}
+
+
+def _check_metadata(path: Path, scene: SceneRecord) -> None:
+    """Refuses a scene record whose metadata holds a value of the wrong type or range under a key that
+    the run's readers use (an older or hand-edited file), naming the key, before any reader trips on it."""
+    for key, (valid, expected) in _METADATA_KEYS.items():
+        if key in scene.metadata and not valid(scene.metadata[key]):
+            shown = json.dumps(scene.metadata[key])
+            shown = shown if len(shown) <= 80 else shown[:77] + "..."
+            raise CheckpointError(path, f"the scene record's metadata {key!r} is {shown}, not {expected}")
 
 
 def _check_scene_record(path: Path, scene: SceneRecord) -> None:
@@ -417,6 +482,7 @@ def _check_scene_record(path: Path, scene: SceneRecord) -> None:
             check_rigid(matrix, path, f"training pose {i}")
         except SceneFormatError as e:
             raise CheckpointError(path, e.problem) from None
+    _check_metadata(path, scene)
     if scene.background is not None:
         background = np.asarray(scene.background, np.float64)
         if not (np.all(np.isfinite(background)) and np.all((background >= 0) & (background <= 1))):

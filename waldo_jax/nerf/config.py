@@ -55,6 +55,8 @@ def _positive_int(name: str, value: Any, minimum: int = 1) -> int:
 
 # The render's marching step over the training's: 0.01 marches 100x the samples, 100 a hundredth of them.
 RENDER_STEP_SCALES = (0.01, 100.0)
+# Instant-NGP's largest aabb_scale: its occupancy grid has at most 8 cascades, the last 2**7 times the first.
+MAX_AABB_SCALE = 128.0
 
 
 def _positive_float(name: str, value: Any, allow_zero: bool = False) -> float:
@@ -166,6 +168,11 @@ class TrainConfig:
         for name in ("eval_every", "occupancy_warmup"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name), minimum=0))
         object.__setattr__(self, "aabb_scale", _positive_float("aabb_scale", self.aabb_scale))
+        if self.aabb_scale > MAX_AABB_SCALE:
+            raise TrainConfigError(
+                f"TrainConfig.aabb_scale must be at most {MAX_AABB_SCALE:g} (Instant-NGP's largest: "
+                f"{MAX_AABB_SCALE:g} = 2**7 takes its 8 occupancy cascades), got {self.aabb_scale:g}"
+            )
         object.__setattr__(self, "steps_per_diagonal", _positive_float("steps_per_diagonal", self.steps_per_diagonal))
         object.__setattr__(self, "cone_angle", _positive_float("cone_angle", self.cone_angle, allow_zero=True))
         if self.render_step_scale is not None:
@@ -230,6 +237,11 @@ class TrainConfig:
             raise TrainConfigError(f"unknown preset {name!r}: expected one of {', '.join(PRESETS)}")
         aabb = np.asarray(scene.aabb, np.float64).reshape(2, 3)
         aabb_scale = float(scene.metadata.get("aabb_scale", 1) or 1)
+        if not 0 < aabb_scale <= MAX_AABB_SCALE:  # before the hash grid below is sized by it
+            raise TrainConfigError(
+                f"{scene.path or scene.name}: the scene's aabb_scale {aabb_scale:g} is outside (0, "
+                f"{MAX_AABB_SCALE:g}], Instant-NGP's range (its 8 occupancy cascades reach 2**7)"
+            )
         paper_n_max = int(round(2048 * aabb_scale))
         sampler = "occupancy"
         synthetic = scene.format in ("blender", "procedural")

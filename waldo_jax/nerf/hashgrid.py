@@ -25,6 +25,7 @@ __all__ = [
     "HASH_PRIMES",
     "HashGridConfig",
     "HashGridLayout",
+    "MAX_GRID_RESOLUTION",
     "encode",
     "grid_indices",
     "init_hashgrid",
@@ -60,6 +61,11 @@ class HashGridLayout(NamedTuple):
     n_rows: int
 
 
+# The finest resolution a hash grid may have: positions are float32 in [0, 1], whose spacing near 1 is
+# 2**-24, so at 2**20 cells a side the interpolation weights keep 4 bits.
+MAX_GRID_RESOLUTION = 2**20
+
+
 @dataclasses.dataclass(frozen=True)
 class HashGridConfig:
     """Static hyper-parameters of the hash encoding (hashable, usable as a `jit` static argument).
@@ -88,6 +94,11 @@ class HashGridConfig:
             object.__setattr__(self, name, int(value))
         if self.N_max < self.N_min:
             raise ValueError(f"HashGridConfig needs N_max >= N_min, got N_min={self.N_min}, N_max={self.N_max}")
+        if self.N_max > MAX_GRID_RESOLUTION:
+            raise ValueError(
+                f"HashGridConfig.N_max must be at most {MAX_GRID_RESOLUTION} (2**20: a float32 position in the "
+                f"box resolves about 2**-24 of it, leaving the finest cell too few bits), got {self.N_max}"
+            )
         if self.T > 2**31 or self.L * self.T * self.F >= 2**31:
             raise ValueError(
                 f"HashGridConfig table too large for int32 indices: L={self.L}, T={self.T}, F={self.F} "
@@ -136,9 +147,9 @@ def _layout(L: int, T: int, N_min: int, N_max: int) -> HashGridLayout:
     levels = np.arange(L, dtype=np.float64)
     # The tiny slack keeps floor(N_min * b**(L-1)) == N_max despite rounding of exp/log (2047.9999...).
     resolutions = np.floor(N_min * b**levels + 1e-6).astype(np.int64)  # [L]
-    dense_sizes = (resolutions + 1) ** 3  # [L]
-    is_dense = dense_sizes <= T  # [L]
-    sizes = np.where(is_dense, dense_sizes, T).astype(np.int64)  # [L]
+    dense_sizes = [(int(n) + 1) ** 3 for n in resolutions]  # Python ints: no int64 overflow
+    is_dense = np.array([size <= T for size in dense_sizes], bool)  # [L]
+    sizes = np.array([size if size <= T else T for size in dense_sizes], np.int64)  # [L]
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)  # [L]
     # Resolutions never decrease, so dense levels are a prefix: `grid_indices` relies on it.
     n_dense = int(is_dense.sum())

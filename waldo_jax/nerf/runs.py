@@ -133,10 +133,27 @@ def train_run(
         progress=progress,
         held_out=HeldOut(eval_max_pixels, at_end=False),
     )
+    _check_trained(result, scene_path or scene.path)
     stats = _save_run(out, result, scene, seed, scene_path)
     if test_scene is not None:  # the trained field is on disk first: an interrupted evaluation loses no training
         result, stats = evaluate_run(result, (scene, test_scene), out, seed, scene_path, eval_max_pixels, progress)
     return result, stats
+
+
+def _check_trained(result: TrainResult, scene_path: str) -> None:
+    """Refuses to save a field whose parameters hold NaN or infinity (the training diverged: a checkpoint
+    of it would render nothing and be refused when read), naming the scene and the first such array."""
+    bad = [
+        jax.tree_util.keystr(name)
+        for name, leaf in jax.tree_util.tree_leaves_with_path(result.params)
+        if not bool(jax.numpy.all(jax.numpy.isfinite(leaf)))
+    ]
+    if bad:
+        raise WaldoError(
+            f"{scene_path}: the training diverged: after {result.steps} steps {len(bad)} of the field's parameter "
+            f"arrays hold NaN or infinity (e.g. {bad[0]}); no run was saved. Check the scene's cameras "
+            "(their distortion, focal length and poses) and train again"
+        )
 
 
 def evaluate_run(

@@ -365,6 +365,12 @@ def _run_train_images(record, intrinsics: Intrinsics) -> Tuple[Optional[np.ndarr
     """The run's training images from its scene folder at `intrinsics`' size, or (None, why)."""
     if not record.path or not Path(record.path).exists():
         return None, f"the training scene {record.path or '(unnamed)'} is not on this machine"
+    if not Path(record.path).is_absolute():  # a run saved before the path was recorded whole
+        warnings.warn(
+            f"the run records its training scene by the relative path {record.path!r}; reading it from the "
+            f"current folder, as {Path(record.path).absolute()}",
+            stacklevel=2,
+        )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # skipped frames were reported at training time

@@ -41,10 +41,12 @@ from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
 from waldo_jax.splats.formats import find_splat_file, splat_format
 from waldo_jax.splats.cameras import read_camera_source
+from waldo_jax.splats.cameras_json import render_intrinsics
 from waldo_jax.splats.io import SplatModel, load_splat_model
 from waldo_jax.splats.model import Splats
 from waldo_jax.splats.render import SplatRenderConfig, count_pairs, render_splats_on_devices
 from waldo_jax.splats.upright import FORMAT_UP, Upright, UprightConfig, estimate_upright, ring_origins
+from waldo_jax.splats.upright import robust_bounds as upright_robust_bounds
 from waldo_jax.splats.runs import TRAIN_JSON
 from waldo_jax.types import Array, Intrinsics
 
@@ -97,8 +99,7 @@ def is_splat_spec(spec: str) -> bool:
 def robust_bounds(means: np.ndarray, valid: np.ndarray, quantile: float = 0.02) -> Tuple[np.ndarray, np.ndarray]:
     """(low, high) [3]: the `quantile` and 1 - `quantile` quantiles of the valid splats' means per axis
     (stray splats far from the scene do not move them)."""
-    points = np.asarray(means, np.float64)[np.asarray(valid, bool)]
-    return np.quantile(points, quantile, axis=0), np.quantile(points, 1.0 - quantile, axis=0)
+    return upright_robust_bounds(means, valid, quantile)  # non-finite means and far strays left out
 
 
 def ring_cameras(
@@ -421,6 +422,8 @@ def splat_source(
         "model": model.source,
     }
     _flag_transparent(spec, splats, info)
+    if getattr(model, "degenerate", None) and "degenerate" not in info:  # a scene of one point (warned on load)
+        info["degenerate"] = model.degenerate
     names: Tuple[str, ...]
     if resolution is not None:
         check_resolution(resolution)
@@ -455,7 +458,7 @@ def splat_source(
         info["poses"] = ring["poses"]
         info["ring"] = ring
     side = min(max(intrinsics.width, intrinsics.height), SPLAT_RESOLUTION) if resolution is None else resolution
-    intrinsics = intrinsics.with_max_side(int(side))
+    intrinsics = render_intrinsics(intrinsics, int(side), Path(cameras or spec), "the views' camera")
     if check is not None:
         check(intrinsics.width, intrinsics.height, len(c2w))
     background = np.asarray(record.get("background", config.background) if record else config.background, np.float32)

@@ -29,6 +29,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from waldo_jax.errors import SceneFormatError
+from waldo_jax.scenes.common import input_file, one_line_errors, shown
 from waldo_jax.io import write_bytes
 
 __all__ = [
@@ -76,6 +77,7 @@ _ONE_FOCAL = frozenset(
     ["SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_DIVISION", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"]
     + ["SIMPLE_FISHEYE"]
 )
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
 
 
@@ -177,7 +179,7 @@ def colmap_pose(c2w: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 def _model_ext(folder: Path) -> Optional[str]:
     """ ".bin" or ".txt" when `folder` holds images.<ext> (binary first, as COLMAP reads), else None."""
-    return next((ext for ext in (".bin", ".txt") if (folder / f"images{ext}").is_file()), None)
+    return next((ext for ext in (".bin", ".txt") if os.path.lexists(folder / f"images{ext}")), None)
 
 
 def find_colmap_model(path: str | os.PathLike) -> Optional[Tuple[Path, str]]:
@@ -188,7 +190,7 @@ def find_colmap_model(path: str | os.PathLike) -> Optional[Tuple[Path, str]]:
     that order; binary before text, as COLMAP reads).
     """
     path = Path(path)
-    if path.is_file():
+    if os.path.lexists(path) and not path.is_dir():  # a FIFO or a link loop is read (and refused) by name
         stem, ext = path.stem, path.suffix
         return (path.parent, ext) if stem in ("images", "cameras") and ext in (".bin", ".txt") else None
     for folder in (path, path / "sparse" / "0", path / "sparse"):
@@ -284,8 +286,16 @@ def _images_binary(reader: _Binary) -> List[ColmapImage]:
 
 
 def _add_camera(cameras: Dict[int, ColmapCamera], camera: ColmapCamera, path: Path) -> None:
+    """Adds a camera whose id is new and whose parameters are numbers float32 holds (1e308 is none)."""
     if camera.camera_id in cameras:
         raise SceneFormatError(path, f"camera id {camera.camera_id} appears twice")
+    for i, value in enumerate(camera.params):
+        if not (math.isfinite(value) and abs(value) <= _FLOAT32_MAX):
+            raise SceneFormatError(
+                path,
+                f"camera {camera.camera_id}: {camera.model} parameter {i} is {value:g}, not a finite number float32 "
+                f"holds (|x| <= {_FLOAT32_MAX:.4g})",
+            )
     cameras[camera.camera_id] = camera
 
 
@@ -330,7 +340,36 @@ def _cameras_text(path: Path) -> Dict[int, ColmapCamera]:
     return cameras
 
 
+def _image_line(tokens: Sequence[str]) -> bool:
+    """True when `tokens` (a line split at most 9 times) read as IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID
+    NAME: ten fields, integer ids around seven numbers."""
+    if len(tokens) < 10:
+        return False
+    try:
+        int(tokens[0]), int(tokens[8])
+        [float(t) for t in tokens[1:8]]
+    except ValueError:
+        return False
+    return True
+
+
+def _points_line(line: str) -> bool:
+    """True when `line` reads as an image's 2D points: (X Y POINT3D_ID) triples, the ids integers."""
+    tokens = line.split()
+    if len(tokens) % 3:
+        return False
+    try:
+        [float(t) for t in tokens]
+        [int(t) for t in tokens[2::3]]
+    except ValueError:
+        return False
+    return True
+
+
 def _images_text(path: Path) -> List[ColmapImage]:
+    """The images of images.txt. COLMAP writes two lines per image (the second its 2D points, empty when
+    it has none); a file whose blank points lines were stripped has one. Each line after an image line
+    is read for what it is, a points line or the next image, so neither layout loses an image."""
     images = []
     lines = _lines(path)
     number = 0
@@ -341,14 +380,34 @@ def _images_text(path: Path) -> List[ColmapImage]:
             continue
         where = f"line {number}"
         tokens = line.split(maxsplit=9)
-        if len(tokens) < 10:
+        if not _image_line(tokens):
+            if len(tokens) >= 10:
+                _numbers([tokens[0], tokens[8]], int, path, where)
+                _numbers(tokens[1:8], float, path, where)
             raise SceneFormatError(
                 path, f"{where}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got {line[:80]!r}"
             )
-        image_id, camera_id = _numbers([tokens[0], tokens[8]], int, path, where)
-        pose = _numbers(tokens[1:8], float, path, where)
+        image_id, camera_id = int(tokens[0]), int(tokens[8])
+        pose = [float(t) for t in tokens[1:8]]
         images.append(ColmapImage(image_id, tuple(pose[:4]), tuple(pose[4:]), camera_id, tokens[9]))
-        number += 1  # the image's 2D points (COLMAP writes the line, empty when there are none)
+        if number < len(lines):
+            following = lines[number].strip()
+            # its 2D points: an empty line, or triples of numbers (never an image line: its name is no number)
+            if not following or (_points_line(following) and not _image_line(following.split(maxsplit=9))):
+                number += 1
+    return images
+
+
+def _unique_ids(images: List[ColmapImage], path: Path) -> List[ColmapImage]:
+    """`images`, refused when two share an id (a layout read wrongly would show here, not lose images)."""
+    names: Dict[int, str] = {}
+    for image in images:
+        if image.image_id in names:
+            raise SceneFormatError(
+                path,
+                f"image id {image.image_id} appears twice ({shown(names[image.image_id])!r} and {shown(image.name)!r})",
+            )
+        names[image.image_id] = image.name
     return images
 
 
@@ -373,17 +432,21 @@ def read_colmap_model(
         bytes, a malformed text line, an unknown camera model or a wrong number of its parameters, a
         repeated camera id.
     """
-    folder = Path(folder)
-    ext = ext or _model_ext(folder) or ".bin"
-    if ext not in (".bin", ".txt"):
-        raise ValueError(f"ext must be '.bin' or '.txt', got {ext!r}")
-    images_path, cameras_path = folder / f"images{ext}", folder / f"cameras{ext}"
-    for path in (images_path, cameras_path):
-        if not path.is_file():
-            raise SceneFormatError(path, "no such file (a COLMAP model has cameras and images files side by side)")
-    if ext == ".bin":
-        return _read_binary(cameras_path, _cameras_binary), _read_binary(images_path, _images_binary)
-    return _cameras_text(cameras_path), _images_text(images_path)
+    with one_line_errors():  # a file name with a newline or an escape stays on one line
+        folder = Path(folder)
+        ext = ext or _model_ext(folder) or ".bin"
+        if ext not in (".bin", ".txt"):
+            raise ValueError(f"ext must be '.bin' or '.txt', got {ext!r}")
+        images_path, cameras_path = folder / f"images{ext}", folder / f"cameras{ext}"
+        for path in (images_path, cameras_path):
+            if not os.path.lexists(path):
+                raise SceneFormatError(path, "no such file (a COLMAP model has cameras and images files side by side)")
+            input_file(path, "COLMAP file")  # a FIFO would block the reader, /dev/zero never end
+        if ext == ".bin":
+            return _read_binary(cameras_path, _cameras_binary), _unique_ids(
+                _read_binary(images_path, _images_binary), images_path
+            )
+        return _cameras_text(cameras_path), _unique_ids(_images_text(images_path), images_path)
 
 
 def write_colmap_model(

@@ -12,17 +12,28 @@ See docs/design.md, "Scenes".
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import functools
 import math
 import os
 import re
 import warnings
-from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from pathlib import Path, PurePosixPath
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from waldo_jax.io import read_json_file
-from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, NumberError, SceneFormatError, WaldoError, check_float32
+from waldo_jax.errors import (
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    NumberError,
+    SceneFormatError,
+    WaldoError,
+    check_float32,
+    check_input_file,
+)
 from waldo_jax.types import Intrinsics
 
 __all__ = [
@@ -35,6 +46,14 @@ __all__ = [
     "MIN_NEAR_FRACTION",
     "SceneArgumentError",
     "read_json",
+    "shown",
+    "input_file",
+    "file_name_problem",
+    "numeric_array",
+    "field",
+    "value_text",
+    "check_holdout_split",
+    "distortion_problem",
     "blender_split_of",
     "locate",
     "detect_format",
@@ -54,6 +73,7 @@ __all__ = [
     "MAX_FIELD_OF_VIEW",
     "MAX_RAY_SLOPE",
     "warn_off_image_principal_point",
+    "one_line_errors",
 ]
 
 FORMATS = ("instant-ngp", "nerfstudio", "blender", "llff")
@@ -82,11 +102,150 @@ class SceneArgumentError(WaldoError, ValueError):
 
 
 # ----------------------------------------------------------------------------------------------
+# Files a scene names, and the typed fields of its JSON.
+
+
+def shown(text: Any) -> str:
+    """`text` (a path or a name) with each character that would break one line of output (a newline, an
+    ANSI escape, any other control character) written as its Python escape (``\\n``, ``\\x1b``)."""
+    text = str(os.fspath(text)) if isinstance(text, os.PathLike) else str(text)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+@contextlib.contextmanager
+def one_line_errors() -> Iterator[None]:
+    """Makes every `WaldoError` raised in its body one printable line (`shown`): a file name that holds a
+    newline or an escape sequence must not split or forge the error line. A `with` block, not a wrapper,
+    so that the warnings of the body keep their stack level."""
+    try:
+        yield
+    except WaldoError as e:
+        if str(e).isprintable():
+            raise
+        if isinstance(e, SceneFormatError):
+            raise SceneFormatError(shown(e.path), shown(e.problem)) from None
+        try:
+            escaped = type(e)(shown(str(e)))
+        except TypeError:
+            escaped = WaldoError(shown(str(e)))
+        raise escaped from None
+
+
+def input_file(path: str | os.PathLike, what: str) -> Path:
+    """`path` if it is a readable regular file (or a link to one), else a `SceneFormatError` that names it
+    (`shown`) and says what it is: missing, a dangling link, a directory, a FIFO or device, a link loop.
+    Called before anything opens a file a scene names: a FIFO blocks a reader, /dev/zero never ends."""
+    path = Path(path)
+    if os.path.islink(path) and not os.path.exists(path) and os.path.lexists(path):
+        try:
+            os.stat(path)
+        except FileNotFoundError:  # a loop raises ELOOP instead, which `check_input_file` names
+            raise SceneFormatError(
+                shown(path), f"a symbolic link to a missing file, where a {what} was expected"
+            ) from None
+        except OSError:
+            pass
+    try:
+        return check_input_file(path, what)
+    except WaldoError as e:
+        text, prefix = str(e), f"{path}: "
+        raise SceneFormatError(shown(path), text[len(prefix) :] if text.startswith(prefix) else text) from None
+
+
+def file_name_problem(name: str) -> Optional[str]:
+    """What keeps a path field (a frame's `file_path`, `ply_file_path`) from naming a file, or None: it is
+    empty, holds a control character (a newline, an escape: no file name does), or its last part names a
+    folder ("/", ".", "..", a trailing slash)."""
+    if not name:
+        return "is empty: it names no file"
+    if not name.isprintable():
+        return f"'{shown(name)}' holds control characters (a newline, an escape, ...): it is no file name"
+    if name.endswith("/") or PurePosixPath(name).name in ("", ".", ".."):
+        return f"'{shown(name)}' names a folder, not a file"
+    return None
+
+
+def numeric_array(value: Any) -> Optional[np.ndarray]:
+    """`value` as float64 if it is a number or nested lists of numbers (JSON's), else None: strings and
+    booleans are refused, not converted ("1" and true are no matrix entries), as are ragged lists."""
+
+    def numeric(v: Any, depth: int) -> bool:
+        if isinstance(v, (list, tuple)):
+            return depth < 8 and all(numeric(x, depth + 1) for x in v)
+        if isinstance(v, np.ndarray):
+            return v.dtype.kind in "iuf"
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+    if not numeric(value, 0):
+        return None
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError, OverflowError):  # ragged, or an integer past float64
+        return None
+
+
+_FIELD_KINDS = {"string": "a string", "number": "a number", "flag": "true or false", "list": "a list"}
+_FIELD_KINDS.update(object="an object", matrix="a matrix of numbers")
+
+
+def field(meta: Any, key: str, path: Path, kind: str, where: str = "", positive: bool = False, default: Any = None):
+    """`meta[key]` checked to be of `kind`, else a `SceneFormatError` naming `path`, `where` and the key;
+    `default` when the key is absent (a number's null is absent too).
+
+    Kinds: "string" (a str), "number" (a float that stays finite in float32, > 0 there with `positive`;
+    not a bool), "flag" (a bool), "list", "object" (a dict), "matrix" (float64 array of nested lists of
+    numbers, see `numeric_array`; its shape is the caller's to check).
+    """
+    if kind not in _FIELD_KINDS:
+        raise ValueError(f"unknown field kind {kind!r}")
+    if not isinstance(meta, dict) or key not in meta or (kind == "number" and meta[key] is None):
+        return default
+    value = meta[key]
+    label = f"{where}: {key!r}" if where else repr(key)
+    if kind == "number":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SceneFormatError(path, f"{label} must be a finite number, got {value_text(value)}")
+        try:
+            return check_float32(value, label, positive=positive)
+        except NumberError as e:
+            raise SceneFormatError(path, str(e)) from None
+    if kind == "matrix":
+        array = numeric_array(value)
+        if array is None:
+            raise SceneFormatError(path, f"{label} must be a matrix of numbers, got {value_text(value)}")
+        return array
+    types = {"string": str, "flag": bool, "list": list, "object": dict}[kind]
+    if not isinstance(value, types):
+        raise SceneFormatError(path, f"{label} must be {_FIELD_KINDS[kind]}, got {value_text(value)}")
+    return value
+
+
+def value_text(value: Any) -> str:
+    """A JSON value for a message: its type and (shortened, escaped) repr."""
+    text = shown(repr(value))
+    return f"{type(value).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
+def check_holdout_split(split: str, fmt: str, path: Path) -> None:
+    """Refuses split "val" for a format that holds out only a test split (every `TEST_EVERY`-th image):
+    its "val" would be every image, the held-out ones included."""
+    if split == "val":
+        raise SceneArgumentError(
+            f"{shown(path)}: split 'val' does not exist in {fmt} scenes: they hold out every {TEST_EVERY}th "
+            "image as 'test' (splits: all, train, test)"
+        )
+
+
+# ----------------------------------------------------------------------------------------------
 # Format detection.
 
 
 def read_json(path: Path) -> Dict[str, Any]:
-    """Parses a JSON object, turning every failure into a `SceneFormatError` naming the file."""
+    """Parses a JSON object, turning every failure into a `SceneFormatError` naming the file (a FIFO, a
+    device or a directory is refused before it is opened)."""
+    input_file(path, "JSON file")
     data = read_json_file(path, "JSON file", lambda problem: SceneFormatError(path, problem))
     if not isinstance(data, dict):
         raise SceneFormatError(path, f"expected a JSON object at the top level, got {type(data).__name__}")
@@ -107,29 +266,47 @@ def blender_split_of(name: str) -> Optional[str]:
 def locate(path: str | os.PathLike) -> Tuple[Path, str, Path, Optional[Dict[str, Any]]]:
     """Resolves a folder or scene file to (folder, format, scene file, parsed JSON or None)."""
     path = Path(path).expanduser()
-    if not path.exists():
-        if os.path.islink(path):  # exists() follows links: a loop or a dangling link is not "missing"
-            raise SceneFormatError(path, "a symbolic link that leads nowhere (a loop or a missing target)")
-        raise SceneFormatError(path, "no such file or folder")
-    if path.is_dir():
-        folder = path
-        transforms = folder / "transforms.json"
-        if transforms.is_file():
-            meta = read_json(transforms)
-            return folder, _transforms_kind(meta), transforms, meta
-        for split in BLENDER_SPLITS:
-            candidate = folder / f"transforms_{split}.json"
-            if candidate.is_file():
-                return folder, "blender", candidate, None
-        poses = folder / "poses_bounds.npy"
-        if poses.is_file():
-            return folder, "llff", poses, None
-        raise SceneFormatError(
-            folder,
-            "unknown scene format: the folder holds none of transforms.json, "
-            "transforms_{train,val,test}.json, poses_bounds.npy",
-        )
+    if not os.path.lexists(path):
+        raise SceneFormatError(shown(path), "no such file or folder")
+    if os.path.islink(path) and not os.path.exists(path):  # not "missing": say what the link does
+        raise SceneFormatError(shown(path), f"a symbolic link that leads nowhere ({_dead_link(path)})")
+    if not path.is_dir():
+        return _locate_file(path)
+    folder = path
+    # A scene file that is there but no regular file (a FIFO, a device, a link loop, a folder) is named as
+    # such, not passed over as missing.
+    transforms = folder / "transforms.json"
+    if os.path.lexists(transforms):
+        meta = read_json(input_file(transforms, "scene file"))
+        return folder, _transforms_kind(meta), transforms, meta
+    for split in BLENDER_SPLITS:
+        candidate = folder / f"transforms_{split}.json"
+        if os.path.lexists(candidate):
+            return folder, "blender", input_file(candidate, "scene file"), None
+    poses = folder / "poses_bounds.npy"
+    if os.path.lexists(poses):
+        return folder, "llff", input_file(poses, "scene file"), None
+    raise SceneFormatError(
+        shown(folder),
+        "unknown scene format: the folder holds none of transforms.json, "
+        "transforms_{train,val,test}.json, poses_bounds.npy",
+    )
+
+
+def _dead_link(path: Path) -> str:
+    """Why a symbolic link leads nowhere: a loop, or a missing target."""
+    try:
+        os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a symbolic link loop"
+    return f"its target {shown(os.readlink(path))} is missing"
+
+
+def _locate_file(path: Path) -> Tuple[Path, str, Path, Optional[Dict[str, Any]]]:
+    """`locate` of a scene file given by its own path."""
     folder = path.parent
+    input_file(path, "scene file")
     if path.name == "poses_bounds.npy":
         return folder, "llff", path, None
     if blender_split_of(path.name):
@@ -138,9 +315,9 @@ def locate(path: str | os.PathLike) -> Tuple[Path, str, Path, Optional[Dict[str,
         meta = read_json(path)
         if "frames" in meta:
             return folder, _transforms_kind(meta), path, meta
-        raise SceneFormatError(path, "unknown scene format: a JSON file without 'frames'")
+        raise SceneFormatError(shown(path), "unknown scene format: a JSON file without 'frames'")
     raise SceneFormatError(
-        path,
+        shown(path),
         "unknown scene format: expected a scene folder, transforms.json, "
         "transforms_{train,val,test}.json or poses_bounds.npy",
     )
@@ -158,7 +335,8 @@ def detect_format(path: str | os.PathLike) -> str:
     Raises:
       SceneFormatError: the path is missing, unreadable, or in no known format.
     """
-    return locate(path)[1]
+    with one_line_errors():  # a file name with a newline or an escape stays on one line
+        return locate(path)[1]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -258,15 +436,7 @@ def relative(path: Path, folder: Path) -> str:
 
 def number(meta: Dict[str, Any], key: str, path: Path, positive: bool = False) -> Optional[float]:
     """meta[key] as a float that stays finite in float32 (and > 0 there if `positive`), None when absent."""
-    if key not in meta or meta[key] is None:
-        return None
-    value = meta[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneFormatError(path, f"{key!r} must be a finite number, got {value!r}")
-    try:
-        return check_float32(value, repr(key), positive=positive)
-    except NumberError as e:
-        raise SceneFormatError(path, str(e)) from None
+    return field(meta, key, path, "number", positive=positive)
 
 
 def focal_from_angle(angle: float, size: float, what: str, degrees: bool = False) -> float:
@@ -344,6 +514,93 @@ def intrinsics_problem(
             )
     if not np.all(np.isfinite(np.asarray(intrinsics.distortion, np.float32))):
         return "distortion coefficients (k1, k2, p1, p2) must be finite float32 numbers"
+    return distortion_problem(intrinsics)
+
+
+# The distorted pixel positions a camera's lens is checked on: a grid of this many points per side,
+# corners and edges included.
+_DISTORTION_GRID = 9
+# How far (pixels) a ray's pixel, distorted back, may land from the pixel it was cast through.
+MAX_UNDISTORT_ERROR_PX = 0.5
+
+
+def _distort64(xy: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """`waldo_jax.cameras.distort` in float64 NumPy: normalised coordinates [..., 2]."""
+    k1, k2, p1, p2 = d
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([xd, yd], -1)
+
+
+def _radial_peak(k1: float, k2: float) -> float:
+    """The undistorted radius r where r (1 + k1 r^2 + k2 r^4) first stops growing (its derivative
+    1 + 3 k1 r^2 + 5 k2 r^4 reaches 0), or infinity when it grows for every r."""
+    roots = np.roots([5.0 * k2, 3.0 * k1, 1.0]) if k2 != 0.0 else np.roots([3.0 * k1, 1.0])
+    squares = [float(r.real) for r in np.atleast_1d(roots) if abs(r.imag) <= 1e-12 * abs(r) and r.real > 0]
+    return math.sqrt(min(squares)) if squares else math.inf
+
+
+@functools.lru_cache(maxsize=1)
+def _undistort_points():
+    """`waldo_jax.cameras.undistort` over a batch of points, jitted once: the rays a render casts."""
+    import jax
+
+    from waldo_jax.cameras import undistort
+
+    return jax.jit(jax.vmap(undistort, in_axes=(0, None)))
+
+
+def distortion_problem(intrinsics: Intrinsics) -> Optional[str]:
+    """What makes a camera's lens distortion (k1, k2, p1, p2) unusable over its image, or None.
+
+    The distortion must map the undistorted rays onto the whole image one to one: the radial part
+    r (1 + k1 r^2 + k2 r^4) must still grow where it reaches the image's farthest corner (k1 = -5 folds
+    the image back on itself), the Jacobian of the whole map must keep its sign, and the rays a render
+    casts (`waldo_jax.cameras.undistort`, float32 Newton steps) must be finite and land within
+    `MAX_UNDISTORT_ERROR_PX` of their pixels (k1 = 1e30 overflows float32 there: every ray NaN).
+    """
+    d = np.asarray(intrinsics.distortion, np.float64).reshape(-1)
+    if d.shape != (4,) or not np.any(d != 0.0):
+        return None
+    named = "distortion " + ", ".join(f"{k} = {v:g}" for k, v in zip(("k1", "k2", "p1", "p2"), d) if v != 0.0)
+    fx, fy, cx, cy = (float(np.asarray(getattr(intrinsics, k), np.float32)) for k in ("fx", "fy", "cx", "cy"))
+    width, height = int(intrinsics.width), int(intrinsics.height)
+    u = (np.linspace(0.0, width, _DISTORTION_GRID) - cx) / fx
+    v = (np.linspace(0.0, height, _DISTORTION_GRID) - cy) / fy
+    distorted = np.stack(np.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)  # [G * G, 2]
+    with np.errstate(all="ignore"):
+        radius = float(np.max(np.hypot(distorted[:, 0], distorted[:, 1])))
+        peak = _radial_peak(float(d[0]), float(d[1]))
+        reach = peak * (1.0 + d[0] * peak**2 + d[1] * peak**4) if math.isfinite(peak) else math.inf
+        if not reach > radius:
+            return (
+                f"{named} folds the image: the distorted radius stops growing at {reach:.4g} focal lengths, short of "
+                f"the {radius:.4g} the {width}x{height} image reaches (a lens maps each ray to one pixel)"
+            )
+        undistorted = np.asarray(
+            _undistort_points()(distorted.astype(np.float32), d.astype(np.float32)), np.float64
+        )  # [G * G, 2]
+        if not np.all(np.isfinite(undistorted)):
+            return f"{named} gives non-finite rays over the {width}x{height} image (its inverse overflows float32)"
+        miss = float(np.max(np.abs(_distort64(undistorted, d) - distorted) * (fx, fy)))
+        beyond = float(np.max(np.hypot(undistorted[:, 0], undistorted[:, 1]))) >= peak
+        step = 1e-6 * (1.0 + np.abs(undistorted))
+        jx = (_distort64(undistorted + step * (1, 0), d) - _distort64(undistorted - step * (1, 0), d)) / (
+            2 * step[:, :1]
+        )
+        jy = (_distort64(undistorted + step * (0, 1), d) - _distort64(undistorted - step * (0, 1), d)) / (
+            2 * step[:, 1:]
+        )
+        folded = not np.all(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0] > 0)
+    if not (miss <= MAX_UNDISTORT_ERROR_PX) or beyond or folded:
+        return f"{named} cannot be inverted over the {width}x{height} image: " + (
+            "it folds the image (its Jacobian changes sign)"
+            if folded or beyond
+            else f"rays miss their pixels by up to {miss:.3g} px"
+        )
     return None
 
 

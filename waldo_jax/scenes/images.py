@@ -18,12 +18,30 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
+from waldo_jax import errors
 from waldo_jax.errors import SceneFormatError, check_memory
+from waldo_jax.scenes.common import input_file, shown
 from waldo_jax.types import Scene
 
-__all__ = ["IMAGE_EXTENSIONS", "downscale_scene", "fit_factor", "image_size", "load_images", "resolve_image"]
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "downscale_scene",
+    "fit_factor",
+    "image_size",
+    "is_image_name",
+    "load_images",
+    "resolve_image",
+]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+_ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
+
+
+def is_image_name(path: Path) -> bool:
+    """True for a name that ends in an image extension, in any case (.png, .Png, .JPG ...)."""
+    return path.suffix.lower() in (".png", ".jpg", ".jpeg")
+
+
 _MAX_THREADS = 8
 
 
@@ -96,7 +114,7 @@ def _decode(img: Image.Image, size: Tuple[int, int], path: Path) -> Tuple[np.nda
     grey outside [0, 1] (after / 65535 for integers) is refused, not clipped.
     """
     mode = img.mode
-    has_alpha = mode in ("RGBA", "LA", "PA", "RGBa", "La") or (mode == "P" and "transparency" in img.info)
+    has_alpha = mode in _ALPHA_MODES or (mode == "P" and "transparency" in img.info)
     if mode.startswith("I") or mode == "F":  # 16/32-bit grey: no 8-bit round trip.
         grey = np.asarray(img, np.float32)
         if mode != "F":
@@ -132,11 +150,28 @@ def _decode(img: Image.Image, size: Tuple[int, int], path: Path) -> Tuple[np.nda
 
 def image_size(path: Path) -> Tuple[int, int]:
     """(width, height) from an image header."""
+    return _header(path)[0]
+
+
+def _header(path: Path) -> Tuple[Tuple[int, int], str, bool]:
+    """((width, height), PIL mode, has alpha) from an image header, nothing decoded; a file that is no
+    regular file (a FIFO, a device) is refused before it is opened."""
+    input_file(path, "scene image file")
     try:
         with Image.open(path) as img:
-            return img.size
+            alpha = img.mode in _ALPHA_MODES or (img.mode == "P" and "transparency" in img.info)
+            return img.size, img.mode, alpha
     except Exception as e:  # PIL raises many types for bad files.
-        raise SceneFormatError(path, f"cannot read image ({type(e).__name__}: {e})") from None
+        raise SceneFormatError(shown(path), f"cannot read image ({type(e).__name__}: {e})") from None
+
+
+def _decode_bytes(width: int, height: int, mode: str, alpha: bool) -> int:
+    """Bytes one full-size decode of `_decode` holds at its peak: per pixel, straight alpha holds uint8
+    RGBA, float32 RGBA, the premultiplied float32 RGB and the float32 stack filtered (48 bytes); 16/32-bit
+    grey float32 grey twice and RGB (20, 28 with the filter's copy); 8-bit colour PIL's 4 bytes, a
+    converted copy, uint8 and float32 RGB (23, 24)."""
+    per_pixel = 48 if alpha else 28 if (mode.startswith("I") or mode == "F") else 24
+    return per_pixel * width * height
 
 
 def load_images(
@@ -144,14 +179,35 @@ def load_images(
 ) -> Tuple[np.ndarray, Optional[np.ndarray], Tuple[int, int]]:
     """Reads same-size images, area-downscaled by `factor`, RGBA composited on `background`.
 
+    Before any is decoded, every header is read (sizes must agree) and the memory is checked: the images
+    kept (float32 RGB, and alpha where there is one) plus each reader thread's full-size decode
+    (`_decode_bytes`); threads are fewer where that memory is short.
+
     Returns:
       (images float32 [N, h, w, 3], alphas float32 [N, h, w] or None, (W, H) size on disk).
     """
-    full = image_size(paths[0])
+    headers = [_header(path) for path in paths]
+    full = headers[0][0]
+    for path, (path_size, _, _) in zip(paths, headers):
+        if path_size != full:
+            raise SceneFormatError(
+                shown(path),
+                f"image is {path_size[0]}x{path_size[1]} but {shown(paths[0].name)} is "
+                f"{full[0]}x{full[1]}: all images of a scene must have the same size",
+            )
     size = _target_size(*full, factor)
+    any_alpha = any(alpha for _, _, alpha in headers)
+    kept = 4 * len(paths) * size[0] * size[1] * (4 if any_alpha else 3)
+    decode = max(_decode_bytes(*full, mode, alpha) for _, mode, alpha in headers)
+    workers = max(1, min(_MAX_THREADS, os.cpu_count() or 1, len(paths)))
+    available = errors.host_memory_bytes()
+    if available:  # as many decodes at once as fit beside the images kept (at least one)
+        workers = max(1, min(workers, (available - kept) // max(decode, 1)))
+    mode = headers[0][1]
     check_memory(
-        4.0 * len(paths) * size[0] * size[1] * 3,
-        f"{len(paths)} images of {size[0]}x{size[1]} (as {paths[0].parent}/{paths[0].name}, float32 RGB)",
+        kept + workers * decode,
+        f"{len(paths)} images of {size[0]}x{size[1]} (as {shown(paths[0].parent)}/{shown(paths[0].name)}, float32 "
+        f"RGB{'A' if any_alpha else ''}) decoded from {full[0]}x{full[1]} {mode}, {workers} at a time",
         "load fewer (load_scene's max_images) or smaller ones (--downscale)",
     )
     images = np.empty((len(paths), size[1], size[0], 3), np.float32)
@@ -160,26 +216,25 @@ def load_images(
         path = paths[i]
         try:
             with Image.open(path) as img:
-                if img.size != full:
+                if img.size != full:  # changed since its header was read
                     raise SceneFormatError(
-                        path,
-                        f"image is {img.size[0]}x{img.size[1]} but {paths[0].name} is "
-                        f"{full[0]}x{full[1]}: all images of a scene must have the same size",
+                        shown(path), f"image is {img.size[0]}x{img.size[1]}, not {full[0]}x{full[1]}"
                     )
                 img.load()
                 rgb, alpha = _decode(img, size, path)
         except SceneFormatError:
             raise
         except Exception as e:  # corrupt or truncated files raise OSError, SyntaxError, ValueError...
-            raise SceneFormatError(path, f"cannot read image ({type(e).__name__}: {e})") from None
+            raise SceneFormatError(shown(path), f"cannot read image ({type(e).__name__}: {e})") from None
+        if rgb.shape != (size[1], size[0], 3) or (alpha is not None and alpha.shape != (size[1], size[0])):
+            raise SceneFormatError(shown(path), f"decoded to an array of shape {list(rgb.shape)}, not an image")
         if not np.all(np.isfinite(rgb)) or (alpha is not None and not np.all(np.isfinite(alpha))):
-            raise SceneFormatError(path, "the image has NaN or infinite values")
+            raise SceneFormatError(shown(path), "the image has NaN or infinite values")
         if alpha is not None:
             rgb = rgb + (1.0 - alpha[..., None]) * background
         images[i] = rgb
         return alpha
 
-    workers = max(1, min(_MAX_THREADS, os.cpu_count() or 1, len(paths)))
     with ThreadPoolExecutor(workers) as pool:
         alpha_list = list(pool.map(read, range(len(paths))))
     alphas = None
@@ -193,13 +248,15 @@ def load_images(
 
 
 def resolve_image(folder: Path, file_path: str) -> Optional[Path]:
-    """The image a frame's `file_path` names, trying common extensions when it has none."""
+    """The image a frame's `file_path` names (trying common extensions when it has none), None when
+    nothing is there; a folder, a FIFO, a device or a link loop there is refused by name."""
     candidate = folder / file_path
-    if candidate.is_file():
-        return candidate
+    tried = [candidate]
     if not candidate.suffix or candidate.suffix.lower() not in (".png", ".jpg", ".jpeg", ".exr"):
-        for ext in IMAGE_EXTENSIONS:
-            with_ext = candidate.with_name(candidate.name + ext)
-            if with_ext.is_file():
-                return with_ext
-    return None
+        tried += [candidate.with_name(candidate.name + ext) for ext in IMAGE_EXTENSIONS]
+    present = [path for path in tried if os.path.lexists(path)]
+    if not present:
+        return None
+    # "images/0001" may be a folder beside "images/0001.png": the file is the image.
+    files = [path for path in present if os.path.isfile(path)]
+    return input_file(files[0] if files else present[0], "scene image file")

@@ -18,14 +18,17 @@ import numpy as np
 from waldo_jax.errors import NumberError, SceneFormatError, check_float32
 from waldo_jax.scenes.common import (
     SPLITS,
+    check_holdout_split,
     check_rigid,
     check_split,
     holdout,
+    input_file,
     natural_key,
     relative,
+    shown,
     subsample,
 )
-from waldo_jax.scenes.images import IMAGE_EXTENSIONS, image_size, load_images
+from waldo_jax.scenes.images import image_size, is_image_name, load_images
 from waldo_jax.types import Intrinsics
 
 __all__ = ["LLFF_NEAR_MARGIN", "LLFF_FAR_MARGIN", "LLFF_DEFAULT_FACTOR", "load_llff"]
@@ -49,10 +52,17 @@ def _llff_folders(folder: Path) -> Dict[int, Path]:
 
 def _read_poses_bounds(path: Path) -> np.ndarray:
     """poses_bounds.npy as float64 [N, 17] (a 3x5 pose, near, far per row), checked finite and non-empty."""
+    input_file(path, "poses file (.npy)")
     try:
         table = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises ValueError/OSError/EOFError... for bad files.
-        raise SceneFormatError(path, f"cannot read .npy array ({type(e).__name__}: {e})") from None
+        raise SceneFormatError(shown(path), f"cannot read .npy array ({type(e).__name__}: {e})") from None
+    if not isinstance(table, np.ndarray):  # np.load reads what the content is: an .npz archive, say
+        if hasattr(table, "close"):
+            table.close()
+        raise SceneFormatError(
+            shown(path), f"not a .npy array: the file holds a {type(table).__name__} (an .npz archive?), not an array"
+        )
     if table.ndim != 2 or table.shape[1] != 17 or table.shape[0] == 0:
         raise SceneFormatError(
             path, f"expected shape [N, 17] with N >= 1 (3x5 pose + near, far), got {list(table.shape)}"
@@ -115,8 +125,10 @@ def _image_folder(folder: Path, factor: Optional[float]) -> Tuple[Path, float]:
 
 def _image_paths(image_dir: Path, path: Path, count: int) -> List[Path]:
     """The folder's images in natural order, one per pose (`count`)."""
+    # Extensions in any case (.png, .Png, .PNG); an image name that is no regular file (a FIFO, a folder,
+    # a link loop) is refused by name, not left out of the count.
     image_paths = sorted(
-        (p for p in image_dir.iterdir() if p.suffix in IMAGE_EXTENSIONS and p.is_file()),
+        (input_file(p, "scene image file") for p in image_dir.iterdir() if is_image_name(p)),
         key=lambda p: natural_key(p.name),
     )
     if len(image_paths) != count:
@@ -145,6 +157,7 @@ def load_llff(
     """LLFF poses_bounds.npy with images/ or images_K/ folders."""
     check_split(split, SPLITS)
     split = split or "all"
+    check_holdout_split(split, "llff", path)
     table = _read_poses_bounds(path)
     poses = table[:, :15].reshape(-1, 3, 5)
     bounds = table[:, 15:17]  # [N, 2] per-camera near, far.

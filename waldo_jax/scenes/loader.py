@@ -18,6 +18,8 @@ from waldo_jax.scenes.common import (
     extent_problem,
     intrinsics_problem,
     locate,
+    one_line_errors,
+    shown,
     warn_off_image_principal_point,
 )
 from waldo_jax.scenes.llff import load_llff
@@ -25,6 +27,9 @@ from waldo_jax.scenes.transforms import load_blender, load_transforms
 from waldo_jax.types import Scene
 
 __all__ = ["load_scene"]
+
+# Cameras whose origins all lie within this fraction of the scene box's diagonal lie at one point.
+ONE_POINT_FRACTION = 1e-6
 
 
 def _check_downscale(downscale: Any) -> Optional[float]:
@@ -79,10 +84,21 @@ def _warn_about_cameras(parts: Dict[str, Any], path: Path) -> None:
     if len(c2w) > 1:
         scale = max(float(np.max(np.abs(np.asarray(parts["aabb"])))), 1e-6)
         distinct = np.unique(np.round(c2w[:, :3, :] / np.array([1.0, 1.0, 1.0, scale]) * 1e6), axis=0)
+        origins = c2w[:, :3, 3]
+        spread = float(np.max(np.max(origins, 0) - np.min(origins, 0)))
+        box = np.asarray(parts["aabb"], np.float64).reshape(2, 3)
+        diagonal = float(np.linalg.norm(box[1] - box[0]))
         if len(distinct) < len(c2w):
             warnings.warn(
-                f"{path}: {len(c2w) - len(distinct)} of {len(c2w)} cameras repeat another camera's pose "
+                f"{shown(path)}: {len(c2w) - len(distinct)} of {len(c2w)} cameras repeat another camera's pose "
                 f"({len(distinct)} distinct); views from one pose give a NeRF no parallax",
+                stacklevel=3,
+            )
+        elif spread <= ONE_POINT_FRACTION * diagonal:
+            warnings.warn(
+                f"{shown(path)}: all {len(c2w)} cameras lie at one point (within {spread:.3g} of each other, in a "
+                f"scene box {diagonal:.3g} across): views from one point (a panorama) give a NeRF no parallax, so "
+                "its depth is a guess",
                 stacklevel=3,
             )
     warn_off_image_principal_point(parts["intrinsics"], path)
@@ -117,42 +133,43 @@ def load_scene(
       SceneFormatError: a file is missing, malformed or inconsistent (the message names it).
       SceneArgumentError: an argument is invalid.
     """
-    factor = _check_downscale(downscale)
-    bg = _check_background(background)
-    max_images = _check_max_images(max_images)
-    check_split(split, SPLITS)
-    folder, fmt, scene_file, meta = locate(path)
-    if fmt in ("instant-ngp", "nerfstudio"):
-        parts = load_transforms(folder, fmt, scene_file, meta, split, factor, bg, max_images)
-    elif fmt == "blender":
-        parts = load_blender(folder, scene_file, split, factor, bg, max_images)
-    else:
-        parts = load_llff(folder, scene_file, split, factor, bg, max_images)
-    images = parts["images"]
-    _check_extent(parts, scene_file)
-    _warn_about_cameras(parts, scene_file)
-    # The size `downscale` is relative to: the stored images (LLFF: the full-size images of hwf).
-    original_w, original_h = parts["original_size"]
-    metadata = dict(parts["metadata"])
-    metadata.update(
-        original_size=[int(original_w), int(original_h)],
-        downscale=float(original_w / images.shape[2]),
-    )
-    return Scene(
-        images=images,
-        c2w=np.asarray(parts["c2w"], np.float32),
-        intrinsics=parts["intrinsics"],
-        aabb=np.asarray(parts["aabb"], np.float32),
-        near=float(parts["near"]),
-        far=float(parts["far"]),
-        file_names=parts["file_names"],
-        format=fmt,
-        name=folder.resolve().name,
-        split=parts["split"],
-        path=str(folder),
-        skipped_missing=int(parts["skipped_missing"]),
-        alphas=parts["alphas"],
-        background=bg if parts["alphas"] is not None else None,
-        applied_transform=parts["applied_transform"],
-        metadata=metadata,
-    )
+    with one_line_errors():  # a file name with a newline or an escape stays on one line
+        factor = _check_downscale(downscale)
+        bg = _check_background(background)
+        max_images = _check_max_images(max_images)
+        check_split(split, SPLITS)
+        folder, fmt, scene_file, meta = locate(path)
+        if fmt in ("instant-ngp", "nerfstudio"):
+            parts = load_transforms(folder, fmt, scene_file, meta, split, factor, bg, max_images)
+        elif fmt == "blender":
+            parts = load_blender(folder, scene_file, split, factor, bg, max_images)
+        else:
+            parts = load_llff(folder, scene_file, split, factor, bg, max_images)
+        images = parts["images"]
+        _check_extent(parts, scene_file)
+        _warn_about_cameras(parts, scene_file)
+        # The size `downscale` is relative to: the stored images (LLFF: the full-size images of hwf).
+        original_w, original_h = parts["original_size"]
+        metadata = dict(parts["metadata"])
+        metadata.update(
+            original_size=[int(original_w), int(original_h)],
+            downscale=float(original_w / images.shape[2]),
+        )
+        return Scene(
+            images=images,
+            c2w=np.asarray(parts["c2w"], np.float32),
+            intrinsics=parts["intrinsics"],
+            aabb=np.asarray(parts["aabb"], np.float32),
+            near=float(parts["near"]),
+            far=float(parts["far"]),
+            file_names=parts["file_names"],
+            format=fmt,
+            name=folder.resolve().name,
+            split=parts["split"],
+            path=str(folder),
+            skipped_missing=int(parts["skipped_missing"]),
+            alphas=parts["alphas"],
+            background=bg if parts["alphas"] is not None else None,
+            applied_transform=parts["applied_transform"],
+            metadata=metadata,
+        )

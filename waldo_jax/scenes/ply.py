@@ -9,12 +9,12 @@ import collections
 import dataclasses
 import os
 import re
-from pathlib import Path
 from typing import Optional, Tuple
 
 import numpy as np
 
 from waldo_jax.errors import SceneFormatError
+from waldo_jax.scenes.common import input_file, one_line_errors
 
 __all__ = ["PlyElement", "PlyHeader", "parse_ply_header", "read_ply_header", "read_ply_points"]
 
@@ -167,56 +167,57 @@ def read_ply_points(path: str | os.PathLike, colors: bool = False):
     Raises:
       SceneFormatError: the file is not a PLY point cloud this reader understands.
     """
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise SceneFormatError(path, f"cannot read file ({e.strerror or e})") from None
-    header = parse_ply_header(raw, path)
-    vertex = header.element("vertex")
-    if vertex is None:
-        raise SceneFormatError(path, "PLY file has no 'vertex' element")
-    prop_names = [p for p, _ in vertex.properties]
-    if not all(k in prop_names for k in "xyz"):
-        raise SceneFormatError(path, f"PLY vertices lack x, y, z properties (have {prop_names})")
-    if vertex.has_lists:
-        raise SceneFormatError(path, "PLY vertex element has list properties: not supported")
-    rgb = ("red", "green", "blue")
-    has_colours = colors and all(k in prop_names for k in rgb)
-    wanted = list("xyz") + (list(rgb) if has_colours else [])
-    count = vertex.count
-    try:
-        if header.format == "ascii":
-            lines = raw[header.body_start :].decode("ascii").split("\n")
-            skip = sum(e.count for e in header.elements[: header.elements.index(vertex)])
-            rows = [ln.split() for ln in lines[skip : skip + count]]
-            table = np.array([[float(r[prop_names.index(k)]) for k in wanted] for r in rows], np.float64)
-            if len(table) != count:
-                raise ValueError(f"{len(table)} vertex lines, header says {count}")
-        else:
-            order = "<" if header.format == "binary_little_endian" else ">"
-            offset, row = header.offset_of("vertex"), vertex.dtype(order).itemsize
-            if offset + count * row > len(raw):  # a count past the file, checked before NumPy sees it
-                need = offset + count * row
-                raise ValueError(f"the header's {count} vertices need {need} bytes, the file has {len(raw)}")
-            data = np.frombuffer(raw, dtype=vertex.dtype(order), count=count, offset=offset)
-            table = np.stack([data[k].astype(np.float64) for k in wanted], -1)
-    except (ValueError, IndexError, KeyError, UnicodeDecodeError, TypeError) as e:
-        raise SceneFormatError(path, f"malformed PLY vertex data ({e})") from None
-    table = table.reshape(-1, len(wanted))
-    if not np.all(np.isfinite(table[:, :3])):
-        raise SceneFormatError(path, "PLY vertices have non-finite coordinates")
-    with np.errstate(over="ignore"):
-        points = table[:, :3].astype(np.float32)
-    if not np.all(np.isfinite(points)):
-        raise SceneFormatError(path, "PLY vertices have coordinates beyond float32's range (about 3.4e38)")
-    if not colors:
-        return points
-    if not has_colours:
-        return points, None
-    types = dict(vertex.properties)
-    scale = np.array([_colour_scale(types[k]) for k in rgb])
-    rgb_values = table[:, 3:] / scale
-    if not np.all(np.isfinite(rgb_values)):
-        raise SceneFormatError(path, "PLY vertices have non-finite colours")
-    return points, rgb_values.astype(np.float32)
+    with one_line_errors():  # a file name with a newline or an escape stays on one line
+        path = input_file(path, "PLY file")  # a FIFO would block, /dev/zero never end
+        try:
+            raw = path.read_bytes()
+        except OSError as e:
+            raise SceneFormatError(path, f"cannot read file ({e.strerror or e})") from None
+        header = parse_ply_header(raw, path)
+        vertex = header.element("vertex")
+        if vertex is None:
+            raise SceneFormatError(path, "PLY file has no 'vertex' element")
+        prop_names = [p for p, _ in vertex.properties]
+        if not all(k in prop_names for k in "xyz"):
+            raise SceneFormatError(path, f"PLY vertices lack x, y, z properties (have {prop_names})")
+        if vertex.has_lists:
+            raise SceneFormatError(path, "PLY vertex element has list properties: not supported")
+        rgb = ("red", "green", "blue")
+        has_colours = colors and all(k in prop_names for k in rgb)
+        wanted = list("xyz") + (list(rgb) if has_colours else [])
+        count = vertex.count
+        try:
+            if header.format == "ascii":
+                lines = raw[header.body_start :].decode("ascii").split("\n")
+                skip = sum(e.count for e in header.elements[: header.elements.index(vertex)])
+                rows = [ln.split() for ln in lines[skip : skip + count]]
+                table = np.array([[float(r[prop_names.index(k)]) for k in wanted] for r in rows], np.float64)
+                if len(table) != count:
+                    raise ValueError(f"{len(table)} vertex lines, header says {count}")
+            else:
+                order = "<" if header.format == "binary_little_endian" else ">"
+                offset, row = header.offset_of("vertex"), vertex.dtype(order).itemsize
+                if offset + count * row > len(raw):  # a count past the file, checked before NumPy sees it
+                    need = offset + count * row
+                    raise ValueError(f"the header's {count} vertices need {need} bytes, the file has {len(raw)}")
+                data = np.frombuffer(raw, dtype=vertex.dtype(order), count=count, offset=offset)
+                table = np.stack([data[k].astype(np.float64) for k in wanted], -1)
+        except (ValueError, IndexError, KeyError, UnicodeDecodeError, TypeError) as e:
+            raise SceneFormatError(path, f"malformed PLY vertex data ({e})") from None
+        table = table.reshape(-1, len(wanted))
+        if not np.all(np.isfinite(table[:, :3])):
+            raise SceneFormatError(path, "PLY vertices have non-finite coordinates")
+        with np.errstate(over="ignore"):
+            points = table[:, :3].astype(np.float32)
+        if not np.all(np.isfinite(points)):
+            raise SceneFormatError(path, "PLY vertices have coordinates beyond float32's range (about 3.4e38)")
+        if not colors:
+            return points
+        if not has_colours:
+            return points, None
+        types = dict(vertex.properties)
+        scale = np.array([_colour_scale(types[k]) for k in rgb])
+        rgb_values = table[:, 3:] / scale
+        if not np.all(np.isfinite(rgb_values)):
+            raise SceneFormatError(path, "PLY vertices have non-finite colours")
+        return points, rgb_values.astype(np.float32)

@@ -15,14 +15,17 @@ from waldo_jax.errors import (
     MIN_RESOLUTION,
     NumberError,
     SceneFormatError,
-    check_input_file,
 )
 from waldo_jax.scenes.common import (
     RIGID_TOL,
     check_origin,
+    field,
     focal_from_angle,
+    input_file,
     intrinsics_problem,
     number,
+    numeric_array,
+    one_line_errors,
     warn_off_image_principal_point,
 )
 from waldo_jax.types import Intrinsics
@@ -32,10 +35,9 @@ __all__ = ["read_poses_file"]
 
 def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     """A validated [4, 4] camera-to-world matrix of a poses file (16 numbers or [3, 4] accepted)."""
-    try:
-        m = np.asarray(matrix, np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise SceneFormatError(path, f"{what} is not a matrix of numbers") from None
+    m = numeric_array(matrix)  # strings and booleans are refused, not converted
+    if m is None:
+        raise SceneFormatError(path, f"{what} is not a matrix of numbers")
     if m.shape == (16,):
         m = m.reshape(4, 4)
     if m.shape == (3, 4):
@@ -121,31 +123,31 @@ def read_poses_file(
         list, a frame without a valid `transform_matrix`, invalid intrinsics, or is a camera path.
         The message names the file (and the frame).
     """
-    path = Path(path)
-    if not os.path.lexists(path):
-        raise SceneFormatError(path, "no such poses file")
-    check_input_file(path, "poses file")
-    meta = read_json_file(path, "poses file", lambda problem: SceneFormatError(path, problem))
-    if not isinstance(meta, dict):
-        raise SceneFormatError(path, "expected a JSON object with a 'frames' list")
-    if isinstance(meta.get("frames"), list):
-        frames = meta["frames"]
-        if not frames:
-            raise SceneFormatError(path, "'frames' is empty")
-        poses, names = [], []
-        for i, frame in enumerate(frames):
-            if not isinstance(frame, dict) or "transform_matrix" not in frame:
-                raise SceneFormatError(path, f"frame {i} has no 'transform_matrix'")
-            poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
-            name = frame.get("file_path")
-            names.append(None if name is None else str(name))
-        return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
-    if is_camera_path(meta):
-        try:
-            c2w, intrinsics = read_camera_path(meta, default_intrinsics)
-        except ValueError as e:
-            raise SceneFormatError(path, str(e)) from None
-        _check_camera(intrinsics, path)
-        poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
-        return np.stack(poses).astype(np.float32), intrinsics, [None] * len(poses)
-    raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")
+    with one_line_errors():  # a file name with a newline or an escape stays on one line
+        path = Path(path)
+        if not os.path.lexists(path):
+            raise SceneFormatError(path, "no such poses file")
+        input_file(path, "poses file")
+        meta = read_json_file(path, "poses file", lambda problem: SceneFormatError(path, problem))
+        if not isinstance(meta, dict):
+            raise SceneFormatError(path, "expected a JSON object with a 'frames' list")
+        if isinstance(meta.get("frames"), list):
+            frames = meta["frames"]
+            if not frames:
+                raise SceneFormatError(path, "'frames' is empty")
+            poses, names = [], []
+            for i, frame in enumerate(frames):
+                if not isinstance(frame, dict) or "transform_matrix" not in frame:
+                    raise SceneFormatError(path, f"frame {i} has no 'transform_matrix'")
+                poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
+                names.append(field(frame, "file_path", path, "string", where=f"frame {i}"))
+            return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
+        if is_camera_path(meta):
+            try:
+                c2w, intrinsics = read_camera_path(meta, default_intrinsics)
+            except ValueError as e:
+                raise SceneFormatError(path, str(e)) from None
+            _check_camera(intrinsics, path)
+            poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
+            return np.stack(poses).astype(np.float32), intrinsics, [None] * len(poses)
+        raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")

@@ -23,6 +23,8 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.scenes.common import numeric_array
+
 __all__ = [
     "NGP_DEFAULT_SCALE",
     "NGP_DEFAULT_OFFSET",
@@ -79,6 +81,13 @@ class NgpFrame:
         )
 
 
+def _numbers_array(value: Any) -> np.ndarray:
+    """`value` as float64 if it is numbers or nested lists of them (no strings or booleans: "1" and true
+    are no matrix entries), else an empty array (refused by the caller's shape check, naming the key)."""
+    array = numeric_array(value)
+    return np.zeros(0) if array is None else array
+
+
 def _finite(value: Any, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"'{what}' must be a finite number, got {value!r}")
@@ -100,7 +109,8 @@ def ngp_frame(meta: Dict[str, Any], start: NgpFrame = NgpFrame()) -> NgpFrame:
     if "normal_mts_args" in meta:
         mitsuba = True
     if "from_mitsuba" in meta:
-        if not isinstance(meta["from_mitsuba"], (bool, int)):
+        flag = meta["from_mitsuba"]
+        if not (isinstance(flag, bool) or (type(flag) is int and flag in (0, 1))):
             raise ValueError(f"'from_mitsuba' must be true or false, got {meta['from_mitsuba']!r}")
         mitsuba = bool(meta["from_mitsuba"])
     if mitsuba:
@@ -116,10 +126,7 @@ def ngp_frame(meta: Dict[str, Any], start: NgpFrame = NgpFrame()) -> NgpFrame:
         else:
             offset = np.full(3, _finite(value, "offset"))
     if "aabb" in meta:
-        try:
-            box = np.asarray(meta["aabb"], np.float64)
-        except (TypeError, ValueError, OverflowError):
-            box = np.zeros(0)
+        box = _numbers_array(meta["aabb"])
         if box.shape != (2, 3) or not np.all(np.isfinite(box)):
             raise ValueError(f"'aabb' must be [[min x, y, z], [max x, y, z]] of finite numbers, got {meta['aabb']!r}")
         length = max(1e-6, float(np.max(np.abs(box[1] - box[0]))))
@@ -211,10 +218,7 @@ def nerfstudio_applied(meta: Dict[str, Any], folder: Optional[Path] = None) -> T
     """
     applied, source = None, "none"
     if "applied_transform" in meta:
-        try:
-            applied = np.asarray(meta["applied_transform"], np.float64)
-        except (TypeError, ValueError, OverflowError):
-            applied = np.zeros(0)
+        applied = _numbers_array(meta["applied_transform"])
         if applied.shape != (3, 4) or not np.all(np.isfinite(applied)):
             raise ValueError("'applied_transform' must be a finite 3x4 matrix")
         if abs(np.linalg.det(applied[:, :3])) < 1e-9:

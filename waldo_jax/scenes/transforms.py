@@ -12,6 +12,7 @@ near 2, far 6. See docs/design.md, "Scenes".
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -25,15 +26,22 @@ from waldo_jax.scenes.common import (
     SPLITS,
     blender_split_of,
     camera_bounds,
+    check_holdout_split,
     check_rigid,
     check_split,
+    field,
+    file_name_problem,
     focal_from_angle,
     holdout,
+    input_file,
     natural_key,
     number,
+    numeric_array,
     read_json,
     relative,
+    shown,
     subsample,
+    value_text,
 )
 from waldo_jax.scenes.tool_frames import MITSUBA_TO_OPENGL, NgpFrame, nerfstudio_applied, ngp_frame
 from waldo_jax.scenes.images import load_images, resolve_image
@@ -60,6 +68,15 @@ NGP_DEFAULT_OFFSET = 0.5
 PLY_PERCENTILES = (1.0, 99.0)
 PLY_PAD = 0.1  # fraction of the percentile box size added on each side.
 ORIGIN_PAD = 0.25  # fraction of the camera box size added on each side (no point cloud).
+# A point cloud whose box has a side below this fraction of its longest lies on a line or a plane: its box
+# has no volume to march in.
+MIN_BOX_SIDE_RATIO = 1e-3
+# Each side of the box that replaces such a point cloud's is at least this fraction of its longest (the
+# cameras too may lie in one plane).
+FALLBACK_BOX_SIDE_RATIO = 0.1
+# The side of the box of a scene without a point cloud whose cameras all lie at one point (world units:
+# such cameras give no scale).
+ONE_POINT_CUBE = 2.0
 
 _NERFSTUDIO_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE"}
 _INTRINSIC_KEYS = (
@@ -85,11 +102,11 @@ _INTRINSIC_KEYS = (
 
 
 def _check_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
-    """Validates one camera-to-world matrix: [4, 4], finite, rigid. Returns it as float64."""
-    try:
-        m = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise SceneFormatError(path, f"{what}: transform_matrix is not a 4x4 matrix of numbers") from None
+    """Validates one camera-to-world matrix: [4, 4] numbers (no strings or booleans), finite, rigid.
+    Returns it as float64."""
+    m = numeric_array(matrix)
+    if m is None:
+        raise SceneFormatError(path, f"{what}: transform_matrix is not a 4x4 matrix of numbers")
     if m.shape != (4, 4):
         raise SceneFormatError(path, f"{what}: transform_matrix has shape {list(m.shape)}, expected 4x4")
     return check_rigid(m, path, what)
@@ -108,6 +125,12 @@ def _camera_meta(meta: Dict[str, Any], frames: List[Dict[str, Any]], path: Path)
     Per-frame intrinsics are accepted only when every frame has the same values.
     """
     top = {k: meta[k] for k in _INTRINSIC_KEYS if k in meta}
+    for i, frame in enumerate([meta, *frames]):  # every intrinsic is a number (or null), named where it is
+        for key in _INTRINSIC_KEYS:  # found; its range is checked once merged (`_json_intrinsics`)
+            value = frame.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                where = f"frame {i - 1}: " if i else ""
+                raise SceneFormatError(path, f"{where}{key!r} must be a finite number, got {value_text(value)}")
     if not any(k in f for f in frames for k in _INTRINSIC_KEYS):
         return top
     first = None
@@ -168,11 +191,9 @@ def _json_intrinsics(camera: Dict[str, Any], image_size: Tuple[int, int], path: 
 
 def _read_frames(meta: Dict[str, Any], path: Path) -> List[Dict[str, Any]]:
     """The validated frames list: non-empty, each with `file_path` and a rigid `transform_matrix`."""
-    frames = meta.get("frames")
+    frames = field(meta, "frames", path, "list")
     if frames is None:
         raise SceneFormatError(path, "no 'frames' list")
-    if not isinstance(frames, list):
-        raise SceneFormatError(path, f"'frames' must be a list, got {type(frames).__name__}")
     if not frames:
         raise SceneFormatError(path, "no frames: 'frames' is empty")
     for i, frame in enumerate(frames):
@@ -181,8 +202,10 @@ def _read_frames(meta: Dict[str, Any], path: Path) -> List[Dict[str, Any]]:
         for key in ("file_path", "transform_matrix"):
             if key not in frame:
                 raise SceneFormatError(path, f"frame {i} has no '{key}'")
-        if not isinstance(frame["file_path"], str) or not frame["file_path"]:
-            raise SceneFormatError(path, f"frame {i}: 'file_path' must be a non-empty string")
+        name = field(frame, "file_path", path, "string", where=f"frame {i}")
+        problem = file_name_problem(name)
+        if problem:
+            raise SceneFormatError(path, f"frame {i}: 'file_path' {problem}")
         frame["_c2w"] = _check_c2w(frame["transform_matrix"], path, f"frame {i}")
         frame["_index"] = i
     return frames
@@ -195,24 +218,19 @@ def _existing_frames(
     found = []
     missing = []
     for frame in frames:
-        image = resolve_image(folder, frame["file_path"])
+        image = resolve_image(folder, frame["file_path"])  # refuses a folder, a FIFO, a link loop by name
         if image is None:
             missing.append(frame["file_path"])
         else:
             found.append((frame, image))
     if not found:
-        first = folder / missing[0]
         raise SceneFormatError(
-            path,
-            f"none of the {len(frames)} image files listed exist (first: {first}"
-            + (", a directory)" if first.is_dir() else ")"),
+            path, f"none of the {len(frames)} image files listed exist (first: {shown(folder / missing[0])})"
         )
     if missing:
-        directories = [m for m in missing if (folder / m).is_dir()]
-        what = f"; {folder / directories[0]} is a directory" if directories else ""
         warnings.warn(
-            f"{path}: skipped {len(missing)} of {len(frames)} frames whose image file is missing (first: "
-            f"{missing[0]}{what})",
+            f"{shown(path)}: skipped {len(missing)} of {len(frames)} frames whose image file is missing (first: "
+            f"{shown(missing[0])})",
             stacklevel=4,
         )
     _warn_shared_images(found, path)
@@ -229,10 +247,79 @@ def _warn_shared_images(found: List[Tuple[Dict[str, Any], Path]], path: Path) ->
     if shared:
         first = next(iter(shared))
         warnings.warn(
-            f"{path}: {sum(shared.values())} of {len(found)} frames share {len(shared)} image files (first: {first}, "
-            f"named by {shared[first]} frames): each is one photo for several poses",
+            f"{shown(path)}: {sum(shared.values())} of {len(found)} frames share {len(shared)} image files "
+            f"(first: {shown(first)}, named by {shared[first]} frames): each is one photo for several poses",
             stacklevel=5,
         )
+
+
+def _camera_box(c2w_all: np.ndarray) -> Tuple[np.ndarray, str]:
+    """(box, its source) of the camera origins and their focus, padded by `ORIGIN_PAD`; cameras that all
+    lie at one point (a panorama) span no box: a cube of side `ONE_POINT_CUBE` around them instead (the
+    loader warns that they give no parallax)."""
+    origins = np.concatenate([c2w_all[:, :3, 3], camera_focus(c2w_all)[None]])
+    lo, hi = origins.min(0), origins.max(0)
+    if float(np.max(hi - lo)) <= 1e-6 * max(1.0, float(np.max(np.abs(origins)))):
+        centre = 0.5 * (lo + hi)
+        half = 0.5 * ONE_POINT_CUBE
+        box = np.stack([centre - half, centre + half]).astype(np.float32)
+        return box, f"a cube of side {ONE_POINT_CUBE:g} around the cameras (they all lie at one point)"
+    return _pad_box(lo, hi, ORIGIN_PAD), "camera origins and focus"
+
+
+def _nerfstudio_box(
+    meta: Dict[str, Any], folder: Path, path: Path, c2w_all: np.ndarray
+) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """(box, metadata) of a nerfstudio scene: the padded percentile box of its point cloud
+    (`ply_file_path`, else `sparse_pc.ply` where there is one), else the cameras' (`_camera_box`).
+
+    A `ply_file_path` that names no file warns and falls back to the cameras; a folder, a FIFO or a link
+    loop is refused. Points on a line or a plane give a box without thickness: it warns and takes the
+    union with the cameras' box (every side at least `FALLBACK_BOX_SIDE_RATIO` of the longest).
+    """
+    named = "ply_file_path" in meta
+    name = field(meta, "ply_file_path", path, "string", default="sparse_pc.ply")
+    problem = file_name_problem(name)
+    if problem:
+        raise SceneFormatError(path, f"'ply_file_path' {problem}")
+    ply = folder / name
+    if not os.path.lexists(ply):
+        box, source = _camera_box(c2w_all)
+        if named:
+            warnings.warn(
+                f"{shown(path)}: 'ply_file_path' names {shown(ply)}, which does not exist; the scene box comes from "
+                f"the {source}",
+                stacklevel=4,
+            )
+        return box, {"aabb_source": source}
+    points = read_ply_points(input_file(ply, "point cloud (PLY file)"))
+    if len(points) == 0:
+        raise SceneFormatError(shown(ply), "PLY file has no vertices")
+    lo, hi = np.percentile(points, PLY_PERCENTILES, axis=0)
+    spread = float(np.linalg.norm(hi - lo))
+    if not spread > 1e-6 * max(1.0, float(np.linalg.norm(lo))):  # all at one spot: no box to march
+        raise SceneFormatError(
+            shown(ply),
+            f"its {len(points)} points lie at one spot ({np.round(lo, 6).tolist()}), so they give "
+            f"{shown(path.name)} no scene box; remove the file (the cameras then bound the scene) or add points",
+        )
+    source = relative(ply, folder)
+    metadata = {"aabb_source": source, "ply_points": int(len(points))}
+    sides = hi - lo
+    if float(sides.min()) < MIN_BOX_SIDE_RATIO * float(sides.max()):  # on a line or a plane
+        camera_box, camera_source = _camera_box(c2w_all)
+        lo, hi = np.minimum(lo, camera_box[0]), np.maximum(hi, camera_box[1])
+        grow = np.maximum(FALLBACK_BOX_SIDE_RATIO * float(np.max(hi - lo)) - (hi - lo), 0.0)
+        lo, hi = lo - 0.5 * grow, hi + 0.5 * grow
+        axes = "".join(a for a, side in zip("xyz", sides) if side < MIN_BOX_SIDE_RATIO * float(sides.max()))
+        warnings.warn(
+            f"{shown(ply)}: its {len(points)} points lie on a line or a plane (the box of their 1st-99th "
+            f"percentiles is {float(sides.min()):.3g} thick along {axes}, {float(sides.max()):.3g} long); the scene "
+            f"box joins the {camera_source}",
+            stacklevel=4,
+        )
+        metadata["aabb_source"] = f"{source} and {camera_source} (its points lie on a line or a plane)"
+    return _pad_box(lo, hi, PLY_PAD), metadata
 
 
 # ----------------------------------------------------------------------------------------------
@@ -252,11 +339,12 @@ def load_transforms(
     """instant-ngp and nerfstudio transforms.json: OpenGL c2w, one camera."""
     check_split(split, SPLITS)
     split = split or "all"
+    check_holdout_split(split, fmt, path)
     frames = _read_frames(meta, path)
     camera = _camera_meta(meta, frames, path)
     metadata: Dict[str, Any] = {"scene_file": relative(path, folder)}
     if fmt == "nerfstudio":
-        model = meta.get("camera_model", "OPENCV")
+        model = field(meta, "camera_model", path, "string", default="OPENCV")
         if model not in _NERFSTUDIO_MODELS:
             raise SceneFormatError(
                 path, f"unsupported camera_model {model!r} (supported: {', '.join(sorted(_NERFSTUDIO_MODELS))})"
@@ -313,26 +401,8 @@ def load_transforms(
             ngp_aabb=[[ngp_lo] * 3, [ngp_hi] * 3],
         )
     else:
-        ply_name = meta.get("ply_file_path", "sparse_pc.ply")
-        ply = folder / ply_name if isinstance(ply_name, str) else None
-        if ply is not None and ply.is_file():
-            points = read_ply_points(ply)
-            if len(points) == 0:
-                raise SceneFormatError(ply, "PLY file has no vertices")
-            lo, hi = np.percentile(points, PLY_PERCENTILES, axis=0)
-            aabb = _pad_box(lo, hi, PLY_PAD)
-            spread = float(np.linalg.norm(hi - lo))
-            if not spread > 1e-6 * max(1.0, float(np.linalg.norm(lo))):  # all at one spot: no box to march
-                raise SceneFormatError(
-                    ply,
-                    f"its {len(points)} points lie at one spot ({np.round(lo, 6).tolist()}), so they give "
-                    f"{path.name} no scene box; remove the file (the cameras then bound the scene) or add points",
-                )
-            metadata.update(aabb_source=relative(ply, folder), ply_points=int(len(points)))
-        else:
-            origins = np.concatenate([c2w_all[:, :3, 3], camera_focus(c2w_all)[None]])
-            aabb = _pad_box(origins.min(0), origins.max(0), ORIGIN_PAD)
-            metadata["aabb_source"] = "camera origins and focus"
+        aabb, box_metadata = _nerfstudio_box(meta, folder, path, c2w_all)
+        metadata.update(box_metadata)
     near, far = camera_bounds(c2w_all, aabb)
     metadata["distortion"] = [float(v) for v in np.asarray(intrinsics.distortion)]
     return dict(
@@ -366,10 +436,12 @@ def load_blender(
     names = BLENDER_SPLITS if split == "all" else (split,)
     files = [folder / f"transforms_{s}.json" for s in names]
     if split == "all":
-        files = [f for f in files if f.is_file()]
-    elif not files[0].is_file():
-        present = [s for s in BLENDER_SPLITS if (folder / f"transforms_{s}.json").is_file()]
+        files = [f for f in files if os.path.lexists(f)]
+    elif not os.path.lexists(files[0]):
+        present = [s for s in BLENDER_SPLITS if os.path.lexists(folder / f"transforms_{s}.json")]
         raise SceneFormatError(files[0], f"no such file: this Blender scene has splits {', '.join(present)}")
+    for file in files:  # a split file that is a FIFO, a folder or a link loop is named as such
+        input_file(file, "Blender split file")
     frames: List[Dict[str, Any]] = []
     camera = None
     for file in files:

@@ -118,6 +118,12 @@ def make_strategy(name: str, population_size: int, dim: int = POSE_DIM):
             return algorithms[name](population_size=population_size, solution=jnp.zeros(dim, jnp.float32))
     except TypeError as error:  # strategies that need more than a population size (SV_CMA_ES, RandomSearch)
         raise ValueError(f"evosax strategy {name!r} cannot run as a pose search: {error}") from None
+    except (AssertionError, ValueError) as error:  # a population size it refuses (odd for mirrored sampling, < 4)
+        reason = str(error).strip().rstrip(".") or "an assertion of evosax's"
+        raise ValueError(
+            f"evosax strategy {name!r} cannot take a population of {population_size} ({reason}); "
+            "set --children-per-epoch (or --paths-per-epoch) to a size it takes"
+        ) from None
 
 
 def is_distribution_based(strategy) -> bool:

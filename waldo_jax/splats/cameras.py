@@ -42,7 +42,14 @@ from waldo_jax.scenes.colmap import (
 )
 from waldo_jax.scenes.common import check_rigid, intrinsics_problem, natural_key, number, read_json
 from waldo_jax.scenes.tool_frames import nerfstudio_applied, nerfstudio_pose_transform, read_dataparser_transform
-from waldo_jax.splats.cameras_json import MAX_CAMERA_SIDE, SplatCameras, cameras_beside, iteration_of, read_cameras_json
+from waldo_jax.splats.cameras_json import (
+    MAX_CAMERA_SIDE,
+    SplatCameras,
+    cameras_beside,
+    check_camera_aspect,
+    iteration_of,
+    read_cameras_json,
+)
 from waldo_jax.types import Intrinsics
 
 __all__ = [
@@ -71,6 +78,7 @@ def _pinhole(width: Any, height: Any, focal: Tuple[Any, Any, Any, Any], path: Pa
     if max(sides) > MAX_CAMERA_SIDE:
         raise SceneFormatError(path, f"{what}: image of {sides[0]}x{sides[1]} pixels (at most {MAX_CAMERA_SIDE})")
     intrinsics = Intrinsics.create(sides[0], sides[1], *values)
+    check_camera_aspect(intrinsics, path, what)
     problem = intrinsics_problem(intrinsics, (MIN_RESOLUTION, MAX_CAMERA_SIDE))
     if problem:
         raise SceneFormatError(path, f"{what}: {problem}")
@@ -401,7 +409,7 @@ def find_splat_cameras(ply_or_folder: str | os.PathLike) -> Optional[Tuple[Splat
     path = Path(ply_or_folder)
     base = path if path.is_dir() else path.parent
     json_path = base / "cameras.json" if path.is_dir() else cameras_beside(path)
-    if json_path is not None and json_path.is_file():
+    if json_path is not None and os.path.lexists(json_path):  # a FIFO or folder there: read_cameras_json says so
         return read_cameras_json(json_path), json_path.name
     run = _nerfstudio_run_near(base)
     if run is not None:

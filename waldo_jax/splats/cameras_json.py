@@ -19,12 +19,20 @@ from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, check_input_file
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, SceneFormatError, check_input_file
 from waldo_jax.io import read_json_file, write_json
 from waldo_jax.scenes.common import check_rigid
 from waldo_jax.types import Intrinsics
 
-__all__ = ["SplatCameras", "read_cameras_json", "write_cameras_json", "iteration_of", "cameras_beside"]
+__all__ = [
+    "SplatCameras",
+    "read_cameras_json",
+    "write_cameras_json",
+    "iteration_of",
+    "cameras_beside",
+    "check_camera_aspect",
+    "render_intrinsics",
+]
 
 # Focal lengths in pixels: below this, float32 projections lose all precision (and a tiny float64
 # value flushes to 0); no camera of an image of MIN_RESOLUTION px or more has one (its FoV is 179.98 deg).
@@ -106,7 +114,38 @@ def _camera_intrinsics(cam: dict, path: Path, what: str) -> Intrinsics:
                 path, f"{what}: {key} must be a finite focal length of at least {MIN_FOCAL:g} pixels, got {v!r}"
             )
         focal.append(float(v))
-    return Intrinsics.create(sides[0], sides[1], focal[0], focal[1])
+    return check_camera_aspect(Intrinsics.create(sides[0], sides[1], focal[0], focal[1]), path, what)
+
+
+def check_camera_aspect(intrinsics: Intrinsics, path: Path, what: str) -> Intrinsics:
+    """`intrinsics` when some render size keeps both its sides in [MIN_RESOLUTION, MAX_RESOLUTION] (renders
+    are the camera scaled to a longer side of at most MAX_RESOLUTION); else a SceneFormatError naming the
+    file and the camera (8 x 65536 pixels is 1 pixel wide at any render size)."""
+    short, long = sorted((intrinsics.width, intrinsics.height))
+    if short * MAX_RESOLUTION < MIN_RESOLUTION * long:
+        raise SceneFormatError(
+            path,
+            f"{what}: an image of {intrinsics.width}x{intrinsics.height} pixels (aspect {long / short:.4g}:1): "
+            f"renders, at most {MAX_RESOLUTION} px on the longer side, would be under {MIN_RESOLUTION} px on the "
+            f"shorter (at most {MAX_RESOLUTION // MIN_RESOLUTION}:1 is rendered)",
+        )
+    return intrinsics
+
+
+def render_intrinsics(intrinsics: Intrinsics, side: int, path: Path, what: str) -> Intrinsics:
+    """The camera scaled to a longer side of `side` pixels (`Intrinsics.with_max_side`); a SceneFormatError
+    naming `path` and the camera `what` when its shorter side then falls below MIN_RESOLUTION (the render size
+    the file's camera gives, not one to clamp silently)."""
+    scaled = intrinsics.with_max_side(int(side))
+    short, long = sorted((intrinsics.width, intrinsics.height))
+    if min(scaled.width, scaled.height) < MIN_RESOLUTION:
+        raise SceneFormatError(
+            path,
+            f"{what}: an image of {intrinsics.width}x{intrinsics.height} pixels renders at {scaled.width}x"
+            f"{scaled.height} for a longer side of {side}, under {MIN_RESOLUTION} px on the shorter side: pass a "
+            f"larger --resolution (at least {math.ceil(MIN_RESOLUTION * long / short)})",
+        )
+    return scaled
 
 
 def read_cameras_json(path: str | os.PathLike) -> SplatCameras:
@@ -229,4 +268,5 @@ def cameras_beside(ply: Path) -> Optional[Path]:
     candidates = [ply.parent / "cameras.json"]
     if iteration_of(ply) is not None:
         candidates.append(ply.parent.parent.parent / "cameras.json")
-    return next((c for c in candidates if c.is_file()), None)
+    # Anything there by that name, a FIFO or a folder included: `read_cameras_json` refuses those by name.
+    return next((c for c in candidates if os.path.lexists(c)), None)

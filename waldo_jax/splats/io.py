@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -34,6 +35,7 @@ from waldo_jax.splats.formats.ply import read_splat_ply
 from waldo_jax.splats.formats.ply import splat_ply_properties as splat_ply_properties
 from waldo_jax.splats.formats.ply import write_splat_ply
 from waldo_jax.splats.model import Splats
+from waldo_jax.splats.upright import extent_problem
 
 __all__ = [
     "SplatCameras",
@@ -45,6 +47,7 @@ __all__ = [
     "write_cameras_json",
     "load_splat_model",
     "write_splat_model",
+    "cameras_facing_away",
 ]
 
 _ITERATION = re.compile(r"iteration_(\d+)")
@@ -64,6 +67,9 @@ class SplatModel:
       ply_path: the PLY read.
       iteration: N of `point_cloud/iteration_N/`, or None outside that layout.
       source: where the scene came from, in words.
+      degenerate: why every ring view of the splats would show nothing (all centres at one point), in
+        words, else None; a warning said so when the model was loaded (for results.json's
+        `source_info.degenerate`).
     """
 
     splats: Splats
@@ -71,6 +77,7 @@ class SplatModel:
     ply_path: Path
     iteration: Optional[int]
     source: str
+    degenerate: Optional[str] = None
 
 
 def _find_ply(folder: Path) -> Tuple[Path, Optional[int]]:
@@ -140,7 +147,37 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
         source = f"splat PLY {ply}" if splat_file is None else f"{splat_file.details}: {ply}"
     if found is not None:
         source += f", with {len(cameras)} cameras from {found[1]}"
-    return SplatModel(splats, cameras, ply, iteration, source)
+    valid = np.asarray(splats.valid, bool)
+    means = np.asarray(splats.means, np.float32)
+    degenerate = extent_problem(means, valid)
+    if degenerate is not None and cameras is None:
+        degenerate += ": every render of a ring around it is the background alone"
+        warnings.warn(f"{ply}: {degenerate}", stacklevel=2)
+    else:
+        degenerate = None
+    if cameras is not None:
+        behind = cameras_facing_away(cameras.c2w, means[valid])
+        if behind:
+            warnings.warn(f"{ply}: {behind} ({found[1]})", stacklevel=2)
+    return SplatModel(splats, cameras, ply, iteration, source, degenerate)
+
+
+def cameras_facing_away(c2w: np.ndarray, means: np.ndarray) -> Optional[str]:
+    """Why every view from the cameras c2w [N, 4, 4] (OpenGL: looking down -z) would miss the splats' centres
+    means [M, 3] (none in front of any camera), else None."""
+    c2w = np.asarray(c2w, np.float64)
+    points = np.asarray(means, np.float64)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points) or not len(c2w):
+        return None
+    for camera in c2w:  # usually the first camera has splats in front: one pass over the points
+        forward = -camera[:3, 2]
+        if np.any(points @ forward > float(camera[:3, 3] @ forward)):
+            return None
+    return (
+        f"no splat centre is in front of any of the {len(c2w)} cameras: every view looks away from the splats "
+        "(rotations in OpenGL axes where the file's convention is OpenCV's, x right, y down, z forward?)"
+    )
 
 
 def write_splat_model(

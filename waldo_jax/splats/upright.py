@@ -48,7 +48,16 @@ __all__ = [
     "parse_up",
     "ring_origins",
     "visible_share",
+    "robust_bounds",
+    "extent_problem",
 ]
+
+# Robust bounds: a splat further from the median than this many median absolute deviations (per axis) is a
+# stray (25 % of splats at 1e30 would otherwise set a quantile, and the ring, 1e30 away); the quantiles
+# of every usual scene lie well within it, so its bounds are the plain quantiles'.
+_STRAY_MADS = 1000.0
+# A scene whose robust diagonal is below this is one point: no camera distance frames it in float32.
+MIN_EXTENT = 1e-6
 
 LAYOUTS = ("object", "surround")
 # The usual up of each file family's frame (a prior, used only when it agrees with the splats' shape).
@@ -330,6 +339,40 @@ def estimate_upright(
         layout_name, layout_reason, more = _layout(points, w, centre, radius, up, config)
         details.update(more)
     return Upright(up, rule, reason, layout_name, layout_reason, plane, details)
+
+
+def robust_bounds(means: np.ndarray, valid=None, quantile: float = 0.02) -> Tuple[np.ndarray, np.ndarray]:
+    """(low, high) [3]: the `quantile` and 1 - `quantile` quantiles per axis of the valid splats' finite means,
+    strays (further than `_STRAY_MADS` median absolute deviations from the median on an axis) left out.
+
+    Where no stray is found these are the plain quantiles. No finite mean gives zeros."""
+    points = np.asarray(means, np.float64)
+    if valid is not None:
+        points = points[np.asarray(valid, bool)]
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return np.zeros(3), np.zeros(3)
+    median = np.median(points, axis=0)
+    spread = np.median(np.abs(points - median), axis=0)  # [3], robust to up to half the splats
+    # An axis on which most splats share one value (a floor: no spread) tells no stray apart.
+    kept = np.all((np.abs(points - median) <= _STRAY_MADS * spread) | (spread == 0), axis=1)
+    if np.any(spread > 0) and kept.sum() >= 0.5 * len(points) and not kept.all():
+        points = points[kept]
+    return np.quantile(points, quantile, axis=0), np.quantile(points, 1.0 - quantile, axis=0)
+
+
+def extent_problem(means: np.ndarray, valid=None) -> Optional[str]:
+    """Why a ring of views cannot frame the splats (all at one point: a robust diagonal under `MIN_EXTENT`),
+    or None."""
+    low, high = robust_bounds(means, valid)
+    diagonal = float(np.linalg.norm(high - low))
+    if diagonal >= MIN_EXTENT:
+        return None
+    points = np.asarray(means, np.float64)[np.asarray(valid, bool)] if valid is not None else np.asarray(means)
+    return (
+        f"the {len(points)} splats' centres span {diagonal:.3g} (robust bounds {low.round(6).tolist()} to "
+        f"{high.round(6).tolist()}): a scene of one point, which no view frames"
+    )
 
 
 def _too_few(count: int, format_up, up, layout: Optional[str]) -> Upright:

@@ -13,7 +13,7 @@ from typing import Any, Dict, List, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import DataNotFoundError
+from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
 from waldo_jax.weights.store import WeightsError
 
 __all__ = ["read_opencv_storage"]
@@ -24,6 +24,8 @@ class _StorageError(Exception):
         super().__init__(f"line {line}: {problem}")
 
 
+# The largest file read (BRISQUE's and NIQE's models are under 1 MiB).
+MAX_YAML_BYTES = 64 << 20
 _NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 _INTEGER = re.compile(r"[-+]?\d+$")
 _SPECIAL = {".inf": np.inf, "+.inf": np.inf, "-.inf": -np.inf, ".nan": np.nan}
@@ -192,6 +194,15 @@ def read_opencv_storage(path: str | Path) -> Dict[str, Any]:
     if not path.is_file():
         raise DataNotFoundError(f"file not found: {path}")
     try:
+        check_input_file(path, "OpenCV YAML file")
+        if path.stat().st_size > MAX_YAML_BYTES:
+            raise WeightsError(
+                f"{path}: an OpenCV YAML file of {path.stat().st_size / 2**20:,.0f} MiB (at most "
+                f"{MAX_YAML_BYTES // 2**20} MiB: the models' files are under 1 MiB)"
+            )
+    except WaldoError as exc:
+        raise WeightsError(str(exc)) from None
+    try:
         text = path.read_text(encoding="utf-8")
     except (UnicodeDecodeError, OSError) as exc:
         raise WeightsError(f"{path}: not a readable OpenCV YAML file ({exc})") from None
@@ -207,8 +218,10 @@ def read_opencv_storage(path: str | Path) -> Dict[str, Any]:
             raise _StorageError(lines[end][0], "unexpected dedent")
     except _StorageError as exc:
         raise WeightsError(f"{path}: malformed OpenCV YAML, {exc}") from None
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:  # OverflowError: 300 as a uint8 'dt'
         raise WeightsError(f"{path}: malformed OpenCV YAML ({exc})") from None
+    except RecursionError:  # flow lists or blocks nested thousands deep: the parser recurses per level
+        raise WeightsError(f"{path}: malformed OpenCV YAML (nested too deep to read)") from None
     if not isinstance(tree, dict):
         raise WeightsError(f"{path}: the top level is not a mapping")
     return tree

@@ -22,7 +22,7 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from waldo_jax import paths
-from waldo_jax.errors import DataNotFoundError, WaldoError
+from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
 from waldo_jax.io import atomic_file, parse_json
 
 __all__ = [
@@ -42,6 +42,9 @@ __all__ = [
 
 NATIVE_FORMAT_VERSION = 1
 _META_KEY = "__waldo_weights__"
+# The most a native weights archive may inflate to (the criteria's weights take a few MiB; a 4 MB
+# deflated archive of 1.8 GB was read whole before it was refused).
+MAX_NATIVE_BYTES = 256 << 20
 
 
 class WeightsError(WaldoError, ValueError):
@@ -166,10 +169,30 @@ def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Di
     """
     path = Path(path)
     try:
+        check_input_file(path, "weights archive")
+    except WaldoError as exc:
+        raise WeightsError(str(exc)) from None
+    try:
         with np.load(path, allow_pickle=False) as data:
+            # Members inflate no further than their headers' sizes (zipfile stops there): bound those first.
+            inflated = sum(info.file_size for info in data.zip.infolist()) if hasattr(data, "zip") else 0
+            if inflated > MAX_NATIVE_BYTES:
+                raise WeightsError(
+                    f"{path}: its arrays would inflate to {inflated / 2**20:,.0f} MiB (at most "
+                    f"{MAX_NATIVE_BYTES // 2**20} MiB: waldo's weights are a few MiB)"
+                )
             flat = {k: np.array(data[k]) for k in data.files}
+    except WeightsError:
+        raise
     except Exception as exc:  # zip and npy errors come in many types
         raise WeightsError(f"{path}: not a readable weights archive ({type(exc).__name__}: {exc})") from None
+    for key, array in flat.items():
+        if key == _META_KEY:
+            continue
+        if array.dtype.kind not in "biuf":
+            raise WeightsError(f"{path}: array {key!r} holds {array.dtype} values, not numbers")
+        if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+            raise WeightsError(f"{path}: array {key!r} holds NaN or infinity: convert the original files again")
     if _META_KEY not in flat:
         raise WeightsError(f"{path}: not a waldo weights archive (no {_META_KEY} record)")
     record = parse_json(

@@ -34,7 +34,7 @@ import numpy as np
 
 from waldo_jax.io import parse_json
 from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
-from waldo_jax.scenes.ply import parse_ply_header
+from waldo_jax.scenes.ply import read_ply_header
 from waldo_jax.splats.formats.common import SH_C0 as SH_C0
 from waldo_jax.splats.formats.compressed_ply import CHUNK_BOUNDS as CHUNK_BOUNDS
 from waldo_jax.splats.formats.compressed_ply import CHUNK_COLOURS as CHUNK_COLOURS
@@ -143,9 +143,12 @@ def splat_format(path: str | os.PathLike) -> Optional[str]:
         return None
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
         try:
-            header = parse_ply_header(head, path)
+            with open(path, "rb") as f:  # the whole header (up to its limit), not only the first 64 KiB
+                header = read_ply_header(f, path)
         except SceneFormatError:
             return "ply"
+        except OSError:
+            return None
         vertex = header.element("vertex")
         packed = vertex is not None and "packed_position" in dict(vertex.properties)
         return "compressed_ply" if packed or header.element("chunk") is not None else "ply"
@@ -203,7 +206,9 @@ def read_splat_file(path: str | os.PathLike) -> SplatFile:
     fmt = splat_format(path)
     if fmt is None:
         raise SceneFormatError(
-            path, f"not a splat file of any format read here (formats read: {_READ}; glTF is not read)"
+            path,
+            f"not a splat file of any format read here (formats read: {_READ}; glTF is not read; an antimatter15 "
+            "file, which has no magic bytes, is told by its .splat extension)",
         )
     if fmt == "ply":
         splats = read_splat_ply(path)

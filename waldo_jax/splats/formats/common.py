@@ -10,11 +10,11 @@ Rounding follows the SPZ reference's toUint8 (C's std::round, halves away from z
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError, WaldoError, check_memory
+from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file, check_memory
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 
 SH_C0 = 0.28209479177387814
@@ -63,36 +63,92 @@ def valid_rows(path: Path, splats: Splats) -> Dict[str, np.ndarray]:
     return arrays
 
 
+def scale_quats(quats: np.ndarray) -> np.ndarray:
+    """float32 quaternions [N, 4] whose rows are scaled by a power of two to a largest component in [1, 2)
+    where their squared norm leaves float32's normal range (1e38 squared overflows to infinity, 1e-20
+    squared to 0); other rows, and the direction of every row, are kept exactly. Zero rows stay zero."""
+    quats = np.array(quats, np.float32)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        squared = np.sum(quats * quats, -1)
+        largest = np.max(np.abs(quats), -1, initial=0.0)
+    out = ~((squared >= np.finfo(np.float32).tiny) & (squared <= np.finfo(np.float32).max))
+    out &= (largest > 0) & np.isfinite(largest)
+    if out.any():
+        _, exponent = np.frexp(largest[out])  # largest = m 2^e with m in [0.5, 1)
+        quats[out] = np.ldexp(quats[out], (1 - exponent)[:, None]).astype(np.float32)
+    return quats
+
+
 def finish_splats(path: Path, what: str, means, log_scales, quats, logits, sh) -> Splats:
-    """`Splats` from decoded arrays; a SceneFormatError when any value is not finite."""
-    arrays = {"means": means, "log_scales": log_scales, "quats": quats, "logits": logits, "sh": sh}
-    n = len(means)
-    bad = {k: int((~np.all(np.isfinite(np.asarray(v).reshape(n, -1)), axis=1)).sum()) for k, v in arrays.items()}
+    """`Splats` from decoded arrays; a SceneFormatError when any value is not finite in float32 (the type the
+    splats are held in: 1e39 is finite in float64, infinite there), naming the fields."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        arrays = {
+            "means": np.asarray(means, np.float32),
+            "log_scales": np.asarray(log_scales, np.float32),
+            "quats": np.asarray(quats, np.float32),
+            "logits": np.asarray(logits, np.float32),
+            "sh": np.asarray(sh, np.float32),
+        }
+    n = len(arrays["means"])
+    bad = {k: int((~np.all(np.isfinite(v.reshape(n, -1)), axis=1)).sum()) for k, v in arrays.items()}
     bad = {k: v for k, v in bad.items() if v}
     if bad:
         listed = ", ".join(f"{k} ({v} rows)" for k, v in bad.items())
-        raise SceneFormatError(path, f"{what} decodes to non-finite values in {n} splats: {listed}")
+        raise SceneFormatError(
+            path, f"{what} decodes to non-finite values (NaN, infinity, or beyond float32) in {n} splats: {listed}"
+        )
+    arrays["quats"] = scale_quats(arrays["quats"])
     return make_splats(**arrays)
 
 
-# A decoder's peak memory per float of the splats it returns: the file's bytes, float64 intermediates and the
-# float32 result (measured below 3 on the formats' readers; 4 leaves room).
+# Each reader's peak memory while it reads (`read_splat_file`, the Splats it returns included), in bytes per
+# splat: (a fixed part, a part per SH rest float, 3 (K - 1) of them a splat). Measured as the peak RSS
+# increase of reading 300,000 random splats at SH degrees 0 and 3 (the same per splat at 3,000,000): PLY
+# 273 and 1,364 bytes, SPZ 248 / 782 (version 3) and 270 / 820 (version 4), compressed PLY 508 / 1,854,
+# .splat 212, SOG 384 / 1,165 with 5 / 6 images of about one texel a splat (their 12 bytes a texel,
+# `SOG_IMAGE_BYTES_PER_TEXEL`, counted apart); the figures below are those times 1.25, rounded up.
+PEAK_BYTES_PER_SPLAT: Dict[str, Tuple[float, float]] = {
+    "ply": (345, 31),
+    "compressed_ply": (640, 38),
+    "splat": (270, 0),
+    "spz": (340, 16),
+    "sog": (405, 22),
+}
+# A SOG image decoded: Pillow's image, its RGBA conversion and the NumPy copy, 4 bytes a texel each.
+SOG_IMAGE_BYTES_PER_TEXEL = 12
+# The peak per float of a reader without a measured figure: 4 x its float32 result.
 _DECODE_PEAK_FACTOR = 4
 
 
-def check_splat_count(path: Path, count: int, degree: int, what: str) -> None:
-    """A MemoryBudgetError, before anything is decoded, when `count` splats of SH degree `degree` (a count
-    read from a header) would not fit this machine's free memory."""
-    floats = 3 + 3 + 4 + 1 + 3 * sh_coefficients(min(int(degree), MAX_SH_DEGREE))
+def peak_bytes(fmt: str, count: int, degree: int) -> float:
+    """The peak memory, in bytes, of reading `count` splats of SH degree `degree` (0..4) in format `fmt`."""
+    fixed, per_float = PEAK_BYTES_PER_SPLAT[fmt]
+    return float(count) * (fixed + per_float * 3 * (sh_coefficients(min(max(int(degree), 0), 4)) - 1))
+
+
+def check_splat_count(
+    path: Path, count: int, degree: int, what: str, fmt: Optional[str] = None, extra_bytes: float = 0.0
+) -> None:
+    """A MemoryBudgetError, before anything is decoded, when reading `count` splats of SH degree `degree` (a
+    count read from a header) in format `fmt` (its measured peak, `PEAK_BYTES_PER_SPLAT`), plus
+    `extra_bytes` (a SOG's decoded images), would not fit this machine's free memory."""
+    if fmt is None:
+        need = float(count) * (3 + 3 + 4 + 1 + 3 * sh_coefficients(min(int(degree), MAX_SH_DEGREE))) * 4
+        need *= _DECODE_PEAK_FACTOR
+    else:
+        need = peak_bytes(fmt, count, degree)
     check_memory(
-        float(count) * floats * 4 * _DECODE_PEAK_FACTOR,
+        need + float(extra_bytes),
         f"{path}: reading its {count:,} splats ({what}, SH degree {degree})",
         "convert a part of the scene, or read it on a machine with more memory",
     )
 
 
 def read_splat_bytes(path: Path, what: str) -> bytes:
-    """The bytes of `path`; a SceneFormatError naming the file (and `what` it should be) when unreadable."""
+    """The bytes of `path`; an error naming the file (and `what` it should be) when it is no regular file (a
+    FIFO would block forever) or unreadable."""
+    path = check_input_file(path, what)
     try:
         return Path(path).read_bytes()
     except OSError as e:

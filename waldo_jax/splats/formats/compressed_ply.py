@@ -20,6 +20,7 @@ from waldo_jax.io import write_bytes
 from waldo_jax.scenes.ply import PlyHeader, parse_ply_header
 from waldo_jax.splats.formats.common import (
     SH_C0,
+    check_splat_count,
     finish_splats,
     opacity_logits,
     read_splat_bytes,
@@ -121,6 +122,15 @@ def decode_compressed_ply(path: Path):
             )
     except (ValueError, KeyError) as e:
         raise SceneFormatError(path, f"truncated or malformed compressed PLY data ({e})") from None
+    end = header.body_start + sum(e.count * e.dtype("<").itemsize for e in header.elements if not e.has_lists)
+    if len(raw) != end or any(e.has_lists for e in header.elements):
+        raise SceneFormatError(
+            path,
+            f"its elements ({', '.join(f'{e.name} {e.count}' for e in header.elements)}) need "
+            f"{end - header.body_start} bytes of data, the file holds {len(raw) - header.body_start}: "
+            "the header's counts disagree with the data",
+        )
+    check_splat_count(path, n, degree, "a compressed PLY", fmt="compressed_ply")
     c, v = tables["chunk"], tables["vertex"]
     of = np.arange(n) // _CHUNK
     bounds = {k: c[k].astype(np.float64)[of] for k in CHUNK_BOUNDS + (CHUNK_COLOURS if has_colours else [])}

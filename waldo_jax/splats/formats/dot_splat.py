@@ -12,7 +12,15 @@ import numpy as np
 
 from waldo_jax.errors import SceneFormatError, check_input_file
 from waldo_jax.io import write_bytes
-from waldo_jax.splats.formats.common import SH_C0, finish_splats, opacity_logits, read_splat_bytes, sigmoid, valid_rows
+from waldo_jax.splats.formats.common import (
+    SH_C0,
+    check_splat_count,
+    finish_splats,
+    opacity_logits,
+    read_splat_bytes,
+    sigmoid,
+    valid_rows,
+)
 from waldo_jax.splats.model import Splats
 
 
@@ -33,6 +41,7 @@ def decode_dot_splat(path: Path):
     if not raw or len(raw) % 32:
         raise SceneFormatError(path, f"not a .splat file: {len(raw)} bytes is no whole number of 32-byte splats")
     n = len(raw) // 32
+    check_splat_count(path, n, 0, "a .splat file", fmt="splat")
     floats = np.frombuffer(raw, "<f4").reshape(n, 8)
     u8 = np.frombuffer(raw, np.uint8).reshape(n, 32)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -22,7 +22,7 @@ import numpy as np
 from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
 from waldo_jax.io import atomic_file
 from waldo_jax.scenes.ply import PlyElement, PlyHeader, read_ply_header
-from waldo_jax.splats.formats.common import SH_C0
+from waldo_jax.splats.formats.common import SH_C0, check_splat_count, scale_quats
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 
 __all__ = ["splat_ply_properties", "read_splat_ply", "write_splat_ply"]
@@ -63,7 +63,14 @@ def _splat_layout(path: Path, header: PlyHeader, vertex: PlyElement) -> Tuple[Li
             "a compressed splat PLY (SuperSplat / gsplat 'ply_compressed'): not the reference layout, "
             "read it with load_splat_model or waldo_jax.splats.formats.read_compressed_ply",
         )
-    rest = {int(m.group(1)): name for name in types if (m := _REST.fullmatch(name))}
+    rest: dict = {}
+    for name in types:
+        if m := _REST.fullmatch(name):  # f_rest_08 is index 8: writers that pad their numbers exist
+            if int(m.group(1)) in rest:
+                raise SceneFormatError(
+                    path, f"{rest[int(m.group(1))]} and {name} are the same SH coefficient f_rest_{int(m.group(1))}"
+                )
+            rest[int(m.group(1))] = name
     splat_only = set(_DC) | {"opacity"} | set(_SCALES) | set(_ROTS)
     if all(k in types for k in _XYZ) and not rest and not splat_only & set(types):
         raise SceneFormatError(
@@ -94,7 +101,10 @@ def _splat_layout(path: Path, header: PlyHeader, vertex: PlyElement) -> Tuple[Li
     m = len(rest)
     gaps = [f"f_rest_{i}" for i in range(m) if i not in rest]
     if gaps:
-        raise SceneFormatError(path, f"f_rest_* properties are not numbered 0..{m - 1}: missing {', '.join(gaps[:4])}")
+        beyond = ", ".join(rest[i] for i in sorted(rest) if i >= m)
+        raise SceneFormatError(
+            path, f"f_rest_* properties are not numbered 0..{m - 1}: missing {', '.join(gaps[:4])} ({beyond} given)"
+        )
     k = m // 3 + 1
     if m % 3 or math.isqrt(k) ** 2 != k or math.isqrt(k) - 1 > MAX_SH_DEGREE:
         raise SceneFormatError(
@@ -128,8 +138,7 @@ def _check_values(path: Path, columns: dict, n: int) -> None:
             f"of {n} splats: {', '.join(counts[:6])}{more}",
         )
     quats = np.stack([columns[k] for k in _ROTS], -1)
-    with np.errstate(over="ignore", under="ignore"):
-        zero = np.flatnonzero(np.sum(quats * quats, -1) < np.finfo(np.float32).tiny)
+    zero = np.flatnonzero(np.max(np.abs(quats), -1) == 0)  # tiny or huge ones are scaled (`scale_quats`)
     if len(zero):
         more = f" (and {len(zero) - 1} more rows)" if len(zero) > 1 else ""
         raise SceneFormatError(path, f"a zero quaternion (rot_0..3 all 0, no rotation) in row {int(zero[0])}{more}")
@@ -164,6 +173,7 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
             if vertex is None:
                 raise SceneFormatError(path, "the PLY file has no 'vertex' element")
             wanted, m, from_rgb = _splat_layout(path, header, vertex)
+            rest_names = [name for name in wanted if _REST.fullmatch(name)]
             n = vertex.count
             if n == 0:
                 raise SceneFormatError(path, "no splats (element vertex 0)")
@@ -174,12 +184,20 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
             dtype = vertex.dtype("<")
             expected = n * dtype.itemsize
             available = os.fstat(f.fileno()).st_size - offset
+            later = header.elements[[e.name for e in header.elements].index("vertex") + 1 :]
             if available < expected:
                 raise SceneFormatError(
                     path,
                     f"truncated: {n} splats of {dtype.itemsize} bytes need {expected} bytes "
                     f"of data, the file holds {max(available, 0)}",
                 )
+            if available > expected and not later:  # other elements (faces, extras) may follow the vertices
+                raise SceneFormatError(
+                    path,
+                    f"{available - expected} bytes follow its {n} splats of {dtype.itemsize} bytes (the element "
+                    "vertex count disagrees with the data?)",
+                )
+            check_splat_count(path, n, m // 3 and math.isqrt(m // 3 + 1) - 1, "a splat PLY", fmt="ply")
             f.seek(offset)
             data = np.fromfile(f, dtype=dtype, count=n)
     except OSError as e:
@@ -195,7 +213,7 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
             columns[dc] = ((columns.pop(name) / top - 0.5) / SH_C0).astype(np.float32)
     _check_values(path, columns, n)
     k = m // 3 + 1
-    rest = np.stack([columns[f"f_rest_{i}"] for i in range(m)], -1) if m else np.zeros((n, 0), np.float32)
+    rest = np.stack([columns[name] for name in rest_names], -1) if m else np.zeros((n, 0), np.float32)
     sh = np.concatenate(
         [
             np.stack([columns[c] for c in _DC], -1)[:, None, :],  # [N, 1, 3]
@@ -206,7 +224,7 @@ def read_splat_ply(path: str | os.PathLike) -> Splats:
     return make_splats(
         means=np.stack([columns[c] for c in _XYZ], -1),
         log_scales=np.stack([columns[c] for c in _SCALES], -1),
-        quats=np.stack([columns[c] for c in _ROTS], -1),
+        quats=scale_quats(np.stack([columns[c] for c in _ROTS], -1)),
         logits=columns["opacity"],
         sh=sh,
     )

@@ -16,15 +16,19 @@ import math
 import os
 import warnings
 import zipfile
-import zlib
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 from waldo_jax.io import parse_json
-from waldo_jax.errors import SceneFormatError, check_input_file
-from waldo_jax.splats.formats.common import check_splat_count, finish_splats, opacity_logits
+from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file
+from waldo_jax.splats.formats.common import (
+    SOG_IMAGE_BYTES_PER_TEXEL,
+    check_splat_count,
+    finish_splats,
+    opacity_logits,
+)
 from waldo_jax.splats.model import Splats, sh_coefficients
 
 _SOG_BANDS_V1 = {192: 1, 512: 2, 960: 3}
@@ -34,6 +38,10 @@ _IMAGE_FILE_BYTES_PER_TEXEL = 8
 # meta.json holds a few codebooks of 256 numbers: kilobytes.
 _MAX_META_BYTES = 16 * 2**20
 _MAX_CENTROID_ROWS = 65536 // 64
+# SOG images are lossless WebP (splat-transform writes nothing else); PNG is lossless too. Other formats'
+# decoders (TIFF's libtiff) print their own lines on damaged data.
+_IMAGE_FORMATS = ("WEBP", "PNG")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class _SogFiles:
@@ -42,58 +50,96 @@ class _SogFiles:
     def __init__(self, path: Path):
         self.path = path
         self.zip = None
+        self._raw: dict = {}
         if path.suffix.lower() != ".json":
             try:
                 self.zip = zipfile.ZipFile(path)
-            except (OSError, zipfile.BadZipFile, ValueError, OverflowError) as e:
-                raise SceneFormatError(path, f"not a readable .sog zip ({e})") from None
+            except Exception as e:  # noqa: BLE001 (any error of the zip reader on bad bytes is the file's)
+                raise SceneFormatError(path, f"not a readable .sog zip ({type(e).__name__}: {e})") from None
 
     def read(self, name: str, limit: int) -> bytes:
         """The bytes of file `name`, refused past `limit` bytes before more than that is read or inflated."""
         if not isinstance(name, str) or not name or "\0" in name:
             raise SceneFormatError(self.path, f"SOG meta.json names a file {name!r} (not a file name)")
+        if name in self._raw:
+            return self._raw[name]
         try:
             if self.zip is not None:
                 size = self.zip.getinfo(name).file_size
                 data = b""
                 if size <= limit:
                     with self.zip.open(name) as member:
-                        data = member.read(limit + 1)  # the size in the zip's directory may lie
+                        data = member.read(limit + 1)  # streamed: the size in the zip's directory may lie
             else:
                 target = self.path.parent / name
                 if not target.resolve().is_relative_to(self.path.parent.resolve()):
                     raise SceneFormatError(self.path, f"SOG file {name!r} lies outside the SOG's folder")
+                if not target.exists():
+                    raise KeyError(name)
+                check_input_file(target, f"SOG file (named in {self.path.name})")  # a FIFO would block
                 size = target.stat().st_size
-                data = b"" if size > limit else target.read_bytes()
+                data = b""
+                if size <= limit:
+                    with open(target, "rb") as f:
+                        data = f.read(limit + 1)
         except KeyError:
             raise SceneFormatError(self.path, f"the SOG lacks its file {name!r}") from None
-        except (OSError, zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as e:
-            raise SceneFormatError(self.path, f"cannot read the SOG's file {name!r} ({e})") from None
+        except WaldoError:
+            raise
+        except Exception as e:  # noqa: BLE001 (encrypted members, bad zip data, I/O: the file's error)
+            raise SceneFormatError(
+                self.path, f"cannot read the SOG's file {name!r} ({type(e).__name__}: {e})"
+            ) from None
         if max(size, len(data)) > limit:
             raise SceneFormatError(
                 self.path, f"the SOG's file {name!r} holds more than {limit / 2**20:,.0f} MiB (its splats need less)"
             )
+        self._raw[name] = data
         return data
 
-    def image(self, name: str, max_texels: int) -> np.ndarray:
-        """The RGBA texels of WebP image `name`, uint8 [height, width, 4]; its size read from its header is
-        refused before decoding when it holds more than `max_texels` texels."""
+    def _open(self, name: str, max_texels: int):
+        """Image `name` opened (its header read, nothing decoded), refused when it holds more than `max_texels`."""
         from PIL import Image
 
         raw = self.read(name, _IMAGE_FILE_BYTES_PER_TEXEL * max_texels + 2**20)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # its size is checked below
-                image = Image.open(io.BytesIO(raw))
+                image = Image.open(io.BytesIO(raw), formats=_IMAGE_FORMATS)
+        except Image.UnidentifiedImageError:
+            raise SceneFormatError(
+                self.path, f"the SOG's image {name!r} cannot be decoded (not a WebP or PNG image)"
+            ) from None
+        except Exception as e:  # noqa: BLE001 (Pillow raises many kinds on bad bytes: SyntaxError for a PNG)
+            raise SceneFormatError(
+                self.path, f"the SOG's image {name!r} cannot be decoded ({type(e).__name__}: {e})"
+            ) from None
+        w, h = image.size
+        if w * h > max_texels:
+            image.close()
+            raise SceneFormatError(
+                self.path, f"the SOG's image {name!r} is {w}x{h}: expected at most {max_texels:,} texels"
+            )
+        return image
+
+    def size(self, name: str, max_texels: int) -> tuple:
+        """(width, height) of image `name` from its header, without decoding it."""
+        with self._open(name, max_texels) as image:
+            return image.size
+
+    def image(self, name: str, max_texels: int) -> np.ndarray:
+        """The RGBA texels of WebP image `name`, uint8 [height, width, 4]; its size read from its header is
+        refused before decoding when it holds more than `max_texels` texels."""
+        image = self._open(name, max_texels)
+        try:
             with image:
-                w, h = image.size
-                if w * h > max_texels:
-                    raise SceneFormatError(
-                        self.path, f"the SOG's image {name!r} is {w}x{h}: expected at most {max_texels:,} texels"
-                    )
                 return np.asarray(image.convert("RGBA"))
-        except (OSError, ValueError, Image.DecompressionBombError, OverflowError) as e:
-            raise SceneFormatError(self.path, f"the SOG's image {name!r} cannot be decoded ({e})") from None
+        except MemoryError:
+            raise
+        except Exception as e:  # noqa: BLE001 (any decoder error on bad bytes is the file's)
+            raise SceneFormatError(
+                self.path, f"the SOG's image {name!r} cannot be decoded ({type(e).__name__}: {e})"
+            ) from None
 
     def texels(self, name: str, count: int) -> np.ndarray:
         """The first `count` texels of image `name` in row-major order, uint8 [count, 4]."""
@@ -125,13 +171,55 @@ def _sog_field(meta: dict, key: str, path: Path, files: int = 1):
 
 
 def _numbers(path: Path, value, count: Optional[int], what: str) -> np.ndarray:
+    """`value` as float64 [count]: numbers (not bools) that float32, the splats' type, holds finite."""
+    items = value if isinstance(value, list) else []
     try:
         array = np.asarray(value, np.float64)
     except (TypeError, ValueError, OverflowError):
         array = np.zeros(0)
-    if array.ndim != 1 or (count is not None and len(array) != count) or not np.all(np.isfinite(array)):
-        raise SceneFormatError(path, f"SOG meta.json: {what} must be {count or 'a list of'} finite numbers")
+    if (
+        array.ndim != 1
+        or (count is not None and len(array) != count)
+        or any(isinstance(v, bool) for v in items)
+        or not np.all(np.abs(array) <= _FLOAT32_MAX)
+    ):
+        raise SceneFormatError(
+            path, f"SOG meta.json: {what} must be {count or 'a list of'} finite numbers (float32: |x| <= 3.4e38)"
+        )
     return array
+
+
+def _check_means_range(path: Path, mins: np.ndarray, maxs: np.ndarray) -> None:
+    """Refuses means.mins / maxs whose positions, sign(v) (exp(|v|) - 1), leave float32 (maxs 90: 1.2e39)."""
+    for key, ends in (("mins", mins), ("maxs", maxs)):
+        with np.errstate(over="ignore"):
+            positions = _inverse_log(ends).astype(np.float32)
+        if not np.all(np.isfinite(positions)):
+            raise SceneFormatError(
+                path,
+                f"SOG meta.json: means.{key} {ends.tolist()} give positions sign(v) (exp(|v|) - 1) beyond float32 "
+                f"(|v| must be at most {math.log1p(_FLOAT32_MAX):.2f})",
+            )
+
+
+def _check_image_sizes(path: Path, files: "_SogFiles", names: list, count: int) -> int:
+    """Checks, from the images' headers, that each per-splat image holds `count` texels in whole rows as
+    writers lay them out (count reaching into the last four rows: a count smaller than the data is refused)
+    and that they share one size; returns their texels in all."""
+    sizes = {name: files.size(name, _max_texels(count)) for name in names}
+    for name, (w, h) in sizes.items():
+        if w * h < count:
+            raise SceneFormatError(path, f"the SOG's image {name!r} has {w * h} texels for {count} splats")
+        if count <= w * (h - 4):
+            raise SceneFormatError(
+                path,
+                f"the SOG's image {name!r} is {w}x{h}: its count {count} leaves more than four rows of "
+                "texels unused (the count disagrees with the data)",
+            )
+    if len(set(sizes.values())) > 1:
+        listed = ", ".join(f"{name} {w}x{h}" for name, (w, h) in sizes.items())
+        raise SceneFormatError(path, f"the SOG's images differ in size ({listed}): one texel per splat in each")
+    return sum(w * h for w, h in sizes.values())
 
 
 def decode_sog(path: Path):
@@ -142,7 +230,7 @@ def decode_sog(path: Path):
     if not isinstance(meta, dict):
         raise SceneFormatError(path, "SOG meta.json must hold a JSON object")
     version = meta.get("version", 1)
-    if version not in (1, 2):
+    if isinstance(version, bool) or version not in (1, 2):
         raise SceneFormatError(path, f"SOG version {version!r} is not read (versions 1 and 2 are)")
     means_meta = _sog_field(meta, "means", path, files=2)
     shape = means_meta.get("shape")
@@ -150,9 +238,22 @@ def decode_sog(path: Path):
     if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
         raise SceneFormatError(path, f"SOG meta.json: no positive splat count (got {count!r})")
     shn = meta.get("shN")
-    check_splat_count(path, count, 3 if isinstance(shn, dict) else 0, "a SOG")  # SH degree at most 3
+    degree = 3 if isinstance(shn, dict) else 0  # at most 3: the check before any image is read
+    check_splat_count(path, count, degree, "a SOG", fmt="sog")
     mins, maxs = (_numbers(path, means_meta.get(k), 3, f"means.{k}") for k in ("mins", "maxs"))
+    _check_means_range(path, mins, maxs)
     names = means_meta["files"]
+    per_splat = names[:2] + [_sog_field(meta, k, path)["files"][0] for k in ("quats", "scales", "sh0")]
+    if isinstance(shn, dict):
+        shn_names = shn.get("files")
+        if not isinstance(shn_names, list) or len(shn_names) < 2 or not all(isinstance(n, str) for n in shn_names):
+            raise SceneFormatError(path, "SOG meta.json: shN needs two files (centroids, labels)")
+        per_splat.append(shn_names[1])
+    texels = _check_image_sizes(path, files, per_splat, count)
+    if isinstance(shn, dict):
+        texels += math.prod(files.size(shn["files"][0], 64 * 15 * _MAX_CENTROID_ROWS))
+    # The decoded images, from their headers' sizes, besides the splats' own arrays.
+    check_splat_count(path, count, degree, "a SOG", fmt="sog", extra_bytes=texels * SOG_IMAGE_BYTES_PER_TEXEL)
     lo, hi = files.texels(names[0], count), files.texels(names[1], count)
     quantised = lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]
     span = np.where(maxs - mins == 0, 1.0, maxs - mins)
@@ -182,7 +283,7 @@ def decode_sog(path: Path):
         dc, logits = lerped[:, :3], lerped[:, 3]
     sh_all = dc[:, None, :]
     degree = 0
-    if isinstance(meta.get("shN"), dict):
+    if isinstance(shn, dict):
         sh_all, degree = _sog_rest(path, files, meta["shN"], version, count, sh_all)
     splats = finish_splats(path, "the SOG", means, log_scales, quats, logits, sh_all)
     return splats, f"SOG version {version}, {count} splats, SH degree {degree}", {"version": version}
@@ -197,7 +298,7 @@ def _sog_rest(path: Path, files: _SogFiles, shn: dict, version: int, count: int,
     height, width = grid.shape[:2]
     if version == 2:
         degree = shn.get("bands")
-        if degree not in (1, 2, 3):
+        if isinstance(degree, bool) or degree not in (1, 2, 3):
             raise SceneFormatError(path, f"SOG meta.json: shN.bands must be 1, 2 or 3, got {degree!r}")
         book = _numbers(path, shn.get("codebook"), 256, "shN.codebook")
         palette = shn.get("count")

@@ -10,6 +10,7 @@ table of (compressed, uncompressed) sizes and one zstd stream per non-empty sect
 from __future__ import annotations
 
 import gzip
+import io
 import os
 import struct
 import zlib
@@ -115,20 +116,36 @@ def _spz_extensions(path: Path, block: bytes) -> dict:
         else:
             found.setdefault("unknown_extensions", []).append(f"0x{kind:08X}")
         pos += 8 + length
+    if pos != len(block):
+        raise SceneFormatError(
+            path, f"SPZ extension records end {len(block) - pos} bytes before their block (a count that disagrees?)"
+        )
     return found
 
 
-def _zstd_decompress(path: Path, data: bytes, size: int) -> bytes:
+def _zstd_decompress(path: Path, data: bytes, size: int, what: str) -> bytes:
+    """A zstd stream inflated in steps, at most `size` + 1 bytes: the size a frame's header states is not
+    trusted (a frame claiming 1 TiB is refused, not allocated); any decoder error is the file's error."""
     try:
         import zstandard
     except ImportError:
         raise SceneFormatError(
             path, "an SPZ version 4 file (zstd streams): reading it needs the 'zstandard' package"
         ) from None
+    parts, got = [], 0
     try:
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    except zstandard.ZstdError as e:
-        raise SceneFormatError(path, f"corrupt SPZ zstd stream ({e})") from None
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data), read_across_frames=True) as reader:
+            while got <= size:
+                part = reader.read(min(size + 1 - got, 1 << 24))
+                if not part:
+                    break
+                parts.append(part)
+                got += len(part)
+    except Exception as e:  # noqa: BLE001 (a decoder's error on bad bytes, of whatever kind, is the file's)
+        raise SceneFormatError(path, f"corrupt SPZ zstd stream ({what}: {type(e).__name__}: {e})") from None
+    if got > size:
+        raise SceneFormatError(path, f"SPZ {what} inflates past the {size} bytes its header's splats need")
+    return b"".join(parts)
 
 
 # Bytes a version 1-3 stream may hold after its sections (extension records: a few dozen in practice).
@@ -149,15 +166,19 @@ def _gunzip(path: Path, raw: bytes) -> bytes:
         if len(head) == 16 and struct.unpack_from("<I", head)[0] == _NGSP:
             version, n, degree = struct.unpack_from("<IIB", head, 4)
             if 1 <= version <= 3 and 0 < n <= 2**31 - 1 and degree <= _SPZ_MAX_DEGREE:
-                check_splat_count(path, n, degree, "an SPZ file")
+                check_splat_count(path, n, degree, "an SPZ file", fmt="spz")
                 limit = sum(_section_sizes(version, n, degree)) + _MAX_TRAILING_BYTES
                 body = stream.decompress(stream.unconsumed_tail, limit)
-                if stream.unconsumed_tail or len(stream.decompress(b"", 1)):
+                if not stream.eof and (stream.unconsumed_tail or len(stream.decompress(b"", 1))):
                     raise SceneFormatError(
                         path, f"the SPZ stream inflates past what its {n} splats need ({16 + limit} bytes)"
                     )
                 if not stream.eof:
                     raise SceneFormatError(path, "corrupt SPZ gzip stream (it ends before its end marker: cut?)")
+                if stream.unused_data:
+                    raise SceneFormatError(
+                        path, f"{len(stream.unused_data)} bytes follow the SPZ gzip stream (a damaged or joined file?)"
+                    )
                 return head + body
         return head + stream.decompress(stream.unconsumed_tail, 16)  # a header the caller refuses by name
     except zlib.error as e:
@@ -177,13 +198,19 @@ def _spz_sections(path: Path, raw: bytes):
         raise SceneFormatError(path, f"SPZ header claims {n} splats")
     if degree > _SPZ_MAX_DEGREE:
         raise SceneFormatError(path, f"SPZ SH degree {degree} (the format's are 0 to {_SPZ_MAX_DEGREE})")
-    check_splat_count(path, n, degree, "an SPZ file")
+    check_splat_count(path, n, degree, "an SPZ file", fmt="spz")
     sizes = _section_sizes(version, n, degree)
     header = {"version": version, "count": n, "degree": degree, "fractional_bits": frac, "flags": flags}
     if version < 4:
         need = 16 + sum(sizes)
         if len(raw) < need:
             raise SceneFormatError(path, f"truncated SPZ: {n} splats need {need} bytes, the stream holds {len(raw)}")
+        if len(raw) > need and not flags & 2:
+            raise SceneFormatError(
+                path,
+                f"the SPZ stream holds {len(raw) - need} bytes after the sections of its header's {n} splats "
+                "(and no extensions flag): its count disagrees with its data",
+            )
         bounds = np.cumsum([16] + sizes)
         sections = [raw[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
         extensions = _spz_extensions(path, raw[need:]) if flags & 2 else {}
@@ -204,11 +231,13 @@ def _spz_sections(path: Path, raw: bytes):
             raise SceneFormatError(
                 path, f"SPZ stream {i} holds {unpacked} bytes in {packed} (expected {size}; the file is cut?)"
             )
-        data = _zstd_decompress(path, raw[pos : pos + packed], size)
+        data = _zstd_decompress(path, raw[pos : pos + packed], size, f"stream {i}")
         if len(data) != size:
             raise SceneFormatError(path, f"SPZ stream {i} unpacks to {len(data)} bytes, expected {size}")
         sections.append(data)
         pos += packed
+    if pos != len(raw):
+        raise SceneFormatError(path, f"{len(raw) - pos} bytes follow the SPZ's {streams} streams (a damaged file?)")
     sections += [b""] * (6 - len(sections))  # SH is the only section that may be empty
     return header, sections, extensions
 
