@@ -38,6 +38,15 @@ CASES = [
     ("procedural-negative-seed", ["explore", "procedural:-1", "--out", "{tmp}/new"], "procedural:-1"),
     # Seeds and sources by their text: int() took "", "1_0", "+1" and Arabic-Indic digits; an empty or
     # mis-cased SOURCE was blamed on a checkpoint inside it, or on the flags.
+    # Numbers on the command line in ASCII digits: int() and float() read "1_0" as 10 and Arabic-Indic digits.
+    ("views-underscore", ["render", "procedural", "--views", "1_0", "--out", "{tmp}/new"], "--views must be a number"),
+    ("seed-arabic-indic", ["render", "procedural", "--seed", "١", "--out", "{tmp}/new"], "--seed must be a number"),
+    ("grid-arabic-indic", ["explore", "procedural", "--grid", "٨x٤", "--out", "{tmp}/new"], "--grid must be AZxEL"),
+    (
+        "distance-edges-arabic-indic",
+        ["explore", "procedural", "--distance-edges", "١,٢", "--out", "{tmp}/new"],
+        "--distance-edges must be comma-separated numbers",
+    ),
     ("procedural-seed-underscore", ["render", "procedural:1_0", "--out", "{tmp}/new"], "SEED a whole number in digits"),
     ("procedural-seed-empty", ["render", "procedural:", "--out", "{tmp}/new"], "SEED a whole number in digits"),
     ("explore-empty-source", ["explore", "", "--out", "{tmp}/new"], "SOURCE is empty"),

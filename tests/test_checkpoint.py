@@ -369,6 +369,7 @@ def test_train_refuses_a_non_empty_run_dir_without_force(tmp_path):
         (["--downscale", "-2"], "--downscale must be a positive number"),
         (["--render-step-scale", "0"], "--render-step-scale must be a positive number"),
         (["--eval-max-pixels", "-1"], "--eval-max-pixels must be 0"),
+        (["--eval-max-pixels", "1"], "at least 64 pixels"),  # held-out views of 1x1 were compared
         (["--model", "splat", "--eval-max-pixels", "100"], "--eval-max-pixels: for NeRF training only"),
         (["--pixel-sampling", "worst"], "unknown --pixel-sampling 'worst'"),
         (["--model", "splat", "--pixel-sampling", "error"], "--pixel-sampling: for NeRF training only"),

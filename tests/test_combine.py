@@ -189,6 +189,26 @@ def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
     assert "needs the procedural Waldo room" in capsys.readouterr().err
 
 
+def test_score_cli_decodes_a_bounded_batch_at_a_time(tmp_path, capsys, monkeypatch):
+    """`waldo score` decodes at most SCORE_BATCH_BYTES of images at once (all of them were held at once, 0.8 GB
+    a 4096x4096 photo): in batches of one the scores are those of one batch, up to float32 rounding (XLA
+    vectorises a batch of 5 differently)."""
+    import imageio.v3 as iio
+
+    import waldo_jax.cli.score as score_cli
+
+    rng = np.random.default_rng(0)
+    paths = [tmp_path / f"{i}.png" for i in range(5)]
+    for path in paths:
+        iio.imwrite(path, rng.integers(0, 256, (16, 16, 3), dtype=np.uint8))
+    argv = ["score", "--criterion", "colorfulness", *map(str, paths), "--json"]
+    assert main(argv) == 0
+    whole = json.loads(capsys.readouterr().out)["scores"]
+    monkeypatch.setattr(score_cli, "SCORE_BATCH_BYTES", 16 * 16 * 16)  # one 16x16 image a batch
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out)["scores"] == pytest.approx(whole, rel=1e-6)
+
+
 def _blob_map(cx, cy, radius=0.15, size=96):
     ys, xs = (np.mgrid[0:size, 0:size] + 0.5) / size
     return ((xs - cx) ** 2 + (ys - cy) ** 2 <= radius**2).astype(np.float32)

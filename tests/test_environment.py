@@ -56,8 +56,14 @@ BAD = [
     ("JAX_ENABLE_X64", "t"),  # JAX's own other words for on: "t" and "y" (they got past, and crashed a search)
     ("JAX_DEBUG_INFS", "y"),
     ("JAX_DEBUG_INFS", "1"),
+    ("JAX_DISABLE_JIT", "1"),  # a 1-view render of 8x8 pixels took 18 s
+    ("JAX_DEFAULT_PRNG_IMPL", "rbg"),  # procedural:0 became another room, exit 0
+    ("JAX_THREEFRY_PARTITIONABLE", "0"),
     ("XLA_FLAGS", "--xla_force_host_platform_device_count=0"),
     ("XLA_FLAGS", "--xla_backend_optimization_level=99"),
+    # Values XLA reads and then cannot compile with: aborts (a check failure, an LLVM option) or an internal error.
+    ("XLA_FLAGS", "--xla_disable_all_hlo_passes=true"),
+    ("XLA_FLAGS", "--xla_backend_extra_options=--bogus"),
     ("XLA_FLAGS", "--xla_dump_to=/proc/waldo_dump"),
     ("JAX_COMPILATION_CACHE_DIR", "/proc/waldo_cache"),
 ]

@@ -367,6 +367,25 @@ def test_a_lab_image_is_refused_by_name(tmp_path):
         read_image(tmp_path / "lab.tiff")
 
 
+@pytest.mark.parametrize("suffix", [".gif", ".webp", ".png", ".tiff"])
+def test_an_image_of_several_frames_is_refused_before_decoding_them(tmp_path, suffix):
+    """An animated GIF, WebP or PNG or a multi-page TIFF: imageio decoded every frame before the shape was
+    refused (a 29 KB GIF reached 2.25 GB), and an animated WebP was scored by its first frame. A still GIF,
+    which imageio hands over as a stack of one frame, is read."""
+    from PIL import Image
+
+    from waldo_jax.io import read_image
+
+    frames = [Image.fromarray(np.full((16, 16, 3), 40 * i, np.uint8)) for i in range(3)]
+    frames[0].save(tmp_path / f"many{suffix}", save_all=True, append_images=frames[1:])
+    with pytest.raises(WaldoError, match=rf"many\{suffix}: an image of several frames"):
+        read_image(tmp_path / f"many{suffix}")
+    frames[1].save(tmp_path / f"one{suffix}")
+    np.testing.assert_allclose(
+        read_image(tmp_path / f"one{suffix}"), 40 / 255, atol=1 / 255 if suffix != ".webp" else 0.05
+    )
+
+
 def test_frames_that_share_an_image_file_warn(tmp_path):
     """Frames naming one image file (a copy-paste slip: one photo for eight poses) load with one warning that
     names the file and how many frames share it; distinct files load without it."""

@@ -157,8 +157,14 @@ _EYE = np.eye(4).tolist()
         ({"frames": [{"transform_matrix": [[str(v) for v in row] for row in _EYE]}]}, r"frame 0 .*not a matrix"),
         ({"frames": [{"transform_matrix": [[bool(v) for v in row] for row in _EYE]}]}, r"frame 0 .*not a matrix"),
         ({"frames": [{"transform_matrix": _EYE, "file_path": ["a.png"]}]}, r"'file_path' must be a string"),
+        # A camera the file gives in part, or per frame, was dropped for the default camera without a word.
+        ({"w": 64, "h": 32, "cx": 5, "k1": 0.3}, r"camera keys w, h, cx, k1 without a focal length"),
+        (
+            {"fl_x": 20, "w": 16, "h": 16, "frames": [{"transform_matrix": _EYE, "fl_x": 40}]},
+            r"frame 0 has its own camera",
+        ),
     ],
-    ids=["k1-huge", "k1-fold", "matrix-of-strings", "matrix-of-booleans", "file-path-list"],
+    ids=["k1-huge", "k1-fold", "matrix-of-strings", "matrix-of-booleans", "file-path-list", "no-focal", "per-frame"],
 )
 def test_unusable_lenses_and_fields_of_the_wrong_type_are_refused(tmp_path, meta, problem):
     """A lens whose rays are not finite (k1 = 1e30 rendered blank PNGs, exit 0) or that folds the image is

@@ -23,6 +23,7 @@ from waldo_jax.search.path import catmull_rom, path_c2w, path_motion, sample_pat
 from waldo_jax.search.path_search import (
     EVOSAX_STD_INIT,
     PathConfig,
+    aggregate_scores,
     default_params,
     path_limits,
     path_method,
@@ -245,6 +246,16 @@ def test_nerfstudio_camera_path_has_the_documented_fields_and_reads_back(tmp_pat
     world = json.loads((tmp_path / "ns_world.json").read_text())
     moved = np.reshape(world["camera_path"][0]["camera_to_world"], (4, 4))
     np.testing.assert_allclose(moved[:3, 3], 0.25 * (transform @ c2w[0])[:3, 3], atol=1e-6)
+    # A zoom or another projection, edited in, was rendered as frame 0's perspective camera without a word.
+    for edit, says in (
+        (lambda m: m["camera_path"][1].update(fov=5.0), "fields of view differ"),
+        (lambda m: m.update(camera_type="equirectangular"), "perspective cameras only"),
+    ):
+        edited = nerfstudio_camera_path(c2w, intrinsics, fps=10)
+        edit(edited)
+        (tmp_path / "edited.json").write_text(json.dumps(edited))
+        with pytest.raises(SceneFormatError, match=says):
+            read_poses_file(tmp_path / "edited.json", Intrinsics.create(8, 8, 8.0))
 
 
 def test_instant_ngp_path_round_trips_and_is_ngps_frame(tmp_path):
@@ -344,6 +355,45 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     capsys.readouterr()
     assert main(["path", "procedural:1", "--out", str(out), *CLI_TINY]) == 1
     assert "not empty" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "transform, scale, says",
+    [
+        (np.diag([1.0, 1.0, -1.0, 1.0])[:3], 1.0, "not a rotation"),  # a mirror: exported rotations of det -1
+        (np.diag([2.0, 2.0, 2.0, 1.0])[:3], 1.0, "not a rotation"),
+        (np.eye(4)[:3], 1e300, "scale must be between"),  # exports of infinities, written as null, exit 0
+    ],
+    ids=["mirror", "scaled", "scale-1e300"],
+)
+def test_a_dataparser_transform_that_is_no_rotation_or_of_an_absurd_scale_is_refused(transform, scale, says):
+    from waldo_jax.scenes.camera_paths import read_dataparser_transform
+
+    with pytest.raises(ValueError, match=says):
+        read_dataparser_transform({"transform": transform.tolist(), "scale": scale})
+
+
+def test_the_softmin_of_a_path_is_exact_at_every_temperature():
+    """softmin_t = -t log mean exp(-s / t) against float64, from t = 1e-3 (near the least score) to 1e10 (the
+    mean; the former form cancelled to 0 for every path in float32 there), signed by the direction; a NaN
+    frame makes the path NaN, and a -inf frame -inf."""
+    rng = np.random.default_rng(0)
+    scores = rng.uniform(0, 1, (6, 12)).astype(np.float32)
+    for direction in ("max", "min"):
+        for t in (1e-3, 0.05, 1.0, 100.0, 1e10):
+            config = dataclasses.replace(PathConfig(), aggregate="softmin", temperature=t, direction=direction)
+            signed = (1.0 if direction == "max" else -1.0) * scores.astype(np.float64)
+            x = -signed / t
+            top = x.max(-1, keepdims=True)
+            want = -t * (top[:, 0] + np.log(np.mean(np.exp(x - top), -1)))
+            got = np.asarray(aggregate_scores(jnp.asarray(scores), config), np.float64)
+            np.testing.assert_allclose((1.0 if direction == "max" else -1.0) * got, want, rtol=1e-5, atol=1e-6)
+    config = dataclasses.replace(PathConfig(), aggregate="softmin")
+    edge = np.array([[0.5, np.nan, 0.2], [0.5, -np.inf, 0.2]], np.float32)
+    got = np.asarray(aggregate_scores(jnp.asarray(edge), config))
+    assert np.isnan(got[0]) and got[1] == -np.inf
+    with pytest.raises(ValueError, match="temperature must be a positive number of at most 1e"):
+        dataclasses.replace(PathConfig(), temperature=1e31)
 
 
 @pytest.mark.parametrize(

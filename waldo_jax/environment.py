@@ -227,6 +227,27 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
         _off_only("the searches use infinities on purpose (the fitness of unusable slots): unset it"),
         "stop at the first infinity",
     ),
+    "JAX_DISABLE_JIT": (
+        _off_only("every search, render and training step is one compiled program: without jit a run takes hours"),
+        "run without compiling",
+    ),
+    # JAX modes that change what a seed draws: the same seed would build another room and search otherwise.
+    "JAX_DEFAULT_PRNG_IMPL": (
+        lambda v: (
+            None
+            if v.strip().lower() == "threefry2x32"
+            else "a seed fixes a run bit for bit with threefry2x32, JAX's default, only: unset it"
+        ),
+        "JAX's random number generator",
+    ),
+    "JAX_THREEFRY_PARTITIONABLE": (
+        lambda v: (
+            None
+            if v.strip().lower() in _ON
+            else "a seed's draws are waldo_jax's with JAX's default (on) only: unset it"
+        ),
+        "JAX's sharding-invariant threefry",
+    ),
 }
 
 
@@ -400,14 +421,20 @@ def _cache_file() -> Path:
 
 # A child process that starts XLA's CPU client with the XLA_FLAGS to check: XLA parses every flag there
 # and aborts on one it does not know or a value it cannot read (jaxlib's own client, else JAX's).
+# It then compiles and runs a small program: flags XLA reads but cannot work with (no HLO passes at all, a
+# code-generation split count of 0, options LLVM does not know) fail only there, aborting the process.
 _PROBE = """
-try:
-    from jaxlib import _jax
-    _jax.get_tfrt_cpu_client(asynchronous=False)
-except (ImportError, AttributeError, TypeError):
-    import jax
-    jax.devices("cpu")
+import jax
+import jax.numpy as jnp
+jax.jit(lambda x: jnp.sum(x * 2.0 + 1.0))(jnp.arange(8.0)).block_until_ready()
+jax.random.uniform(jax.random.key(0), (4,)).block_until_ready()  # constant arrays, as every random draw has
 """
+# The line of a failed probe that says why: XLA's check failures, LLVM's and its flag parser's errors,
+# else the last line (a Python exception's).
+_FAILURE_LINE = re.compile(
+    r"(Check failed[^\n]*|Unknown command line argument[^\n]*|Flag parsing failed[^\n]*|[A-Za-z]*Error: [^\n]*|"
+    r"terminate called[^\n]*|what\(\):[^\n]*)"
+)
 _UNKNOWN_FLAG = re.compile(r"Unknown flag in XLA_FLAGS: (\S+)")
 _BAD_VALUE = re.compile(r"Couldn't interpret value (.*) for flag (\w+)")
 
@@ -415,7 +442,9 @@ _BAD_VALUE = re.compile(r"Couldn't interpret value (.*) for flag (\w+)")
 def _read_cache() -> dict:
     """The answers cached for the installed jaxlib libraries (under their "key"; none for others)."""
     libraries = _jaxlib_libraries()
-    stamp = hashlib.sha1(repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries]).encode())
+    stamp = hashlib.sha1(
+        repr([(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in libraries] + [_PROBE]).encode()
+    )
     key = stamp.hexdigest()[:16]
     cache = _cache_file()
     try:
@@ -463,14 +492,30 @@ def xla_flags_refused(value: str) -> Optional[str]:
             answer = f"{unknown.group(1)} is no flag this jaxlib knows: XLA would abort the process"
         elif bad:
             answer = f"--{bad.group(2)}: XLA cannot read the value {bad.group(1)[:40]!r} and would abort the process"
+        elif _probe_fails(env, without_flags=True):
+            return None  # the probe fails without these flags too: nothing learnt about them
         else:
-            return None  # a failure for another reason: nothing learnt about the flags
+            lines = _FAILURE_LINE.findall(child.stderr)
+            why = (lines[-1] if lines else (child.stderr.strip().splitlines() or ["no message"])[-1]).strip()
+            answer = f"XLA fails to compile a small program with these flags ({why[:160]}) and would stop the command"
     known = _read_cache()  # again: another process may have written meanwhile
     probed = known.get("probed") if isinstance(known.get("probed"), dict) else {}
     if len(probed) < 256:
         known["probed"] = {**probed, value: answer}
         _write_cache(known)
     return answer or None
+
+
+def _probe_fails(env: dict, without_flags: bool) -> bool:
+    """Whether the probe program fails (in a child process), with `env`'s XLA_FLAGS or without any."""
+    import subprocess
+
+    env = {k: v for k, v in env.items() if not (without_flags and k == "XLA_FLAGS")}
+    try:
+        child = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=120)
+    except (OSError, subprocess.SubprocessError):
+        return True
+    return child.returncode != 0
 
 
 def xla_flag_known(name: str) -> bool:

@@ -501,8 +501,17 @@ def read_image(
     try:
         with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
             width, height, mode = *header.size, header.mode
+            # Pillow looks no further than the second frame; imageio would decode every frame of an animation
+            # before its shape is refused (a 29 KB GIF of 20 frames at 4096x4096 took 2.25 GB).
+            frames = 2 if getattr(header, "is_animated", False) else 1
     except Exception:  # not a format Pillow knows: imageio may still read it; its size is checked below
         width = height = mode = None
+        frames = 1
+    if frames > 1:
+        raise WaldoError(
+            f"{path}: an image of several frames (an animation or a multi-page file); waldo reads still "
+            "images: save the frame you mean as a PNG"
+        )
     if width is not None:
         _check_image_size(path, width, height, min_side)
     if mode in _OTHER_COLOUR_MODES:
@@ -520,6 +529,8 @@ def read_image(
     except Exception as exc:  # imageio raises many types, some with installation advice on later lines
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise WaldoError(f"{path}: not a readable image ({first[:160]})") from None
+    if image.ndim == 4 and image.shape[0] == 1:  # a still GIF comes as one frame of a stack
+        image = image[0]
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
     if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from typing import Optional, TextIO
 
@@ -21,7 +22,19 @@ from tqdm import tqdm
 
 from waldo_jax.errors import WaldoError
 
-__all__ = ["Parser", "UsageError", "DefaultsHelpFormatter", "add_quiet", "Progress"]
+__all__ = ["Parser", "UsageError", "is_ascii_number", "DefaultsHelpFormatter", "add_quiet", "Progress"]
+
+
+# A decimal number in ASCII (a sign, digits with an optional point, an exponent) or a word float() reads for
+# infinity and NaN (refused later by name, where the flag's range is checked).
+_ASCII_NUMBER = re.compile(
+    r"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*|\s*[+-]?(inf|infinity|nan)\s*", re.ASCII | re.I
+)
+
+
+def is_ascii_number(text: str) -> bool:
+    """Whether `text` is a number written in ASCII digits (no "1_0", no non-ASCII digits)."""
+    return _ASCII_NUMBER.fullmatch(text) is not None
 
 
 class UsageError(WaldoError):
@@ -48,6 +61,16 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str):
         """Raises `UsageError(message)` (argparse would print the usage and exit with status 2)."""
         raise UsageError(" ".join(message.split()))
+
+    def _get_value(self, action: argparse.Action, arg_string: str):
+        # int() and float() read "1_0" as 10 and Arabic-Indic or full-width digits as digits: a number on the
+        # command line is written in ASCII, as the environment's and procedural:SEED's are.
+        # Text that is no number at all keeps argparse's own "invalid int value" message.
+        readable_only_by_python = isinstance(arg_string, str) and (not arg_string.isascii() or "_" in arg_string)
+        if action.type in (int, float) and readable_only_by_python and not is_ascii_number(arg_string):
+            flag = max(action.option_strings, key=len) if action.option_strings else (action.metavar or action.dest)
+            raise argparse.ArgumentError(None, f"{flag} must be a number in ASCII digits, got {arg_string!r}")
+        return super()._get_value(action, arg_string)
 
     def _check_value(self, action: argparse.Action, value) -> None:
         # argparse's own hook for `choices`; the project's wording names the flag, the value and the choices.

@@ -18,7 +18,14 @@ from pathlib import Path
 from waldo_jax.io import read_json_file
 from waldo_jax import io
 from waldo_jax.scenes.camera_paths import read_dataparser_transform
-from waldo_jax.search.path_search import AGGREGATES, PATH_BUDGETS, PathConfig, check_method, path_limits
+from waldo_jax.search.path_search import (
+    AGGREGATES,
+    MAX_TEMPERATURE,
+    PATH_BUDGETS,
+    PathConfig,
+    check_method,
+    path_limits,
+)
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import (
     add_criterion_arguments,
@@ -173,6 +180,7 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
             raise WaldoError(f"{flag} must be a positive number, got {value}")
         check_float32(value, flag, positive=True)  # 1e-300 > 0 is 0 in float32 (and in a video's frame rate)
     check_float32(args.fps, "--fps", minimum=0.01, maximum=1000.0)  # what a video's frame rate can be
+    check_float32(args.temperature, "--temperature", maximum=MAX_TEMPERATURE)  # past it, softmin underflows
     if not 0 <= args.min_opacity <= 1:
         raise WaldoError(f"--min-opacity must lie between 0 and 1, got {args.min_opacity}")
     check_float32(args.min_travel, "--min-travel")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import re
 
+from waldo_jax.cli.conventions import is_ascii_number
 from waldo_jax.errors import WaldoError, check_float32
 from waldo_jax.search.archive import ViewGrid
 from waldo_jax.search.views import DEFAULT_MIN_SEPARATION
@@ -57,12 +58,15 @@ def view_grid(args: argparse.Namespace) -> ViewGrid:
     text = getattr(args, "grid", None)
     if text is None:
         return _DEFAULT_GRID
-    match = re.fullmatch(r"\s*(\d{1,3})\s*[xX]\s*(\d{1,3})\s*", str(text))
+    match = re.fullmatch(r"\s*(\d{1,3})\s*[xX]\s*(\d{1,3})\s*", str(text), re.ASCII)
     if not match:
         raise WaldoError(f"--grid must be AZxEL, two whole numbers such as 8x4, got {text!r}")
     edges_text = str(getattr(args, "distance_edges", "") or "").strip()
     try:
-        edges = tuple(float(part) for part in edges_text.split(",")) if edges_text else ()
+        parts = edges_text.split(",") if edges_text else []
+        if not all(map(is_ascii_number, parts)):
+            raise ValueError(edges_text)
+        edges = tuple(float(part) for part in parts)
     except ValueError:
         raise WaldoError(
             f"--distance-edges must be comma-separated numbers such as 0.75,1.33, got {edges_text!r}"

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 
 from waldo_jax.cli.conventions import add_quiet
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MIN_RESOLUTION, WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
 from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS
 from waldo_jax.nerf.runs import SAMPLER_CHOICES, Sampling, train_scene_run
@@ -89,9 +89,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         return _fit_splats(args)
     if args.capacity is not None:
         raise WaldoError("--capacity is for --model splat")
-    if args.eval_max_pixels < 0:
+    if args.eval_max_pixels < 0 or 0 < args.eval_max_pixels < MIN_RESOLUTION**2:  # 1 compared 1x1 views
         raise WaldoError(
-            f"--eval-max-pixels must be 0 (full size) or a positive number of pixels, got {args.eval_max_pixels}"
+            f"--eval-max-pixels must be 0 (full size) or at least {MIN_RESOLUTION**2} pixels ({MIN_RESOLUTION}x"
+            f"{MIN_RESOLUTION}, the smallest image side), got {args.eval_max_pixels}"
         )
     result, _, out = train_scene_run(
         args.scene_path,

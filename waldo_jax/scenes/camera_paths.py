@@ -337,14 +337,23 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
             if waldo.get("world") == "nerfstudio":
                 c2w = _nerfstudio_back(c2w, waldo)
             width, height = int(meta["render_width"]), int(meta["render_height"])
-            fov = float(meta["camera_path"][0]["fov"])
+            fovs = [float(e["fov"]) for e in meta["camera_path"]]
         else:
             c2w = _ngp_back(meta, waldo)
             width = int(waldo.get("render_width", default.width))
             height = int(waldo.get("render_height", default.height))
-            fov = float(meta["path"][0]["fov"])
+            fovs = [float(e["fov"]) for e in meta["path"]]
     except (KeyError, TypeError, ValueError, IndexError, np.linalg.LinAlgError, OverflowError) as e:
         raise ValueError(f"malformed camera path ({type(e).__name__}: {e})") from None
+    kind = meta.get("camera_type", "perspective")
+    if kind != "perspective":  # renders are pinhole views: another projection would be read as one
+        raise ValueError(f"camera_type {kind!r}: waldo renders perspective cameras only")
+    if len(set(fovs)) > 1:  # one camera renders every frame: a zoom would be read as frame 0's field of view
+        raise ValueError(
+            f"the frames' fields of view differ ({min(fovs):g} to {max(fovs):g} degrees): waldo renders a path "
+            "with one camera; give every frame the same fov"
+        )
+    fov = fovs[0] if fovs else 0.0
     if len(c2w) == 0:
         raise ValueError("the camera path has no frames")
     focal = _focal(fov, height)

@@ -53,12 +53,22 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     return m
 
 
+_FRAME_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y", "k1", "k2", "p1", "p2")
+
+
 def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics) -> Intrinsics:
     """Intrinsics of a poses file, or `default` when it has no focal length."""
     w, h = number(meta, "w", path, positive=True), number(meta, "h", path, positive=True)
     fl_x, fl_y = number(meta, "fl_x", path, positive=True), number(meta, "fl_y", path, positive=True)
     angle_x, angle_y = number(meta, "camera_angle_x", path), number(meta, "camera_angle_y", path)
     if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
+        other = [k for k in ("w", "h", "cx", "cy", "k1", "k2", "p1", "p2") if meta.get(k) is not None]
+        if other:  # they were dropped for the default camera without a word
+            raise SceneFormatError(
+                path,
+                f"camera keys {', '.join(other)} without a focal length: give 'fl_x' (or 'camera_angle_x'), "
+                "or leave the camera out to render with the source's",
+            )
         return default
     if w is None or h is None:
         # A focal length without an image size: assume the default camera's size (and aspect).
@@ -139,6 +149,13 @@ def read_poses_file(
             for i, frame in enumerate(frames):
                 if not isinstance(frame, dict) or "transform_matrix" not in frame:
                     raise SceneFormatError(path, f"frame {i} has no 'transform_matrix'")
+                own = [k for k in _FRAME_CAMERA_KEYS if k in frame and frame[k] != meta.get(k)]
+                if own:  # one camera renders every frame: a frame's own would be ignored
+                    raise SceneFormatError(
+                        path,
+                        f"frame {i} has its own camera ({', '.join(own)}): a poses file gives one camera for "
+                        "all frames, at its top level",
+                    )
                 poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
                 names.append(field(frame, "file_path", path, "string", where=f"frame {i}"))
             return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names

@@ -204,6 +204,13 @@ def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
         )
     if abs(np.linalg.det(transform[:3, :3])) < 1e-9:
         raise ValueError("dataparser transform has a singular rotation part")
+    rotation = transform[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
+        # nerfstudio's is a rotation (its orientation fixes the sign); a mirror or a scale here would write
+        # exports whose camera rotations are not rotations
+        raise ValueError("dataparser transform's 3x3 part is not a rotation (orthonormal, determinant +1)")
+    if not 1e-9 <= scale <= 1e9:  # a scale of 1e300 wrote exports of infinities (null in JSON) with exit 0
+        raise ValueError(f"dataparser scale must be between 1e-09 and 1e+09, got {scale:g}")
     return transform, scale
 
 

@@ -126,8 +126,11 @@ class PathConfig:
             raise ValueError(f"PathConfig.paths_per_call must be >= 1, got {self.paths_per_call}")
         if self.aggregate not in AGGREGATES:
             raise ValueError(f"PathConfig.aggregate must be one of {AGGREGATES}, got {self.aggregate!r}")
-        if not (self.temperature > 0 and math.isfinite(self.temperature)):
-            raise ValueError(f"PathConfig.temperature must be a positive number, got {self.temperature}")
+        if not (self.temperature > 0 and math.isfinite(self.temperature)) or self.temperature > MAX_TEMPERATURE:
+            raise ValueError(
+                f"PathConfig.temperature must be a positive number of at most {MAX_TEMPERATURE:g} (past it, scores "
+                f"over the temperature underflow float32), got {self.temperature}"
+            )
         if self.direction not in DIRECTIONS:
             raise ValueError(f"PathConfig.direction must be one of {DIRECTIONS}, got {self.direction!r}")
         if not (0 <= self.jitter < 1):
@@ -210,6 +213,11 @@ def path_limits(
     )
 
 
+# The largest softmin temperature: (least score - score) / t must stay a normal float32 (> 1.2e-38) for
+# score gaps down to 1e-7; the softmin is the mean long before.
+MAX_TEMPERATURE = 1e30
+
+
 def aggregate_scores(frame_scores: Array, config: PathConfig) -> Array:
     """A path's score from its frames' raw scores [..., F] (NaN if any frame's is NaN)."""
     sign = direction_sign(config.direction)
@@ -217,8 +225,13 @@ def aggregate_scores(frame_scores: Array, config: PathConfig) -> Array:
     if config.aggregate == "mean":
         value = jnp.mean(signed, axis=-1)
     else:
+        # softmin_t(s) = -t log mean exp(-s / t), written from the least score: min(s) - t log1p(mean(expm1(
+        # (min(s) - s) / t))). The plain form cancelled in float32 for a temperature far above the scores
+        # (1e10: log mean exp of numbers near 0 is exactly 0, every path scored 0); this one tends to the mean.
         t = config.temperature
-        value = -t * (jax.nn.logsumexp(-signed / t, axis=-1) - jnp.log(frame_scores.shape[-1]))
+        low = jnp.min(signed, axis=-1)  # NaN if a frame's is NaN
+        spread = jnp.mean(jnp.expm1((low[..., None] - signed) / t), axis=-1)  # in (-1, 0]
+        value = jnp.where(jnp.isinf(low), low, low - t * jnp.log1p(spread))  # -inf frame: -inf; all +inf: +inf
     return sign * value
 
 
