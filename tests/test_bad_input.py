@@ -810,3 +810,52 @@ def test_an_evosax_population_the_strategy_refuses_is_one_line(tmp_path, capsys,
     err = capsys.readouterr().err.strip()
     assert f"cannot take a population of {size}" in err and "\n" not in err
     assert not (tmp_path / "new").exists()
+
+
+def test_a_flag_with_no_effect_says_so_in_one_warning_line(tmp_path):
+    """`--target` without the finder, `--weights` without a weighted criterion, a method option with a method
+    that has none, `view --force` without `--export`: each was dropped without a word."""
+    import warnings
+
+    from waldo_jax.cli import build_parser
+    from waldo_jax.cli.explore import explore_config_from_args
+    from waldo_jax.cli.flags import criterion_before_source
+    from waldo_jax.cli.view import _check
+
+    parser = build_parser()
+    target = tmp_path / "t.png"
+    io_write = __import__("imageio.v2", fromlist=["imwrite"]).imwrite
+    io_write(target, np.zeros((4, 4, 3), np.uint8))
+
+    def said(action):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            action()
+        return [str(w.message) for w in caught]
+
+    args = parser.parse_args(
+        ["explore", "procedural", "--out", "x", "--criterion", "colorfulness", "--target", str(target)]
+    )
+    assert said(lambda: criterion_before_source(args)) == [
+        "--target has no effect: no criterion named here uses it (it is for waldo)"
+    ]
+    args = parser.parse_args(["score", "a.png", "--criterion", "opacity", "--weights", "w"])
+    (line,) = said(lambda: criterion_before_source(args))
+    assert line.startswith("--weights has no effect") and "brisque" in line and "saliency" in line
+    args = parser.parse_args(["explore", "procedural", "--out", "x", "--method", "egps", "--top-c", "8"])
+    assert said(lambda: explore_config_from_args(args)) == [
+        "--top-c 8 has no effect with --method egps (it is for pibs, pibs+refine)"
+    ]
+    args = parser.parse_args(["explore", "procedural", "--out", "x", "--method", "grs", "--refine-steps", "9"])
+    (line,) = said(lambda: explore_config_from_args(args))
+    assert line.startswith("--refine-steps 9 has no effect with --method grs (it is for grs+refine, ")
+    args = parser.parse_args(["view", "procedural", "--force", "--port", "0"])
+    assert said(lambda: _check(args)) == [
+        "--force has no effect without --export (it overwrites an existing FILE.html)"
+    ]
+    # The flags a method does take, and the finder's target, say nothing.
+    for argv in (
+        ["explore", "procedural", "--out", "x", "--method", "pibs", "--top-c", "8"],
+        ["explore", "procedural", "--out", "x", "--method", "egps+refine", "--refine-steps", "9"],
+    ):
+        assert said(lambda: explore_config_from_args(parser.parse_args(argv))) == []

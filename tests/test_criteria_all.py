@@ -64,6 +64,33 @@ def test_the_issue_criteria_are_registered():
     assert CRITERIA["iqa_cnn"].direction == CRITERIA["saliency"].direction == "max"
 
 
+def test_each_criterion_declares_the_user_chosen_context_it_reads():
+    """`CriterionSpec.reads` is what `waldo` warns by (`--weights` / `--target` with no effect): building
+    each criterion reads exactly the fields it declares (the oracles stop earlier, at the missing room)."""
+    from waldo_jax.criteria.base import CriterionError
+
+    assert set(NEEDS_WEIGHTS) == {name for name, spec in CRITERIA.items() if "weights_dir" in spec.reads}
+    for weights in NEEDS_WEIGHTS.values():
+        require_weights(weights)
+    read = set()
+
+    class Recording(CriterionContext):
+        def __getattribute__(self, field):
+            if field in ("weights_dir", "target"):
+                read.add(field)
+            return super().__getattribute__(field)
+
+    for name, spec in sorted(CRITERIA.items()):
+        read.clear()
+        try:
+            make_criterion(name, Recording(target=_target()))
+            built = True
+        except CriterionError:
+            built = False
+        assert read <= set(spec.reads), (name, read)
+        assert not built or read == set(spec.reads), (name, read)
+
+
 @pytest.mark.parametrize("name", IMAGE_CRITERIA)
 def test_criterion_contract(name, images):
     criterion = _build(name)

@@ -59,6 +59,7 @@ BAD = [
     ("JAX_DISABLE_JIT", "1"),  # a 1-view render of 8x8 pixels took 18 s
     ("JAX_DEFAULT_PRNG_IMPL", "rbg"),  # procedural:0 became another room, exit 0
     ("JAX_THREEFRY_PARTITIONABLE", "0"),
+    ("JAX_NUMPY_RANK_PROMOTION", "raise"),  # JAX's own broadcasting error from inside a search, no variable named
     ("XLA_FLAGS", "--xla_force_host_platform_device_count=0"),
     ("XLA_FLAGS", "--xla_backend_optimization_level=99"),
     # Values XLA reads and then cannot compile with: aborts (a check failure, an LLVM option) or an internal error.
@@ -96,6 +97,21 @@ def test_a_bad_value_is_one_line_naming_it_from_the_command(name, value):
     assert "Traceback" not in result.stderr
 
 
+def test_jax_strict_modes_waldo_jax_does_not_meet_are_refused_by_name():
+    """Rank and dtype strictness and the transfer guard each ended a search in JAX's own error or a traceback."""
+    for name, value in (
+        ("JAX_NUMPY_RANK_PROMOTION", "raise"),
+        ("JAX_NUMPY_DTYPE_PROMOTION", "Strict"),
+        ("JAX_TRANSFER_GUARD", "disallow"),
+        ("JAX_TRANSFER_GUARD_HOST_TO_DEVICE", "disallow_explicit"),
+        ("JAX_TRANSFER_GUARD_DEVICE_TO_HOST", "disallow"),
+    ):
+        (problem,) = environment_problems({name: value})
+        assert problem.startswith(f"{name}={value}"), problem
+    for name, value in (("JAX_NUMPY_RANK_PROMOTION", "allow"), ("JAX_TRANSFER_GUARD", "log")):
+        assert environment_problems({name: value}) == []
+
+
 @pytest.mark.slow
 def test_good_values_pass_and_the_command_runs():
     good = {
@@ -105,6 +121,8 @@ def test_good_values_pass_and_the_command_runs():
         "XLA_PYTHON_CLIENT_MEM_FRACTION": ".5",
         "WALDO_DETERMINISTIC": "1",
         "CUDA_VISIBLE_DEVICES": "",
+        "JAX_NUMPY_RANK_PROMOTION": "warn",
+        "JAX_NUMPY_DTYPE_PROMOTION": "standard",
     }
     assert environment_problems(good) == []
     result = _run(good, "--help")

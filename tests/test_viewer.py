@@ -23,7 +23,7 @@ from waldo_jax.cli import main
 viser = pytest.importorskip("viser", reason="the viewer needs viser (pip install 'waldo_jax[view]')")
 
 from waldo_jax.viewer import load_view_scene  # noqa: E402
-from waldo_jax.viewer.server import serve  # noqa: E402
+from waldo_jax.viewer.server import address_url, serve  # noqa: E402
 
 SERVE_SECONDS = 10.0  # the issue's target on the 2-core CPU
 
@@ -64,6 +64,16 @@ def test_import_waldo_jax_does_not_need_viser():
 
 
 @pytest.mark.slow
+def test_the_printed_url_is_one_a_browser_opens_for_every_host_kind():
+    """`--host ::1` printed http://::1:8080, which no browser opens; every interface shows as the loopback."""
+    assert address_url("::1", 8080) == "http://[::1]:8080"
+    assert address_url("::", 8080) == "http://[::1]:8080"
+    assert address_url("0.0.0.0", 81) == "http://127.0.0.1:81"
+    assert address_url("", 81) == "http://127.0.0.1:81"
+    assert address_url("fe80::1%eth0", 9) == "http://[fe80::1%25eth0]:9"
+    assert address_url("localhost", 9) == "http://localhost:9"
+
+
 def test_serves_its_page_over_http_in_time(donut_viewer):
     viewer, seconds = donut_viewer
     assert seconds <= SERVE_SECONDS, f"served in {seconds:.1f} s (target {SERVE_SECONDS} s)"

@@ -19,7 +19,10 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
   * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_NUM_CPU_DEVICES`,
     `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be made, tried by making one there; JAX
     itself only warns at each program it cannot cache), `JAX_ENABLE_X64` and `JAX_DEBUG_INFS` (off only:
-    waldo_jax computes in 32 bits and uses infinities on purpose) and every `JAX_*` configuration
+    waldo_jax computes in 32 bits and uses infinities on purpose), `JAX_DISABLE_JIT` (off only),
+    `JAX_DEFAULT_PRNG_IMPL` and `JAX_THREEFRY_PARTITIONABLE` (JAX's defaults only: a seed's draws),
+    `JAX_NUMPY_RANK_PROMOTION`, `JAX_NUMPY_DTYPE_PROMOTION` and `JAX_TRANSFER_GUARD*` (not their strict
+    modes, which waldo_jax's own programs do not meet) and every `JAX_*` configuration
     variable, which JAX itself checks when it is imported: `import_jax` turns its refusal into the same
     one line.
 
@@ -128,6 +131,15 @@ def _off_only(why: str) -> Callable[[str], Optional[str]]:
     return check
 
 
+def _refuse(*values: str, why: str) -> Callable[[str], Optional[str]]:
+    """A JAX setting whose `values` waldo_jax cannot run under (JAX itself checks that the rest are its words)."""
+
+    def check(value: str) -> Optional[str]:
+        return why if value.strip().lower() in values else None
+
+    return check
+
+
 def _platforms(value: str) -> Optional[str]:
     names = [p.strip().lower() for p in value.split(",") if p.strip()]
     unknown = [p for p in names if p not in _PLATFORMS]
@@ -231,6 +243,28 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
         _off_only("every search, render and training step is one compiled program: without jit a run takes hours"),
         "run without compiling",
     ),
+    # JAX's strict modes for user code: waldo_jax's own programs broadcast ranks, promote int32 with float32 and
+    # move arrays between host and device, so these end a run in JAX's error far from the variable.
+    "JAX_NUMPY_RANK_PROMOTION": (
+        _refuse("raise", why="waldo_jax broadcasts arrays of different ranks: unset it or set it to allow"),
+        "NumPy-style rank promotion",
+    ),
+    "JAX_NUMPY_DTYPE_PROMOTION": (
+        _refuse("strict", why="waldo_jax mixes integer and float arrays: unset it or set it to standard"),
+        "implicit dtype promotion",
+    ),
+    **{
+        name: (
+            _refuse("disallow", "disallow_explicit", why="waldo_jax moves arrays to and from the device: unset it"),
+            "JAX's transfer guard",
+        )
+        for name in (
+            "JAX_TRANSFER_GUARD",
+            "JAX_TRANSFER_GUARD_HOST_TO_DEVICE",
+            "JAX_TRANSFER_GUARD_DEVICE_TO_HOST",
+            "JAX_TRANSFER_GUARD_DEVICE_TO_DEVICE",
+        )
+    },
     # JAX modes that change what a seed draws: the same seed would build another room and search otherwise.
     "JAX_DEFAULT_PRNG_IMPL": (
         lambda v: (

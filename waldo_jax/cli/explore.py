@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+import warnings
 from typing import Optional
 
 from waldo_jax import io
@@ -31,9 +32,11 @@ from waldo_jax.cli.shots import add_shot_arguments, shot_separation, view_grid
 from waldo_jax.errors import WaldoError, check_float32, check_int
 from waldo_jax.pipeline import INITIAL_MODES, load_source, refine_for_source, run_explore, write_outputs
 from waldo_jax.pipeline.experiment import epoch_check
-from waldo_jax.search import BUDGETS, ExploreConfig, RefineConfig, get_method, method_names
+from waldo_jax.search import BUDGETS, METHODS, ExploreConfig, RefineConfig, get_method, method_names
 
 __all__ = ["add_command", "cmd_explore", "explore_config_from_args"]
+
+TOP_C = 5  # PIBS's default: the best views it pairs
 
 
 def add_command(subparsers) -> None:
@@ -75,7 +78,7 @@ def add_command(subparsers) -> None:
     )
     p.add_argument("--top-k", type=int, default=10, help="views returned")
     add_shot_arguments(p)
-    p.add_argument("--top-c", type=int, default=5, help="PIBS: how many best views are paired")
+    p.add_argument("--top-c", type=int, default=TOP_C, help="PIBS: how many best views are paired")
     p.add_argument("--pibs-fallback", default="none", choices=("none", "grs"), help="PIBS once its pairs run out")
     p.add_argument(
         "--initial",
@@ -110,6 +113,29 @@ def add_command(subparsers) -> None:
     p.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     add_quiet(p, "per-epoch progress lines nor progress bars")
     p.set_defaults(handler=cmd_explore)
+
+
+def _warn_unused_method_flags(args: argparse.Namespace, method: str, options) -> None:
+    """A warning line for each flag of a method option `method` does not take, given a value other than its
+    default (the others' flags keep their defaults unused: `--top-c 8` with egps changed nothing)."""
+    refine = RefineConfig()
+    flags = {
+        "top_c": (("--top-c", args.top_c, TOP_C),),
+        "fallback": (("--pibs-fallback", args.pibs_fallback, "none"),),
+        "refine": (
+            ("--refine-poses", args.refine_poses, refine.poses),
+            ("--refine-steps", args.refine_steps, refine.steps),
+            ("--refine-step-size", args.refine_step_size, refine.step_size),
+            ("--gradient-cost", args.gradient_cost, None),
+        ),
+    }
+    for option, given in flags.items():
+        if option in options:
+            continue
+        owners = ", ".join(name for name, spec in METHODS.items() if option in spec.options)
+        for flag, value, default in given:
+            if value != default:
+                warnings.warn(f"{flag} {value} has no effect with --method {method} (it is for {owners})", stacklevel=3)
 
 
 def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = None):
@@ -157,6 +183,7 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     # --refine-* flags the +refine methods'); the others' flags keep their defaults unused.
     flags = {"top_c": args.top_c, "fallback": args.pibs_fallback, "refine": refine}
     options = {name: value for name, value in flags.items() if name in search_method.options}
+    _warn_unused_method_flags(args, method, search_method.options)
     try:
         return ExploreConfig(
             method=method,

@@ -3,12 +3,14 @@
 `--criterion` takes a registered name or `weighted:NAME=W,...`; `--guard NAME:THRESHOLD` wraps it with
 `constrained` (repeatable); `--weights DIR` replaces `WALDO_WEIGHTS`; `--target FILE` is the reference
 image of the `waldo` finder. A command that loads a scene first calls `criterion_before_source`, so
-that a bad criterion, guard, weights folder or target is refused before the scene is loaded.
+that a bad criterion, guard, weights folder or target is refused before the scene is loaded, and a
+`--weights` or `--target` that no criterion named uses is said in a warning line.
 """
 
 from __future__ import annotations
 
 import argparse
+import warnings
 from typing import Optional
 
 from waldo_jax.criteria import CRITERIA, Criterion, CriterionContext
@@ -90,8 +92,9 @@ def add_criterion_arguments(parser: argparse.ArgumentParser, default: Optional[s
 def criterion_from_args(args: argparse.Namespace, room=None, source: str = "", train_c2w=None) -> Criterion:
     """The criterion the flags name (built with the room, training poses, weights folder and target they give)."""
     target = None
-    if getattr(args, "target", None):
-        target = read_image(args.target, what="--target image", min_side=2)
+    names = spec_names(args.criterion, getattr(args, "guard", []) or [])
+    if getattr(args, "target", None) and any("target" in CRITERIA[name].reads for name in names):
+        target = read_image(args.target, what="--target image", min_side=2)  # unused, it is only warned of
     context = CriterionContext(
         room=room, weights_dir=getattr(args, "weights", None), target=target, source=source, train_c2w=train_c2w
     )
@@ -110,6 +113,10 @@ def criterion_before_source(args: argparse.Namespace) -> Optional[Criterion]:
         folder or target image (naming the value or file).
     """
     names = spec_names(args.criterion, getattr(args, "guard", []) or [])
+    for flag, value, field in (("--weights", args.weights, "weights_dir"), ("--target", args.target, "target")):
+        if value and not any(field in CRITERIA[name].reads for name in names):
+            users = ", ".join(sorted(name for name, spec in CRITERIA.items() if field in spec.reads))
+            warnings.warn(f"{flag} has no effect: no criterion named here uses it (it is for {users})", stacklevel=2)
     if any(not CRITERIA[name].needs.render for name in names):
         return None
     return criterion_from_args(args, source=args.source)

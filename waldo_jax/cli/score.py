@@ -62,9 +62,9 @@ def cmd_score(args: argparse.Namespace) -> int:
         raise WaldoError("give IMAGE files or --source SOURCE (one of the two)")
     if args.source is not None:
         return _score_source(args)
-    criterion = criterion_from_args(args)
-    if not criterion.needs.render:
-        raise WaldoError(f"criterion {criterion.name!r} scores camera poses of the procedural room, not image files")
+    criterion = criterion_before_source(args)  # None: a criterion of poses (of the procedural room)
+    if criterion is None:
+        raise WaldoError(f"criterion {args.criterion!r} scores camera poses of the procedural room, not image files")
     # Every file is checked and sized from its header first; the images are then decoded a batch at a time,
     # at most SCORE_BATCH_BYTES of them (all of them at once took 0.8 GB a 4096x4096 photo, without a bound).
     by_size: dict = {}

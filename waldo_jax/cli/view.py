@@ -9,6 +9,7 @@ serves nothing.
 from __future__ import annotations
 
 import argparse
+import warnings
 import time
 from pathlib import Path
 
@@ -81,6 +82,8 @@ def _check(args: argparse.Namespace) -> None:
         raise WaldoError("--seconds bounds the serving; --export writes a file and serves nothing: give one")
     if args.export is None:
         check_host(args.host)
+        if args.force:
+            warnings.warn("--force has no effect without --export (it overwrites an existing FILE.html)", stacklevel=2)
     if args.export is not None:
         target = Path(args.export)
         if target.suffix.lower() not in (".html", ".htm"):

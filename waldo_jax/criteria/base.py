@@ -286,6 +286,8 @@ class CriterionSpec:
       description: one line.
       build: `build(context) -> Criterion`; raises `CriterionError` naming anything missing.
       smooth: the criterion it builds has a `smooth_apply` (gradient refinement can use it).
+      reads: the `CriterionContext` fields of a user's choosing that `build` uses ("weights_dir",
+        "target"), so that a command can say when a flag giving one has no effect.
     """
 
     name: str
@@ -294,6 +296,7 @@ class CriterionSpec:
     description: str
     build: Callable[[CriterionContext], Criterion]
     smooth: bool = False
+    reads: Tuple[str, ...] = ()
 
     @property
     def needs(self) -> InputNeeds:
@@ -310,6 +313,9 @@ def register(spec: CriterionSpec) -> CriterionSpec:
         raise ValueError(f"criterion {spec.name!r}: direction must be 'max' or 'min', got {spec.direction!r}")
     if spec.inputs not in INPUTS:
         raise ValueError(f"criterion {spec.name!r}: inputs must be one of {INPUTS}, got {spec.inputs!r}")
+    unknown = [field for field in spec.reads if field not in ("weights_dir", "target")]
+    if unknown:
+        raise ValueError(f"criterion {spec.name!r}: reads names no user-chosen context field: {unknown}")
     if spec.name in CRITERIA and CRITERIA[spec.name] is not spec:
         raise ValueError(f"criterion {spec.name!r} is already registered")
     CRITERIA[spec.name] = spec

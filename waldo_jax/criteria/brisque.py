@@ -276,4 +276,4 @@ _DESCRIPTION = (
     "BRISQUE (Mittal et al. 2012): SVR from natural-scene statistics to LIVE DMOS (OpenCV model), "
     "no-reference, lower is better, in [0, 100]"
 )
-register(CriterionSpec("brisque", "min", "images", _DESCRIPTION, brisque))
+register(CriterionSpec("brisque", "min", "images", _DESCRIPTION, brisque, reads=("weights_dir",)))

@@ -267,4 +267,4 @@ def iqa_cnn(context: CriterionContext) -> Criterion:
 
 
 _DESCRIPTION = "100 - predicted LIVE DMOS of CNNIQA (Kang et al. 2014), no-reference quality, higher is better"
-register(CriterionSpec("iqa_cnn", "max", "images", _DESCRIPTION, iqa_cnn, smooth=True))
+register(CriterionSpec("iqa_cnn", "max", "images", _DESCRIPTION, iqa_cnn, smooth=True, reads=("weights_dir",)))

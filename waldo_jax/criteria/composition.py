@@ -102,4 +102,4 @@ def composition(context: CriterionContext) -> Criterion:
     )
 
 
-register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition, smooth=True))
+register(CriterionSpec("composition", "max", "images", _DESCRIPTION, composition, smooth=True, reads=("weights_dir",)))

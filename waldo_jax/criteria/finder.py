@@ -385,4 +385,4 @@ def waldo(context: CriterionContext, scales: Sequence[float] = DEFAULT_SCALES) -
 
 
 _DESCRIPTION = "best normalised cross-correlation x colour-histogram similarity of the --target image"
-register(CriterionSpec("waldo", "max", "images", _DESCRIPTION, waldo, smooth=True))
+register(CriterionSpec("waldo", "max", "images", _DESCRIPTION, waldo, smooth=True, reads=("target",)))

@@ -293,4 +293,4 @@ _DESCRIPTION = (
     "NIQE (Mittal et al. 2013): distance of the image's patch statistics from pristine photographs' "
     "(LIVE model), no-reference, lower is better; images >= 96x96"
 )
-register(CriterionSpec("niqe", "min", "images", _DESCRIPTION, niqe))
+register(CriterionSpec("niqe", "min", "images", _DESCRIPTION, niqe, reads=("weights_dir",)))

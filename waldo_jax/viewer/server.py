@@ -30,7 +30,7 @@ from waldo_jax.viewer.live import LiveView, opengl_c2w
 from waldo_jax.viewer.paths import export_camera_path
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene
 
-__all__ = ["Viewer", "export_html", "import_viser", "serve"]
+__all__ = ["Viewer", "address_url", "export_html", "import_viser", "serve"]
 
 TOPK_COLOR = (255, 120, 0)
 # A demo's methods' top-k, in the order of its method folders (the first orange, as a lone explore's).
@@ -134,6 +134,15 @@ def describe(frustum: Frustum, scene: ViewScene, scored: int) -> str:
     return "  \n".join(lines)
 
 
+def address_url(host: str, port: int) -> str:
+    """The URL a browser on this machine opens for a server on `host`: every interface is shown as the
+    loopback address of its family, and an IPv6 address in brackets (`http://[::1]:8080`)."""
+    shown = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    if ":" in shown and not shown.startswith("["):
+        shown = "[" + shown.replace("%", "%25") + "]"  # a zone index's "%" escaped in a URL (RFC 6874)
+    return f"http://{shown}:{port}"
+
+
 class Viewer:
     """A `ViewScene` on a viser server: the scene, the frustums and the panel.
 
@@ -167,9 +176,7 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        host = self.server.get_host()
-        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-        return f"http://{shown}:{self.server.get_port()}"
+        return address_url(self.server.get_host(), self.server.get_port())
 
     def _build(self) -> None:
         scene, api = self.scene, self.server.scene

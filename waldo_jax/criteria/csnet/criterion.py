@@ -187,4 +187,4 @@ def saliency(context: CriterionContext) -> Criterion:
     )
 
 
-register(CriterionSpec("saliency", "max", "images", _DESCRIPTION, saliency, smooth=True))
+register(CriterionSpec("saliency", "max", "images", _DESCRIPTION, saliency, smooth=True, reads=("weights_dir",)))
