@@ -186,7 +186,7 @@ def test_score_cli_prints_json_in_input_order(tmp_path, capsys):
     assert main(["score", "--criterion", "colorfulness", str(tmp_path / "junk.png")]) == 1
     assert "junk.png: not a readable image" in capsys.readouterr().err
     assert main(["score", "--criterion", "waldo_oracle", str(paths[0])]) == 1
-    assert "needs the procedural Waldo room" in capsys.readouterr().err
+    assert "'waldo_oracle' scores camera poses of the procedural room, not image files" in capsys.readouterr().err
 
 
 def test_score_cli_decodes_a_bounded_batch_at_a_time(tmp_path, capsys, monkeypatch):
