@@ -228,7 +228,23 @@ CASES = [
     (
         "train-steps-past-int32",
         ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "1000000000000"],
-        "--steps must be a positive integer of at most 2147483647",
+        "--steps must be a positive integer of at most 10000000",
+    ),
+    # Steps within int32 but past any training: 2e9 started a 170,000-hour run whose history alone was 40 GB.
+    (
+        "train-steps-past-any-training",
+        ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "2000000000"],
+        "--steps must be a positive integer of at most 10000000",
+    ),
+    (
+        "splat-fit-steps-past-any-training",
+        ["train", "{tmp}/scene", "--model", "splat", "--out", "{tmp}/new", "--steps", "2000000000"],
+        "--steps must be an integer between 1 and 10000000",
+    ),
+    (
+        "demo-train-steps-past-any-training",
+        ["demo", "--out", "{tmp}/new", "--train-steps", "100000000"],
+        "--train-steps must be an integer between 1 and 10000000",
     ),
     (
         "explore-children-past-int32",

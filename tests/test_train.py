@@ -353,6 +353,9 @@ def test_preset_takes_box_and_aabb_scale_from_the_scene(lego_small):
             TrainConfig.preset("quality", dataclasses.replace(scaled, metadata={"aabb_scale": huge}))
     assert TrainConfig.preset("quality", dataclasses.replace(scaled, metadata={"aabb_scale": 128})).aabb_scale == 128
     assert TrainConfig.preset("fast", lego_small, steps=7).steps == 7
+    assert TrainConfig.preset("fast", lego_small, steps=10**7).steps == 10**7  # MAX_TRAIN_STEPS
+    with pytest.raises(TrainConfigError, match="steps must be at most 10,000,000, got 10,000,001"):
+        TrainConfig.preset("fast", lego_small, steps=10**7 + 1)
     with pytest.raises(TrainConfigError, match="unknown preset 'best'"):
         TrainConfig.preset("best", lego_small)
     with pytest.raises(TrainConfigError, match="rays_per_batch"):

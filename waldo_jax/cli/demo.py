@@ -8,7 +8,7 @@ import dataclasses
 
 from waldo_jax.cli.conventions import add_quiet
 from waldo_jax.cli.shots import add_shot_arguments, shot_separation
-from waldo_jax.errors import check_int
+from waldo_jax.errors import MAX_TRAIN_STEPS, check_int
 from waldo_jax.pipeline.demo import (
     DEMO_ROOM_SEED,
     RENDERS_METHOD,
@@ -71,7 +71,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """`waldo demo`: runs the demo into a new folder and names its report."""
     settings = demo_settings(args.quick, args.search_renders)
     if args.train_steps is not None:
-        settings = dataclasses.replace(settings, train_steps=check_int(args.train_steps, "--train-steps"))
+        settings = dataclasses.replace(
+            settings, train_steps=check_int(args.train_steps, "--train-steps", maximum=MAX_TRAIN_STEPS)
+        )
     settings = dataclasses.replace(settings, min_separation=shot_separation(args))
     out = run_demo(args.out, quick=args.quick, seed=args.seed, progress=not args.quiet, settings=settings)
     print(f"wrote {out / 'report.md'}")

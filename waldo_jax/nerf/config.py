@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.cameras import camera_focus
-from waldo_jax.errors import MAX_INT32, NumberError, WaldoError, check_float32
+from waldo_jax.errors import MAX_INT32, MAX_TRAIN_STEPS, NumberError, WaldoError, check_float32
 from waldo_jax.nerf.field import NGPFieldConfig
 from waldo_jax.nerf.hashgrid import HashGridConfig
 from waldo_jax.types import Array, Scene
@@ -144,8 +144,10 @@ class TrainConfig:
     pixel_sampling: str = "uniform"
 
     def __post_init__(self):
+        object.__setattr__(self, "steps", _positive_int("steps", self.steps))
+        if self.steps > MAX_TRAIN_STEPS:
+            raise TrainConfigError(f"TrainConfig.steps must be at most {MAX_TRAIN_STEPS:,}, got {self.steps:,}")
         for name in (
-            "steps",
             "rays_per_batch",
             "num_samples",
             "samples_per_batch",

@@ -15,7 +15,7 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple
 import jax
 
 from waldo_jax import io
-from waldo_jax.errors import MAX_INT32, WaldoError, check_float32
+from waldo_jax.errors import MAX_INT32, MAX_TRAIN_STEPS, WaldoError, check_float32
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME, save_checkpoint
 from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS, SAMPLERS, TrainConfig, TrainConfigError
 from waldo_jax.nerf.train import EVAL_MAX_PIXELS, HeldOut, TrainResult, evaluate_held_out, train
@@ -236,8 +236,8 @@ def train_scene_run(
         raise WaldoError(f"unknown sampler {sampling.samples!r}: expected one of {', '.join(SAMPLER_CHOICES)}")
     if sampling.pixels not in PIXEL_SAMPLINGS:
         raise WaldoError(f"unknown pixel sampling {sampling.pixels!r}: expected one of {', '.join(PIXEL_SAMPLINGS)}")
-    if steps is not None and not 1 <= steps <= MAX_INT32:  # an int32 under jit: 10**12 would wrap
-        raise WaldoError(f"--steps must be a positive integer of at most {MAX_INT32}, got {steps}")
+    if steps is not None and not 1 <= steps <= MAX_TRAIN_STEPS:
+        raise WaldoError(f"--steps must be a positive integer of at most {MAX_TRAIN_STEPS}, got {steps}")
     _positive("--downscale", options.downscale)
     _positive("--render-step-scale", render_step_scale)
     if eval_max_pixels is not None and not 1 <= eval_max_pixels <= MAX_INT32:

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from waldo_jax import io
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import MAX_TRAIN_STEPS, WaldoError
 from waldo_jax.scenes import load_splits
 from waldo_jax.scenes.ply import read_ply_points
 from waldo_jax.splats.fit import FitConfig, FitResult, fit_splats
@@ -67,8 +67,8 @@ def fit_scene_run(
     config = FitConfig() if config is None else config
     overrides: Dict[str, Any] = {}
     if steps is not None:
-        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10**7:
-            raise WaldoError(f"--steps must be an integer between 1 and 10000000, got {steps!r}")
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= MAX_TRAIN_STEPS:
+            raise WaldoError(f"--steps must be an integer between 1 and {MAX_TRAIN_STEPS}, got {steps!r}")
         overrides["steps"] = steps
     if capacity is not None:
         if isinstance(capacity, bool) or not isinstance(capacity, int) or not 16 <= capacity <= 2**24:
