@@ -230,7 +230,7 @@ CASES = [
         ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "1000000000000"],
         "--steps must be a positive integer of at most 10000000",
     ),
-    # Steps within int32 but past any training: 2e9 started a 170,000-hour run whose history alone was 40 GB.
+    # Steps within int32 but past any training: 2e9 started a 170,000-hour run whose history alone would be 30 GB.
     (
         "train-steps-past-any-training",
         ["train", "{tmp}/scene", "--out", "{tmp}/new", "--steps", "2000000000"],

@@ -93,8 +93,9 @@ def criterion_from_args(args: argparse.Namespace, room=None, source: str = "", t
     """The criterion the flags name (built with the room, training poses, weights folder and target they give)."""
     target = None
     names = spec_names(args.criterion, getattr(args, "guard", []) or [])
+    # A --target that no criterion named reads is not read either (`criterion_before_source` warns of it).
     if getattr(args, "target", None) and any("target" in CRITERIA[name].reads for name in names):
-        target = read_image(args.target, what="--target image", min_side=2)  # unused, it is only warned of
+        target = read_image(args.target, what="--target image", min_side=2)
     context = CriterionContext(
         room=room, weights_dir=getattr(args, "weights", None), target=target, source=source, train_c2w=train_c2w
     )
@@ -113,7 +114,11 @@ def criterion_before_source(args: argparse.Namespace) -> Optional[Criterion]:
         folder or target image (naming the value or file).
     """
     names = spec_names(args.criterion, getattr(args, "guard", []) or [])
-    for flag, value, field in (("--weights", args.weights, "weights_dir"), ("--target", args.target, "target")):
+    given = (
+        ("--weights", getattr(args, "weights", None), "weights_dir"),
+        ("--target", getattr(args, "target", None), "target"),
+    )
+    for flag, value, field in given:
         if value and not any(field in CRITERIA[name].reads for name in names):
             users = ", ".join(sorted(name for name, spec in CRITERIA.items() if field in spec.reads))
             warnings.warn(f"{flag} has no effect: no criterion named here uses it (it is for {users})", stacklevel=2)

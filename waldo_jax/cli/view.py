@@ -9,8 +9,8 @@ serves nothing.
 from __future__ import annotations
 
 import argparse
-import warnings
 import time
+import warnings
 from pathlib import Path
 
 from waldo_jax.cli.conventions import Progress, add_quiet
