@@ -193,6 +193,20 @@ def test_image_criterion_renders_and_scores(tmp_path):
     assert float(crit.score_images(png[None])[0]) == pytest.approx(r["topk"][0]["score"], rel=0.02)
 
 
+def test_top_c_past_the_runs_views_is_said_and_pairs_them_all(tmp_path, capsys):
+    """PIBS pairs min(--top-c, the run's views): a larger --top-c says so in one warning line, and runs as
+    --top-c equal to the views (8 training + 2 epochs x 6 children = 20) does, bit for bit."""
+    runs = {}
+    for top_c in (25, 20):
+        capsys.readouterr()
+        assert explore(tmp_path / str(top_c), "--method", "pibs", "--top-c", str(top_c)) == 0
+        warned = [line for line in capsys.readouterr().err.splitlines() if "--top-c" in line]
+        runs[top_c] = json.loads((tmp_path / str(top_c) / "results.json").read_text())
+        said = "waldo: warning: --top-c 25 exceeds the 20 views of the run (8 training + 2 epochs x 6 children)"
+        assert warned == ([f"{said}: all 20 are paired"] if top_c == 25 else [])
+    assert runs[25]["scores_generated"] == runs[20]["scores_generated"]
+
+
 def test_method_flags_become_the_options_of_the_method_that_has_them():
     def config(*flags):
         return explore_config_from_args(build_parser().parse_args(["explore", "procedural:1", "--out", "x", *flags]))

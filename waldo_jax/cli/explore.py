@@ -222,9 +222,17 @@ def cmd_explore(args: argparse.Namespace) -> int:
             refine=refine_for_source(config.refine_config(), source, criterion, args.gradient_cost is None)
         )
     try:
-        config.resolve(source.n_train).method_config(method)
+        resolved = config.resolve(source.n_train)
+        resolved.method_config(method)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
+    capacity = source.n_train + resolved.epochs * resolved.children_per_epoch
+    if "top_c" in method.options and args.top_c > capacity:  # PIBS takes min(top_c, capacity): said, not silent
+        warnings.warn(
+            f"--top-c {args.top_c} exceeds the {capacity} views of the run ({source.n_train} training + "
+            f"{resolved.epochs} epochs x {resolved.children_per_epoch} children): all {capacity} are paired",
+            stacklevel=2,
+        )
     # run_explore checks the batched epoch fits in memory before it scores or renders anything.
     setup = time.perf_counter() - start
     run = run_explore(

@@ -70,6 +70,7 @@ FORMAT_UP = {
 class UprightConfig:
     """Static settings of `estimate_upright` (plain Python: they set shapes and thresholds)."""
 
+    max_splats: int = 2**21  # a larger scene is decided on this many of its splats (a uniform thinning)
     sample: int = 16384  # means drawn (without replacement) for the plane search
     trials: int = 512  # RANSAC triples
     plane_tolerance: float = 0.01  # inlier band: this fraction of D either side of the plane
@@ -298,7 +299,9 @@ def estimate_upright(
     layout: Optional[str] = None,
     config: UprightConfig = UprightConfig(),
 ) -> Upright:
-    """The scene's up and layout (see the module docstring for the rules, in order).
+    """The scene's up and layout (see the module docstring for the rules, in order). A scene of more than
+    `config.max_splats` splats is decided on a uniform thinning to about that many (its full count in
+    `details["thinned_from"]`).
 
     Args:
       key: a JAX PRNG key (the RANSAC triples and the sample of means).
@@ -315,6 +318,16 @@ def estimate_upright(
     """
     if layout is not None and layout not in LAYOUTS:
         raise ValueError(f"layout {layout!r}: expected one of {', '.join(LAYOUTS)}")
+    count = len(means)
+    thinned = None
+    if count > config.max_splats:
+        # Every figure below is a share, a quantile or a sample: a uniform thinning to about `max_splats`
+        # keeps them, and bounds the work (30M splats took 76 s, most of it a permutation of all of them).
+        thin_key, key = jax.random.split(key)
+        thinned = np.flatnonzero(np.asarray(jax.random.uniform(thin_key, (count,))) < config.max_splats / count)
+        means, weights = np.asarray(means)[thinned], np.asarray(weights)[thinned]
+        if shapes is not None:
+            shapes = (np.asarray(shapes[0])[thinned], np.asarray(shapes[1])[thinned])
     means = np.asarray(means, np.float64)
     weights = np.asarray(weights, np.float64)
     low, high = np.quantile(means, 0.02, axis=0), np.quantile(means, 0.98, axis=0)
@@ -326,6 +339,8 @@ def estimate_upright(
     diagonal = max(float(np.linalg.norm(high - low)), 1e-12)
     radius = 0.5 * diagonal
     details: dict = {"splats_used": int(len(points)), "robust_diagonal": diagonal}
+    if thinned is not None:
+        details["thinned_from"] = int(count)
     plane = None
 
     if up is not None:
