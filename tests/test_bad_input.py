@@ -332,6 +332,13 @@ CASES = [
         ["score", "--criterion", "colorfulness", "{tmp}/junk.png"],
         "junk.png: not a readable image",
     ),
+    ("score-an-empty-image", ["score", "--criterion", "colorfulness", "{tmp}/empty.png"], "empty.png: an empty file"),
+    (  # a 900-megapixel PNG header: Pillow's own decompression-bomb text, now the size rule's
+        "score-a-bomb-sized-image",
+        ["score", "--criterion", "colorfulness", "{tmp}/bomb.png"],
+        "bomb.png: the image is too large (Image size (900000000 pixels)); sides must lie between 8 and "
+        f"{MAX_RESOLUTION}",
+    ),
     (
         "render-poses-a-directory",
         ["render", "{tmp}/tiny_run", "--poses", "{tmp}/run", "--out", "{tmp}/new"],
@@ -408,6 +415,20 @@ def _write_run(folder, nan=False, **record):
     )
 
 
+def _write_png_header(path, width, height):
+    """A PNG whose header says width x height over a few bytes of pixel data (a decompression bomb's size)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    )
+
+
 def _inputs(tmp):
     """The files the cases read, written once per test into `tmp`."""
     import imageio.v3 as iio
@@ -422,6 +443,8 @@ def _inputs(tmp):
     os.mkfifo(tmp / "fifo")
     os.symlink(tmp / "loop", tmp / "loop")
     (tmp / "junk.png").write_text("not an image")
+    (tmp / "empty.png").write_bytes(b"")
+    _write_png_header(tmp / "bomb.png", 30000, 30000)
     iio.imwrite(tmp / "huge.png", np.zeros((8, 4100, 3), np.uint8))
     iio.imwrite(tmp / "dot.png", np.zeros((1, 1, 3), np.uint8))
     nan = np.random.default_rng(0).random((16, 16, 3)).astype(np.float32)
@@ -875,3 +898,50 @@ def test_a_flag_with_no_effect_says_so_in_one_warning_line(tmp_path):
         ["explore", "procedural", "--out", "x", "--method", "egps+refine", "--refine-steps", "9"],
     ):
         assert said(lambda: explore_config_from_args(parser.parse_args(argv))) == []
+
+
+@pytest.mark.parametrize(
+    "kind, says",
+    [("folder", "a directory"), ("fifo", "a FIFO, socket or device")],
+)
+def test_every_json_reader_says_a_file_that_is_no_regular_file_before_reading_it(tmp_path, kind, says):
+    """`io.read_json_file`, under every JSON reader (poses files, results.json, summary.json, camera paths):
+    a FIFO blocked the read for ever (and /dev/zero, size 0 by its stat, read until memory ran out: not tried
+    here, as without the check it would take the machine's memory). Each now ends at the stat, in the
+    reader's own error type."""
+    import signal
+
+    from waldo_jax.io import read_json_file
+
+    path = tmp_path / "poses.json"
+    path.mkdir() if kind == "folder" else os.mkfifo(path)
+
+    def expire(signum, frame):
+        raise TimeoutError("the read blocked")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(10)
+    try:
+        with pytest.raises(WaldoError, match=f"{path}: {says}, where a poses file was expected"):
+            read_json_file(path, "poses file")
+        with pytest.raises(ValueError, match=f"^{says}, where an output JSON was expected$"):
+            read_json_file(path, "output JSON", error=ValueError)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_json_that_could_not_be_held_parsed_is_refused_before_parsing(tmp_path, monkeypatch):
+    """A JSON file's objects take up to 24 bytes per byte of text (`[[0],[0],...]`): a 512 MiB file, within
+    the size bound, could need 12 GiB, and Linux ends such a process without a MemoryError. Its worst case
+    is checked against the free memory first, in the reader's own error type."""
+    import waldo_jax.io as wio
+
+    path = tmp_path / "poses.json"
+    path.write_text("[" + ",".join(["[0]"] * 100_000) + "]")  # 400 kB: up to 10 MB parsed
+    monkeypatch.setattr(wio, "host_memory_bytes", lambda: 4 * 2**20)
+    says = r"poses.json: poses file of 0.4 MiB may take up to 0.01 GiB parsed, more than the 0.0 GiB"
+    with pytest.raises(WaldoError, match=says):
+        wio.read_json_file(path, "poses file")
+    monkeypatch.setattr(wio, "host_memory_bytes", lambda: 64 * 2**20)
+    assert len(wio.read_json_file(path, "poses file")) == 100_000

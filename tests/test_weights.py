@@ -6,6 +6,7 @@ from __future__ import annotations
 import collections
 import io
 import json
+import os
 import pickle
 import struct
 import zipfile
@@ -15,7 +16,7 @@ import pytest
 
 import waldo_jax  # noqa: F401  (before jax: XLA flags)
 from waldo_jax.cli import main
-from waldo_jax.errors import DataNotFoundError
+from waldo_jax.errors import DataNotFoundError, WaldoError
 from waldo_jax.weights import (
     TorchPickleError,
     WeightsError,
@@ -386,3 +387,24 @@ def _flat(tree, prefix=""):
             yield from _flat(value, f"{prefix}{key}/")
     else:
         yield prefix, np.asarray(tree)
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_a_weights_file_that_is_no_regular_file_is_said_as_such(tmp_path, kind):
+    """A folder or a FIFO where a model's weights file (native or original) belongs was said to be missing
+    ("weights file not found"), or, for a native archive, passed over for the originals; it is named as
+    what it is, for every model, as everywhere else a file is read."""
+    from waldo_jax.criteria import CriterionContext, make_criterion
+
+    from waldo_jax.weights import CONVERTERS
+
+    for model, converter in CONVERTERS.items():
+        name = {"csnet": "saliency", "cnniqa": "iqa_cnn"}.get(model, model)
+        for filename in (converter.files[0], f"{model}.npz"):
+            root = tmp_path / f"{model}_{filename}"
+            (root / model).mkdir(parents=True)
+            path = root / model / filename
+            path.mkdir() if kind == "folder" else os.mkfifo(path)
+            says = "a directory" if kind == "folder" else "a FIFO, socket or device"
+            with pytest.raises(WaldoError, match=f"{path}: {says}, where a"):
+                make_criterion(name, CriterionContext(weights_dir=str(root)))

@@ -17,6 +17,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import warnings
 from pathlib import Path
 from typing import Any, BinaryIO, Callable, Dict, Iterator, List, Optional, Sequence
@@ -25,7 +26,7 @@ import imageio.v3 as iio
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, _a, check_input_file, host_memory_bytes
 
 __all__ = [
     "atomic_file",
@@ -345,6 +346,9 @@ def stale_files(folder: str | os.PathLike, pattern: str, keep: Sequence[str]) ->
 # deeper file would exhaust Python's recursion, a larger one the machine's memory.
 MAX_JSON_DEPTH = 64
 MAX_JSON_BYTES = 512 * 2**20
+# Bytes of Python objects a byte of JSON text can parse into, at most: `[[0],[0],...]` and `[{},{},...]`
+# take 24 (tracemalloc, CPython 3.11), `[0.5,0.5,...]` 8. A file of MAX_JSON_BYTES may need 12.5 GiB.
+_JSON_PARSED_BYTES = 25
 _JSON_STRING = re.compile(rb'"(?:[^"\\\n]|\\.)*"')
 _DEPTH_CHUNK = 1 << 24
 
@@ -378,8 +382,9 @@ def parse_json(
     error: Optional[Callable[[str], Exception]] = None,
 ) -> Any:
     """Parses JSON text read from `path`, refusing text over MAX_JSON_BYTES, nesting deeper than
-    MAX_JSON_DEPTH, bytes that are not UTF-8 and malformed JSON: `error(problem)` is raised (default: a
-    WaldoError naming `path`), so each reader keeps its own error type."""
+    MAX_JSON_DEPTH, more than the free memory could hold parsed, bytes that are not UTF-8 and malformed
+    JSON: `error(problem)` is raised (default: a WaldoError naming `path`), so each reader keeps its own
+    error type."""
 
     def fail(problem: str) -> Exception:
         return WaldoError(f"{path}: {problem}") if error is None else error(problem)
@@ -390,6 +395,12 @@ def parse_json(
     depth = json_depth(data)
     if depth > MAX_JSON_DEPTH:
         raise fail(f"{what} nests {depth} levels deep (at most {MAX_JSON_DEPTH})")
+    need, available = _JSON_PARSED_BYTES * len(data), host_memory_bytes()
+    if available and need > available:  # checked before parsing: Linux kills, it raises no MemoryError
+        raise fail(
+            f"{what} of {len(data) / 2**20:,.1f} MiB may take up to {need / 2**30:,.2f} GiB parsed, more than "
+            f"the {available / 2**30:.1f} GiB this machine has free"
+        )
     try:
         return json.loads(data.decode("utf-8"), parse_int=_json_int)
     except UnicodeDecodeError as e:
@@ -403,10 +414,16 @@ def parse_json(
 def read_json_file(
     path: str | os.PathLike, what: str = "JSON file", error: Optional[Callable[[str], Exception]] = None
 ) -> Any:
-    """`parse_json` of the file at `path`, its size checked before it is read."""
+    """`parse_json` of the file at `path`, a regular file (not a FIFO, device or folder) whose size is checked
+    before it is read."""
     path = Path(path)
     try:
-        size = path.stat().st_size
+        status = path.stat()
+        if not stat.S_ISREG(status.st_mode):  # a FIFO would block the read for ever, a device fill memory
+            kind = "a directory" if stat.S_ISDIR(status.st_mode) else "a FIFO, socket or device"
+            problem = f"{kind}, where {_a(what)} was expected"
+            raise WaldoError(f"{path}: {problem}") if error is None else error(problem)
+        size = status.st_size
         if size > MAX_JSON_BYTES:
             problem = f"{what} of {size / 2**20:.0f} MiB (at most {MAX_JSON_BYTES // 2**20} MiB)"
             raise WaldoError(f"{path}: {problem}") if error is None else error(problem)
@@ -498,12 +515,19 @@ def read_image(
         small or too large, with NaN / infinite values or values out of range (the message names the file).
     """
     path = check_input_file(path, what)
+    if path.stat().st_size == 0:
+        raise WaldoError(f"{path}: an empty file, where {_a(what)} was expected")
     try:
         with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
             width, height, mode = *header.size, header.mode
             # Pillow looks no further than the second frame; imageio would decode every frame of an animation
             # before its shape is refused (a 29 KB GIF of 20 frames at 4096x4096 took 2.25 GB).
             frames = 2 if getattr(header, "is_animated", False) else 1
+    except Image.DecompressionBombError as exc:  # Pillow refuses to open it: sized far past MAX_RESOLUTION
+        raise WaldoError(
+            f"{path}: the image is too large ({str(exc).split(' exceeds')[0]}); sides must lie between {min_side} "
+            f"and {MAX_RESOLUTION} pixels"
+        ) from None
     except Exception:  # not a format Pillow knows: imageio may still read it; its size is checked below
         width = height = mode = None
         frames = 1

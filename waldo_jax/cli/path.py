@@ -11,9 +11,14 @@ SOURCE is `procedural[:SEED]` or a run directory. See `waldo_jax.search.path_sea
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
+import warnings
 from pathlib import Path
+
+import jax
+import numpy as np
 
 from waldo_jax.io import read_json_file
 from waldo_jax import io
@@ -34,16 +39,29 @@ from waldo_jax.cli.flags import (
     criterion_from_args,
     splat_pose_options,
 )
-from waldo_jax.errors import WaldoError, check_float32, check_input_file, check_resolution
+from waldo_jax.errors import (
+    MemoryBudgetError,
+    WaldoError,
+    check_float32,
+    check_input_file,
+    check_memory,
+    check_resolution,
+    host_memory_bytes,
+)
 from waldo_jax.pipeline import INITIAL_MODES, load_source
+from waldo_jax.pipeline.experiment import EPOCH_BYTES_PER_PIXEL, memory_bytes, seed_keys
 from waldo_jax.pipeline.path_run import (
     PathRunOptions,
+    gif_frame_ms,
     check_nerfstudio_export,
+    frame_function,
     path_check,
+    paths_per_call,
     read_explore_anchors,
     run_path,
     write_path_outputs,
 )
+from waldo_jax.search.path_search import search_path_memory
 
 __all__ = ["add_command", "cmd_path", "MAX_FRAMES", "MAX_KEYFRAMES"]
 
@@ -151,6 +169,23 @@ def add_command(subparsers) -> None:
     p.set_defaults(handler=cmd_path)
 
 
+def _warn_ignored(args: argparse.Namespace) -> None:
+    """A flag off its default that the other flags make change nothing says so (as `waldo explore`'s do):
+    the softmin's temperature with the mean, how the training views are scored when --from-explore's
+    poses are the anchors instead."""
+    ignored = [
+        ("--temperature", args.temperature != 0.05 and args.aggregate == "mean", "it is for --aggregate softmin"),
+        (
+            "--initial",
+            args.initial != "images" and args.from_explore is not None,
+            "the anchors are --from-explore's poses, not the training views",
+        ),
+    ]
+    for flag, unused, why in ignored:
+        if unused:
+            warnings.warn(f"{flag} {getattr(args, flag[2:])} has no effect: {why}", stacklevel=3)
+
+
 def _config_from_args(args: argparse.Namespace) -> PathConfig:
     try:
         check_method(args.method)
@@ -190,6 +225,17 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
             f"--min-travel must lie between 0 and --frames x --max-speed = "
             f"{args.frames * args.max_speed:g} extents, got {args.min_travel}"
         )
+    if args.max_turn >= 180:  # a frame's view turns at most 180 degrees from the last
+        warnings.warn(f"--max-turn {args.max_turn:g}: no frame turns more than 180 degrees, so the turn limit is off")
+    gif_fps = 1000 / gif_frame_ms(args.fps)
+    if abs(gif_fps - args.fps) > 0.1 * args.fps:
+        # A GIF stores whole centiseconds, at least 2 (browsers slow shorter frames): past 50 fps, and where
+        # the rounding is coarse, path.gif plays at another rate than --fps, which the other files keep.
+        warnings.warn(
+            f"--fps {args.fps:g}: path.gif shows each frame {gif_frame_ms(args.fps)} ms, {gif_fps:g} frames a "
+            f"second (path.mp4 and the exports keep {args.fps:g})"
+        )
+    _warn_ignored(args)
     if args.initial not in INITIAL_MODES:
         raise WaldoError(f"unknown --initial {args.initial!r}: expected one of {', '.join(INITIAL_MODES)}")
     for flag, value in (("--resolution", args.resolution), ("--video-resolution", args.video_resolution)):
@@ -219,27 +265,139 @@ def _dataparser(path: str):
         raise WaldoError(f"{path}: {e}") from None
 
 
+# Bytes a video frame's pixel takes at once while `run_path` renders and `write_path_outputs` encodes it:
+# RGBA float32 twice (the calls' parts and their concatenation), the frame as uint8 twice (the stack, its
+# even-sided copy for H.264); a NeRF of the room adds its truth (RGB float32 twice) and the side-by-side
+# path_truth.mp4 (float32 and uint8).
+VIDEO_BYTES_PER_PIXEL = 2 * 16 + 2 * 3
+TRUTH_BYTES_PER_PIXEL = 2 * 12 + 2 * 12 + 2 * 6
+
+
+def _anchor_check(check, anchor_c2w, from_explore: str):
+    """`path_check` and a bound on the anchors of --from-explore: `run_path` scores them in one call, every
+    anchor's render at once (`EPOCH_BYTES_PER_PIXEL`), before the search; a poses.json of 100,000 poses
+    would take the whole machine. Called by `load_source` with the renders' size, before it renders."""
+
+    def both(width: int, height: int, n_train: int) -> None:
+        check(width, height, n_train)
+        if anchor_c2w is None:
+            return
+        need, available = len(anchor_c2w) * width * height * EPOCH_BYTES_PER_PIXEL, memory_bytes()
+        if need > available:
+            raise MemoryBudgetError(
+                f"--from-explore {from_explore}: its poses.json holds {len(anchor_c2w):,} poses, rendered and "
+                f"scored at once at {width}x{height}: about {need / 2**30:,.1f} GiB, more than the "
+                f"{available / 2**30:.1f} GiB at hand; keep at most "
+                f"{max(1, available // (width * height * EPOCH_BYTES_PER_PIXEL)):,} poses (or a lower --resolution)"
+            )
+
+    return both
+
+
+def _check_video_memory(width: int, height: int, truth: bool, frames: int, flag: str) -> None:
+    """Refuses a video of `frames` frames of width x height whose pixels (`VIDEO_BYTES_PER_PIXEL`, and
+    `TRUTH_BYTES_PER_PIXEL` with the room's truth beside a NeRF's frames) cannot be held in the host's
+    memory, before the search runs: they are rendered after it, and `--frames 2000 --video-resolution
+    4096` would have ended hours later in a MemoryError. `flag` is the flag that sets the size."""
+    per_pixel = VIDEO_BYTES_PER_PIXEL + (TRUTH_BYTES_PER_PIXEL if truth else 0)
+    check_memory(
+        frames * width * height * per_pixel,
+        f"--frames {frames} x {flag} {max(width, height)}: the video's {frames} frames of {width}x{height}",
+        f"pass fewer --frames or a lower {flag}",
+    )
+
+
+# The compiled search's memory is checked (`_check_search_memory`) when its candidates alone would take
+# more than this share of the memory at hand: the check compiles the search once more (2-16 s here), which
+# a run of the usual budgets (about 120 paths of 24 frames: kilobytes) need not pay.
+SEARCH_CHECK_SHARE = 1 / 16
+
+
+def _population_bytes(config: PathConfig, seeds: int) -> int:
+    """Bytes every candidate of every seed keeps through the search (`PathPopulation`: keyframes' origin,
+    target and up [K, 3] each, the --frames scores, score, violation, epoch: float32 / int32; valid: bool)."""
+    paths = config.initial_paths + config.epochs * config.paths_per_epoch
+    return seeds * paths * (4 * (9 * config.keyframes + config.frames + 3) + 1)
+
+
+def _check_search_memory(source, criterion, config: PathConfig, limits, anchor_c2w, seed: int, seeds: int) -> None:
+    """Refuses a search whose compiled program needs more memory than the machine has free, before it runs.
+
+    The flags set the work: every candidate (--initial-paths + --epochs x --paths-per-epoch, for each of
+    --seeds) keeps its keyframes and its --frames scores, and `--frames 2000 --initial-paths 10000
+    --paths-per-epoch 10000 --epochs 100` filled 23 GiB and was killed. Where the candidates are more
+    than a small share of memory (`SEARCH_CHECK_SHARE`), XLA's analysis of the program `run_path` runs
+    (its config resolved as there: the criterion's direction, the paths per call that fit) says what it
+    needs, scan copies and an epoch's frames included.
+    """
+    config = dataclasses.replace(config, direction=criterion.direction).resolve()
+    # XLA's figure is what the program takes at once: set against the memory free now (the host's on a
+    # CPU, as `waldo explore` does), the device's on an accelerator.
+    available = memory_bytes() if jax.devices()[0].platform != "cpu" else host_memory_bytes()
+    if not available or _population_bytes(config, seeds) <= SEARCH_CHECK_SHARE * available:
+        return
+    fits = paths_per_call(source, config)
+    if fits < seeds:
+        return  # `run_path` refuses the resolution or the seeds with its own message
+    config = dataclasses.replace(
+        config, paths_per_call=min(fits // seeds, max(config.paths_per_epoch, config.initial_paths))
+    )
+    anchors = source.train_c2w if anchor_c2w is None else anchor_c2w
+    keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
+    scores = np.zeros(len(anchors), np.float32)  # only their shape is compiled
+    try:
+        need = search_path_memory(
+            keys, frame_function(source, criterion), anchors, scores, source.train_c2w, limits, config
+        )
+    except ValueError:
+        return  # too few anchors for the keyframes: `run_path` says so with its own message
+    if need is not None and need > available:
+        paths = config.initial_paths + config.epochs * config.paths_per_epoch
+        raise MemoryBudgetError(
+            f"--initial-paths {config.initial_paths} + --epochs {config.epochs} x --paths-per-epoch "
+            f"{config.paths_per_epoch} = {paths:,} paths of --frames {config.frames}, x --seeds {seeds}: the "
+            f"compiled search needs {need / 2**30:,.1f} GiB, more than the {available / 2**30:.1f} GiB at hand; "
+            "use fewer paths, epochs, frames or seeds"
+        )
+
+
 def cmd_path(args: argparse.Namespace) -> int:
     """`waldo path`: searches the path and writes its files into --out."""
     config = _config_from_args(args)
     dataparser = None if args.nerfstudio_transforms is None else _dataparser(args.nerfstudio_transforms)
     anchor_c2w = None if args.from_explore is None else read_explore_anchors(args.from_explore)
+    if anchor_c2w is not None and len(anchor_c2w) < max(2, config.keyframes):
+        raise WaldoError(
+            f"--from-explore {args.from_explore}: its poses.json holds {len(anchor_c2w)} pose"
+            f"{'s' if len(anchor_c2w) != 1 else ''}; a path of --keyframes {config.keyframes} starts from at "
+            f"least {max(2, config.keyframes)}"
+        )
     io.check_output_dir(args.out, force=args.force)  # refuse early, before any slow work
     start = time.perf_counter()
     criterion = criterion_before_source(args)  # a bad criterion is refused before the source loads
     with Progress(args.quiet) as progress:  # phases on a terminal's stderr: loading, compiling, searching...
         progress.phase(f"loading {args.source}")
-        check = path_check(config, args.seeds)  # refused before the source renders its training views
+        # refused before the source renders its training views: the search's renders, the anchors'
+        check = _anchor_check(path_check(config, args.seeds), anchor_c2w, args.from_explore)
         source = load_source(args.source, args.resolution, args.views, check=check, **splat_pose_options(args))
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
-        video = (
-            source
-            if args.video_resolution is None
-            else load_source(args.source, args.video_resolution, args.views, **splat_pose_options(args))
-        )
+        flag = "--resolution" if args.video_resolution is None else "--video-resolution"
+        if args.video_resolution is None:
+            video = source
+        else:  # its size checked before the room renders its training views at it
+            video = load_source(
+                args.source,
+                args.video_resolution,
+                args.views,
+                check=lambda width, height, _: _check_video_memory(width, height, False, config.frames, flag),
+                **splat_pose_options(args),
+            )
+        frame = video.intrinsics
+        _check_video_memory(frame.width, frame.height, video.truth is not None, config.frames, flag)
         if criterion is None:  # a poses criterion: the room's oracles need the source
             criterion = criterion_from_args(args, room=source.room, source=source.spec, train_c2w=source.train_c2w)
         limits = path_limits(source.train_c2w, args.max_speed, args.max_turn, args.min_opacity, args.min_travel)
+        _check_search_memory(source, criterion, config, limits, anchor_c2w, args.seed, args.seeds)
         options = PathRunOptions(
             anchor_c2w=anchor_c2w,
             initial=args.initial,

@@ -154,7 +154,8 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
     if args.poses == "train":
         c2w, intrinsics = scene.train_c2w, scene.intrinsics
     else:
-        c2w, intrinsics, _ = read_poses_file(Path(args.poses), scene.intrinsics)
+        # The count is checked from the list's length, before each pose is (10^6 took 49 s and 2 GB to refuse).
+        c2w, intrinsics, _ = read_poses_file(Path(args.poses), scene.intrinsics, max_poses=MAX_RENDER_POSES)
     if args.resolution is not None:
         check_resolution(args.resolution)
         intrinsics = intrinsics.with_max_side(args.resolution)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import jax
 import numpy as np
@@ -134,8 +135,10 @@ def _score_source(args: argparse.Namespace) -> int:
     from waldo_jax.pipeline import load_source, score_function
     from waldo_jax.scenes import read_poses_file
 
-    if args.poses != "train" and not Path(args.poses).exists():
-        raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
+    if args.poses != "train":  # a folder or a FIFO said as such before SOURCE loads, not after (a NeRF: seconds)
+        if not os.path.lexists(args.poses):
+            raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")
+        check_input_file(args.poses, "poses file")
     criterion = criterion_before_source(args)
     progress = Progress(args.quiet)
     with progress:

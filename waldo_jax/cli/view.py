@@ -9,6 +9,8 @@ serves nothing.
 from __future__ import annotations
 
 import argparse
+import os
+import stat
 import time
 import warnings
 from pathlib import Path
@@ -90,8 +92,21 @@ def _check(args: argparse.Namespace) -> None:
             raise WaldoError(f"--export {args.export}: expected a file name ending in .html")
         if not target.parent.is_dir():
             raise WaldoError(f"--export {args.export}: no such folder {target.parent}")
-        if target.is_dir() or (target.exists() and not args.force):
-            raise WaldoError(f"--export {args.export}: exists (--force overwrites it)")
+        if not os.access(target.parent, os.W_OK | os.X_OK):  # found before loading, not after building the page
+            raise WaldoError(f"--export {args.export}: cannot write into {target.parent} (permission denied)")
+        # lexists: a dangling link is something there too (the page was written through it, wherever it
+        # pointed); a folder, a FIFO (opening it for writing waited for a reader for ever) or a device is
+        # never replaced, --force or not.
+        if os.path.lexists(target):
+            try:
+                mode = os.stat(target).st_mode
+            except OSError:  # a dangling link or a link loop
+                mode = None
+            if mode is not None and not stat.S_ISREG(mode):
+                kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO, socket or device"
+                raise WaldoError(f"--export {args.export}: {kind}, not a file to write the page to")
+            if not args.force:
+                raise WaldoError(f"--export {args.export}: exists (--force overwrites it)")
 
 
 def cmd_view(args: argparse.Namespace) -> int:

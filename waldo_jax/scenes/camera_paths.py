@@ -280,13 +280,63 @@ def is_camera_path(meta: Dict[str, Any]) -> bool:
     return "camera_path" in meta or (isinstance(meta.get("path"), list) and "frames" not in meta)
 
 
+def _entries(meta: Dict[str, Any], key: str) -> list:
+    """meta[key], a non-empty list of objects, else a ValueError naming the key."""
+    entries = meta.get(key)
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{key!r} must be a non-empty list of frames, got {_text(entries)}")
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise ValueError(f"{key!r} entry {i} must be an object, got {_text(entry)}")
+    return entries
+
+
+def _text(value: Any) -> str:
+    from waldo_jax.scenes.common import value_text
+
+    return value_text(value)
+
+
+def _numbers(value: Any, shape: Tuple[int, ...], what: str) -> np.ndarray:
+    """`value` as float64 of `shape` (numbers only: strings and booleans refused), finite, else a ValueError."""
+    from waldo_jax.scenes.common import numeric_array
+
+    array = numeric_array(value)
+    if array is None or array.size != int(np.prod(shape)):
+        raise ValueError(f"{what} must be {int(np.prod(shape))} numbers, got {_text(value)}")
+    if not np.all(np.isfinite(array)) or np.max(np.abs(array)) > float(np.finfo(np.float32).max):
+        raise ValueError(f"{what} must be finite in float32, got {_text(value)}")
+    return array.reshape(shape)
+
+
+def _number(meta: Dict[str, Any], key: str, what: str, positive: bool = False) -> float:
+    """meta[key], a number (not a string or a boolean) finite in float32 (> 0 there with `positive`)."""
+    from waldo_jax.errors import check_float32
+
+    value = meta.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{what} {key!r} must be a number, got {_text(value)}")
+    return check_float32(value, f"{what} {key!r}", positive=positive)
+
+
+def _count(meta: Dict[str, Any], key: str, what: str, low: int, high: int, default: Optional[int] = None) -> int:
+    """meta[key], a whole number in [low, high] (16.0 is 16; 16.5, "16" and true are refused)."""
+    if key not in meta and default is not None:
+        return default
+    value = meta.get(key)
+    whole = isinstance(value, int) or (isinstance(value, float) and value.is_integer())
+    if isinstance(value, bool) or not whole or not low <= value <= high:
+        raise ValueError(f"{what} {key!r} must be a whole number between {low} and {high}, got {_text(value)}")
+    return int(value)
+
+
 def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
     if "pose_transform" in waldo:
-        transform = _homogeneous(np.asarray(waldo["pose_transform"], np.float64))
-        scale = float(waldo["pose_scale"])
+        transform = _homogeneous(_numbers(waldo["pose_transform"], (3, 4), "the waldo block's 'pose_transform'"))
+        scale = _number(waldo, "pose_scale", "the waldo block's", positive=True)
     else:  # written before applied transforms were undone: the dataparser transform was the pose transform
         transform, scale = read_dataparser_transform(
-            {"transform": waldo["dataparser_transform"], "scale": waldo["dataparser_scale"]}
+            {"transform": waldo.get("dataparser_transform"), "scale": waldo.get("dataparser_scale")}
         )
     if not (scale > 0 and math.isfinite(scale)) or not np.all(np.isfinite(transform)):
         raise ValueError("the waldo block's pose transform is not finite")
@@ -296,20 +346,21 @@ def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
 
 
 def _ngp_back(meta: Dict[str, Any], waldo: Dict[str, Any]) -> np.ndarray:
-    frame = NgpFrame.create(float(waldo["ngp_scale"]), waldo["ngp_offset"], bool(waldo.get("ngp_from_mitsuba", False)))
-    if not (frame.scale > 0 and math.isfinite(frame.scale)) or not all(map(math.isfinite, frame.offset)):
-        raise ValueError(f"the waldo block's ngp_scale {frame.scale:g} / ngp_offset {list(frame.offset)} is not finite")
-    keys: Sequence[Dict[str, Any]] = meta["path"]
-    if "frames" in waldo:  # the last keyframe repeats the last frame
-        keys = keys[: int(waldo["frames"])]
-    return np.stack(
-        [
-            from_ngp(
-                np.concatenate([_rotation_xyzw(k["R"]), np.asarray(k["T"], np.float64)[:, None]], axis=1), frame=frame
-            )
-            for k in keys
-        ]
-    )
+    flag = waldo.get("ngp_from_mitsuba", False)
+    if not isinstance(flag, bool):  # bool("false") is True: NGP's axes would be cycled the other way
+        raise ValueError(f"the waldo block's 'ngp_from_mitsuba' must be true or false, got {_text(flag)}")
+    scale = _number(waldo, "ngp_scale", "the waldo block's", positive=True)
+    offset = _numbers(waldo.get("ngp_offset"), (3,), "the waldo block's 'ngp_offset'")
+    frame = NgpFrame.create(scale, offset.tolist(), flag)
+    keys: Sequence[Dict[str, Any]] = _entries(meta, "path")
+    # The last keyframe repeats the last frame: `frames` of them are read, a count the path must hold.
+    keys = keys[: _count(waldo, "frames", "the waldo block's", 1, len(keys), default=len(keys))]
+    poses = []
+    for i, k in enumerate(keys):
+        rotation = _rotation_xyzw(_numbers(k.get("R"), (4,), f"path keyframe {i} 'R'"))
+        position = _numbers(k.get("T"), (3,), f"path keyframe {i} 'T'")
+        poses.append(from_ngp(np.concatenate([rotation, position[:, None]], axis=1), frame=frame))
+    return np.stack(poses)
 
 
 def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndarray, Intrinsics]:
@@ -331,20 +382,40 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
             "an Instant-NGP camera path from another tool is in NGP's frame with an unknown scale and "
             "offset; pass a transforms.json-like file, or a camera path written by `waldo path`"
         )
+    from waldo_jax.errors import MAX_RESOLUTION
+
+    world = waldo.get("world", "scene")
+    if "camera_path" in meta and world not in ("scene", "nerfstudio"):  # any other word was read as "scene"
+        raise ValueError(f"the waldo block's 'world' must be 'scene' or 'nerfstudio', got {_text(world)}")
     try:
         if "camera_path" in meta:
-            c2w = np.stack([np.asarray(e["camera_to_world"], np.float64).reshape(4, 4) for e in meta["camera_path"]])
-            if waldo.get("world") == "nerfstudio":
+            entries = _entries(meta, "camera_path")
+            c2w = np.stack(
+                [
+                    _numbers(e.get("camera_to_world"), (4, 4), f"camera_path {i} 'camera_to_world'")
+                    for i, e in enumerate(entries)
+                ]
+            )
+            if world == "nerfstudio":
                 c2w = _nerfstudio_back(c2w, waldo)
-            width, height = int(meta["render_width"]), int(meta["render_height"])
-            fovs = [float(e["fov"]) for e in meta["camera_path"]]
+            width = _count(meta, "render_width", "the camera path's", 1, MAX_RESOLUTION)
+            height = _count(meta, "render_height", "the camera path's", 1, MAX_RESOLUTION)
+            fovs = [_number(e, "fov", f"camera_path {i}") for i, e in enumerate(entries)]
         else:
             c2w = _ngp_back(meta, waldo)
-            width = int(waldo.get("render_width", default.width))
-            height = int(waldo.get("render_height", default.height))
-            fovs = [float(e["fov"]) for e in meta["path"]]
-    except (KeyError, TypeError, ValueError, IndexError, np.linalg.LinAlgError, OverflowError) as e:
+            width = _count(waldo, "render_width", "the waldo block's", 1, MAX_RESOLUTION, default=default.width)
+            height = _count(waldo, "render_height", "the waldo block's", 1, MAX_RESOLUTION, default=default.height)
+            fovs = [_number(e, "fov", f"path keyframe {i}") for i, e in enumerate(meta["path"][: len(c2w)])]
+    except (
+        KeyError,
+        TypeError,
+        IndexError,
+        np.linalg.LinAlgError,
+        OverflowError,
+    ) as e:  # a backstop; a singular transform
         raise ValueError(f"malformed camera path ({type(e).__name__}: {e})") from None
+    if not np.all(np.abs(c2w) <= float(np.finfo(np.float32).max)):  # before the cast warns and makes it inf
+        raise ValueError("the camera path's poses, read back into the scene's frame, do not fit float32")
     kind = meta.get("camera_type", "perspective")
     if kind != "perspective":  # renders are pinhole views: another projection would be read as one
         raise ValueError(f"camera_type {kind!r}: waldo renders perspective cameras only")

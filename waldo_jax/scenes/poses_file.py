@@ -49,6 +49,8 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
     rotation = m[:3, :3]
     if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > RIGID_TOL or np.linalg.det(rotation) < 0:
         raise SceneFormatError(path, f"{what} is not a rigid camera-to-world matrix")
+    if float(np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)))) > RIGID_TOL:  # a projective row was dropped unread
+        raise SceneFormatError(path, f"{what} has the bottom row {m[3].tolist()}, expected [0, 0, 0, 1]")
     check_origin(m, path, what)
     return m
 
@@ -105,15 +107,22 @@ def _check_camera(intrinsics: Intrinsics, path: Path) -> None:
         raise SceneFormatError(path, problem if problem.startswith("camera of") else f"camera: {problem}")
 
 
+def _check_count(count: int, max_poses: Optional[int], path: Path) -> None:
+    """Refuses more poses than the caller renders, from the list's length, before each is checked (10^6
+    frames took 30 s and 2 GB to be validated and then refused by the count)."""
+    if max_poses is not None and count > max_poses:
+        raise SceneFormatError(path, f"{count} poses; at most {max_poses} are read at once (split the file)")
+
+
 def read_poses_file(
-    path: str | os.PathLike, default_intrinsics: Intrinsics
+    path: str | os.PathLike, default_intrinsics: Intrinsics, max_poses: Optional[int] = None
 ) -> Tuple[np.ndarray, Intrinsics, List[Optional[str]]]:
     """Reads the cameras of a transforms.json-like poses file (no images are needed or read).
 
     The file is a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio / Blender
     transforms: OpenGL camera-to-world, in the file's own world frame, used as they are). A matrix may
-    be 4x4, 3x4 (the (0, 0, 0, 1) row is added) or 16 numbers; it must be finite and rigid (rotation
-    orthonormal within `RIGID_TOL`, det +1). Intrinsics come from the file when it has a focal length
+    be 4x4 (its bottom row (0, 0, 0, 1)), 3x4 (that row is added) or 16 numbers; it must be finite and
+    rigid (rotation orthonormal within `RIGID_TOL`, det +1). Intrinsics come from the file when it has a focal length
     (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`, with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`; a
     missing size is taken from `default_intrinsics`), else they are `default_intrinsics`. Camera paths
     written by `waldo path` (nerfstudio `camera_path.json`, Instant-NGP paths; `waldo_jax.scenes.camera_paths`)
@@ -123,6 +132,7 @@ def read_poses_file(
     Args:
       path: the JSON file.
       default_intrinsics: the camera to use when the file has no focal length (e.g. a checkpoint's).
+      max_poses: refuse a file of more poses than this (counted before any pose is checked), or None.
 
     Returns:
       (c2w float32 [N, 4, 4], intrinsics, file_names): `file_names[i]` is frame i's `file_path`, or
@@ -145,6 +155,7 @@ def read_poses_file(
             frames = meta["frames"]
             if not frames:
                 raise SceneFormatError(path, "'frames' is empty")
+            _check_count(len(frames), max_poses, path)
             poses, names = [], []
             for i, frame in enumerate(frames):
                 if not isinstance(frame, dict) or "transform_matrix" not in frame:
@@ -160,6 +171,8 @@ def read_poses_file(
                 names.append(field(frame, "file_path", path, "string", where=f"frame {i}"))
             return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
         if is_camera_path(meta):
+            entries = meta.get("camera_path", meta.get("path"))
+            _check_count(len(entries) if isinstance(entries, list) else 0, max_poses, path)
             try:
                 c2w, intrinsics = read_camera_path(meta, default_intrinsics)
             except ValueError as e:

@@ -23,7 +23,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.scenes.common import numeric_array
+from waldo_jax.scenes.common import numeric_array, value_text
 
 __all__ = [
     "NGP_DEFAULT_SCALE",
@@ -190,11 +190,14 @@ def _homogeneous(m: np.ndarray) -> np.ndarray:
 
 def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
     """(transform [4, 4], scale) of a nerfstudio `dataparser_transforms.json` dict; ValueError when malformed."""
-    try:
-        transform = np.asarray(meta["transform"], np.float64)
-        scale = float(meta["scale"])
-    except (KeyError, TypeError, ValueError, OverflowError):
-        raise ValueError('expected nerfstudio\'s dataparser_transforms.json: {"transform": 3x4, "scale": s}') from None
+    if not isinstance(meta, dict) or "transform" not in meta or "scale" not in meta:
+        raise ValueError('expected nerfstudio\'s dataparser_transforms.json: {"transform": 3x4, "scale": s}')
+    # Numbers only: float("0.5") and float(True) read text and booleans as scales, np.asarray "1" as an entry.
+    transform = _numbers_array(meta["transform"])
+    scale = meta["scale"]
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or abs(scale) > 1e300:
+        raise ValueError(f"dataparser scale must be a number between 1e-09 and 1e+09, got {value_text(scale)}")
+    scale = float(scale)
     if transform.shape == (3, 4):
         transform = _homogeneous(transform)
     if transform.shape != (4, 4) or not np.all(np.isfinite(transform)) or not (scale > 0 and math.isfinite(scale)):

@@ -56,6 +56,7 @@ __all__ = [
     "search_path",
     "search_path_loop",
     "search_path_seeds",
+    "search_path_memory",
     "check_method",
     "PathMethod",
     "path_method",
@@ -722,6 +723,36 @@ def search_path_seeds(
         frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
     )
     return _search_seeds_jit(keys, frame_fn, anchors, fitness, train, limits, params, method=method, config=config)
+
+
+def search_path_memory(
+    keys: PRNGKey,
+    frame_fn: Callable,
+    anchor_c2w,
+    anchor_scores,
+    train_c2w,
+    limits: PathLimits,
+    config: PathConfig = PathConfig(),
+    params=None,
+) -> Optional[int]:
+    """Bytes the compiled search of `search_path` (one key) or `search_path_seeds` (keys [S]) needs with
+    these arguments, by XLA's own analysis (arguments, outputs and temporaries: every candidate's
+    keyframes and frame scores, an epoch's frames and renders), or None where the backend gives none.
+
+    It compiles the program without running it, so work and memory set by the flags (`--epochs` x
+    `--paths-per-epoch` x `--frames` x `--seeds`) can be refused before they fill the machine. Only the
+    shapes of `anchor_scores` matter. The run that follows may compile again (`waldo path` builds its
+    `frame_fn` anew: 11 s -> 28 s for 2 seeds of 16 px on the 2-core CPU), so callers ask only where the
+    candidates are large (`waldo_jax.cli.path.SEARCH_CHECK_SHARE`).
+    """
+    from waldo_jax.search.explore import program_memory  # the one reading of XLA's memory analysis
+
+    frame_fn, anchors, fitness, train, limits, params, method, config = _prepare(
+        frame_fn, anchor_c2w, anchor_scores, train_c2w, limits, config, params
+    )
+    search = _search_jit if jnp.ndim(keys) == 0 else _search_seeds_jit
+    lowered = search.lower(keys, frame_fn, anchors, fitness, train, limits, params, method=method, config=config)
+    return program_memory(lowered.compile())
 
 
 def search_path_loop(

@@ -19,6 +19,7 @@ import numpy as np
 
 from waldo_jax.errors import WaldoError
 from waldo_jax.io import read_json_file
+from waldo_jax.viewer.fields import Fields
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene, explore_scene, room_points
 
 __all__ = ["DemoRoom", "demo_methods", "demo_room", "demo_scene", "is_demo_output"]
@@ -48,17 +49,23 @@ class DemoRoom:
 
 def _summary(folder: Path) -> Optional[Dict[str, Any]]:
     """summary.json of a demo folder, or None where there is none or it is not a demo's."""
+    path = folder / "summary.json"
+    # is_file: a folder or a FIFO is no demo's summary (reading a FIFO had waited for a writer for ever). One
+    # that is not JSON may be another tool's (this is also asked of an explore output's parent): not a demo.
+    if not path.is_file():
+        return None
     try:
-        summary = read_json_file(folder / "summary.json", "demo summary")
-    except (WaldoError, OSError, ValueError):
+        summary = read_json_file(path, "demo summary")
+    except WaldoError:
         return None
     return summary if isinstance(summary, dict) and "room_seed" in summary else None
 
 
 def demo_methods(folder: Path) -> List[Path]:
     """The method folders of a demo (explore outputs: results.json with `topk`), in summary.json's order."""
-    summary = _summary(folder) or {}
-    names = list((summary.get("methods") or {}).keys())
+    summary = _summary(folder)
+    methods = Fields(summary, Path(folder) / "summary.json").object("methods", None) if summary else None
+    names = list(methods.data) if methods is not None else []
     names += sorted(p.name for p in Path(folder).iterdir() if p.is_dir() and p.name not in names)
     found = []
     for name in names:
@@ -84,7 +91,8 @@ def demo_room(folder: Path) -> Optional[DemoRoom]:
     summary = _summary(folder)
     if summary is None:
         return None
-    seed = int(summary["room_seed"])
+    fields = Fields(summary, folder / "summary.json")  # each value by its key: one line naming it, no TypeError
+    seed = fields.integer("room_seed")
     if (folder / "nerf" / "checkpoint.ckpt").is_file():
         from waldo_jax.nerf.checkpoint import load_checkpoint
 
@@ -94,10 +102,10 @@ def demo_room(folder: Path) -> Optional[DemoRoom]:
             metadata = {}
         if "waldo_scale" in metadata:
             return DemoRoom(int(metadata.get("seed", seed)), dict(metadata), True)
-    settings = summary.get("settings") or {}
-    metadata = {"seed": seed, "waldo_scale": float(settings.get("waldo_scale", 1.0))}
-    if settings.get("stripe_width") is not None:
-        metadata["stripe_width"] = float(settings["stripe_width"])
+    settings = fields.object("settings", None) or Fields({}, folder / "summary.json", "settings")
+    metadata = {"seed": seed, "waldo_scale": settings.number("waldo_scale", 1.0, positive=True)}
+    if settings.has("stripe_width"):
+        metadata["stripe_width"] = settings.number("stripe_width", positive=True)
     return DemoRoom(seed, metadata, False)
 
 

@@ -9,9 +9,10 @@ so that neither imports the other both ways.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
-from waldo_jax.io import read_json_file
+from waldo_jax.viewer.fields import read_json
 from waldo_jax.viewer.demo import demo_room, demo_scene, is_demo_output
 from waldo_jax.viewer.scene import (
     DEFAULT_FOV_Y_DEG,
@@ -40,12 +41,10 @@ def load_view_scene(path: str) -> ViewScene:
     if parse_procedural(text) is None and not Path(text).exists():
         raise ViewerError(f"PATH {text!r}: no such file or folder")
     folder = Path(text)
-    if folder.is_dir() and (folder / "results.json").is_file():
-        results = read_json_file(
-            folder / "results.json",
-            "results file",
-            lambda problem: ViewerError(f"{folder / 'results.json'}: {problem}"),
-        )
+    # lexists: a results.json that is a folder, a FIFO or a dangling link is said as such (`read_json`), not
+    # taken for a folder without one.
+    if folder.is_dir() and os.path.lexists(folder / "results.json"):
+        results = read_json(folder / "results.json", "results file")
         if isinstance(results, dict) and "limits" in results and "found" in results and "source" in results:
             return path_scene(folder, results)
         return explore_scene(folder, demo=demo_room(folder.resolve().parent))

@@ -15,13 +15,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.io import read_json_file
 from waldo_jax.errors import WaldoError
+from waldo_jax.viewer.fields import MAX_FRUSTUMS, Fields, ViewerError, check_image_file, read_json, relative_file
 
 __all__ = [
     "Frustum",
@@ -41,10 +43,6 @@ __all__ = [
 
 DEFAULT_FOV_Y_DEG = 50.0
 MAX_ROOM_POINTS = 60_000
-
-
-class ViewerError(WaldoError, ValueError):
-    """A PATH `waldo view` cannot show (the message names it and says why)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,19 +219,77 @@ def _ranks(scores: List[Optional[float]], direction: str) -> List[Optional[int]]
     return ranks
 
 
-def _intrinsics_of(out: Path, results: Dict[str, Any]) -> Tuple[float, float]:
-    """(fov_y radians, aspect) of an explore output: poses.json's camera, else its resolution at 50 degrees."""
-    width, height = (results.get("resolution") or [1, 1])[:2]
-    aspect = float(width) / float(height) if height else 1.0
-    try:
-        poses = read_json_file(out / "poses.json", "poses file")
-        if "fl_y" in poses and "h" in poses:
-            return 2 * math.atan(0.5 * float(poses["h"]) / float(poses["fl_y"])), aspect
-        if "camera_angle_x" in poses:
-            return 2 * math.atan(math.tan(0.5 * float(poses["camera_angle_x"])) / aspect), aspect
-    except (WaldoError, ValueError, KeyError, TypeError):
-        pass
-    return math.radians(DEFAULT_FOV_Y_DEG), aspect
+def _intrinsics_of(out: Path, resolution: Optional[Tuple[int, int]]) -> Tuple[float, float]:
+    """(fov_y radians, aspect) of an explore output: poses.json's camera (read and checked as every poses
+    file is, `scenes.read_poses_file`: a damaged one is refused by its key, not drawn at a NaN field of view),
+    else its resolution at 50 degrees. The aspect is the run's resolution's, else the camera's."""
+    from waldo_jax.scenes import read_poses_file
+    from waldo_jax.types import Intrinsics
+
+    width, height = resolution or (64, 64)
+    fov_y = math.radians(DEFAULT_FOV_Y_DEG)
+    aspect = width / height
+    if os.path.lexists(out / "poses.json"):  # a directory, a FIFO or a dangling link is said as such there
+        fallback = Intrinsics.from_fov(int(width), int(height), fov_y)
+        _, intrinsics, _ = read_poses_file(out / "poses.json", fallback)
+        fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
+        aspect = aspect if resolution else intrinsics.width / intrinsics.height
+    return fov_y, aspect
+
+
+def _source_info(results: Fields) -> Dict[str, Any]:
+    """results.json's `source_info` with the keys an exported camera path reads (Instant-NGP's frame:
+    `ngp_scale`, `ngp_offset`, `ngp_from_mitsuba`) checked; {} where absent."""
+    info = results.object("source_info", None)
+    if info is None:
+        return {}
+    info.number("ngp_scale", None, positive=True)
+    if info.has("ngp_offset") and not isinstance(info.data["ngp_offset"], (int, float)):
+        offset = info.array("ngp_offset")
+        if len(offset) != 3:
+            raise info.error(f"expected a number or 3 numbers, got {len(offset)} values", "ngp_offset")
+        info.scores("ngp_offset")  # finite numbers (a null is no offset: refused below)
+        if any(v is None for v in offset):
+            raise info.error("expected 3 numbers, got a null", "ngp_offset")
+    elif info.has("ngp_offset"):
+        info.number("ngp_offset")
+    info.flag("ngp_from_mitsuba", None)
+    return dict(info.data)
+
+
+def _topk_image(entry: Fields, out: Path) -> Optional[Path]:
+    """A top-k shot's image (`image`, relative to the output folder) if it is there; a missing one is shown
+    without its image and said in a warning; one that is not a readable image of a usable size is refused."""
+    image = relative_file(entry, "image", out)
+    if image is None:
+        return None
+    if not os.path.lexists(image):
+        warnings.warn(f"{image} ({entry.key('image')}) is missing: the shot is drawn without its image", stacklevel=3)
+        return None
+    return check_image_file(image, f"{entry.path}: {entry.key('image')}")
+
+
+def _capped(frustums: List[Frustum], path: Path) -> List[Frustum]:
+    """`frustums` with at most MAX_FRUSTUMS in all: the search's views past it are left out, the unscored
+    and the worst first, with a warning; more training views, shots, elites or path frames than that alone
+    are refused (the page would take minutes to build, and as long to open)."""
+    if len(frustums) <= MAX_FRUSTUMS:
+        return frustums
+    others = [f for f in frustums if f.kind != "view"]
+    if len(others) > MAX_FRUSTUMS:
+        raise ViewerError(
+            f"{path}: {len(others):,} cameras to draw (training views, top-k shots, archive elites or path "
+            f"frames); waldo view draws at most {MAX_FRUSTUMS:,} (about a millisecond and 250 bytes of page each)"
+        )
+    views = [f for f in frustums if f.kind == "view"]
+    room = MAX_FRUSTUMS - len(others)
+    kept = set(id(f) for f in sorted(views, key=lambda f: (f.rank is None, f.rank or 0))[:room])
+    warnings.warn(
+        f"{path}: {len(views):,} searched views; waldo view draws the best {room:,} of them (at most "
+        f"{MAX_FRUSTUMS:,} cameras in all)",
+        stacklevel=3,
+    )
+    return [f for f in frustums if f.kind != "view" or id(f) in kept]
 
 
 def source_geometry(spec: str, notes: List[str]):
@@ -282,7 +338,7 @@ def ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
     return np.asarray(c2w, np.float64), tuple(f"ring_{i:02d}" for i in range(len(c2w)))
 
 
-def archive_frustums(results: Dict[str, Any], train_c2w: np.ndarray, generated_c2w: np.ndarray) -> List[Frustum]:
+def archive_frustums(results, train_c2w: np.ndarray, generated_c2w: np.ndarray) -> List[Frustum]:
     """The elites of an explore's view archive (`results["archive"]["elites"]`: the best view of each
     (azimuth, elevation, distance) cell) as frustums of kind "elite", at the pose of the view each holds.
 
@@ -291,26 +347,29 @@ def archive_frustums(results: Dict[str, Any], train_c2w: np.ndarray, generated_c
     without `generated_slots` have no elites drawn.
 
     Args:
-      results: the explore's results.json.
+      results: the explore's results.json (a dict, or its `Fields`: each value is checked by its key).
       train_c2w, generated_c2w: float [N, 4, 4] and [G, 4, 4] its training and generated poses.
     """
-    elites = ((results.get("archive") or {}).get("elites")) or []
-    if "generated_slots" not in results:
+    results = results if isinstance(results, Fields) else Fields(results, Path("results.json"))
+    archive = results.object("archive", None)
+    elites = archive.items("elites", []) if archive is not None else []
+    if not results.has("generated_slots"):
         return []
     pose_of = {i: m for i, m in enumerate(train_c2w)}
-    pose_of.update({int(s): m for s, m in zip(results["generated_slots"], generated_c2w)})
-    frustums = []
+    pose_of.update(zip(results.integers("generated_slots", len(generated_c2w)), generated_c2w))
+    frustums, cells = [], set()
     for elite in elites:
-        slot = elite.get("slot")
-        if not isinstance(slot, int) or slot not in pose_of:
+        slot = elite.integer("slot", None)
+        cell = elite.integer("cell")
+        if cell in cells:
+            raise elite.error(f"cell {cell} holds two elites", "cell")
+        cells.add(cell)
+        azimuth, elevation = elite.number("azimuth", math.nan), elite.number("elevation", math.nan)
+        band, score = elite.integer("distance_band", None), elite.score("score")
+        if slot not in pose_of:  # a masked slot: no view to draw
             continue
-        label = (
-            f"archive cell {elite['cell']}: azimuth {elite.get('azimuth', float('nan')):.0f} deg, elevation "
-            f"{elite.get('elevation', float('nan')):.0f} deg, distance band {elite.get('distance_band')}"
-        )
-        frustums.append(
-            Frustum(f"/archive/{int(elite['cell']):03d}", "elite", pose_of[slot], elite.get("score"), None, None, label)
-        )
+        label = f"archive cell {cell}: azimuth {azimuth:.0f} deg, elevation {elevation:.0f} deg, distance band {band}"
+        frustums.append(Frustum(f"/archive/{cell:03d}", "elite", pose_of[slot], score, None, None, label))
     return frustums
 
 
@@ -333,23 +392,66 @@ def resolve_source(spec: str, out: Path) -> str:
 def explore_scene(out: Path, geometry: bool = True, demo=None) -> ViewScene:
     """The `ViewScene` of an explore output folder.
 
+    Every value read from results.json is checked by its key first (`viewer.fields`: a missing or wrong-typed
+    value, a NaN, lists of the views' poses and scores of different lengths, a top-k image outside the folder
+    or not an image are refused, naming the key), before the scene's geometry is loaded.
+
     Args:
       out: the folder (its results.json, poses.json, topk/).
       geometry: False: the cameras only, no splats or points.
       demo: the `viewer.demo.DemoRoom` of the `waldo demo` the folder is a method of (its room is drawn, and
         scored with where its NeRF does not record it), or None.
     """
-
-    results = read_json_file(
-        out / "results.json", "results file", lambda problem: ViewerError(f"{out / 'results.json'}: {problem}")
+    path = out / "results.json"
+    raw = read_json(path, "results file")
+    if not isinstance(raw, dict) or "topk" not in raw or "source" not in raw:
+        raise ViewerError(f"{path}: not the results of `waldo explore` (no topk / source)")
+    results = Fields(raw, path)
+    source = results.text("source")
+    direction = results.text("direction", "max", choices=("max", "min"))
+    criterion, method = results.text("criterion", ""), results.text("method", "")
+    resolution = results.resolution("resolution", None)
+    source_info = _source_info(results)
+    recorded_train = results.poses("train_c2w", None)
+    generated = results.poses("generated_c2w", None)
+    count = None if recorded_train is None else len(recorded_train)
+    scores_train = results.scores("scores_train", count, [])
+    scores_generated = [] if generated is None else results.scores("scores_generated", len(generated), [])
+    if generated is not None and not scores_generated:
+        scores_generated = [None] * len(generated)
+    epochs = [] if generated is None else results.integers("generated_epochs", len(generated), 0, [])
+    topk = results.items("topk")
+    ranks_seen = set()
+    for entry in topk:
+        rank = entry.integer("rank", maximum=len(topk) - 1)
+        if rank in ranks_seen:
+            raise entry.error(f"rank {rank} is given to two shots", "rank")
+        ranks_seen.add(rank)
+    shots = [
+        (
+            e.integer("rank"),
+            e.pose("c2w"),
+            e.score("score"),
+            _topk_image(e, out),
+            e.flag("training_view", False),
+            e.integer("epoch", None),
+        )
+        for e in topk
+    ]
+    paper = []
+    if generated is None:
+        for entry in results.items("paper_topk", []):
+            if not entry.flag("in_topk", False):
+                paper.append((entry.integer("rank"), entry.pose("c2w"), entry.score("score")))
+    archive = (
+        [] if generated is None or recorded_train is None else archive_frustums(results, recorded_train, generated)
     )
-    if not isinstance(results, dict) or "topk" not in results or "source" not in results:
-        raise ViewerError(f"{out / 'results.json'}: not the results of `waldo explore` (no topk / source)")
+    fov_y, aspect = _intrinsics_of(out, resolution)
+
     notes: List[str] = []
-    spec = resolve_source(str(results["source"]), out)
-    direction = str(results.get("direction", "max"))
+    spec = resolve_source(source, out)
     splats = points = None
-    train_c2w, names, fov_y, aspect = None, (), None, None
+    train_c2w, names = None, ()
     try:
         if geometry and demo is not None:  # the room the demo's NeRF learnt, not the NeRF's density
             points = room_points(demo.room, seed=demo.seed)
@@ -358,90 +460,60 @@ def explore_scene(out: Path, geometry: bool = True, demo=None) -> ViewScene:
             splats, points, train_c2w, names, _, _ = source_geometry(spec, notes)
     except WaldoError as e:
         notes.append(f"the scene's geometry is not drawn: {e}")
-    fov_y, aspect = _intrinsics_of(out, results)
-    if "train_c2w" in results:
-        train_c2w = np.asarray(results["train_c2w"], np.float64).reshape(-1, 4, 4)
+    if recorded_train is not None:
+        train_c2w = recorded_train
     elif train_c2w is None and splats is not None:
         train_c2w, names = ring_of(spec)
         notes.append("results.json predates train_c2w: the training views are the default ring (--up/--orbit lost)")
-    generated = results.get("generated_c2w")
     if generated is None:
         notes.append("results.json predates generated_c2w: only the top-k and the paper's top-k views are drawn")
-    scores_train = list(results.get("scores_train") or [])
-    scores_generated = list(results.get("scores_generated") or []) if generated is not None else []
     train_count = 0 if train_c2w is None else len(train_c2w)
-    if train_count != len(scores_train):
+    if train_count != len(scores_train):  # an output older than train_c2w: its scores of the source's views
         scores_train = (scores_train + [None] * train_count)[:train_count]
     ranks = _ranks(scores_train + scores_generated, direction)
-    epochs = results.get("generated_epochs") or []
     frustums: List[Frustum] = []
     for i in range(train_count):
         name = names[i] if i < len(names) else f"{i:04d}"
         frustums.append(
             Frustum(f"/train/{i:04d}", "train", train_c2w[i], scores_train[i], ranks[i], None, f"training view {name}")
         )
-    if generated is not None:
-        for j, c2w in enumerate(np.asarray(generated, np.float64).reshape(-1, 4, 4)):
-            epoch = f", epoch {epochs[j]}" if j < len(epochs) else ""
-            score = scores_generated[j] if j < len(scores_generated) else None
-            frustums.append(
-                Frustum(f"/views/{j:04d}", "view", c2w, score, ranks[train_count + j], None, f"view {j}{epoch}")
+    for j, c2w in enumerate(() if generated is None else generated):
+        epoch = f", epoch {epochs[j]}" if j < len(epochs) else ""
+        frustums.append(
+            Frustum(
+                f"/views/{j:04d}", "view", c2w, scores_generated[j], ranks[train_count + j], None, f"view {j}{epoch}"
             )
-    else:
-        for entry in results.get("paper_topk") or []:
-            if not entry.get("in_topk"):
-                frustums.append(
-                    Frustum(
-                        f"/views/paper_{entry['rank']:02d}",
-                        "view",
-                        np.asarray(entry["c2w"], np.float64),
-                        entry.get("score"),
-                        None,
-                        None,
-                        f"paper top-k #{entry['rank'] + 1}",
-                    )
-                )
-    if generated is not None and train_c2w is not None:
-        frustums += archive_frustums(results, train_c2w, np.asarray(generated, np.float64).reshape(-1, 4, 4))
+        )
+    for rank, c2w, score in paper:
+        frustums.append(Frustum(f"/views/paper_{rank:02d}", "view", c2w, score, None, None, f"paper top-k #{rank + 1}"))
+    frustums += archive
     all_scores = [s for s in scores_train + scores_generated if s is not None]
-    for entry in results["topk"]:
-        rank = int(entry["rank"])
-        score = entry.get("score")
+    for rank, c2w, score, image, training_view, epoch in shots:
         overall = None
         if score is not None and all_scores:
             overall = 1 + sum(1 for s in all_scores if (s > score if direction != "min" else s < score))
-        image = out / entry["image"] if entry.get("image") and (out / entry["image"]).is_file() else None
-        what = "a training view" if entry.get("training_view") else f"epoch {entry.get('epoch')}"
+        what = "a training view" if training_view else f"epoch {epoch}"
         frustums.append(
             Frustum(
-                f"/topk/{rank:02d}",
-                "topk",
-                np.asarray(entry["c2w"], np.float64),
-                score,
-                overall,
-                rank + 1,
-                f"top-k shot #{rank + 1} ({what})",
-                image,
+                f"/topk/{rank:02d}", "topk", c2w, score, overall, rank + 1, f"top-k shot #{rank + 1} ({what})", image
             )
         )
-    criterion = str(results.get("criterion", ""))
-    title = f"{str(results.get('method', '')).upper()} on {spec}, {criterion}"
-    resolution = results.get("resolution")
+    title = f"{method.upper()} on {spec}, {criterion}"
     return ViewScene(
         str(out),
         title,
         splats,
         points,
-        tuple(frustums),
+        tuple(_capped(frustums, path)),
         fov_y,
         aspect or 1.0,
         criterion,
         direction,
         tuple(notes),
         source=spec,
-        resolution=tuple(int(v) for v in resolution[:2]) if resolution else None,
+        resolution=resolution,
         scores=tuple(scores_train + scores_generated),
-        source_info=dict(results.get("source_info") or {}),
+        source_info=source_info,
         room_metadata=None if demo is None or demo.recorded else demo.metadata,
         output=out,
     )
@@ -449,24 +521,35 @@ def explore_scene(out: Path, geometry: bool = True, demo=None) -> ViewScene:
 
 def path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
     """The `ViewScene` of a `waldo path` output folder: the scene, its training views and the camera path
-    (poses.json, one camera per frame, each with its frame's score)."""
+    (poses.json, one camera per frame, each with its frame's score). The values read from results.json are
+    checked by their keys first, as `explore_scene`'s."""
     from waldo_jax.scenes import read_poses_file
     from waldo_jax.types import Intrinsics
 
+    fields = Fields(results, out / "results.json")
+    source = fields.text("source")
+    direction = fields.text("direction", "max", choices=("max", "min"))
+    criterion, method = fields.text("criterion", ""), fields.text("method", "")
+    source_info = _source_info(fields)
+    video = fields.object("video", None)
+    size = (video.resolution("frame_size", None) if video is not None else None) or (64, 64)
+    fps = video.number("fps", 12.0, positive=True) if video is not None else 12.0
+    found = fields.object("found", None)
+    c2w, intrinsics, _ = read_poses_file(out / "poses.json", Intrinsics.from_fov(int(size[0]), int(size[1]), 0.9))
+    c2w = np.asarray(c2w, np.float64)
+    scores = (found.scores("frame_scores", len(c2w), None, of="frames") if found is not None else None) or [None] * len(
+        c2w
+    )
+    if len(c2w) > MAX_FRUSTUMS:
+        raise ViewerError(f"{out / 'poses.json'}: {len(c2w):,} path frames; waldo view draws at most {MAX_FRUSTUMS:,}")
     notes: List[str] = []
-    spec = resolve_source(str(results["source"]), out)
+    spec = resolve_source(source, out)
     splats = points = train_c2w = None
     names: Tuple[str, ...] = ()
     try:
         splats, points, train_c2w, names, _, _ = source_geometry(spec, notes)
     except WaldoError as e:
         notes.append(f"the scene's geometry is not drawn: {e}")
-    size = (results.get("video") or {}).get("frame_size") or [64, 64]
-    c2w, intrinsics, _ = read_poses_file(out / "poses.json", Intrinsics.from_fov(int(size[0]), int(size[1]), 0.9))
-    c2w = np.asarray(c2w, np.float64)
-    scores = list(((results.get("found") or {}).get("frame_scores")) or [])
-    scores = (scores + [None] * len(c2w))[: len(c2w)]
-    direction = str(results.get("direction", "max"))
     ranks = _ranks(scores, direction)
     frustums = [
         Frustum(f"/train/{i:04d}", "train", m, None, None, None, f"training view {names[i] if i < len(names) else i}")
@@ -475,14 +558,13 @@ def path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
     frustums += [
         Frustum(f"/path/{i:04d}", "path", m, scores[i], ranks[i], None, f"path frame {i}") for i, m in enumerate(c2w)
     ]
-    criterion = str(results.get("criterion", ""))
     fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
     return ViewScene(
         str(out),
-        f"camera path ({str(results.get('method', '')).upper()}) on {spec}, {criterion}",
+        f"camera path ({method.upper()}) on {spec}, {criterion}",
         splats,
         points,
-        tuple(frustums),
+        tuple(_capped(frustums, out / "results.json")),
         fov_y,
         intrinsics.width / intrinsics.height,
         criterion,
@@ -491,7 +573,7 @@ def path_scene(out: Path, results: Dict[str, Any]) -> ViewScene:
         source=spec,
         resolution=(int(intrinsics.width), int(intrinsics.height)),
         camera_path=c2w,
-        path_fps=float((results.get("video") or {}).get("fps") or 12.0),
-        source_info=dict(results.get("source_info") or {}),
+        path_fps=fps,
+        source_info=source_info,
         output=out,
     )

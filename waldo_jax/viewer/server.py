@@ -106,14 +106,25 @@ def score_colors(frustums: Tuple[Frustum, ...], direction: str) -> List[Tuple[in
     return colors
 
 
+def shot_image(path: Path) -> np.ndarray:
+    """The image at `path` (a top-k shot's) as uint8 [h, w, 3], read as every image waldo reads
+    (`io.read_image`: grey, palette, 16-bit and CMYK files as RGB; a truncated, HDR or oversized one refused
+    with a `ViewerError` naming the file, not an OSError from the middle of drawing)."""
+    from waldo_jax.io import read_image, to_uint8
+
+    try:
+        return to_uint8(read_image(path, what="top-k image"))
+    except WaldoError as e:
+        raise ViewerError(str(e)) from None
+
+
 def thumbnail(path: Path, side: int = THUMBNAIL_SIDE) -> np.ndarray:
     """The image at `path` as uint8 [h, w, 3], shrunk to at most `side` pixels on its longer side."""
     from PIL import Image
 
-    with Image.open(path) as image:
-        image = image.convert("RGB")
-        image.thumbnail((side, side))
-        return np.asarray(image, np.uint8)
+    image = Image.fromarray(shot_image(path))
+    image.thumbnail((side, side))
+    return np.asarray(image, np.uint8)
 
 
 def describe(frustum: Frustum, scene: ViewScene, scored: int) -> str:
@@ -172,7 +183,11 @@ class Viewer:
             scene.source, scene.criterion, scene.resolution, scene.scores, scene.direction or "max", scene.room_metadata
         )
         self.exported: List[Path] = []
-        self._build()
+        try:
+            self._build()
+        except BaseException:  # a shot's image that cannot be read: the server it started stops with it
+            self.stop()
+            raise
 
     @property
     def url(self) -> str:
@@ -323,6 +338,8 @@ class Viewer:
             self.export_path(group)
         except WaldoError as e:  # shown in the panel: a viewer keeps serving
             self.export_panel.content = f"*{e}*"
+        except OSError as e:  # a full disk, a folder made read-only since: the same, naming the file
+            self.export_panel.content = f"*{e.filename or self.scene.output}: {e.strerror or e}*"
 
     def show_group(self, group: str, visible: bool) -> None:
         """Shows or hides a demo method's top-k frustums."""
@@ -422,12 +439,13 @@ class Viewer:
         if self._image is not None:
             self._image.remove()
             self._image = None
-        if frustum.image is not None:
-            import imageio.v3 as iio
-
-            self._image = self.server.gui.add_image(
-                np.asarray(iio.imread(frustum.image))[..., :3], label=frustum.image.name
-            )
+        if frustum.image is not None:  # a grey or 16-bit image as RGB 8-bit ([..., :3] cut a grey one's width)
+            try:
+                pixels = shot_image(frustum.image)
+            except ViewerError as e:  # replaced or removed since the page was built: said in the panel
+                self.panel.content += f"  \n*{e}*"
+            else:
+                self._image = self.server.gui.add_image(pixels, label=frustum.image.name)
         wxyz, position = opencv_pose(frustum.c2w)
         forward = -np.asarray(frustum.c2w, np.float64)[:3, 2]
         for client in clients:
@@ -535,6 +553,7 @@ def export_html(scene: ViewScene, path: Path) -> Tuple[int, float]:
     block = block.replace("</", "<\\/")  # never closes the script element early
     page = page.replace("</head>", f'<script id="waldo-frustums" type="application/json">{block}</script></head>', 1)
     page = page.replace("</body>", f"{shots_gallery(scene)}</body>", 1)
-    path = Path(path)
-    path.write_text(page, encoding="utf-8")
+    from waldo_jax import io as waldo_io
+
+    waldo_io.write_text(Path(path), page)  # atomically: an interrupt or a full disk leaves no half page
     return len(page.encode("utf-8")), time.perf_counter() - start

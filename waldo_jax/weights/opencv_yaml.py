@@ -7,6 +7,7 @@ feature ranges (OpenCV contrib's `quality` module) are stored this way.
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
@@ -191,7 +192,7 @@ def read_opencv_storage(path: str | Path) -> Dict[str, Any]:
       WeightsError: not an OpenCV YAML file, or malformed (names the file and the line).
     """
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):  # anything there that is no readable file is said by check_input_file
         raise DataNotFoundError(f"file not found: {path}")
     try:
         check_input_file(path, "OpenCV YAML file")

@@ -94,17 +94,18 @@ def weights_file(weights_dir: Optional[str | os.PathLike], model: str, filename:
 
     Raises:
       DataNotFoundError: naming the expected file and how to point at another folder.
+      WaldoError: something there that is no readable regular file (a folder, a FIFO, a link loop).
     """
     folder = resolve_weights_dir(weights_dir)
     if folder.exists() and not folder.is_dir():
         raise DataNotFoundError(f"weights folder {folder}: a file, not a folder (pass --weights DIR)")
     path = folder / model / filename
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise DataNotFoundError(
             f"weights file not found: expected {path} (model {model!r}); pass --weights DIR or set WALDO_WEIGHTS "
             "to a folder in the ../shared/weights layout"
         )
-    return path
+    return check_input_file(path, f"{model} weights file")  # a folder or a FIFO there is said as such
 
 
 def check_shapes(expected: Mapping[str, Sequence[int]], arrays: Mapping[str, np.ndarray], source: str) -> None:
@@ -227,7 +228,7 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
     converter = CONVERTERS[model]
     root = resolve_weights_dir(weights_dir)
     native = root / model / f"{model}.npz"
-    if native.is_file():
+    if os.path.lexists(native):  # load_native says what is wrong with anything there that is no archive
         return load_native(native, model)
     for filename in converter.files:
         weights_file(root, model, filename)
@@ -253,7 +254,7 @@ def convert_all(
     if not src.is_dir():
         raise DataNotFoundError(f"weights folder not found: {src}")
     if models is None:
-        chosen = [m for m, c in CONVERTERS.items() if any((src / m / f).is_file() for f in c.files)]
+        chosen = [m for m, c in CONVERTERS.items() if any(os.path.lexists(src / m / f) for f in c.files)]
         if not chosen:
             raise DataNotFoundError(
                 f"{src}: no model files found; expected sub-folders {', '.join(sorted(CONVERTERS))}"

@@ -25,7 +25,7 @@ from typing import Any, Callable, Dict, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import DataNotFoundError, WaldoError
+from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
 
 __all__ = ["TorchPickleError", "read_torch_file", "state_dict"]
 
@@ -293,8 +293,14 @@ def read_torch_file(path: str | os.PathLike) -> Any:
         objects other than tensors and plain containers.
     """
     path = os.fspath(path)
-    if not Path(path).is_file():
+    if not os.path.lexists(path):
         raise DataNotFoundError(f"torch checkpoint not found: {path}")
+    try:
+        check_input_file(path, "torch checkpoint")  # a folder, a FIFO or a link loop, said as such
+    except DataNotFoundError:  # a dangling link
+        raise
+    except WaldoError as exc:
+        raise TorchPickleError(str(exc)) from None
     size = Path(path).stat().st_size
     if size > MAX_FILE_BYTES:
         raise TorchPickleError(

@@ -1,0 +1,229 @@
+"""Bad input to `waldo path` (and what it exports for `waldo render`): work and memory set by its flags and
+by the poses of --from-explore, refused before the search runs with the flag, the amount and the memory;
+legal flags that change less than they say, warned about.
+
+Each refusal runs `waldo_jax.cli.main(argv)` in-process at the smallest settings and checks one line
+`waldo: error: ...` naming the flag, exit status 1 and no --out folder made.
+"""
+
+import argparse
+import json
+import re
+
+import numpy as np
+import pytest
+
+import waldo_jax.cli.path as path_cli
+from waldo_jax.cli import main
+
+# The smallest search: 2 keyframes, 8 frames, 3 + 4 paths of 16x16 renders of a room of 4 views.
+SMALL = ["--frames", "8", "--keyframes", "2", "--resolution", "16", "--epochs", "1", "--initial-paths", "3"]
+SMALL += ["--paths-per-epoch", "4", "--views", "4", "--quiet"]
+
+
+def _parse(argv):
+    """`waldo path`'s flags parsed as the CLI parses them (`--out` given where the test does not)."""
+    parser = argparse.ArgumentParser()
+    path_cli.add_command(parser.add_subparsers())
+    return parser.parse_args(argv if "--out" in argv else [*argv, "--out", "unused"])
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("the search ran before the refusal")
+
+
+def _refuses(argv, expected, capsys, out, monkeypatch):
+    monkeypatch.setattr(path_cli, "run_path", _never)  # without the check: fails at once, not hours later
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("waldo: error: ") and "\n" not in err and "Traceback" not in err, err
+    assert expected in err, err
+    assert not out.exists(), "the output folder was made before the refusal"
+
+
+def _explore_folder(folder, count):
+    """A `waldo explore` --out folder whose poses.json holds `count` poses of the room."""
+    folder.mkdir()
+    angles = np.linspace(0.0, 2 * np.pi, max(count, 1), endpoint=False)[:count]
+    frames = []
+    for a in angles:
+        c, s = np.cos(a), np.sin(a)
+        # Cameras on a ring around the room's centre, looking at it (OpenGL: the camera looks down -z).
+        m = [[c, 0.0, s, 3.0 * s], [0.0, 1.0, 0.0, 1.5], [-s, 0.0, c, 3.0 * c], [0.0, 0.0, 0.0, 1.0]]
+        frames.append({"transform_matrix": m})
+    (folder / "poses.json").write_text(json.dumps({"frames": frames}))
+    return folder
+
+
+def test_path_search_past_memory_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
+    """The candidates every seed keeps (--initial-paths + --epochs x --paths-per-epoch paths, each its
+    --frames scores) were never set against memory: `--frames 2000 --initial-paths 10000 --paths-per-epoch
+    10000 --epochs 100` filled the 23 GiB machine and was killed. XLA's analysis of the compiled search is
+    now checked first (the memory made small here)."""
+    monkeypatch.setattr(path_cli, "host_memory_bytes", lambda: 10_000)
+    out = tmp_path / "new"
+    _refuses(["path", "procedural:0", *SMALL, "--out", str(out)], "the compiled search needs", capsys, out, monkeypatch)
+
+
+def test_path_video_past_memory_is_refused_before_the_search(tmp_path, capsys, monkeypatch):
+    """The video frames (rendered after the search, all held at once) were not bounded: 2000 frames of
+    4096x4096 would have ended hours later in a MemoryError (about 1.2 TiB)."""
+    import waldo_jax.pipeline.sources as sources
+
+    room_scene = sources.room_scene
+
+    def small_rooms_only(*args, resolution, **kwargs):  # the room's training views at the video's size took minutes
+        assert resolution <= 64, "the room rendered its training views at the video's size before its memory check"
+        return room_scene(*args, resolution=resolution, **kwargs)
+
+    monkeypatch.setattr(sources, "room_scene", small_rooms_only)
+    out = tmp_path / "new"
+    argv = ["path", "procedural:0", *SMALL, "--frames", "2000", "--video-resolution", "4096", "--out", str(out)]
+    _refuses(argv, "--frames 2000 x --video-resolution 4096", capsys, out, monkeypatch)
+
+
+def test_path_from_explore_anchors_past_memory_are_refused(tmp_path, capsys, monkeypatch):
+    """The poses of --from-explore are rendered and scored in one call: their count (read from the file)
+    is set against memory before the source renders anything (the memory made small here)."""
+    monkeypatch.setattr(path_cli, "memory_bytes", lambda: 100_000)
+    explore = _explore_folder(tmp_path / "explore", 8)
+    out = tmp_path / "new"
+    argv = ["path", "procedural:0", *SMALL, "--from-explore", str(explore), "--out", str(out)]
+    _refuses(argv, f"--from-explore {explore}: its poses.json holds 8 poses", capsys, out, monkeypatch)
+
+
+def test_path_from_explore_with_one_pose_names_the_flag(tmp_path, capsys, monkeypatch):
+    """One pose cannot start a path of two keyframes: said by --from-explore before the room loads (it was
+    a message about "anchor poses with a finite score" after the source had loaded)."""
+    explore = _explore_folder(tmp_path / "explore", 1)
+    out = tmp_path / "new"
+    argv = ["path", "procedural:0", *SMALL, "--from-explore", str(explore), "--out", str(out)]
+    _refuses(argv, f"--from-explore {explore}: its poses.json holds 1 pose;", capsys, out, monkeypatch)
+
+
+@pytest.mark.parametrize(
+    "flags, expected",
+    [
+        (["--max-turn", "200"], "--max-turn 200: no frame turns more than 180 degrees"),
+        (["--fps", "100"], "--fps 100: path.gif shows each frame 20 ms, 50 frames a second"),
+        # Flags off their default that the others make change nothing (ran in silence).
+        (["--temperature", "0.1"], "--temperature 0.1 has no effect: it is for --aggregate softmin"),
+        (["--initial", "renders", "--from-explore", "x"], "--initial renders has no effect: the anchors are"),
+    ],
+)
+def test_path_flags_that_change_less_than_they_say_are_warned(flags, expected):
+    """Degenerate but legal: a turn limit past 180 degrees limits nothing; a GIF cannot play past 50 fps
+    (whole centiseconds, at least 2); a flag the others make idle. All ran in silence. Checked on the flags
+    alone (`_config_from_args`), before any work."""
+    with pytest.warns(UserWarning, match=re.escape(expected)):
+        path_cli._config_from_args(_parse(["path", "procedural:0", *SMALL, *flags, "--out", "unused"]))
+
+
+def test_path_usual_flags_are_not_warned(recwarn):
+    """The defaults (12 fps: 80 ms GIF frames, 12.5 fps; a 5 degree turn limit) and a softmin's own
+    --temperature: no warning."""
+    path_cli._config_from_args(_parse(["path", "procedural:0", "--out", "unused"]))
+    path_cli._config_from_args(_parse(["path", "procedural:0", "--aggregate", "softmin", "--temperature", "0.1"]))
+    assert not [w for w in recwarn if issubclass(w.category, UserWarning)]
+
+
+def _exported_paths():
+    """A 3-frame camera path of rigid poses as `waldo path` exports it for nerfstudio and Instant-NGP."""
+    from waldo_jax.scenes.camera_paths import NgpFrame, instant_ngp_camera_path, nerfstudio_camera_path
+    from waldo_jax.types import Intrinsics
+
+    c2w = np.stack([np.eye(4)] * 3)
+    c2w[:, 0, 3] = [0.0, 0.5, 1.0]
+    intrinsics = Intrinsics.create(32, 24, 30.0)
+    ns = nerfstudio_camera_path(c2w, intrinsics, fps=10)
+    ngp = instant_ngp_camera_path(c2w, intrinsics, 10, frame=NgpFrame.create())
+    return json.loads(json.dumps(ns)), json.loads(json.dumps(ngp)), intrinsics
+
+
+def _set_fov(entries, value):
+    for entry in entries:
+        entry["fov"] = value
+
+
+# (name, edit of the nerfstudio dict or of the Instant-NGP one, words of the message). Each was read as a
+# number or a flag it is not (fov "60", render_width 16.9, ngp_from_mitsuba "false" -> True, world "mars"
+# -> the scene's frame, frames -3 or 10^7), or ended in a KeyError / TypeError text, with exit 0 or a trace.
+CAMERA_PATH_CASES = [
+    ("ns-fov-text", lambda ns, ngp: _set_fov(ns["camera_path"], "60"), "camera_path 0 'fov' must be a number"),
+    ("ns-fov-bool", lambda ns, ngp: _set_fov(ns["camera_path"], True), "camera_path 0 'fov' must be a number"),
+    ("ns-width-text", lambda ns, ngp: ns.update(render_width="16"), "'render_width' must be a whole number"),
+    ("ns-width-fraction", lambda ns, ngp: ns.update(render_width=16.9), "'render_width' must be a whole number"),
+    ("ns-width-huge", lambda ns, ngp: ns.update(render_width=10**7), "'render_width' must be a whole number"),
+    ("ns-no-width", lambda ns, ngp: ns.pop("render_width"), "'render_width' must be a whole number"),
+    ("ns-entries-text", lambda ns, ngp: ns.update(camera_path="abc"), "'camera_path' must be a non-empty list"),
+    ("ns-entry-list", lambda ns, ngp: ns.update(camera_path=[[1, 2]]), "'camera_path' entry 0 must be an object"),
+    (
+        "ns-matrix-text",
+        lambda ns, ngp: ns["camera_path"][0].update(camera_to_world=["1"] * 16),
+        "camera_path 0 'camera_to_world' must be 16 numbers",
+    ),
+    (
+        "ns-matrix-missing",
+        lambda ns, ngp: ns["camera_path"][1].pop("camera_to_world"),
+        "camera_path 1 'camera_to_world' must be 16 numbers",
+    ),
+    ("ns-world-other", lambda ns, ngp: ns["waldo"].update(world="mars"), "'world' must be 'scene' or 'nerfstudio'"),
+    (
+        "ns-pose-scale-text",
+        lambda ns, ngp: ns["waldo"].update(world="nerfstudio", pose_transform=np.eye(4)[:3].tolist(), pose_scale="1"),
+        "'pose_scale' must be a number",
+    ),
+    ("ngp-frames-negative", lambda ns, ngp: ngp["waldo"].update(frames=-3), "'frames' must be a whole number"),
+    ("ngp-frames-past-the-path", lambda ns, ngp: ngp["waldo"].update(frames=10**7), "'frames' must be a whole"),
+    ("ngp-frames-text", lambda ns, ngp: ngp["waldo"].update(frames="3"), "'frames' must be a whole number"),
+    ("ngp-mitsuba-text", lambda ns, ngp: ngp["waldo"].update(ngp_from_mitsuba="false"), "must be true or false"),
+    ("ngp-scale-text", lambda ns, ngp: ngp["waldo"].update(ngp_scale="0.1"), "'ngp_scale' must be a number"),
+    ("ngp-offset-short", lambda ns, ngp: ngp["waldo"].update(ngp_offset=[0.5, 0.5]), "'ngp_offset' must be 3"),
+    ("ngp-rotation-text", lambda ns, ngp: ngp["path"][0].update(R=["0", "0", "0", "1"]), "keyframe 0 'R' must be"),
+    ("ngp-position-nan", lambda ns, ngp: ngp["path"][0].update(T=[float("nan"), 0, 0]), "keyframe 0 'T' must be"),
+    ("ngp-width-fraction", lambda ns, ngp: ngp["waldo"].update(render_width=16.5), "'render_width' must be a whole"),
+    ("ngp-entry-number", lambda ns, ngp: ngp["path"].__setitem__(0, 5), "'path' entry 0 must be an object"),
+]
+
+
+@pytest.mark.parametrize("edit, says", [c[1:] for c in CAMERA_PATH_CASES], ids=[c[0] for c in CAMERA_PATH_CASES])
+def test_every_field_of_a_camera_path_is_checked_by_its_key(edit, says):
+    """`waldo render --poses` and `waldo path` read back the camera paths they export: every value is taken
+    by its key, a number as a number, a count as a whole number in its range, a flag as true or false."""
+    from waldo_jax.scenes.camera_paths import read_camera_path
+
+    ns, ngp, intrinsics = _exported_paths()
+    for meta in (ns, ngp):  # the undamaged exports read back
+        assert read_camera_path(meta, intrinsics)[0].shape == (3, 4, 4)
+    edit(ns, ngp)
+    damaged = ns if ns != _exported_paths()[0] else ngp
+    with pytest.raises(ValueError, match=re.escape(says)):
+        read_camera_path(damaged, intrinsics)
+
+
+def test_a_poses_file_is_checked_for_its_bottom_row_and_counted_before_its_poses(tmp_path):
+    """A `transform_matrix` bottom row of [1, 2, 3, 4] was dropped unread (rendered, exit 0); a file of more
+    poses than `waldo render` takes was checked pose by pose first (10^6: 49 s and 2 GB to be refused)."""
+    from waldo_jax.errors import WaldoError
+    from waldo_jax.scenes import read_poses_file
+    from waldo_jax.types import Intrinsics
+
+    intrinsics = Intrinsics.create(32, 24, 30.0)
+    bottom = np.eye(4).tolist()
+    bottom[3] = [1.0, 2.0, 3.0, 4.0]
+    path = tmp_path / "poses.json"
+    path.write_text(json.dumps({"frames": [{"transform_matrix": np.eye(4).tolist()}, {"transform_matrix": bottom}]}))
+    with pytest.raises(WaldoError, match=re.escape("frame 1") + ".*bottom row"):
+        read_poses_file(path, intrinsics)
+    path.write_text(json.dumps({"frames": [{"transform_matrix": "not checked"}] * 5}))
+    with pytest.raises(WaldoError, match="5 poses; at most 4 are read at once"):
+        read_poses_file(path, intrinsics, max_poses=4)
+
+
+@pytest.mark.parametrize("scale", ["0.5", True, 10**400])
+def test_a_dataparser_scale_that_is_no_number_is_refused(scale):
+    """nerfstudio's dataparser_transforms.json `scale` of "0.5" or true was read as 0.5 or 1."""
+    from waldo_jax.scenes.tool_frames import read_dataparser_transform
+
+    with pytest.raises(ValueError, match="dataparser scale must be a number"):
+        read_dataparser_transform({"transform": np.eye(4)[:3].tolist(), "scale": scale})
