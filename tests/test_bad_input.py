@@ -945,3 +945,25 @@ def test_json_that_could_not_be_held_parsed_is_refused_before_parsing(tmp_path, 
         wio.read_json_file(path, "poses file")
     monkeypatch.setattr(wio, "host_memory_bytes", lambda: 64 * 2**20)
     assert len(wio.read_json_file(path, "poses file")) == 100_000
+
+
+@pytest.mark.parametrize(
+    "item",
+    ["[]", "{}", "[0]", '{"a":1}', '{"a":0.5,"b":[0.5,0.5]}', "0.5", '"abcdefgh"', "[0.5,0.5,0.5,0.5]", "[[[]]]"],
+)
+def test_the_parsed_json_estimate_is_at_least_what_parsing_takes(item):
+    """`io._parsed_bytes`, the bound the memory check uses, against what `json.loads` really allocates
+    (tracemalloc) for a list of 20,000 copies of each kind of item."""
+    import tracemalloc
+
+    from waldo_jax.io import _parsed_bytes
+
+    text = "[" + ",".join([item] * 20_000) + "]"
+    tracemalloc.start()
+    try:
+        parsed = json.loads(text)
+        taken = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(parsed) == 20_000
+    assert taken <= _parsed_bytes(text.encode()) <= 4 * taken + 2**16

@@ -106,6 +106,7 @@ def test_path_from_explore_with_one_pose_names_the_flag(tmp_path, capsys, monkey
     [
         (["--max-turn", "200"], "--max-turn 200: no frame turns more than 180 degrees"),
         (["--fps", "100"], "--fps 100: path.gif shows each frame 20 ms, 50 frames a second"),
+        (["--fps", "40"], "--fps 40: path.gif shows each frame 20 ms, 50 frames a second"),
         # Flags off their default that the others make change nothing (ran in silence).
         (["--temperature", "0.1"], "--temperature 0.1 has no effect: it is for --aggregate softmin"),
         (["--initial", "renders", "--from-explore", "x"], "--initial renders has no effect: the anchors are"),
@@ -120,9 +121,11 @@ def test_path_flags_that_change_less_than_they_say_are_warned(flags, expected):
 
 
 def test_path_usual_flags_are_not_warned(recwarn):
-    """The defaults (12 fps: 80 ms GIF frames, 12.5 fps; a 5 degree turn limit) and a softmin's own
-    --temperature: no warning."""
+    """The defaults (12 fps: 80 ms GIF frames, 12.5 fps; a 5 degree turn limit), the usual video rates and a
+    softmin's own --temperature: no warning."""
     path_cli._config_from_args(_parse(["path", "procedural:0", "--out", "unused"]))
+    for fps in ("24", "25", "30"):  # GIF frames of 40, 40 and 30 ms: 25, 25 and 33.3 fps
+        path_cli._config_from_args(_parse(["path", "procedural:0", "--fps", fps, "--out", "unused"]))
     path_cli._config_from_args(_parse(["path", "procedural:0", "--aggregate", "softmin", "--temperature", "0.1"]))
     assert not [w for w in recwarn if issubclass(w.category, UserWarning)]
 
@@ -218,6 +221,11 @@ def test_a_poses_file_is_checked_for_its_bottom_row_and_counted_before_its_poses
     path.write_text(json.dumps({"frames": [{"transform_matrix": "not checked"}] * 5}))
     with pytest.raises(WaldoError, match="5 poses; at most 4 are read at once"):
         read_poses_file(path, intrinsics, max_poses=4)
+    # waldo's Instant-NGP path of 3 frames holds 4 keyframes (the last repeats the last frame): 3 are counted.
+    ngp = _exported_paths()[1]
+    assert len(ngp["path"]) == 4
+    path.write_text(json.dumps(ngp))
+    assert len(read_poses_file(path, intrinsics, max_poses=3)[0]) == 3
 
 
 @pytest.mark.parametrize("scale", ["0.5", True, 10**400])

@@ -85,7 +85,7 @@ def test_missing_transform_matrix_names_the_file_and_frame(tmp_path):
     "matrix, problem",
     [
         ([[1, 0], [0, 1]], r"frame 0 transform_matrix has shape \[2, 2\], expected 4x4"),
-        ([[1, 0, 0, 0]] * 3, "not a rigid camera-to-world matrix"),
+        ([[1, 0, 0, 0]] * 3, "pose is not rigid"),
         ([[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "non-finite"),
         ([["a", 0, 0, 0]] * 4, "not a matrix of numbers"),
     ],
@@ -100,7 +100,7 @@ def test_bad_matrix_is_refused_naming_the_problem(tmp_path, matrix, problem):
 def test_mirrored_rotation_is_refused(tmp_path):
     m = np.diag([1.0, 1.0, -1.0, 1.0])  # orthonormal but det -1
     path = _write(tmp_path, {"frames": [{"transform_matrix": m.tolist()}]})
-    with pytest.raises(SceneFormatError, match="not a rigid"):
+    with pytest.raises(SceneFormatError, match="pose is not rigid"):
         read_poses_file(path, DEFAULT)
 
 

@@ -346,9 +346,19 @@ def stale_files(folder: str | os.PathLike, pattern: str, keep: Sequence[str]) ->
 # deeper file would exhaust Python's recursion, a larger one the machine's memory.
 MAX_JSON_DEPTH = 64
 MAX_JSON_BYTES = 512 * 2**20
-# Bytes of Python objects a byte of JSON text can parse into, at most: `[[0],[0],...]` and `[{},{},...]`
-# take 24 (tracemalloc, CPython 3.11), `[0.5,0.5,...]` 8. A file of MAX_JSON_BYTES may need 12.5 GiB.
-_JSON_PARSED_BYTES = 25
+# What JSON text takes parsed, at most (tracemalloc, CPython 3.11, files of 200,000 items): 8 bytes a byte of
+# text (`[0.5,0.5,...]` takes 8.2, strings 6) and more for each container: a list about 64 bytes
+# (`[[0],[0],...]` took 24 a byte), a dict about 180 (`[{"a":1},...]` 24 a byte). `_parsed_bytes` counts
+# 10 a byte (a list holding its items grows by an eighth), 80 a `[` and 200 a `{` (brackets in strings too:
+# an overestimate): at or above every case measured (tests/test_bad_input.py).
+_PARSED_PER_BYTE, _PARSED_PER_LIST, _PARSED_PER_DICT = 10, 80, 200
+
+
+def _parsed_bytes(data: bytes) -> int:
+    """An upper estimate of the memory `json.loads` takes for `data` (see `_PARSED_PER_BYTE`)."""
+    return _PARSED_PER_BYTE * len(data) + _PARSED_PER_LIST * data.count(b"[") + _PARSED_PER_DICT * data.count(b"{")
+
+
 _JSON_STRING = re.compile(rb'"(?:[^"\\\n]|\\.)*"')
 _DEPTH_CHUNK = 1 << 24
 
@@ -395,7 +405,7 @@ def parse_json(
     depth = json_depth(data)
     if depth > MAX_JSON_DEPTH:
         raise fail(f"{what} nests {depth} levels deep (at most {MAX_JSON_DEPTH})")
-    need, available = _JSON_PARSED_BYTES * len(data), host_memory_bytes()
+    need, available = _parsed_bytes(data), host_memory_bytes()
     if available and need > available:  # checked before parsing: Linux kills, it raises no MemoryError
         raise fail(
             f"{what} of {len(data) / 2**20:,.1f} MiB may take up to {need / 2**30:,.2f} GiB parsed, more than "

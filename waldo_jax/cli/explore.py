@@ -226,7 +226,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
         resolved.method_config(method)
     except ValueError as e:
         raise WaldoError(f"{source.spec}: {e}") from None
-    capacity = source.n_train + resolved.epochs * resolved.children_per_epoch
+    capacity = resolved.capacity(source.n_train)
     if "top_c" in method.options and args.top_c > capacity:  # PIBS takes min(top_c, capacity): said, not silent
         warnings.warn(
             f"--top-c {args.top_c} exceeds the {capacity} views of the run ({source.n_train} training + "

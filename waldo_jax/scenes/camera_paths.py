@@ -37,7 +37,9 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
+from waldo_jax.errors import check_float32
 from waldo_jax.scenes.colmap import rotation_of_qvec
+from waldo_jax.scenes.common import numeric_array, value_text
 from waldo_jax.scenes.tool_frames import (
     MITSUBA_TO_OPENGL,
     NERFSTUDIO_COLMAP_APPLIED_TRANSFORM,
@@ -284,38 +286,28 @@ def _entries(meta: Dict[str, Any], key: str) -> list:
     """meta[key], a non-empty list of objects, else a ValueError naming the key."""
     entries = meta.get(key)
     if not isinstance(entries, list) or not entries:
-        raise ValueError(f"{key!r} must be a non-empty list of frames, got {_text(entries)}")
+        raise ValueError(f"{key!r} must be a non-empty list of frames, got {value_text(entries)}")
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict):
-            raise ValueError(f"{key!r} entry {i} must be an object, got {_text(entry)}")
+            raise ValueError(f"{key!r} entry {i} must be an object, got {value_text(entry)}")
     return entries
-
-
-def _text(value: Any) -> str:
-    from waldo_jax.scenes.common import value_text
-
-    return value_text(value)
 
 
 def _numbers(value: Any, shape: Tuple[int, ...], what: str) -> np.ndarray:
     """`value` as float64 of `shape` (numbers only: strings and booleans refused), finite, else a ValueError."""
-    from waldo_jax.scenes.common import numeric_array
-
     array = numeric_array(value)
     if array is None or array.size != int(np.prod(shape)):
-        raise ValueError(f"{what} must be {int(np.prod(shape))} numbers, got {_text(value)}")
+        raise ValueError(f"{what} must be {int(np.prod(shape))} numbers, got {value_text(value)}")
     if not np.all(np.isfinite(array)) or np.max(np.abs(array)) > float(np.finfo(np.float32).max):
-        raise ValueError(f"{what} must be finite in float32, got {_text(value)}")
+        raise ValueError(f"{what} must be finite in float32, got {value_text(value)}")
     return array.reshape(shape)
 
 
 def _number(meta: Dict[str, Any], key: str, what: str, positive: bool = False) -> float:
     """meta[key], a number (not a string or a boolean) finite in float32 (> 0 there with `positive`)."""
-    from waldo_jax.errors import check_float32
-
     value = meta.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{what} {key!r} must be a number, got {_text(value)}")
+        raise ValueError(f"{what} {key!r} must be a number, got {value_text(value)}")
     return check_float32(value, f"{what} {key!r}", positive=positive)
 
 
@@ -326,7 +318,7 @@ def _count(meta: Dict[str, Any], key: str, what: str, low: int, high: int, defau
     value = meta.get(key)
     whole = isinstance(value, int) or (isinstance(value, float) and value.is_integer())
     if isinstance(value, bool) or not whole or not low <= value <= high:
-        raise ValueError(f"{what} {key!r} must be a whole number between {low} and {high}, got {_text(value)}")
+        raise ValueError(f"{what} {key!r} must be a whole number between {low} and {high}, got {value_text(value)}")
     return int(value)
 
 
@@ -348,7 +340,7 @@ def _nerfstudio_back(c2w: np.ndarray, waldo: Dict[str, Any]) -> np.ndarray:
 def _ngp_back(meta: Dict[str, Any], waldo: Dict[str, Any]) -> np.ndarray:
     flag = waldo.get("ngp_from_mitsuba", False)
     if not isinstance(flag, bool):  # bool("false") is True: NGP's axes would be cycled the other way
-        raise ValueError(f"the waldo block's 'ngp_from_mitsuba' must be true or false, got {_text(flag)}")
+        raise ValueError(f"the waldo block's 'ngp_from_mitsuba' must be true or false, got {value_text(flag)}")
     scale = _number(waldo, "ngp_scale", "the waldo block's", positive=True)
     offset = _numbers(waldo.get("ngp_offset"), (3,), "the waldo block's 'ngp_offset'")
     frame = NgpFrame.create(scale, offset.tolist(), flag)
@@ -386,7 +378,7 @@ def read_camera_path(meta: Dict[str, Any], default: Intrinsics) -> Tuple[np.ndar
 
     world = waldo.get("world", "scene")
     if "camera_path" in meta and world not in ("scene", "nerfstudio"):  # any other word was read as "scene"
-        raise ValueError(f"the waldo block's 'world' must be 'scene' or 'nerfstudio', got {_text(world)}")
+        raise ValueError(f"the waldo block's 'world' must be 'scene' or 'nerfstudio', got {value_text(world)}")
     try:
         if "camera_path" in meta:
             entries = _entries(meta, "camera_path")

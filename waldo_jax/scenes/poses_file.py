@@ -17,8 +17,7 @@ from waldo_jax.errors import (
     SceneFormatError,
 )
 from waldo_jax.scenes.common import (
-    RIGID_TOL,
-    check_origin,
+    check_rigid,
     field,
     focal_from_angle,
     input_file,
@@ -44,15 +43,9 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
         m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
     if m.shape != (4, 4):
         raise SceneFormatError(path, f"{what} has shape {list(m.shape)}, expected 4x4")
-    if not np.all(np.isfinite(m)):
-        raise SceneFormatError(path, f"{what} has non-finite values")
-    rotation = m[:3, :3]
-    if np.max(np.abs(rotation.T @ rotation - np.eye(3))) > RIGID_TOL or np.linalg.det(rotation) < 0:
-        raise SceneFormatError(path, f"{what} is not a rigid camera-to-world matrix")
-    if float(np.max(np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)))) > RIGID_TOL:  # a projective row was dropped unread
-        raise SceneFormatError(path, f"{what} has the bottom row {m[3].tolist()}, expected [0, 0, 0, 1]")
-    check_origin(m, path, what)
-    return m
+    # A scene's rule for its cameras: finite, rigid, the bottom row (0, 0, 0, 1) (a projective row had been
+    # dropped unread), the origin within MAX_COORDINATE.
+    return check_rigid(m, path, what)
 
 
 _FRAME_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y", "k1", "k2", "p1", "p2")
@@ -122,7 +115,8 @@ def read_poses_file(
     The file is a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio / Blender
     transforms: OpenGL camera-to-world, in the file's own world frame, used as they are). A matrix may
     be 4x4 (its bottom row (0, 0, 0, 1)), 3x4 (that row is added) or 16 numbers; it must be finite and
-    rigid (rotation orthonormal within `RIGID_TOL`, det +1). Intrinsics come from the file when it has a focal length
+    rigid (rotation orthonormal within `scenes.common.RIGID_TOL`, det +1, `check_rigid`). Intrinsics come
+    from the file when it has a focal length
     (`fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`, with `w`/`h`, `cx`/`cy`, `k1 k2 p1 p2`; a
     missing size is taken from `default_intrinsics`), else they are `default_intrinsics`. Camera paths
     written by `waldo path` (nerfstudio `camera_path.json`, Instant-NGP paths; `waldo_jax.scenes.camera_paths`)
@@ -172,7 +166,12 @@ def read_poses_file(
             return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
         if is_camera_path(meta):
             entries = meta.get("camera_path", meta.get("path"))
-            _check_count(len(entries) if isinstance(entries, list) else 0, max_poses, path)
+            count = len(entries) if isinstance(entries, list) else 0
+            waldo = meta.get("waldo")
+            frames = waldo.get("frames") if isinstance(waldo, dict) and "camera_path" not in meta else None
+            if isinstance(frames, int) and not isinstance(frames, bool):  # an NGP path repeats its last frame
+                count = min(count, frames)
+            _check_count(count, max_poses, path)
             try:
                 c2w, intrinsics = read_camera_path(meta, default_intrinsics)
             except ValueError as e:

@@ -18,7 +18,7 @@ from typing import Any, Callable, List, Optional
 
 import numpy as np
 
-from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file, one_line
+from waldo_jax.errors import MAX_RESOLUTION, WaldoError, check_input_file, one_line
 
 __all__ = ["MAX_FRUSTUMS", "Fields", "ViewerError", "check_image_file", "check_poses", "read_json", "relative_file"]
 
@@ -28,6 +28,9 @@ __all__ = ["MAX_FRUSTUMS", "Fields", "ViewerError", "check_image_file", "check_p
 MAX_FRUSTUMS = 20_000
 
 _MISSING = object()
+# The smallest side of a view the viewer shows: a run's views keep their scene's aspect under `--resolution`
+# (`Intrinsics.with_max_side`), so a 4:3 scene at `--resolution 8` writes 8x6 shots, which are waldo's own.
+MIN_SIDE = 1
 
 
 class ViewerError(WaldoError, ValueError):
@@ -187,15 +190,14 @@ class Fields:
         return check_poses([value], lambda p: self.error(p.removeprefix("[0]: "), name))[0]
 
     def resolution(self, name: str, default: Any = _MISSING) -> Any:
-        """An image size [width, height], each side MIN_RESOLUTION .. MAX_RESOLUTION pixels (the rule of
-        `--resolution`)."""
+        """An image size [width, height], each side MIN_SIDE .. MAX_RESOLUTION pixels."""
         values = self.array(name, default)
         if values is default and default is not _MISSING:
             return values
         if len(values) != 2:
             raise self.error(f"expected [width, height], got {_shown(values)}", name)
-        side = f"expected [width, height] of {MIN_RESOLUTION} .. {MAX_RESOLUTION} pixels each, got {_shown(values)}"
-        return tuple(_integer(v, MIN_RESOLUTION, MAX_RESOLUTION, lambda _: self.error(side, name)) for v in values)
+        side = f"expected [width, height] of {MIN_SIDE} .. {MAX_RESOLUTION} pixels each, got {_shown(values)}"
+        return tuple(_integer(v, MIN_SIDE, MAX_RESOLUTION, lambda _: self.error(side, name)) for v in values)
 
 
 def _integer(value: Any, minimum: int, maximum: int, error: Callable[[str], Exception]) -> int:
@@ -278,8 +280,8 @@ def relative_file(fields: Fields, name: str, folder: Path) -> Optional[Path]:
 
 
 def check_image_file(path: Path, what: str) -> Path:
-    """`path` if it is a regular file whose header an image reader knows, of sides MIN_RESOLUTION ..
-    MAX_RESOLUTION pixels (`io.read_image`'s rule, read from the header before the page is built);
+    """`path` if it is a regular file whose header an image reader knows, of sides MIN_SIDE ..
+    MAX_RESOLUTION pixels (read from the header before the page is built);
     else a `ViewerError` naming `what` and the file (a directory, a FIFO, a link loop said as such)."""
     from PIL import Image
 
@@ -293,9 +295,9 @@ def check_image_file(path: Path, what: str) -> Path:
     except Exception as e:  # Pillow raises many types (a truncated header, a decompression bomb, not an image)
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise ViewerError(f"{what}: {path}: not a readable image ({one_line(first)[:160]})") from None
-    if not (MIN_RESOLUTION <= min(width, height) and max(width, height) <= MAX_RESOLUTION):
+    if not (MIN_SIDE <= min(width, height) and max(width, height) <= MAX_RESOLUTION):
         raise ViewerError(
-            f"{what}: {path}: the image is {width}x{height}; sides must lie between {MIN_RESOLUTION} and "
+            f"{what}: {path}: the image is {width}x{height}; sides must lie between {MIN_SIDE} and "
             f"{MAX_RESOLUTION} pixels"
         )
     return path

@@ -220,20 +220,25 @@ def _ranks(scores: List[Optional[float]], direction: str) -> List[Optional[int]]
 
 
 def _intrinsics_of(out: Path, resolution: Optional[Tuple[int, int]]) -> Tuple[float, float]:
-    """(fov_y radians, aspect) of an explore output: poses.json's camera (read and checked as every poses
-    file is, `scenes.read_poses_file`: a damaged one is refused by its key, not drawn at a NaN field of view),
-    else its resolution at 50 degrees. The aspect is the run's resolution's, else the camera's."""
-    from waldo_jax.scenes import read_poses_file
-    from waldo_jax.types import Intrinsics
-
+    """(fov_y radians, aspect) of an explore output: poses.json's camera, its keys checked by key (a damaged
+    one is refused, not drawn at a NaN field of view; `fl_y: 0` was a ZeroDivisionError), else its
+    resolution at 50 degrees. The aspect is the run's resolution's, else the camera's. Only the camera is
+    read: a run whose every view failed its guard writes `frames: []`, and its views may be under 8 px a side."""
     width, height = resolution or (64, 64)
     fov_y = math.radians(DEFAULT_FOV_Y_DEG)
     aspect = width / height
     if os.path.lexists(out / "poses.json"):  # a directory, a FIFO or a dangling link is said as such there
-        fallback = Intrinsics.from_fov(int(width), int(height), fov_y)
-        _, intrinsics, _ = read_poses_file(out / "poses.json", fallback)
-        fov_y = 2 * math.atan(0.5 * intrinsics.height / float(intrinsics.fy))
-        aspect = aspect if resolution else intrinsics.width / intrinsics.height
+        camera = Fields(read_json(out / "poses.json", "poses file"), out / "poses.json")
+        w, h = camera.number("w", None, positive=True), camera.number("h", None, positive=True)
+        focal = camera.number("fl_y", None, positive=True) or camera.number("fl_x", None, positive=True)
+        angle_x = camera.number("camera_angle_x", None, positive=True)
+        aspect = aspect if resolution or w is None or h is None else w / h
+        if focal is not None and h is not None:
+            fov_y = 2 * math.atan(0.5 * h / focal)
+        elif angle_x is not None:
+            if angle_x >= math.pi:
+                raise camera.error(f"expected an angle under pi radians, got {angle_x:g}", "camera_angle_x")
+            fov_y = 2 * math.atan(math.tan(0.5 * angle_x) / aspect)
     return fov_y, aspect
 
 

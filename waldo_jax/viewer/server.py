@@ -29,6 +29,7 @@ from waldo_jax.errors import WaldoError
 from waldo_jax.viewer.live import LiveView, opengl_c2w
 from waldo_jax.viewer.paths import export_camera_path
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene
+from waldo_jax.viewer.fields import MIN_SIDE
 
 __all__ = ["Viewer", "address_url", "export_html", "import_viser", "serve"]
 
@@ -113,7 +114,7 @@ def shot_image(path: Path) -> np.ndarray:
     from waldo_jax.io import read_image, to_uint8
 
     try:
-        return to_uint8(read_image(path, what="top-k image"))
+        return to_uint8(read_image(path, what="top-k image", min_side=MIN_SIDE))
     except WaldoError as e:
         raise ViewerError(str(e)) from None
 

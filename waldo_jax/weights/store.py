@@ -100,7 +100,7 @@ def weights_file(weights_dir: Optional[str | os.PathLike], model: str, filename:
     if folder.exists() and not folder.is_dir():
         raise DataNotFoundError(f"weights folder {folder}: a file, not a folder (pass --weights DIR)")
     path = folder / model / filename
-    if not os.path.lexists(path):
+    if not path.exists():  # nothing there, or a dangling link: where to point instead
         raise DataNotFoundError(
             f"weights file not found: expected {path} (model {model!r}); pass --weights DIR or set WALDO_WEIGHTS "
             "to a folder in the ../shared/weights layout"
@@ -228,7 +228,7 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
     converter = CONVERTERS[model]
     root = resolve_weights_dir(weights_dir)
     native = root / model / f"{model}.npz"
-    if os.path.lexists(native):  # load_native says what is wrong with anything there that is no archive
+    if native.exists():  # load_native says what is wrong with anything there that is no archive
         return load_native(native, model)
     for filename in converter.files:
         weights_file(root, model, filename)
@@ -254,7 +254,7 @@ def convert_all(
     if not src.is_dir():
         raise DataNotFoundError(f"weights folder not found: {src}")
     if models is None:
-        chosen = [m for m, c in CONVERTERS.items() if any(os.path.lexists(src / m / f) for f in c.files)]
+        chosen = [m for m, c in CONVERTERS.items() if any((src / m / f).exists() for f in c.files)]
         if not chosen:
             raise DataNotFoundError(
                 f"{src}: no model files found; expected sub-folders {', '.join(sorted(CONVERTERS))}"
