@@ -55,6 +55,7 @@ def _explore_folder(folder, count):
     return folder
 
 
+@pytest.mark.slow
 def test_path_search_past_memory_is_refused_before_it_runs(tmp_path, capsys, monkeypatch):
     """The candidates every seed keeps (--initial-paths + --epochs x --paths-per-epoch paths, each its
     --frames scores) were never set against memory: `--frames 2000 --initial-paths 10000 --paths-per-epoch
@@ -65,6 +66,7 @@ def test_path_search_past_memory_is_refused_before_it_runs(tmp_path, capsys, mon
     _refuses(["path", "procedural:0", *SMALL, "--out", str(out)], "the compiled search needs", capsys, out, monkeypatch)
 
 
+@pytest.mark.slow
 def test_path_video_past_memory_is_refused_before_the_search(tmp_path, capsys, monkeypatch):
     """The video frames (rendered after the search, all held at once) were not bounded: 2000 frames of
     4096x4096 would have ended hours later in a MemoryError (about 1.2 TiB)."""

@@ -291,6 +291,7 @@ def test_a_tilted_donut_keeps_its_up(tilt):
     assert angle_deg(found.up, r @ np.asarray(TRUE_UP)) <= 10.0, found.reason
 
 
+@pytest.mark.slow
 def test_a_scene_above_max_splats_is_decided_on_a_thinning():
     """Past `max_splats` the decision runs on a uniform thinning (its work bounded: 30M splats took 76 s
     before it), and it is the same decision: the tabletop's plane and layout from a quarter of its splats.

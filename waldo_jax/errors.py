@@ -41,6 +41,7 @@ __all__ = [
     "host_memory_bytes",
     "check_memory",
     "one_line",
+    "with_article",
 ]
 
 # The largest seed a run may use: seeds (and seed + K - 1 for K seeds) must fit a signed 32-bit integer,
@@ -168,7 +169,8 @@ def one_line(text: str) -> str:
     return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
 
 
-def _a(what: str) -> str:
+def with_article(what: str) -> str:
+    """`what` after "a" or "an" ("an image file", "a poses file"), for messages that say what was expected."""
     return f"{'an' if what[:1].lower() in 'aeiou' else 'a'} {what}"
 
 
@@ -183,12 +185,12 @@ def check_input_file(path: str | os.PathLike, what: str = "file") -> Path:
         raise DataNotFoundError(f"{path}: no such {what}") from None
     except OSError as e:
         if e.errno == errno.ELOOP:
-            raise WaldoError(f"{path}: a symbolic link loop, where {_a(what)} was expected") from None
+            raise WaldoError(f"{path}: a symbolic link loop, where {with_article(what)} was expected") from None
         raise WaldoError(f"{path}: cannot read this {what} ({e.strerror or e})") from None
     if stat.S_ISDIR(mode):
-        raise WaldoError(f"{path}: a directory, where {_a(what)} was expected")
+        raise WaldoError(f"{path}: a directory, where {with_article(what)} was expected")
     if not stat.S_ISREG(mode):
-        raise WaldoError(f"{path}: a FIFO, socket or device, where {_a(what)} was expected")
+        raise WaldoError(f"{path}: a FIFO, socket or device, where {with_article(what)} was expected")
     if not os.access(path, os.R_OK):
         raise WaldoError(f"{path}: cannot read this {what} (permission denied)")
     return path

@@ -26,7 +26,14 @@ import imageio.v3 as iio
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, _a, check_input_file, host_memory_bytes
+from waldo_jax.errors import (
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    WaldoError,
+    check_input_file,
+    host_memory_bytes,
+    with_article,
+)
 
 __all__ = [
     "atomic_file",
@@ -431,7 +438,7 @@ def read_json_file(
         status = path.stat()
         if not stat.S_ISREG(status.st_mode):  # a FIFO would block the read for ever, a device fill memory
             kind = "a directory" if stat.S_ISDIR(status.st_mode) else "a FIFO, socket or device"
-            problem = f"{kind}, where {_a(what)} was expected"
+            problem = f"{kind}, where {with_article(what)} was expected"
             raise WaldoError(f"{path}: {problem}") if error is None else error(problem)
         size = status.st_size
         if size > MAX_JSON_BYTES:
@@ -526,7 +533,7 @@ def read_image(
     """
     path = check_input_file(path, what)
     if path.stat().st_size == 0:
-        raise WaldoError(f"{path}: an empty file, where {_a(what)} was expected")
+        raise WaldoError(f"{path}: an empty file, where {with_article(what)} was expected")
     try:
         with Image.open(path) as header:  # the size without decoding: an 8000x8000 file costs nothing
             width, height, mode = *header.size, header.mode
