@@ -7,8 +7,10 @@ Tests that need the third-party data in `$WALDO_DATA` (default `../shared`) use 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 from typing import Callable
@@ -38,6 +40,23 @@ def _missing(what: str):
     if paths.require_data():
         pytest.fail(f"{what} is missing and WALDO_REQUIRE_DATA=1", pytrace=False)
     pytest.skip(f"{what} not found (set WALDO_DATA to the folder holding scenes/ and weights/)")
+
+
+@contextlib.contextmanager
+def within(seconds: int = 20):
+    """Raises TimeoutError in the test when the code under it blocks longer than `seconds` (a read of a
+    FIFO that a missing check would wait on for ever), instead of hanging the suite."""
+
+    def expire(signum, frame):
+        raise TimeoutError(f"blocked for more than {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 def require_scene(name: str):

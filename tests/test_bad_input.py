@@ -16,6 +16,7 @@ import os
 
 import numpy as np
 import pytest
+from conftest import within
 
 from waldo_jax.cli import main
 from waldo_jax.errors import MAX_RESOLUTION, MAX_SEED, WaldoError, check_seed
@@ -909,26 +910,15 @@ def test_every_json_reader_says_a_file_that_is_no_regular_file_before_reading_it
     a FIFO blocked the read for ever (and /dev/zero, size 0 by its stat, read until memory ran out: not tried
     here, as without the check it would take the machine's memory). Each now ends at the stat, in the
     reader's own error type."""
-    import signal
-
     from waldo_jax.io import read_json_file
 
     path = tmp_path / "poses.json"
     path.mkdir() if kind == "folder" else os.mkfifo(path)
-
-    def expire(signum, frame):
-        raise TimeoutError("the read blocked")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(10)
-    try:
+    with within(10):
         with pytest.raises(WaldoError, match=f"{path}: {says}, where a poses file was expected"):
             read_json_file(path, "poses file")
         with pytest.raises(ValueError, match=f"^{says}, where an output JSON was expected$"):
             read_json_file(path, "output JSON", error=ValueError)
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
 
 
 def test_json_that_could_not_be_held_parsed_is_refused_before_parsing(tmp_path, monkeypatch):

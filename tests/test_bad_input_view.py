@@ -8,15 +8,14 @@ The folders are written here by hand (no search runs): their SOURCE does not exi
 left out with a note and each case takes a fraction of a second.
 """
 
-import contextlib
 import json
 import os
-import signal
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import within
 from waldo_jax.cli import main
 
 pytest.importorskip("viser", reason="the viewer needs viser (pip install 'waldo_jax[view]')")
@@ -145,6 +144,8 @@ RESULTS_CASES = [
     ("source-info-list", _set(["source_info"], [1]), "source_info: expected a JSON object"),
     ("ngp-scale-text", _set(["source_info", "ngp_scale"], "x"), "source_info.ngp_scale"),
     ("ngp-offset-two", _set(["source_info", "ngp_offset"], [1, 2]), "source_info.ngp_offset"),
+    ("ngp-offset-null-axis", _set(["source_info", "ngp_offset"], [0.5, None, 0.5]), "ngp_offset: expected 3 numbers"),
+    ("ngp-offset-text", _set(["source_info", "ngp_offset"], "x"), "ngp_offset: expected a finite number"),
     ("archive-list", _set(["archive"], [1]), "archive: expected a JSON object"),
     ("archive-elites-text", _set(["archive", "elites"], "abc"), "archive.elites: expected a list"),
     ("archive-elite-number", _set(["archive", "elites"], [5]), "archive.elites[0]: expected a JSON object"),
@@ -378,7 +379,7 @@ def test_export_never_writes_through_a_link_nor_into_a_fifo(tmp_path, capsys):
     os.mkfifo(fifo)
     (tmp_path / "dir.html").mkdir()
     for target, says in ((fifo, "a FIFO, socket or device"), (tmp_path / "dir.html", "a folder")):
-        with _within(120):  # a hang ends the test; a loaded CI worker is well inside it
+        with within(120):  # a hang ends the test; a loaded CI worker is well inside it
             status = main(["view", str(folder), "--quiet", "--export", str(target), "--force"])
         err = capsys.readouterr().err.strip().splitlines()
         assert status == 1 and len(err) == 1 and f"--export {target}: {says}" in err[0], err
@@ -422,28 +423,12 @@ def test_an_export_the_disk_refuses_is_said_in_the_panel(tmp_path, monkeypatch):
         viewer.stop()
 
 
-@contextlib.contextmanager
-def _within(seconds):
-    """Raises TimeoutError in the test where the code under it blocks longer (a read of a FIFO)."""
-
-    def expire(signum, frame):
-        raise TimeoutError(f"blocked for more than {seconds} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
-
-
 def test_a_fifo_where_a_json_file_is_read_is_said_or_passed_by(tmp_path, capsys):
     """A FIFO named summary.json beside an explore output (the viewer asks its parent whether it is a demo)
     blocked the read for ever; one named results.json was taken for a folder without results."""
     folder = _explore_folder(tmp_path / "demo" / "egps")
     os.mkfifo(tmp_path / "demo" / "summary.json")
-    with _within(120):  # a hang ends the test; a loaded CI worker is well inside it
+    with within(120):  # a hang ends the test; a loaded CI worker is well inside it
         assert main(["view", str(folder), "--quiet", "--export", str(tmp_path / "page.html")]) == 0
         capsys.readouterr()
         (folder / "results.json").unlink()

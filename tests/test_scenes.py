@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
-import signal
 import struct
 import warnings
 from pathlib import Path
@@ -15,7 +13,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from conftest import require_scene
+from conftest import require_scene, within
 from waldo_jax.errors import SceneFormatError, WaldoError
 from waldo_jax.scenes import (
     SceneArgumentError,
@@ -547,22 +545,6 @@ def test_bad_arguments(tmp_path):
 # Bad input, by kind: every file a scene names or is, every field it reads.
 
 
-@contextlib.contextmanager
-def _within(seconds=20):
-    """Fails (instead of hanging the suite) when the body blocks, e.g. on a FIFO."""
-
-    def expire(*_):
-        raise TimeoutError(f"blocked for {seconds} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
-
-
 def _nerfstudio_scene(folder, n=8, extra=None, frames=None):
     """A nerfstudio scene of n 8x8 images, cameras on a circle around the origin."""
     if frames is None:
@@ -626,7 +608,7 @@ def test_a_scene_file_that_is_no_regular_file_is_refused_by_what_it_is(tmp_path,
     path = tmp_path / name
     {"": _fifo, "loop": _loop, "zero": _to_dev_zero}[kind](path)
     scene_path = path if name.startswith("./") else tmp_path
-    with _within(), pytest.raises(SceneFormatError, match=re.escape(Path(name).name) + f".*{says}") as caught:
+    with within(), pytest.raises(SceneFormatError, match=re.escape(Path(name).name) + f".*{says}") as caught:
         load_scene(scene_path)
     assert "missing" not in str(caught.value) and "none of" not in str(caught.value)
 
@@ -644,10 +626,10 @@ def test_colmap_and_ply_files_that_are_fifos_are_refused(tmp_path):
 
     write_colmap_model(tmp_path, [ColmapCamera(1, "PINHOLE", 8, 8, (8.0, 8.0, 4.0, 4.0))], [], binary=False)
     _fifo(tmp_path / "images.txt")
-    with _within(), pytest.raises(SceneFormatError, match=r"images\.txt: a FIFO"):
+    with within(), pytest.raises(SceneFormatError, match=r"images\.txt: a FIFO"):
         read_colmap_model(tmp_path, ".txt")
     _fifo(tmp_path / "cloud.ply")
-    with _within(), pytest.raises(SceneFormatError, match=r"cloud\.ply: a FIFO"):
+    with within(), pytest.raises(SceneFormatError, match=r"cloud\.ply: a FIFO"):
         read_ply_points(tmp_path / "cloud.ply")
     assert ColmapImage  # imported for the layout test below
 

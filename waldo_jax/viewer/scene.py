@@ -249,15 +249,11 @@ def _source_info(results: Fields) -> Dict[str, Any]:
     if info is None:
         return {}
     info.number("ngp_scale", None, positive=True)
-    if info.has("ngp_offset") and not isinstance(info.data["ngp_offset"], (int, float)):
-        offset = info.array("ngp_offset")
-        if len(offset) != 3:
-            raise info.error(f"expected a number or 3 numbers, got {len(offset)} values", "ngp_offset")
-        info.scores("ngp_offset")  # finite numbers (a null is no offset: refused below)
-        if any(v is None for v in offset):
+    if isinstance(info.data.get("ngp_offset"), list):  # one offset per axis, or one for all (a number)
+        if None in info.scores("ngp_offset", 3, of="axes"):  # finite numbers, where a score may be null
             raise info.error("expected 3 numbers, got a null", "ngp_offset")
-    elif info.has("ngp_offset"):
-        info.number("ngp_offset")
+    else:
+        info.number("ngp_offset", None)
     info.flag("ngp_from_mitsuba", None)
     return dict(info.data)
 
