@@ -92,7 +92,7 @@ def tilted(model, r: np.ndarray):
     means = np.asarray(s.means, np.float64) @ r.T
     quats = quat_mul(quat_of(r), np.asarray(s.quats, np.float64))
     splats = s.replace(means=np.asarray(means, np.float32), quats=np.asarray(quats, np.float32))
-    return dataclasses.replace(model, splats=splats, cameras=None)
+    return dataclasses.replace(model, splats=splats, cameras=None, bounds=None)  # the bounds move with the splats
 
 
 def angle_deg(a, b) -> float:

@@ -230,6 +230,20 @@ def test_a_poses_file_is_checked_for_its_bottom_row_and_counted_before_its_poses
     assert len(read_poses_file(path, intrinsics, max_poses=3)[0]) == 3
 
 
+@pytest.mark.parametrize(
+    "meta, key",
+    [({"scale": 10**400}, "scale"), ({"offset": [0, 10**400, 0]}, "offset"), ({"offset": -(10**400)}, "offset")],
+)
+def test_an_ngp_frame_number_past_float64_is_refused_by_its_key(meta, key):
+    """JSON integers have no length bound, and `math.isfinite(10**400)` raised OverflowError, past the
+    ValueError its callers catch. waldo's JSON reader turns such integers into floats (inf) already; this
+    is the function itself, called with Python's numbers (`errors.is_finite_number`)."""
+    from waldo_jax.scenes.tool_frames import ngp_frame
+
+    with pytest.raises(ValueError, match=f"'{key}' must be a finite number, got int -?1000"):
+        ngp_frame(meta)
+
+
 @pytest.mark.parametrize("scale", ["0.5", True, 10**400])
 def test_a_dataparser_scale_that_is_no_number_is_refused(scale):
     """nerfstudio's dataparser_transforms.json `scale` of "0.5" or true was read as 0.5 or 1."""
@@ -237,3 +251,82 @@ def test_a_dataparser_scale_that_is_no_number_is_refused(scale):
 
     with pytest.raises(ValueError, match="dataparser scale must be a number"):
         read_dataparser_transform({"transform": np.eye(4)[:3].tolist(), "scale": scale})
+
+
+def _path_files(folder, **names):
+    """camera_path.json, instant_ngp_path.json and poses.json of a 3-frame path into `folder`, as `waldo path`
+    writes them, their block naming the path's SOURCE and world by `names` (`source`, `source_world`; none:
+    an older file or another tool's)."""
+    from waldo_jax import io
+
+    folder.mkdir(parents=True)
+    ns, ngp, intrinsics = _exported_paths()
+    ns["waldo"].update(names)
+    ngp["waldo"].update(names)
+    (folder / "camera_path.json").write_text(json.dumps(ns))
+    (folder / "instant_ngp_path.json").write_text(json.dumps(ngp))
+    c2w = np.stack([np.eye(4)] * 3)
+    names_of_frames = [f"frame_{i:04d}" for i in range(3)]
+    io.write_transforms(folder / "poses.json", c2w, intrinsics, names_of_frames, extra={"waldo_path": names})
+    return folder
+
+
+RENDER_SMALL = ["--resolution", "8", "--samples", "4", "--quiet"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["camera_path.json", "instant_ngp_path.json", "poses.json"])
+def test_a_path_rendered_on_another_source_than_its_own_says_so(tmp_path, capsys, name):
+    """`waldo render --poses` of a path found on procedural:1 rendered procedural:2 in silence: the same
+    numbers, another room. The file names its world; a render in another one is one warning line."""
+    poses = _path_files(tmp_path / "path", source="procedural:1", source_world="procedural:1") / name
+    assert main(["render", "procedural:2", "--poses", str(poses), *RENDER_SMALL, "--out", str(tmp_path / "f")]) == 0
+    assert capsys.readouterr().err.strip() == (
+        f"waldo: warning: --poses {poses} was written for procedural:1, not for procedural:2: its poses place "
+        "the cameras in another scene's world"
+    )
+
+
+@pytest.mark.slow
+def test_a_path_rendered_on_its_own_source_or_naming_none_says_nothing(tmp_path, capsys):
+    """The room the path was found on, named either way, and a file that names no source: no warning."""
+    own = _path_files(tmp_path / "own", source="procedural:1", source_world="procedural:1") / "camera_path.json"
+    unnamed = _path_files(tmp_path / "unnamed", source="procedural:1") / "camera_path.json"  # an older file
+    for i, argv in enumerate(
+        (["procedural:1", "--poses", str(own)], ["procedural", "--seed", "1", "--poses", str(own)])
+        + (["procedural:2", "--poses", str(unnamed)],)
+    ):
+        assert main(["render", *argv, *RENDER_SMALL, "--out", str(tmp_path / f"frames{i}")]) == 0
+        assert capsys.readouterr().err == "", argv
+
+
+def test_a_sources_world_is_its_room_its_trained_scene_or_its_splat_file(tmp_path, monkeypatch):
+    """The world recorded beside a path's poses: a room by its seed, also for a NeRF trained on it (the
+    poses line up); another run by its scene's folder, resolved (a relative path, a link, the scene's file);
+    splats by their file. Read back from each block waldo writes; a world that is no text is none."""
+    from types import SimpleNamespace
+
+    from waldo_jax.pipeline.sources import source_world
+    from waldo_jax.scenes.camera_paths import recorded_world
+
+    def source(kind, **info):
+        return SimpleNamespace(kind=kind, info=info)
+
+    scene = tmp_path / "scenes" / "fox"
+    scene.mkdir(parents=True)
+    (scene / "transforms.json").write_text("{}")
+    (tmp_path / "link").symlink_to(scene)
+    monkeypatch.chdir(tmp_path / "scenes")
+    assert source_world(source("procedural", procedural_seed=3)) == "procedural:3"
+    assert source_world(source("run", procedural_seed=3, scene_path="procedural")) == "procedural:3"
+    worlds = {source_world(source("run", scene_path=p)) for p in ("fox", "fox/transforms.json", str(tmp_path / "link"))}
+    assert worlds == {str(scene.resolve())}
+    assert source_world(source("run", scene_path=str(tmp_path / "other"))) != str(scene.resolve())
+    assert source_world(source("run")) is None
+    ply = scene / "point_cloud.ply"
+    assert source_world(source("splats", splat_file=str(ply), scene_path="x")) == str(ply)
+    for block in ("waldo", "waldo_path", "waldo_explore"):
+        assert recorded_world({block: {"source": "a", "source_world": "procedural:3"}}) == "procedural:3"
+    assert recorded_world({"waldo": {"source_world": 3}}) is None
+    assert recorded_world({"waldo": {"source": "procedural:3"}}) is None  # written before worlds were
+    assert recorded_world({"frames": []}) is None and recorded_world([]) is None

@@ -1,6 +1,7 @@
 """`waldo explore` and `waldo demo` end to end at tiny settings: files, fields, determinism, errors."""
 
 import json
+import warnings
 
 import imageio.v3 as iio
 import numpy as np
@@ -205,6 +206,31 @@ def test_top_c_past_the_runs_views_is_said_and_pairs_them_all(tmp_path, capsys):
         said = "waldo: warning: --top-c 25 exceeds the 20 views of the run (8 training + 2 epochs x 6 children)"
         assert warned == ([f"{said}: all 20 are paired"] if top_c == 25 else [])
     assert runs[25]["scores_generated"] == runs[20]["scores_generated"]
+
+
+@pytest.mark.parametrize(
+    "flags, warned",
+    [
+        (["--budget", "high", "--children-per-epoch", "6"], True),
+        (["--budget", "low", "--children-per-epoch", "6"], True),
+        (["--budget", "high"], False),
+        (["--children-per-epoch", "6"], False),
+    ],
+)
+def test_a_budget_beside_children_per_epoch_says_it_changes_nothing(flags, warned):
+    """The budget only derives the children per epoch: given beside --children-per-epoch it changed nothing,
+    in silence. The default budget (low) where neither is given, and each alone, say nothing."""
+    args = build_parser().parse_args(["explore", "procedural:1", "--out", "x", *flags])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        config = explore_config_from_args(args)
+    said = [str(w.message) for w in caught if "--budget" in str(w.message)]
+    budget = flags[1] if flags[0] == "--budget" else "low"
+    text = (
+        f"--budget {budget} has no effect: --children-per-epoch 6 wins (the budget only derives the children per epoch)"
+    )
+    assert said == ([text] if warned else [])
+    assert config.budget == budget
 
 
 def test_method_flags_become_the_options_of_the_method_that_has_them():

@@ -46,11 +46,16 @@ def _tree(folder):
     return out
 
 
-def _signal_after(argv, ready, signum, cwd, timeout=300.0):
-    """Runs `waldo argv`, sends `signum` once `ready` has appeared in its output (stdout and stderr,
-    progress bars included), and returns (exit status, output, seconds from the signal to the exit)."""
+def _signal_after(argv, ready, signum, cwd, timeout=300.0, env=None):
+    """Runs `waldo argv` (with the variables `env` added to the environment), sends `signum` once `ready` has
+    appeared in its output (stdout and stderr, progress bars included), and returns (exit status, output,
+    seconds from the signal to the exit)."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", _WALDO, *argv], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        [sys.executable, "-c", _WALDO, *argv],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env=None if env is None else {**os.environ, **env},
     )
     output, sent, deadline = b"", None, time.monotonic() + timeout
     try:
@@ -139,6 +144,37 @@ def test_an_interrupted_search_exits_at_once_and_leaves_the_earlier_run_as_it_wa
     assert _tree(tmp / "earlier") == earlier
     assert sorted(os.listdir(tmp)) == ["earlier", "scene"]
     assert seconds < 30, seconds
+
+
+# `waldo path` shows its phases only on a terminal, and its epochs run in one jitted call that says nothing:
+# JAX's own log line for the compiled search marks the moment the search itself runs. 100 epochs of 300
+# paths (the oracle scores poses, no render) take about 25 s on the 2-core CPU past that line.
+PATH_SEARCH = ["path", "procedural", "--frames", "8", "--keyframes", "2", "--resolution", "16", "--views", "4"]
+PATH_SEARCH += ["--initial-paths", "3", "--epochs", "100", "--paths-per-epoch", "300"]
+SEARCH_RUNS = "Finished XLA compilation of jit(_search)"
+
+
+@pytest.mark.parametrize(
+    "signum, out",
+    [(signal.SIGINT, ["new"]), (signal.SIGTERM, ["earlier", "--force"])],
+    ids=["sigint-new-folder", "sigterm-earlier-folder"],
+)
+def test_an_interrupted_path_search_exits_at_once_and_leaves_no_folder(tmp_path, signum, out):
+    """`waldo path` interrupted in its jitted search (never tried before): the exit does not wait for the
+    remaining epochs, no output folder is made (it is made once the search is done), and an earlier
+    folder given with --force is left as it was."""
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    (earlier / "camera_path.json").write_text('{"an": "earlier path"}')
+    before = _tree(earlier)
+    status, text, seconds = _signal_after(
+        [*PATH_SEARCH, "--out", *out], SEARCH_RUNS, signum, tmp_path, env={"JAX_LOG_COMPILES": "1"}
+    )
+    _assert_clean(status, text, signum)
+    assert "removed the unfinished output folder" not in text and " path on procedural:0 " not in text
+    assert sorted(os.listdir(tmp_path)) == ["earlier"]
+    assert _tree(earlier) == before
+    assert seconds < 15, seconds
 
 
 def _interrupt_on_call(monkeypatch, module, name, call, exception):

@@ -414,8 +414,6 @@ def test_the_softmin_of_a_path_is_exact_at_every_temperature():
                 "1000",
                 "--frames",
                 "2000",
-                "--budget",
-                "high",
                 "--initial-paths",
                 "3",
                 "--paths-per-epoch",
@@ -434,6 +432,33 @@ def test_waldo_path_refuses_bad_flags_before_writing(tmp_path, capsys, flags, me
     assert main(["path", "procedural", "--out", str(out), *flags]) == 1
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+# Refused by the memory one path's frames take for each of 1000 seeds, before the room renders anything.
+MEMORY_REFUSED = ["--seeds", "1000", "--frames", "2000", "--initial-paths", "3", "--epochs", "1"]
+
+
+@pytest.mark.parametrize(
+    "flags, warned",
+    [
+        (["--budget", "high", "--paths-per-epoch", "2"], "--budget high has no effect: --paths-per-epoch 2 wins"),
+        (["--budget", "low", "--paths-per-epoch", "2"], "--budget low has no effect: --paths-per-epoch 2 wins"),
+        (["--budget", "high"], None),  # the budget derives 2 paths per epoch here
+        (["--paths-per-epoch", "2"], None),
+    ],
+    ids=["high-and-paths", "low-and-paths", "budget-alone", "paths-alone"],
+)
+def test_waldo_path_says_when_paths_per_epoch_overrides_the_budget(tmp_path, capsys, flags, warned):
+    """--budget only derives the paths per epoch: beside --paths-per-epoch it changed nothing, in silence
+    (an explicit `--budget low` too). One warning line now comes before the run's own first line (here
+    the refusal of 1000 seeds, before any work); either flag alone says nothing."""
+    out = tmp_path / "bad"
+    assert main(["path", "procedural", "--out", str(out), *MEMORY_REFUSED, *flags]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[-1].startswith("waldo: error: ") and "do not fit in memory" in lines[-1], lines
+    said = [f"waldo: warning: {warned} (the budget only derives the paths per epoch)"] if warned else []
+    assert lines[:-1] == said
     assert not out.exists()
 
 

@@ -270,3 +270,37 @@ def test_scene_info_of_the_donut_prints_its_up_and_layout(capsys):
     up = np.asarray(summary["upright"]["up"])
     assert up[2] >= np.cos(np.radians(10.0)), summary["upright"]  # the iced side, +z
     assert summary["upright"]["layout"] == "object"
+
+
+def test_the_splats_robust_bounds_are_computed_once_per_load(monkeypatch, capsys):
+    """A pass over every splat (10 s at 30M splats): `load_splat_model` keeps its bounds, which the degenerate
+    check, `scene info` and the ring of views read, each the same as computed afresh."""
+    from waldo_jax.splats import io as splat_io
+    from waldo_jax.splats import upright
+
+    calls = []
+    counted = upright.robust_bounds
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(splat_io, "robust_bounds", counting)
+    monkeypatch.setattr(upright, "robust_bounds", counting)
+    monkeypatch.setattr("waldo_jax.pipeline.splat_sources.upright_robust_bounds", counting)
+    assert main(["scene", "info", str(require_donut()), "--json", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert len(calls) == 1, len(calls)
+    model = load_splat_model(require_donut())
+    fresh = counted(np.asarray(model.splats.means), np.asarray(model.splats.valid))
+    assert np.array_equal(model.bounds, fresh)
+    assert summary["bounds_2_98"] == [fresh[0].round(6).tolist(), fresh[1].round(6).tolist()]
+    calls.clear()
+    from waldo_jax.pipeline.splat_sources import RING_FOV_DEG, SPLAT_RESOLUTION, ring_cameras, splat_upright
+
+    intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, np.radians(RING_FOV_DEG))
+    means, valid = np.asarray(model.splats.means), np.asarray(model.splats.valid)
+    given = ring_cameras(means, valid, intrinsics, upright=splat_upright(model), bounds=model.bounds)
+    assert not calls
+    afresh = ring_cameras(means, valid, intrinsics, upright=splat_upright(model))
+    assert len(calls) == 1 and np.array_equal(given[0], afresh[0]) and given[1] == afresh[1]

@@ -48,6 +48,7 @@ def test_a_capacity_whose_state_does_not_fit_is_refused_before_it_is_allocated(m
     assert fit.capacity_bytes(fit.FitConfig(capacity=2**24)) > 8 << 30 > fit.capacity_bytes(fit.FitConfig())
 
 
+@pytest.mark.slow  # compiles a step (7 s); the command's refusal above stays in the fast tier
 def test_the_refusal_names_the_image_size_and_the_memory(lego, monkeypatch):
     monkeypatch.setattr(fit, "host_memory_bytes", lambda: 1 << 20)
     called = []

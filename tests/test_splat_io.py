@@ -449,6 +449,7 @@ BAD_CAMERAS = {
     "zero focal": ([_camera(), _camera(), _camera(fx=0.0)], r"camera 2 \('im'\): fx must be a finite focal length"),
     "tiny focal": ([_camera(fy=1e-50)], r"camera 0 \('im'\): fy must be a finite focal length of at least 0\.001"),
     "huge focal": ([_camera(fy=1e300)], r"camera 0 \('im'\): fy must be a finite focal length"),
+    "focal past float64": ([_camera(fx=10**400)], r"camera 0 \('im'\): fx must be a finite focal length.*float inf"),
     "small image": (
         [_camera(width=4)],
         r"camera 0 \('im'\): width must be a whole number of pixels between 8 and "

@@ -74,6 +74,7 @@ def test_the_printed_url_is_one_a_browser_opens_for_every_host_kind():
     assert address_url("localhost", 9) == "http://localhost:9"
 
 
+@pytest.mark.slow  # the donut explore it serves takes 15 s; hand-made folders are served in the fast tier
 def test_serves_its_page_over_http_in_time(donut_viewer):
     viewer, seconds = donut_viewer
     assert seconds <= SERVE_SECONDS, f"served in {seconds:.1f} s (target {SERVE_SECONDS} s)"

@@ -36,6 +36,7 @@ __all__ = [
     "check_resolution",
     "check_input_file",
     "check_float32",
+    "is_finite_number",
     "check_int",
     "MemoryBudgetError",
     "host_memory_bytes",
@@ -88,6 +89,18 @@ class ConfigError(WaldoError, ValueError):
 class NumberError(WaldoError, ValueError):
     """A number that cannot be used: not a number, not finite, out of range, or one that float32 or
     int32 cannot hold (the message names it and its limits)."""
+
+
+def is_finite_number(value) -> bool:
+    """Whether `value` is a real number (an int or a float, not a bool) with a finite float value. JSON
+    allows integers of any length: one past float64's range (10**400) is not finite, where `math.isfinite`
+    raises OverflowError on it."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def check_float32(

@@ -58,7 +58,11 @@ def add_command(subparsers) -> None:
     add_criterion_arguments(p, default="waldo_oracle")
     p.add_argument("--method", default="egps", help=f"one of {method_names()}")
     p.add_argument(
-        "--budget", default="low", choices=tuple(BUDGETS), help="low (250-300 images in total) or high (900-1000)"
+        "--budget",
+        default=None,  # None: "low", and a --budget given beside --children-per-epoch can be told from it
+        choices=tuple(BUDGETS),
+        help="low (250-300 images in total) or high (900-1000) (default: low; it sets the children per epoch, so "
+        "--children-per-epoch overrides it)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--seeds", type=int, default=1, help="run K seeds (seed, seed+1, ...) in one vmapped call")
@@ -145,8 +149,15 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
         search_method = get_method(method)
     except ValueError:
         raise WaldoError(f"unknown --method {method!r}: expected one of {method_names()}") from None
-    if args.budget not in BUDGETS:
-        raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(BUDGETS)}")
+    budget = "low" if args.budget is None else args.budget
+    if budget not in BUDGETS:
+        raise WaldoError(f"unknown --budget {budget!r}: expected one of {', '.join(BUDGETS)}")
+    if args.budget is not None and args.children_per_epoch is not None:
+        warnings.warn(
+            f"--budget {args.budget} has no effect: --children-per-epoch {args.children_per_epoch} wins (the "
+            "budget only derives the children per epoch)",
+            stacklevel=2,
+        )
     for flag, value, minimum in (
         ("--epochs", args.epochs, 1),
         ("--top-k", args.top_k, 1),
@@ -189,7 +200,7 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
             method=method,
             epochs=args.epochs,
             children_per_epoch=args.children_per_epoch,
-            budget=args.budget,
+            budget=budget,
             top_k=args.top_k,
             min_separation=shot_separation(args),
             grid=view_grid(args),

@@ -56,8 +56,8 @@ from waldo_jax.pipeline.path_run import (
     check_nerfstudio_export,
     frame_function,
     path_check,
-    paths_per_call,
     read_explore_anchors,
+    resolve_paths_per_call,
     run_path,
     write_path_outputs,
 )
@@ -92,9 +92,10 @@ def add_command(subparsers) -> None:
     p.add_argument("--frames", type=int, default=24, help="frames F of the path")
     p.add_argument(
         "--budget",
-        default="low",
+        default=None,  # None: "low", and a --budget given beside --paths-per-epoch can be told from it
         choices=tuple(PATH_BUDGETS),
-        help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']}",
+        help=f"rendered frames in all: low {PATH_BUDGETS['low']} or high {PATH_BUDGETS['high']} (default: low; "
+        "it sets the paths per epoch, so --paths-per-epoch overrides it)",
     )
     p.add_argument("--epochs", type=int, default=5, help="epochs")
     p.add_argument("--initial-paths", type=int, default=16, help="starting paths")
@@ -172,8 +173,13 @@ def add_command(subparsers) -> None:
 def _warn_ignored(args: argparse.Namespace) -> None:
     """A flag off its default that the other flags make change nothing says so (as `waldo explore`'s do):
     the softmin's temperature with the mean, how the training views are scored when --from-explore's
-    poses are the anchors instead."""
+    poses are the anchors instead, a budget (given at all) when --paths-per-epoch sets what it derives."""
     ignored = [
+        (
+            "--budget",
+            args.budget is not None and args.paths_per_epoch is not None,
+            f"--paths-per-epoch {args.paths_per_epoch} wins (the budget only derives the paths per epoch)",
+        ),
         ("--temperature", args.temperature != 0.05 and args.aggregate == "mean", "it is for --aggregate softmin"),
         (
             "--initial",
@@ -191,8 +197,9 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
         check_method(args.method)
     except ValueError as e:
         raise WaldoError(f"--method: {e}") from None
-    if args.budget not in PATH_BUDGETS:
-        raise WaldoError(f"unknown --budget {args.budget!r}: expected one of {', '.join(PATH_BUDGETS)}")
+    budget = "low" if args.budget is None else args.budget
+    if budget not in PATH_BUDGETS:
+        raise WaldoError(f"unknown --budget {budget!r}: expected one of {', '.join(PATH_BUDGETS)}")
     for flag, value, low, high in (
         ("--keyframes", args.keyframes, 2, MAX_KEYFRAMES),
         ("--frames", args.frames, 4, MAX_FRAMES),
@@ -248,7 +255,7 @@ def _config_from_args(args: argparse.Namespace) -> PathConfig:
             frames=args.frames,
             method=args.method,
             epochs=args.epochs,
-            budget=args.budget,
+            budget=budget,
             initial_paths=args.initial_paths,
             paths_per_epoch=args.paths_per_epoch,
             aggregate=args.aggregate,
@@ -337,12 +344,10 @@ def _check_search_memory(source, criterion, config: PathConfig, limits, anchor_c
     available = memory_bytes() if jax.devices()[0].platform != "cpu" else host_memory_bytes()
     if not available or _population_bytes(config, seeds) <= SEARCH_CHECK_SHARE * available:
         return
-    fits = paths_per_call(source, config)
-    if fits < seeds:
+    try:
+        config = resolve_paths_per_call(source, config, seeds)  # as `run_path` resolves it
+    except WaldoError:
         return  # `run_path` refuses the resolution or the seeds with its own message
-    config = dataclasses.replace(
-        config, paths_per_call=min(fits // seeds, max(config.paths_per_epoch, config.initial_paths))
-    )
     anchors = source.train_c2w if anchor_c2w is None else anchor_c2w
     keys = jax.random.key(seed) if seeds == 1 else seed_keys(seed, seeds)
     scores = np.zeros(len(anchors), np.float32)  # only their shape is compiled

@@ -45,7 +45,7 @@ def splat_summary(path: str) -> dict:
 
     model = load_splat_model(path)
     valid = np.asarray(model.splats.valid)
-    low, high = robust_bounds(np.asarray(model.splats.means), valid)
+    low, high = robust_bounds(np.asarray(model.splats.means), valid) if model.bounds is None else model.bounds
     upright = splat_upright(model)
     summary = {
         "path": str(path),

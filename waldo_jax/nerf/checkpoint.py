@@ -22,7 +22,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from waldo_jax.errors import MAX_RESOLUTION, DataNotFoundError, SceneFormatError, WaldoError, check_input_file
+from waldo_jax.errors import (
+    MAX_RESOLUTION,
+    MAX_SEED,
+    DataNotFoundError,
+    SceneFormatError,
+    WaldoError,
+    check_input_file,
+    is_finite_number,
+)
 from waldo_jax.io import atomic_file, parse_json
 from waldo_jax.nerf.config import TrainConfig, TrainConfigError
 from waldo_jax.nerf.field import init_field
@@ -409,8 +417,7 @@ def _scene_record(path: Path, scene: Dict[str, Any], c2w: np.ndarray) -> SceneRe
 
 
 def _is_number(value: Any, positive: bool = False) -> bool:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    return ok and (value > 0 if positive else True)
+    return is_finite_number(value) and (value > 0 if positive else True)
 
 
 def _is_matrix(value: Any) -> bool:
@@ -439,7 +446,10 @@ _METADATA_KEYS = {
         "a file name inside the scene's folder (or a list of them)",
     ),
     "downscale": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
-    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool), "an integer"),
+    "seed": (
+        lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_SEED,
+        f"an integer in [0, {MAX_SEED}]",
+    ),
     "waldo_scale": (lambda v: _is_number(v) and 0.25 <= v <= 2.0, "a number in [0.25, 2]"),
     "stripe_width": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
     "nerfstudio_applied": (

@@ -32,6 +32,7 @@ from waldo_jax import io
 from waldo_jax.pipeline.archive_figure import archive_sheet, archive_summary, view_descriptors
 from waldo_jax.pipeline.experiment import ExploreRun, generated_slots
 from waldo_jax.pipeline.figures import PoseCloudStyle, contact_sheet, criterion_caption, criterion_label, pose_cloud
+from waldo_jax.pipeline.sources import source_world
 from waldo_jax.search import Result
 
 __all__ = ["RESULTS_JSON", "results_dict", "write_outputs"]
@@ -203,6 +204,7 @@ def write_outputs(run: ExploreRun, out: Path, title: str = "") -> Dict[str, Any]
                 "scores": _floats(top_scores),
                 "min_separation": run.config.min_separation,
                 "source": run.source.spec,
+                "source_world": source_world(run.source),  # `waldo render --poses` on another world warns
             }
         },
     )

@@ -41,7 +41,7 @@ from waldo_jax.pipeline.experiment import (
     seed_keys,
 )
 from waldo_jax.pipeline.figures import criterion_caption, criterion_label, plot_frame, scene_up
-from waldo_jax.pipeline.sources import Source
+from waldo_jax.pipeline.sources import Source, source_world
 from waldo_jax.search.population import training_poses
 from waldo_jax.cameras import camera_focus
 
@@ -53,6 +53,7 @@ __all__ = [
     "run_path",
     "write_path_outputs",
     "paths_per_call",
+    "resolve_paths_per_call",
     "evaluate_path",
     "check_nerfstudio_export",
     "path_check",
@@ -101,6 +102,22 @@ def _check_path_pixels(width: int, height: int, config: PathConfig, seeds: int) 
             f"fit in memory here; at most --seeds {max(fits, 1)} (or fewer --frames, a lower --resolution)"
         )
     return fits
+
+
+def resolve_paths_per_call(source: Source, config: PathConfig, seeds: int) -> PathConfig:
+    """`config` (resolved: `PathConfig.resolve`) with the paths `run_path` scores per vectorised call, where
+    it leaves them open (None): the paths whose frames fit one call (`paths_per_call`) shared by the `seeds`
+    seeds, which are vmapped, and no more than the larger of an epoch's paths and the starting paths.
+
+    Raises:
+      WaldoError: not one path's frames fit one call, or not one for every seed (naming --resolution or
+        --seeds).
+    """
+    if config.paths_per_call is not None:
+        return config
+    fits = _check_path_pixels(source.intrinsics.width, source.intrinsics.height, config, seeds)
+    most = max(config.paths_per_epoch, config.initial_paths)
+    return dataclasses.replace(config, paths_per_call=min(fits // seeds, most))
 
 
 def path_check(config: PathConfig, seeds: int) -> Callable[[int, int, int], None]:
@@ -254,12 +271,7 @@ def run_path(
     config = dataclasses.replace(config, direction=criterion.direction).resolve()
     if seeds < 1:
         raise WaldoError(f"--seeds must be >= 1, got {seeds}")
-    if config.paths_per_call is None:
-        # paths of all seeds at once: the seeds are vmapped
-        fits = _check_path_pixels(source.intrinsics.width, source.intrinsics.height, config, seeds)
-        config = dataclasses.replace(
-            config, paths_per_call=min(fits // seeds, max(config.paths_per_epoch, config.initial_paths))
-        )
+    config = resolve_paths_per_call(source, config, seeds)
     frame_fn = frame_function(source, criterion)
     phase("scoring the anchors")
     if anchor_c2w is None:
@@ -499,6 +511,12 @@ def _summary(evaluation: Dict[str, Any]) -> Dict[str, Any]:
     return out
 
 
+def _source_names(source: Source) -> Dict[str, Any]:
+    """How the path's files name its SOURCE: as given, and the world its poses are in (`source_world`, which
+    `waldo render --poses` compares with the source it renders; the camera path's own `world` is its frame)."""
+    return {"source": source.spec, "source_world": source_world(source)}
+
+
 def write_path_outputs(
     run: PathRun, out: Path, fps: float = 12.0, dataparser: Optional[Tuple[np.ndarray, float]] = None
 ) -> Dict[str, Any]:
@@ -506,7 +524,7 @@ def write_path_outputs(
     out = Path(out)
     best = np.asarray(run.results[0].best_c2w)
     video = run.video_source or run.source
-    info = {"criterion": run.criterion.name, "method": run.config.method, "source": run.source.spec}
+    info = {"criterion": run.criterion.name, "method": run.config.method, **_source_names(run.source)}
     check_nerfstudio_export(run.source, dataparser)
     applied = run.source.info.get("nerfstudio_applied_transform")
     io.write_json(

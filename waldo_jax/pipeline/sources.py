@@ -59,6 +59,7 @@ __all__ = [
     "NERF_GRADIENT_COST",
     "check_views",
     "export_info",
+    "source_world",
 ]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
@@ -69,6 +70,22 @@ _ROOM_SAMPLES = 128
 
 class SourceError(WaldoError, ValueError):
     """A SOURCE that cannot be opened (the message names it and says why)."""
+
+
+def source_world(source: "Source") -> Optional[str]:
+    """The world a SOURCE's poses are in, as waldo's path and poses files record it (`source_world`, read back by
+    `scenes.camera_paths.recorded_world`): "procedural:N" for the room of seed N and for a NeRF trained on
+    it; for another NeRF run the scene it was trained on (its folder, resolved: runs of one scene share its
+    frame); for splats their file, resolved. None where it is not known (a run whose scene path is not
+    recorded)."""
+    seed = source.info.get("procedural_seed")
+    if seed is not None:
+        return f"procedural:{int(seed)}"
+    where = source.info.get("splat_file") if source.kind == "splats" else source.info.get("scene_path")
+    if not isinstance(where, str) or not where:
+        return None
+    path = Path(where).expanduser().resolve()
+    return str(path.parent if path.is_file() and source.kind == "run" else path)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

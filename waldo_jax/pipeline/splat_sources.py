@@ -110,6 +110,7 @@ def ring_cameras(
     up: Optional[np.ndarray] = None,
     elevation_deg: float = RING_ELEVATION_DEG,
     upright: Optional[Upright] = None,
+    bounds: Optional[Tuple[np.ndarray, np.ndarray]] = None,
 ) -> Tuple[np.ndarray, dict]:
     """`count` cameras on a ring, looking at the centre of the splats' robust bounds.
 
@@ -120,10 +121,12 @@ def ring_cameras(
     "surround") they stand inside, `UprightConfig.inside_radius` x the bounds' radius from the centre at
     its height, looking across it.
 
+    `bounds`: the splats' `robust_bounds` where already computed (`SplatModel.bounds`), else computed here.
+
     Returns:
       (c2w float32 [count, 4, 4] OpenGL, a description for `Source.info`).
     """
-    low, high = robust_bounds(means, valid)
+    low, high = robust_bounds(means, valid) if bounds is None else bounds
     centre = 0.5 * (low + high)
     radius = max(0.5 * float(np.linalg.norm(high - low)), 1e-6)
     if upright is not None:
@@ -453,7 +456,7 @@ def splat_source(
         )
     else:
         intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
-        c2w, ring = ring_cameras(means, valid, intrinsics, upright=splat_upright(model, up, orbit))
+        c2w, ring = ring_cameras(means, valid, intrinsics, upright=splat_upright(model, up, orbit), bounds=model.bounds)
         names = tuple(f"ring_{i:02d}" for i in range(len(c2w)))
         info["poses"] = ring["poses"]
         info["ring"] = ring

@@ -26,7 +26,8 @@
 The frames themselves (`NgpFrame`, `ngp_frame`, `nerfstudio_applied`, ...) live in
 `waldo_jax.scenes.tool_frames`, re-exported here. Both files carry a `waldo` block (ignored by those
 tools) with what reading them back needs; `read_camera_path` reads either back into the scene's frame
-(`waldo render --poses` uses it).
+(`waldo render --poses` uses it). The block (and poses.json's) names the world the path was found in
+(`recorded_world`), so that a render in another can say so.
 docs/cli.md ("waldo path") has the consumers' side and the measured tolerances.
 """
 
@@ -68,6 +69,7 @@ __all__ = [
     "instant_ngp_camera_path",
     "run_py_video_args",
     "read_camera_path",
+    "recorded_world",
     "is_camera_path",
     "to_ngp",
     "from_ngp",
@@ -275,6 +277,25 @@ def instant_ngp_camera_path(
 
 # ---------------------------------------------------------------------------------------------
 # Reading back.
+
+
+# The blocks in which waldo's files name the world their poses are in (`source_world`; the camera path's
+# `world` is another thing, the frame its poses are written in): a camera path's `waldo`, the
+# poses.json of `waldo path` (`waldo_path`) and of `waldo explore` (`waldo_explore`).
+SOURCE_BLOCKS = ("waldo", "waldo_path", "waldo_explore")
+
+
+def recorded_world(meta: Any) -> Optional[str]:
+    """The world a poses file of waldo's was written in (`source_world`: "procedural:N" or a resolved path, as
+    `pipeline.sources.source_world` names it), or None for a file that names none (another tool's, or
+    waldo's from before it was recorded) or names it by a value that is not text."""
+    if not isinstance(meta, dict):
+        return None
+    for key in SOURCE_BLOCKS:
+        block = meta.get(key)
+        if isinstance(block, dict) and isinstance(block.get("source_world"), str) and block["source_world"]:
+            return block["source_world"]
+    return None
 
 
 def is_camera_path(meta: Dict[str, Any]) -> bool:

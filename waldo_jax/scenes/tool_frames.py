@@ -23,6 +23,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from waldo_jax.errors import is_finite_number
 from waldo_jax.scenes.common import numeric_array, value_text
 
 __all__ = [
@@ -89,8 +90,8 @@ def _numbers_array(value: Any) -> np.ndarray:
 
 
 def _finite(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"'{what}' must be a finite number, got {value!r}")
+    if not is_finite_number(value):
+        raise ValueError(f"'{what}' must be a finite number, got {value_text(value)}")
     return float(value)
 
 

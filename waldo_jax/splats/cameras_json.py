@@ -19,9 +19,9 @@ from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, SceneFormatError, check_input_file
+from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, SceneFormatError, check_input_file, is_finite_number
 from waldo_jax.io import read_json_file, write_json
-from waldo_jax.scenes.common import check_rigid
+from waldo_jax.scenes.common import check_rigid, value_text
 from waldo_jax.types import Intrinsics
 
 __all__ = [
@@ -104,14 +104,10 @@ def _camera_intrinsics(cam: dict, path: Path, what: str) -> Intrinsics:
     focal = []
     for key in ("fx", "fy"):
         v = cam[key]
-        if (
-            isinstance(v, bool)
-            or not isinstance(v, (int, float))
-            or not math.isfinite(v)
-            or not MIN_FOCAL <= v < _FLOAT32_MAX
-        ):
+        if not is_finite_number(v) or not MIN_FOCAL <= v < _FLOAT32_MAX:
             raise SceneFormatError(
-                path, f"{what}: {key} must be a finite focal length of at least {MIN_FOCAL:g} pixels, got {v!r}"
+                path,
+                f"{what}: {key} must be a finite focal length of at least {MIN_FOCAL:g} pixels, got {value_text(v)}",
             )
         focal.append(float(v))
     return check_camera_aspect(Intrinsics.create(sides[0], sides[1], focal[0], focal[1]), path, what)

@@ -35,7 +35,7 @@ from waldo_jax.splats.formats.ply import read_splat_ply
 from waldo_jax.splats.formats.ply import splat_ply_properties as splat_ply_properties
 from waldo_jax.splats.formats.ply import write_splat_ply
 from waldo_jax.splats.model import Splats
-from waldo_jax.splats.upright import extent_problem
+from waldo_jax.splats.upright import extent_problem, robust_bounds
 
 __all__ = [
     "SplatCameras",
@@ -70,6 +70,8 @@ class SplatModel:
       degenerate: why every ring view of the splats would show nothing (all centres at one point), in
         words, else None; a warning said so when the model was loaded (for results.json's
         `source_info.degenerate`).
+      bounds: (low, high) [3], the valid splats' robust bounds (`waldo_jax.splats.upright.robust_bounds`),
+        computed once on loading for the ring of views and `waldo scene info`; None where not computed.
     """
 
     splats: Splats
@@ -78,6 +80,7 @@ class SplatModel:
     iteration: Optional[int]
     source: str
     degenerate: Optional[str] = None
+    bounds: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
 
 def _find_ply(folder: Path) -> Tuple[Path, Optional[int]]:
@@ -149,7 +152,8 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
         source += f", with {len(cameras)} cameras from {found[1]}"
     valid = np.asarray(splats.valid, bool)
     means = np.asarray(splats.means, np.float32)
-    degenerate = extent_problem(means, valid)
+    bounds = robust_bounds(means, valid)  # a pass over every splat: kept for the ring and `scene info`
+    degenerate = extent_problem(means, valid, bounds)
     if degenerate is not None and cameras is None:
         degenerate += ": every render of a ring around it is the background alone"
         warnings.warn(f"{ply}: {degenerate}", stacklevel=2)
@@ -159,7 +163,7 @@ def load_splat_model(path: str | os.PathLike) -> SplatModel:
         behind = cameras_facing_away(cameras.c2w, means[valid])
         if behind:
             warnings.warn(f"{ply}: {behind} ({found[1]})", stacklevel=2)
-    return SplatModel(splats, cameras, ply, iteration, source, degenerate)
+    return SplatModel(splats, cameras, ply, iteration, source, degenerate, bounds)
 
 
 def cameras_facing_away(c2w: np.ndarray, means: np.ndarray) -> Optional[str]:

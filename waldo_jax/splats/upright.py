@@ -376,10 +376,10 @@ def robust_bounds(means: np.ndarray, valid=None, quantile: float = 0.02) -> Tupl
     return np.quantile(points, quantile, axis=0), np.quantile(points, 1.0 - quantile, axis=0)
 
 
-def extent_problem(means: np.ndarray, valid=None) -> Optional[str]:
+def extent_problem(means: np.ndarray, valid=None, bounds=None) -> Optional[str]:
     """Why a ring of views cannot frame the splats (all at one point: a robust diagonal under `MIN_EXTENT`),
-    or None."""
-    low, high = robust_bounds(means, valid)
+    or None. `bounds`: their `robust_bounds`, where already computed."""
+    low, high = robust_bounds(means, valid) if bounds is None else bounds
     diagonal = float(np.linalg.norm(high - low))
     if diagonal >= MIN_EXTENT:
         return None

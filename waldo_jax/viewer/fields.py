@@ -18,7 +18,7 @@ from typing import Any, Callable, List, Optional
 
 import numpy as np
 
-from waldo_jax.errors import MAX_RESOLUTION, WaldoError, check_input_file, one_line
+from waldo_jax.errors import MAX_RESOLUTION, WaldoError, check_input_file, is_finite_number, one_line
 
 __all__ = ["MAX_FRUSTUMS", "Fields", "ViewerError", "check_image_file", "check_poses", "read_json", "relative_file"]
 
@@ -207,9 +207,18 @@ def _integer(value: Any, minimum: int, maximum: int, error: Callable[[str], Exce
     return int(value)
 
 
+def _as_float(value: Any) -> float:
+    """A number as a float: an integer past float64's range is infinite (waldo's JSON reader makes such
+    integers floats already; a caller's own Python numbers need not be)."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+
+
 def _number(value: Any, positive: bool, error: Callable[[str], Exception]) -> float:
     # NaN and Infinity are not JSON, but Python's parser reads them: a file that holds one is damaged.
-    if not _is_number(value) or not math.isfinite(float(value)) or abs(float(value)) > float(np.finfo(np.float32).max):
+    if not is_finite_number(value) or abs(value) > float(np.finfo(np.float32).max):
         raise error(f"expected a finite number, got {_shown(value)}")
     if positive and not np.float32(value) > 0:
         raise error(f"expected a positive number, got {_shown(value)}")
@@ -218,9 +227,9 @@ def _number(value: Any, positive: bool, error: Callable[[str], Exception]) -> fl
 
 def check_poses(value: Any, error: Callable[[str], Exception]) -> np.ndarray:
     """`value` (a list of 4x4 lists of numbers) as float64 [N, 4, 4] if every matrix is a finite rigid
-    camera-to-world with its origin within `MAX_COORDINATE` (`scenes.common.check_rigid`'s rule, checked
-    for all N at once); else `error(problem)` naming the first bad pose by its index."""
-    from waldo_jax.scenes.common import MAX_COORDINATE, RIGID_TOL
+    camera-to-world with its origin within `MAX_COORDINATE` (`scenes.common.rigid_problem`, the scenes'
+    rule, checked for all N at once); else `error(problem)` naming the first bad pose by its index."""
+    from waldo_jax.scenes.common import rigid_problem
 
     if not isinstance(value, list):
         raise error(f"expected a list of 4x4 camera-to-world matrices, got {_shown(value)}")
@@ -231,25 +240,10 @@ def check_poses(value: Any, error: Callable[[str], Exception]) -> np.ndarray:
             and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in m)
         ):
             raise error(f"[{i}]: expected a 4x4 matrix of numbers, got {_shown(m)}")
-    if not value:
-        return np.zeros((0, 4, 4))
-    with np.errstate(all="ignore"):
-        m = np.asarray(value, np.float64)
-        bad = ~np.all(np.isfinite(m), axis=(1, 2))
-        if bad.any():
-            raise error(f"[{int(np.argmax(bad))}]: the pose has NaN or infinite values")
-        rotation = m[:, :3, :3]
-        ortho = np.max(np.abs(np.swapaxes(rotation, 1, 2) @ rotation - np.eye(3)), axis=(1, 2))
-        det = np.linalg.det(rotation)
-        row = np.max(np.abs(m[:, 3] - (0.0, 0.0, 0.0, 1.0)), axis=1)
-        far = np.max(np.abs(m[:, :3, 3]), axis=1)
-    for problem, i in (
-        ("is not rigid (its rotation is not orthonormal with det +1)", (ortho > RIGID_TOL) | (det < 0)),
-        ("has a bottom row other than [0, 0, 0, 1]", row > RIGID_TOL),
-        (f"has its origin beyond the {MAX_COORDINATE:g} that float32 geometry handles", far > MAX_COORDINATE),
-    ):
-        if i.any():
-            raise error(f"[{int(np.argmax(i))}]: the pose {problem}")
+    m = np.array([[[_as_float(v) for v in row] for row in pose] for pose in value], np.float64).reshape(-1, 4, 4)
+    found = rigid_problem(m)
+    if found is not None:
+        raise error(f"[{found[0]}]: {found[1]}")
     return m
 
 

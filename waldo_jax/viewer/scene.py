@@ -334,7 +334,11 @@ def ring_of(spec: str) -> Tuple[Optional[np.ndarray], Tuple[str, ...]]:
     model = load_splat_model(spec)
     intrinsics = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
     c2w, _ = ring_cameras(
-        np.asarray(model.splats.means), np.asarray(model.splats.valid), intrinsics, upright=splat_upright(model)
+        np.asarray(model.splats.means),
+        np.asarray(model.splats.valid),
+        intrinsics,
+        upright=splat_upright(model),
+        bounds=model.bounds,
     )
     return np.asarray(c2w, np.float64), tuple(f"ring_{i:02d}" for i in range(len(c2w)))
 
