@@ -9,6 +9,7 @@ Each refusal runs `waldo_jax.cli.main(argv)` in-process at the smallest settings
 import argparse
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -302,8 +303,9 @@ def test_a_path_rendered_on_its_own_source_or_naming_none_says_nothing(tmp_path,
 
 def test_a_sources_world_is_its_room_its_trained_scene_or_its_splat_file(tmp_path, monkeypatch):
     """The world recorded beside a path's poses: a room by its seed, also for a NeRF trained on it (the
-    poses line up); another run by its scene's folder, resolved (a relative path, a link, the scene's file);
-    splats by their file. Read back from each block waldo writes; a world that is no text is none."""
+    poses line up); another run by its scene's folder, resolved (through a link, or given by its file);
+    splats by their file, or where waldo fitted them by their scene's. Read back from each block waldo
+    writes; a world that is no text is none."""
     from types import SimpleNamespace
 
     from waldo_jax.pipeline.sources import source_world
@@ -319,14 +321,93 @@ def test_a_sources_world_is_its_room_its_trained_scene_or_its_splat_file(tmp_pat
     monkeypatch.chdir(tmp_path / "scenes")
     assert source_world(source("procedural", procedural_seed=3)) == "procedural:3"
     assert source_world(source("run", procedural_seed=3, scene_path="procedural")) == "procedural:3"
-    worlds = {source_world(source("run", scene_path=p)) for p in ("fox", "fox/transforms.json", str(tmp_path / "link"))}
+    paths = (
+        str(scene),
+        str(scene / "transforms.json"),
+        str(tmp_path / "link"),
+        str(tmp_path / "link" / "transforms.json"),
+    )
+    worlds = {source_world(source("run", scene_path=p)) for p in paths}
     assert worlds == {str(scene.resolve())}
     assert source_world(source("run", scene_path=str(tmp_path / "other"))) != str(scene.resolve())
     assert source_world(source("run")) is None
     ply = scene / "point_cloud.ply"
-    assert source_world(source("splats", splat_file=str(ply), scene_path="x")) == str(ply)
+    assert source_world(source("splats", splat_file=str(ply))) == str(ply)
+    assert source_world(source("splats", splat_file=str(ply), scene_path=str(scene))) == str(scene.resolve())  # a fit
     for block in ("waldo", "waldo_path", "waldo_explore"):
         assert recorded_world({block: {"source": "a", "source_world": "procedural:3"}}) == "procedural:3"
     assert recorded_world({"waldo": {"source_world": 3}}) is None
     assert recorded_world({"waldo": {"source": "procedural:3"}}) is None  # written before worlds were
     assert recorded_world({"frames": []}) is None and recorded_world([]) is None
+
+
+def test_a_world_that_cannot_be_told_is_none_and_a_world_not_on_this_machine_says_nothing(tmp_path, recwarn):
+    """A relative scene path (an older run's: relative to a folder no longer known), a link loop: no world,
+    and no traceback after the search. A recorded world that is a path not on this machine (a file from
+    another machine, a scene moved since) warns nothing; one that is, or another room, warns once. A splat
+    fit's .ply given alone takes its train.json's scene."""
+    import warnings as stdlib_warnings
+    from types import SimpleNamespace
+
+    from waldo_jax.pipeline.sources import source_world, warn_other_world
+
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    for info in ({"scene_path": "scenes/fox"}, {"scene_path": str(tmp_path / "loop" / "x")}):
+        assert source_world(SimpleNamespace(kind="run", info=info)) is None, info
+    fit = SimpleNamespace(kind="splats", info={"splat_file": str(tmp_path / "a.ply"), "fit_scene_path": str(tmp_path)})
+    assert source_world(fit) == str(tmp_path.resolve())
+    with stdlib_warnings.catch_warnings():
+        stdlib_warnings.simplefilter("error")
+        warn_other_world("--poses f", str(tmp_path / "not-here"), "procedural:1", "procedural:1")
+        warn_other_world("--poses f", None, "procedural:1", "procedural:1")
+        warn_other_world("--poses f", "procedural:1", None, "run")
+        warn_other_world("--poses f", "procedural:1", "procedural:1", "run")
+    for recorded in (str(tmp_path), "procedural:2"):
+        with pytest.warns(UserWarning, match=f"--poses f was written for {recorded}, not for procedural:1 \\(run\\)"):
+            warn_other_world("--poses f", recorded, "procedural:1", "run")
+
+
+def test_numbers_past_float64_given_as_python_integers_are_not_finite():
+    """`errors.is_finite_number`: JSON's integers have no bound and `math.isfinite(10**400)` raises
+    OverflowError; the viewer's poses and cameras.json's focal lengths, called with Python's numbers (not
+    through waldo's JSON reader, which turns them into inf), refuse them by name."""
+    from waldo_jax.errors import SceneFormatError, is_finite_number
+    from waldo_jax.splats.cameras_json import _camera_intrinsics
+    from waldo_jax.viewer.fields import check_poses
+
+    assert (
+        is_finite_number(1) and is_finite_number(-2.5) and is_finite_number(np.float32(3)) and is_finite_number(10**300)
+    )
+    for value in (10**400, -(10**400), float("nan"), float("inf"), True, np.bool_(True), "1", None, [1]):
+        assert not is_finite_number(value), value
+    pose = np.eye(4).tolist()
+    pose[1][3] = 10**400
+    with pytest.raises(ValueError, match=r"\[1\]: pose has non-finite values"):
+        check_poses([np.eye(4).tolist(), pose], ValueError)
+    camera = {"width": 64, "height": 48, "fx": 10**400, "fy": 50.0}
+    with pytest.raises(SceneFormatError, match="fx must be a finite focal length"):
+        _camera_intrinsics(camera, Path("cameras.json"), "camera 0")
+
+
+@pytest.mark.slow  # loads the room three times (3 s each); `warn_other_world` itself is tested above
+@pytest.mark.parametrize("recorded, warned", [("procedural:1", True), ("procedural:0", False), (None, False)])
+def test_from_explore_poses_of_another_scenes_world_are_said(tmp_path, capsys, monkeypatch, recorded, warned):
+    """--from-explore's poses start the path in the SOURCE's world: an explore of another room (its
+    poses.json's `source_world`) is one warning line once the source has loaded; its own room, or a file
+    that records no world, none."""
+    from waldo_jax.errors import WaldoError
+
+    def stop(*args, **kwargs):
+        raise WaldoError("stopped before the search")
+
+    monkeypatch.setattr(path_cli, "run_path", stop)
+    explore = _explore_folder(tmp_path / "explore", 4)
+    if recorded is not None:
+        poses = json.loads((explore / "poses.json").read_text())
+        poses["waldo_explore"] = {"source": recorded, "source_world": recorded}
+        (explore / "poses.json").write_text(json.dumps(poses))
+    assert main(["path", "procedural:0", *SMALL, "--from-explore", str(explore), "--out", str(tmp_path / "o")]) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[-1] == "waldo: error: stopped before the search"
+    said = f"waldo: warning: --from-explore {explore} was written for procedural:1, not for procedural:0: its poses "
+    assert lines[:-1] == ([said + "place the cameras in another scene's world"] if warned else [])

@@ -76,6 +76,7 @@ def test_files_are_written_and_consistent(egps_run):
     assert iio.imread(out / "topk" / "00.png").shape == (16, 16, 3)
     poses = json.loads((out / "poses.json").read_text())
     assert [f["file_path"] for f in poses["frames"]] == [t["image"] for t in r["topk"]]
+    assert poses["waldo_explore"]["source_world"] == "procedural:1"  # `render --poses` elsewhere says so
     np.testing.assert_allclose(
         [f["transform_matrix"] for f in poses["frames"]], [t["c2w"] for t in r["topk"]], atol=1e-6
     )

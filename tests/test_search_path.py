@@ -340,7 +340,15 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
     assert iio.imread(out / "path.mp4").shape[0] == 8  # eight frames
     with Image.open(out / "path.gif") as gif:  # the default 12 fps: 83.3 ms, to the centisecond
         assert gif.n_frames == 8 and gif.info["duration"] == results["video"]["gif_frame_ms"] == 80
-    # The exports load back through `waldo render --poses` for the procedural room.
+    # Each file records the world its poses are in; they load back through `waldo render --poses` for the
+    # procedural room in silence, and say so for another room.
+    for name, block in (
+        ("camera_path.json", "waldo"),
+        ("instant_ngp_path.json", "waldo"),
+        ("poses.json", "waldo_path"),
+    ):
+        assert json.loads((out / name).read_text())[block]["source_world"] == "procedural:1", name
+    capsys.readouterr()
     for name in ("camera_path.json", "instant_ngp_path.json"):
         rendered = tmp_path / f"render_{name}"
         assert (
@@ -348,6 +356,10 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
             == 0
         )
         assert len(list(rendered.glob("*.png"))) == 8
+        assert "warning" not in capsys.readouterr().err
+    other = ["render", "procedural:2", "--poses", str(out / "poses.json"), "--out", str(tmp_path / "other")]
+    assert main([*other, "--resolution", "12"]) == 0
+    assert "was written for procedural:1, not for procedural:2" in capsys.readouterr().err
     # Same seed, same path; the command refuses to overwrite.
     again = tmp_path / "again"
     assert main(["path", "procedural:1", "--out", str(again), "--seed", "2", *CLI_TINY]) == 0

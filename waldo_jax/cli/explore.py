@@ -152,12 +152,6 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
     budget = "low" if args.budget is None else args.budget
     if budget not in BUDGETS:
         raise WaldoError(f"unknown --budget {budget!r}: expected one of {', '.join(BUDGETS)}")
-    if args.budget is not None and args.children_per_epoch is not None:
-        warnings.warn(
-            f"--budget {args.budget} has no effect: --children-per-epoch {args.children_per_epoch} wins (the "
-            "budget only derives the children per epoch)",
-            stacklevel=2,
-        )
     for flag, value, minimum in (
         ("--epochs", args.epochs, 1),
         ("--top-k", args.top_k, 1),
@@ -171,6 +165,12 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
         if value is not None:
             check_int(value, flag, minimum)  # counts are int32 under jit
     check_float32(args.refine_step_size, "--refine-step-size", positive=True)  # 1e-300: 0 in float32
+    if args.budget is not None and args.children_per_epoch is not None:
+        warnings.warn(
+            f"--budget {args.budget} has no effect: --children-per-epoch {args.children_per_epoch} wins (the "
+            "budget only derives the children per epoch)",
+            stacklevel=2,
+        )
     if args.pibs_fallback not in ("none", "grs"):
         raise WaldoError(f"unknown --pibs-fallback {args.pibs_fallback!r}: expected none or grs")
     try:

@@ -22,7 +22,7 @@ import numpy as np
 
 from waldo_jax.io import read_json_file
 from waldo_jax import io
-from waldo_jax.scenes.camera_paths import read_dataparser_transform
+from waldo_jax.scenes.camera_paths import read_dataparser_transform, recorded_world
 from waldo_jax.search.path_search import (
     AGGREGATES,
     MAX_TEMPERATURE,
@@ -49,6 +49,7 @@ from waldo_jax.errors import (
     host_memory_bytes,
 )
 from waldo_jax.pipeline import INITIAL_MODES, load_source
+from waldo_jax.pipeline.sources import source_world, warn_other_world
 from waldo_jax.pipeline.experiment import EPOCH_BYTES_PER_PIXEL, memory_bytes, seed_keys
 from waldo_jax.pipeline.path_run import (
     PathRunOptions,
@@ -386,6 +387,9 @@ def cmd_path(args: argparse.Namespace) -> int:
         # refused before the source renders its training views: the search's renders, the anchors'
         check = _anchor_check(path_check(config, args.seeds), anchor_c2w, args.from_explore)
         source = load_source(args.source, args.resolution, args.views, check=check, **splat_pose_options(args))
+        if args.from_explore is not None:  # its poses in another scene's world: said, as `render --poses` says
+            recorded = recorded_world(io.read_json_file(Path(args.from_explore) / "poses.json"))
+            warn_other_world(f"--from-explore {args.from_explore}", recorded, source_world(source), source.name)
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
         flag = "--resolution" if args.video_resolution is None else "--video-resolution"
         if args.video_resolution is None:

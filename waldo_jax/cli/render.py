@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-import warnings
 from pathlib import Path
 from typing import Callable, Optional, Tuple
 
@@ -29,16 +28,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax import io
-from waldo_jax.io import read_json_file
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.errors import WaldoError, check_resolution
 from waldo_jax.pipeline.load import check_source_spec, load_source
 from waldo_jax.pipeline.sources import (
     DEFAULT_PROCEDURAL_VIEWS,
     check_views,
-    source_world,
     parse_procedural,
     room_renderer,
+    source_world,
+    warn_other_world,
 )
 from waldo_jax.procedural import RoomCameraConfig, make_room, training_cameras, waldo_visibility_batch
 from waldo_jax.types import Intrinsics
@@ -122,7 +121,7 @@ class _PosedScene:
     intrinsics: Intrinsics
     train_c2w: Optional[np.ndarray] = None
     sized_renderer: Optional[Callable] = None
-    world: Optional[str] = None  # `source_world`: the world its poses are in
+    world: Optional[str] = None  # the world its poses are in (`source_world`)
 
 
 def _posed_scene(args: argparse.Namespace, seed: Optional[int]) -> _PosedScene:
@@ -175,7 +174,8 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
     else:
         # The count is checked from the list's length, before each pose is (10^6 took 49 s and 2 GB to refuse).
         c2w, intrinsics, _ = read_poses_file(Path(args.poses), scene.intrinsics, max_poses=MAX_RENDER_POSES)
-        _warn_other_world(Path(args.poses), scene)
+        recorded = recorded_world(io.read_json_file(Path(args.poses)))  # again: read_poses_file keeps the poses
+        warn_other_world(f"--poses {args.poses}", recorded, scene.world, scene.name)
     if args.resolution is not None:
         check_resolution(args.resolution)
         intrinsics = intrinsics.with_max_side(args.resolution)
@@ -205,21 +205,6 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
         f"in {seconds:.1f} s{sized}{removed}"
     )
     return 0
-
-
-def _warn_other_world(poses: Path, scene: "_PosedScene") -> None:
-    """One warning line when the --poses file was written in another world than the scene's (waldo's camera
-    paths and poses.json record it: `recorded_world`): the same numbers place the cameras elsewhere. A file
-    that names none, or a scene whose world is not known, says nothing."""
-    recorded = recorded_world(read_json_file(poses, "poses file"))  # again: read_poses_file keeps the poses only
-    if recorded is None or scene.world is None or recorded == scene.world:
-        return
-    rendered = scene.world if scene.world == scene.name else f"{scene.world} ({scene.name})"
-    warnings.warn(
-        f"--poses {poses} was written for {recorded}, not for {rendered}: its poses place the cameras in "
-        "another scene's world",
-        stacklevel=2,
-    )
 
 
 def render_calls(count: int, intrinsics: Intrinsics) -> Tuple[int, int]:

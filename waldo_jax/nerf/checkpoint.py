@@ -24,7 +24,6 @@ import numpy as np
 
 from waldo_jax.errors import (
     MAX_RESOLUTION,
-    MAX_SEED,
     DataNotFoundError,
     SceneFormatError,
     WaldoError,
@@ -446,10 +445,7 @@ _METADATA_KEYS = {
         "a file name inside the scene's folder (or a list of them)",
     ),
     "downscale": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
-    "seed": (
-        lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_SEED,
-        f"an integer in [0, {MAX_SEED}]",
-    ),
+    "seed": (lambda v: isinstance(v, int) and not isinstance(v, bool), "an integer"),
     "waldo_scale": (lambda v: _is_number(v) and 0.25 <= v <= 2.0, "a number in [0.25, 2]"),
     "stripe_width": (lambda v: v is None or _is_number(v, positive=True), "a positive number"),
     "nerfstudio_applied": (

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import re
 import warnings
 from pathlib import Path
@@ -60,6 +61,7 @@ __all__ = [
     "check_views",
     "export_info",
     "source_world",
+    "warn_other_world",
 ]
 
 DEFAULT_PROCEDURAL_RESOLUTION = 64
@@ -73,19 +75,51 @@ class SourceError(WaldoError, ValueError):
 
 
 def source_world(source: "Source") -> Optional[str]:
-    """The world a SOURCE's poses are in, as waldo's path and poses files record it (`source_world`, read back by
-    `scenes.camera_paths.recorded_world`): "procedural:N" for the room of seed N and for a NeRF trained on
-    it; for another NeRF run the scene it was trained on (its folder, resolved: runs of one scene share its
-    frame); for splats their file, resolved. None where it is not known (a run whose scene path is not
-    recorded)."""
+    """The world a SOURCE's poses are in, as waldo's path and poses files record it (`source_world`, read
+    back by `scenes.camera_paths.recorded_world`).
+
+    "procedural:N" for the room of seed N and for a NeRF trained on it. For another NeRF run, and for
+    splats waldo fitted (their train.json), the scene they were trained on: its folder as an absolute path
+    with links followed, so that the runs and fits of one scene share it. For other splats, their file.
+    None where it is not known: no recorded scene, a relative one (recorded by an older waldo: relative to
+    a folder no longer known), or one that cannot be resolved (a link loop).
+
+    Args:
+      source: a loaded `Source` (its `kind` and `info` are read).
+
+    Returns:
+      The world's name, or None.
+    """
     seed = source.info.get("procedural_seed")
     if seed is not None:
         return f"procedural:{int(seed)}"
-    where = source.info.get("splat_file") if source.kind == "splats" else source.info.get("scene_path")
-    if not isinstance(where, str) or not where:
+    scene = source.info.get("scene_path") or source.info.get("fit_scene_path")
+    where = scene or (source.info.get("splat_file") if source.kind == "splats" else None)
+    if not isinstance(where, str) or not os.path.isabs(where):
         return None
-    path = Path(where).expanduser().resolve()
-    return str(path.parent if path.is_file() and source.kind == "run" else path)
+    try:
+        path = Path(where).resolve()
+        # A scene given by its file (transforms.json, poses_bounds.npy) is its folder, here or not.
+        scene_file = path.is_file() or (not path.exists() and path.suffix.lower() in (".json", ".npy"))
+        return str(path.parent if scene and scene_file else path)
+    except (OSError, RuntimeError, ValueError):  # a link loop, a NUL in the name
+        return None
+
+
+def warn_other_world(what: str, recorded: Optional[str], world: Optional[str], name: str) -> None:
+    """One warning line when the poses `what` names (a flag and its file) were found in the world `recorded`
+    and are used in `world` (the SOURCE `name`'s, `source_world`): the same numbers place the cameras
+    elsewhere. Nothing where either world is not known, or where the recorded one is a folder or file that
+    is not on this machine (a file from another machine, a scene moved since: no telling)."""
+    if recorded is None or world is None or recorded == world:
+        return
+    if not recorded.startswith("procedural:") and not os.path.exists(recorded):
+        return
+    used = world if world == name else f"{world} ({name})"
+    warnings.warn(
+        f"{what} was written for {recorded}, not for {used}: its poses place the cameras in another scene's world",
+        stacklevel=3,
+    )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

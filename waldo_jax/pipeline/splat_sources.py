@@ -424,6 +424,13 @@ def splat_source(
         "iteration": model.iteration,
         "model": model.source,
     }
+    if record is None and model.ply_path.parent != folder:  # a fit's .ply given alone, inside its folder
+        try:
+            fitted = _read_train_json(folder)  # its train.json names the scene whose world its poses are in
+        except WaldoError:
+            fitted = None
+        if fitted and fitted.get("scene_path"):
+            info["fit_scene_path"] = fitted["scene_path"]  # for `source_world` only
     _flag_transparent(spec, splats, info)
     if getattr(model, "degenerate", None) and "degenerate" not in info:  # a scene of one point (warned on load)
         info["degenerate"] = model.degenerate

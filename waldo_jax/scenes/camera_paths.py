@@ -282,16 +282,23 @@ def instant_ngp_camera_path(
 # The blocks in which waldo's files name the world their poses are in (`source_world`; the camera path's
 # `world` is another thing, the frame its poses are written in): a camera path's `waldo`, the
 # poses.json of `waldo path` (`waldo_path`) and of `waldo explore` (`waldo_explore`).
-SOURCE_BLOCKS = ("waldo", "waldo_path", "waldo_explore")
+_SOURCE_BLOCKS = ("waldo", "waldo_path", "waldo_explore")
 
 
 def recorded_world(meta: Any) -> Optional[str]:
-    """The world a poses file of waldo's was written in (`source_world`: "procedural:N" or a resolved path, as
-    `pipeline.sources.source_world` names it), or None for a file that names none (another tool's, or
-    waldo's from before it was recorded) or names it by a value that is not text."""
+    """The world a poses file of waldo's was written in.
+
+    Args:
+      meta: the file's parsed JSON (a camera path, or a poses.json of `waldo path` or `waldo explore`).
+
+    Returns:
+      Its `source_world` ("procedural:N" or an absolute path, as `pipeline.sources.source_world` names it),
+      or None for a file that records none (another tool's, or waldo's from before it was recorded) or
+      records it by a value that is not text.
+    """
     if not isinstance(meta, dict):
         return None
-    for key in SOURCE_BLOCKS:
+    for key in _SOURCE_BLOCKS:
         block = meta.get(key)
         if isinstance(block, dict) and isinstance(block.get("source_world"), str) and block["source_world"]:
             return block["source_world"]

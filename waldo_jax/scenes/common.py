@@ -353,10 +353,18 @@ def check_rigid(m: np.ndarray, path: Path, what: str) -> np.ndarray:
 
 
 def rigid_problem(m: np.ndarray) -> Optional[Tuple[int, str]]:
-    """The first pose of m [N, 4, 4] (or [N, 3, 4]) that is not a camera-to-world waldo takes, as (its
-    index, why in words), or None: every pose finite, its rotation orthonormal within `RIGID_TOL` with det
-    +1, a 4x4's bottom row (0, 0, 0, 1), its origin's coordinates within `MAX_COORDINATE`. All N are checked
-    at once (a results.json of 10^5 poses); each rule before the next."""
+    """Whether every pose of m is a camera-to-world waldo takes: finite, its rotation orthonormal within
+    `RIGID_TOL` with det +1, a 4x4's bottom row (0, 0, 0, 1), its origin's coordinates within
+    `MAX_COORDINATE`. All N are checked at once (a results.json or a poses file of 10^5 poses), one rule
+    after the other.
+
+    Args:
+      m: poses [N, 4, 4] or [N, 3, 4].
+
+    Returns:
+      None where all pass; else (index, why in words) of the first pose that fails the earliest rule any
+      pose fails (of poses [far origin, NaN], the NaN one).
+    """
     m = np.asarray(m, np.float64)
     if not len(m):
         return None

@@ -17,7 +17,6 @@ from waldo_jax.errors import (
     SceneFormatError,
 )
 from waldo_jax.scenes.common import (
-    check_rigid,
     field,
     focal_from_angle,
     input_file,
@@ -25,6 +24,7 @@ from waldo_jax.scenes.common import (
     number,
     numeric_array,
     one_line_errors,
+    rigid_problem,
     warn_off_image_principal_point,
 )
 from waldo_jax.types import Intrinsics
@@ -33,7 +33,8 @@ __all__ = ["read_poses_file"]
 
 
 def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
-    """A validated [4, 4] camera-to-world matrix of a poses file (16 numbers or [3, 4] accepted)."""
+    """A [4, 4] matrix of numbers from a poses file's entry (16 numbers or [3, 4] accepted); whether it is a
+    camera-to-world is `_rigid_poses`' to check, for all of them at once."""
     m = numeric_array(matrix)  # strings and booleans are refused, not converted
     if m is None:
         raise SceneFormatError(path, f"{what} is not a matrix of numbers")
@@ -43,9 +44,19 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
         m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
     if m.shape != (4, 4):
         raise SceneFormatError(path, f"{what} has shape {list(m.shape)}, expected 4x4")
-    # A scene's rule for its cameras: finite, rigid, the bottom row (0, 0, 0, 1) (a projective row had been
-    # dropped unread), the origin within MAX_COORDINATE.
-    return check_rigid(m, path, what)
+    return m
+
+
+def _rigid_poses(poses: List[np.ndarray], path: Path, what: str) -> np.ndarray:
+    """The poses stacked, float32 [N, 4, 4], once each is a camera by a scene's rule (`rigid_problem`: finite,
+    rigid, the bottom row (0, 0, 0, 1), a projective row had been dropped unread, the origin within
+    MAX_COORDINATE), checked for all N at once (a file may hold 10^5); else a
+    `SceneFormatError` naming the pose (`what` holds its index as {i})."""
+    stacked = np.stack(poses)
+    found = rigid_problem(stacked)
+    if found is not None:
+        raise SceneFormatError(path, f"{what.format(i=found[0])}: {found[1]}")
+    return stacked.astype(np.float32)
 
 
 _FRAME_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y", "k1", "k2", "p1", "p2")
@@ -163,7 +174,8 @@ def read_poses_file(
                     )
                 poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
                 names.append(field(frame, "file_path", path, "string", where=f"frame {i}"))
-            return np.stack(poses).astype(np.float32), _poses_file_intrinsics(meta, path, default_intrinsics), names
+            c2w = _rigid_poses(poses, path, "frame {i} transform_matrix")
+            return c2w, _poses_file_intrinsics(meta, path, default_intrinsics), names
         if is_camera_path(meta):
             entries = meta.get("camera_path", meta.get("path"))
             count = len(entries) if isinstance(entries, list) else 0
@@ -178,5 +190,5 @@ def read_poses_file(
                 raise SceneFormatError(path, str(e)) from None
             _check_camera(intrinsics, path)
             poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
-            return np.stack(poses).astype(np.float32), intrinsics, [None] * len(poses)
+            return _rigid_poses(poses, path, "camera path frame {i}"), intrinsics, [None] * len(poses)
         raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")

@@ -240,7 +240,10 @@ def check_poses(value: Any, error: Callable[[str], Exception]) -> np.ndarray:
             and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in m)
         ):
             raise error(f"[{i}]: expected a 4x4 matrix of numbers, got {_shown(m)}")
-    m = np.array([[[_as_float(v) for v in row] for row in pose] for pose in value], np.float64).reshape(-1, 4, 4)
+    try:
+        m = np.asarray(value, np.float64).reshape(-1, 4, 4)
+    except OverflowError:  # an integer past float64 (waldo's JSON reader makes them inf; a caller's need not)
+        m = np.array([[[_as_float(v) for v in row] for row in pose] for pose in value], np.float64)
     found = rigid_problem(m)
     if found is not None:
         raise error(f"[{found[0]}]: {found[1]}")
