@@ -512,6 +512,7 @@ def test_a_camera_path_is_drawn_and_its_slider_moves_the_cameras(tmp_path):
         viewer.stop()
     assert [p.name for p in written] == ["camera_path.json", "instant_ngp_path.json"]
     ours, theirs = (json.loads((folder / "camera_path.json").read_text()) for folder in (written[0].parent, out))
+    assert ours["waldo"]["source_world"] == theirs["waldo"]["source_world"] == "procedural:1"  # the run's world
     for key in ("render_width", "render_height", "fps", "seconds"):
         assert ours[key] == theirs[key]
     for name, key in (("camera_path", "camera_to_world"), ("keyframes", "matrix"), ("camera_path", "fov")):

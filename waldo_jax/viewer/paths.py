@@ -81,6 +81,17 @@ def _intrinsics(scene: ViewScene, folder: Path):
         return fallback
 
 
+def _recorded_world(folder: Path) -> Optional[str]:
+    """The world of the run's poses as its poses.json records it (`recorded_world`), or None."""
+    from waldo_jax.io import read_json_file
+    from waldo_jax.scenes.camera_paths import recorded_world
+
+    try:
+        return recorded_world(read_json_file(folder / "poses.json", "poses file"))
+    except (WaldoError, OSError, ValueError):
+        return None
+
+
 def _new_folder(output: Path) -> Path:
     """`output/viewer_path_NN` for the first NN not taken, created here (exclusively: never an earlier one)."""
     for number in range(1, _MAX_EXPORTS):
@@ -112,6 +123,9 @@ def export_camera_path(scene: ViewScene, group: str = "", output: Optional[Path]
     frames, fps, what = path_of(scene, group)
     intrinsics = _intrinsics(scene, Path(scene.output or output) / group)
     info = {"criterion": scene.criterion, "source": scene.source, "exported_by": "waldo view", "path": what}
+    world = _recorded_world(Path(scene.output or output) / group)
+    if world is not None:  # the run's world goes with its poses: `render --poses` elsewhere says so
+        info["source_world"] = world
     folder = _new_folder(Path(output))
     nerfstudio = folder / "camera_path.json"
     io.write_json(nerfstudio, nerfstudio_camera_path(frames, intrinsics, fps, extra=info))
