@@ -25,6 +25,7 @@ def _fit(scene, config=SHORT, **kw):
     return fit.fit_splats(jax.random.key(0), scene, config, **kw)
 
 
+@pytest.mark.slow  # compiles a step for XLA's memory analysis: 7.5-9.2 s on the 2-core CPU
 def test_a_step_that_does_not_fit_is_refused_before_the_run_folder_is_made(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(fit, "host_memory_bytes", lambda: 1 << 20)  # 1 MiB free
     out = tmp_path / "run"
@@ -48,7 +49,7 @@ def test_a_capacity_whose_state_does_not_fit_is_refused_before_it_is_allocated(m
     assert fit.capacity_bytes(fit.FitConfig(capacity=2**24)) > 8 << 30 > fit.capacity_bytes(fit.FitConfig())
 
 
-@pytest.mark.slow  # compiles a step (7 s); the command's refusal above stays in the fast tier
+@pytest.mark.slow  # compiles a step (7 s), as the command's refusal above does
 def test_the_refusal_names_the_image_size_and_the_memory(lego, monkeypatch):
     monkeypatch.setattr(fit, "host_memory_bytes", lambda: 1 << 20)
     called = []
