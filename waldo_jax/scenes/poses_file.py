@@ -49,9 +49,9 @@ def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
 
 def _rigid_poses(poses: List[np.ndarray], path: Path, what: str) -> np.ndarray:
     """The poses stacked, float32 [N, 4, 4], once each is a camera by a scene's rule (`rigid_problem`: finite,
-    rigid, the bottom row (0, 0, 0, 1), a projective row had been dropped unread, the origin within
-    MAX_COORDINATE), checked for all N at once (a file may hold 10^5); else a
-    `SceneFormatError` naming the pose (`what` holds its index as {i})."""
+    rigid, the bottom row (0, 0, 0, 1), which had been dropped unread, the origin within MAX_COORDINATE),
+    checked for all N at once (a file may hold 10^5); else a `SceneFormatError` naming the pose (`what`
+    holds its index as {i})."""
     stacked = np.stack(poses)
     found = rigid_problem(stacked)
     if found is not None:

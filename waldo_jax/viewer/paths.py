@@ -121,9 +121,10 @@ def export_camera_path(scene: ViewScene, group: str = "", output: Optional[Path]
     if output is None or not Path(output).is_dir():
         raise ViewerError(f"{scene.path}: no output folder to write a camera path into")
     frames, fps, what = path_of(scene, group)
-    intrinsics = _intrinsics(scene, Path(scene.output or output) / group)
+    run = Path(scene.output or output) / group  # the run whose poses.json has the camera and the world
+    intrinsics = _intrinsics(scene, run)
     info = {"criterion": scene.criterion, "source": scene.source, "exported_by": "waldo view", "path": what}
-    world = _recorded_world(Path(scene.output or output) / group)
+    world = _recorded_world(run)
     if world is not None:  # the run's world goes with its poses: `render --poses` elsewhere says so
         info["source_world"] = world
     folder = _new_folder(Path(output))
