@@ -367,6 +367,29 @@ def test_a_world_that_cannot_be_told_is_none_and_a_world_not_on_this_machine_say
             warn_other_world("--poses f", recorded, "procedural:1", "run")
 
 
+def test_a_far_origin_is_told_to_rescale_only_where_the_poses_are_the_scenes_own(tmp_path):
+    """`rigid_problem`'s far-origin message names a remedy only where one is given: a scene's own cameras
+    (`check_rigid`: rescale the scene); a results.json the viewer reads or a poses file to render says no
+    more than what is wrong."""
+    from waldo_jax.errors import SceneFormatError
+    from waldo_jax.scenes import read_poses_file
+    from waldo_jax.scenes.common import check_rigid, rigid_problem
+    from waldo_jax.types import Intrinsics
+    from waldo_jax.viewer.fields import check_poses
+
+    far = np.eye(4)
+    far[0, 3] = 1e9
+    plain = "camera origin has a coordinate of 1e+09, beyond the 1e+06 that float32 geometry handles"
+    assert rigid_problem(np.stack([np.eye(4), far])) == (1, plain)
+    with pytest.raises(SceneFormatError, match=re.escape(f"frame 3: {plain} (rescale the scene)")):
+        check_rigid(far, tmp_path / "transforms.json", "frame 3")
+    with pytest.raises(ValueError, match=re.escape(f"[1]: {plain}") + "$"):
+        check_poses([np.eye(4).tolist(), far.tolist()], ValueError)
+    (tmp_path / "poses.json").write_text(json.dumps({"frames": [{"transform_matrix": far.tolist()}]}))
+    with pytest.raises(SceneFormatError, match=re.escape(f"frame 0 transform_matrix: {plain}") + "$"):
+        read_poses_file(tmp_path / "poses.json", Intrinsics.create(8, 8, 8.0))
+
+
 def test_numbers_past_float64_given_as_python_integers_are_not_finite():
     """`errors.is_finite_number`: JSON's integers have no bound and `math.isfinite(10**400)` raises
     OverflowError; the viewer's poses and cameras.json's focal lengths, called with Python's numbers (not

@@ -53,6 +53,7 @@ def test_results_json_has_what_the_issue_lists(egps_run):
     ):
         assert key in r, key
     assert (r["method"], r["criterion"], r["direction"], r["seed"]) == ("egps", "waldo_oracle", "max", 3)
+    assert r["budget"] is None  # --children-per-epoch 6 set the children, not the (default) budget
     assert r["criterion_caption"] == (
         "waldo_oracle: share of the image showing un-occluded Waldo (exact, procedural "
         "room); higher is better, in [0, 1]"
@@ -232,6 +233,25 @@ def test_a_budget_beside_children_per_epoch_says_it_changes_nothing(flags, warne
     )
     assert said == ([text] if warned else [])
     assert config.budget == budget
+
+
+def test_results_json_records_the_budget_only_where_it_set_the_children():
+    """results.json's `budget` is the one that derived the children per epoch; where they were given
+    (`--children-per-epoch`), it is null, unless the budget derives the very same number."""
+    import dataclasses
+
+    from waldo_jax.pipeline.outputs import _budget_used
+    from waldo_jax.search import ExploreConfig
+
+    for budget in ("low", "high", (100, 120)):
+        derived = ExploreConfig(budget=budget).resolve(32)
+        assert _budget_used(derived, 32) == (budget if isinstance(budget, str) else list(budget))
+        given = dataclasses.replace(derived, children_per_epoch=derived.children_per_epoch + 1)
+        assert _budget_used(given, 32) is None
+    refined = ExploreConfig(method="egps+refine", budget="low").resolve(32)  # its gradient renders come out of it
+    assert _budget_used(refined, 32) == "low"
+    assert _budget_used(dataclasses.replace(refined, children_per_epoch=6), 32) is None
+    assert _budget_used(ExploreConfig(budget=(5, 6), children_per_epoch=1), 32) is None  # the budget leaves none
 
 
 def test_method_flags_become_the_options_of_the_method_that_has_them():

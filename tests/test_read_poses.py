@@ -60,6 +60,37 @@ def test_valid_file_gives_poses_intrinsics_and_names(tmp_path):
     assert float(np.asarray(intrinsics.distortion)[0]) == pytest.approx(0.01)
 
 
+def test_the_world_a_file_records_comes_with_its_poses_from_one_parse(tmp_path, monkeypatch):
+    """`load_poses_file` reads a poses.json of `waldo explore` / `waldo path` and waldo's camera paths once:
+    the poses, and the `source_world` their block records (None where none is recorded)."""
+    from waldo_jax.scenes import load_poses_file, poses_file
+    from waldo_jax.scenes.camera_paths import nerfstudio_camera_path
+
+    frames = [{"transform_matrix": _c2w(0.1 * i, [i, 0.0, 1.0]).tolist()} for i in range(3)]
+    files = {
+        "explore": {"frames": frames, "waldo_explore": {"source_world": "procedural:4"}},
+        "path": {"frames": frames, "waldo_path": {"source_world": str(tmp_path)}},
+        "camera_path": nerfstudio_camera_path(
+            np.stack([_c2w(0.2 * i, [0.0, i, 2.0]) for i in range(3)]),
+            DEFAULT,
+            24.0,
+            extra={"source_world": "procedural:7"},
+        ),
+        "other tool": {"frames": frames},
+    }
+    parses = []
+    reader = poses_file.read_json_file
+    monkeypatch.setattr(poses_file, "read_json_file", lambda *a, **k: parses.append(a[0]) or reader(*a, **k))
+    for (name, meta), world in zip(files.items(), ["procedural:4", str(tmp_path), "procedural:7", None]):
+        parses.clear()
+        loaded = load_poses_file(_write(tmp_path, meta, f"{name.replace(' ', '_')}.json"), DEFAULT)
+        assert loaded.world == world and loaded.c2w.shape == (3, 4, 4), name
+        assert len(parses) == 1, name
+        c2w, intrinsics, names = read_poses_file(tmp_path / f"{name.replace(' ', '_')}.json", DEFAULT)
+        np.testing.assert_array_equal(c2w, loaded.c2w)
+        assert names == loaded.file_names and intrinsics.width == loaded.intrinsics.width
+
+
 def test_file_without_focal_length_uses_the_default_camera(tmp_path):
     path = _write(tmp_path, {"frames": [{"transform_matrix": np.eye(4).reshape(-1).tolist()}]})  # 16 numbers
     c2w, intrinsics, _ = read_poses_file(path, DEFAULT)

@@ -22,7 +22,7 @@ import numpy as np
 
 from waldo_jax.io import read_json_file
 from waldo_jax import io
-from waldo_jax.scenes.camera_paths import read_dataparser_transform, recorded_world
+from waldo_jax.scenes.camera_paths import read_dataparser_transform
 from waldo_jax.search.path_search import (
     AGGREGATES,
     MAX_TEMPERATURE,
@@ -372,7 +372,7 @@ def cmd_path(args: argparse.Namespace) -> int:
     """`waldo path`: searches the path and writes its files into --out."""
     config = _config_from_args(args)
     dataparser = None if args.nerfstudio_transforms is None else _dataparser(args.nerfstudio_transforms)
-    anchor_c2w = None if args.from_explore is None else read_explore_anchors(args.from_explore)
+    anchor_c2w, anchor_world = (None, None) if args.from_explore is None else read_explore_anchors(args.from_explore)
     if anchor_c2w is not None and len(anchor_c2w) < max(2, config.keyframes):
         raise WaldoError(
             f"--from-explore {args.from_explore}: its poses.json holds {len(anchor_c2w)} pose"
@@ -388,8 +388,7 @@ def cmd_path(args: argparse.Namespace) -> int:
         check = _anchor_check(path_check(config, args.seeds), anchor_c2w, args.from_explore)
         source = load_source(args.source, args.resolution, args.views, check=check, **splat_pose_options(args))
         if args.from_explore is not None:  # its poses in another scene's world: said, as `render --poses` says
-            recorded = recorded_world(io.read_json_file(Path(args.from_explore) / "poses.json"))
-            warn_other_world(f"--from-explore {args.from_explore}", recorded, source_world(source), source.name)
+            warn_other_world(f"--from-explore {args.from_explore}", anchor_world, source_world(source), source.name)
         check_nerfstudio_export(source, dataparser)  # before the search: the export must be able to undo it
         flag = "--resolution" if args.video_resolution is None else "--video-resolution"
         if args.video_resolution is None:

@@ -41,8 +41,7 @@ from waldo_jax.pipeline.sources import (
 )
 from waldo_jax.procedural import RoomCameraConfig, make_room, training_cameras, waldo_visibility_batch
 from waldo_jax.types import Intrinsics
-from waldo_jax.scenes import read_poses_file
-from waldo_jax.scenes.camera_paths import recorded_world
+from waldo_jax.scenes import load_poses_file
 
 __all__ = ["add_command", "cmd_render", "MAX_RENDER_POSES", "RENDER_GROUP_PIXELS"]
 
@@ -173,8 +172,7 @@ def _render_poses(args: argparse.Namespace, seed: Optional[int]) -> int:
         c2w, intrinsics = scene.train_c2w, scene.intrinsics
     else:
         # The count is checked from the list's length, before each pose is (10^6 took 49 s and 2 GB to refuse).
-        c2w, intrinsics, _ = read_poses_file(Path(args.poses), scene.intrinsics, max_poses=MAX_RENDER_POSES)
-        recorded = recorded_world(io.read_json_file(Path(args.poses)))  # again: read_poses_file keeps the poses
+        c2w, intrinsics, _, recorded = load_poses_file(Path(args.poses), scene.intrinsics, max_poses=MAX_RENDER_POSES)
         warn_other_world(f"--poses {args.poses}", recorded, scene.world, scene.name)
     if args.resolution is not None:
         check_resolution(args.resolution)

@@ -1,7 +1,8 @@
 """The files of an experiment (what `waldo explore` promises), written by `write_outputs`:
 
 results.json      the run: method, criterion (its description, and criterion_caption: what the scores
-                  are, their direction and range, in words), direction, seed(s), budget, n_train, n_generated,
+                  are, their direction and range, in words), direction, seed(s), budget (null when
+                  the children per epoch were set otherwise), n_train, n_generated,
                   scores_train, scores_generated (generation order), cvir and mcvir (the paper's), topk
                   [{score, c2w, image, view, ...}] (the k best different shots, `min_separation` apart),
                   train_c2w and generated_c2w (every scored pose as a 4x4 camera-to-world, in the
@@ -63,6 +64,18 @@ def _epoch_rows(result: Result) -> List[Dict[str, Any]]:
     ]
 
 
+def _budget_used(config, n_train: int) -> Any:
+    """The config's budget ("low", "high" or [min, max]) when it set the children per epoch, else None: a run
+    whose `children_per_epoch` was given (`--children-per-epoch`) did not use it, whatever it names."""
+    try:
+        derived = dataclasses.replace(config, children_per_epoch=None).resolve(n_train).children_per_epoch
+    except ValueError:  # the budget leaves no children, or too few views for top_k: it cannot have set them
+        return None
+    if derived != config.children_per_epoch:
+        return None
+    return config.budget if isinstance(config.budget, str) else list(config.budget)
+
+
 def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
     """The contents of results.json (see the module docstring)."""
     config, result, source = run.config, run.result, run.source
@@ -109,7 +122,7 @@ def results_dict(run: ExploreRun, image_names: Sequence[str]) -> Dict[str, Any]:
         "source": source.spec,
         "source_info": source.info,
         "seed": run.seeds[0],
-        "budget": config.budget if isinstance(config.budget, str) else list(config.budget),
+        "budget": _budget_used(config, source.n_train),
         "epochs_count": config.epochs,
         "children_per_epoch": config.children_per_epoch,
         "cost": config.cost(source.n_train),

@@ -137,16 +137,17 @@ def path_check(config: PathConfig, seeds: int) -> Callable[[int, int, int], None
     return check
 
 
-def read_explore_anchors(run_dir: str) -> np.ndarray:
-    """The top poses [k, 4, 4] of an `explore` run folder (its poses.json)."""
-    from waldo_jax.scenes import read_poses_file
+def read_explore_anchors(run_dir: str) -> Tuple[np.ndarray, Optional[str]]:
+    """The top poses [k, 4, 4] of an `explore` run folder (its poses.json) and the world it records
+    (`scenes.PosesFile.world`; None where it records none)."""
+    from waldo_jax.scenes import load_poses_file
     from waldo_jax.types import Intrinsics
 
     path = Path(run_dir) / "poses.json"
     if not path.is_file():
         raise WaldoError(f"--from-explore {run_dir}: no poses.json (is it the --out folder of `waldo explore`?)")
-    c2w, _, _ = read_poses_file(path, Intrinsics.create(64, 64, 64.0))
-    return c2w
+    poses = load_poses_file(path, Intrinsics.create(64, 64, 64.0))
+    return poses.c2w, poses.world
 
 
 def evaluate_path(frame_fn, c2w: np.ndarray, limits: PathLimits, config: PathConfig) -> Dict[str, Any]:

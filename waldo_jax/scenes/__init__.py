@@ -25,6 +25,8 @@ from waldo_jax.scenes.llff import LLFF_FAR_MARGIN as LLFF_FAR_MARGIN
 from waldo_jax.scenes.llff import LLFF_NEAR_MARGIN as LLFF_NEAR_MARGIN
 from waldo_jax.scenes.loader import load_scene as load_scene
 from waldo_jax.scenes.ply import read_ply_points as read_ply_points
+from waldo_jax.scenes.poses_file import PosesFile as PosesFile
+from waldo_jax.scenes.poses_file import load_poses_file as load_poses_file
 from waldo_jax.scenes.poses_file import read_poses_file as read_poses_file
 from waldo_jax.scenes.splits import load_splits as load_splits
 from waldo_jax.scenes.transforms import BLENDER_AABB as BLENDER_AABB
@@ -38,11 +40,13 @@ from waldo_jax.scenes.transforms import PLY_PERCENTILES as PLY_PERCENTILES
 
 __all__ = [
     "FORMATS",
+    "PosesFile",
     "SPLITS",
     "SceneArgumentError",
     "camera_bounds",
     "camera_focus",
     "detect_format",
+    "load_poses_file",
     "load_scene",
     "load_splits",
     "read_ply_points",

@@ -346,13 +346,13 @@ def detect_format(path: str | os.PathLike) -> str:
 def check_rigid(m: np.ndarray, path: Path, what: str) -> np.ndarray:
     """Checks finiteness, orthonormal rotation with det +1, a (0, 0, 0, 1) bottom row (a 4x4) and an origin
     within `MAX_COORDINATE` (`rigid_problem`'s rule), else a `SceneFormatError` naming `path` and `what`."""
-    found = rigid_problem(np.asarray(m)[None])
+    found = rigid_problem(np.asarray(m)[None], far_remedy="rescale the scene")
     if found is not None:
         raise SceneFormatError(path, f"{what}: {found[1]}")
     return m
 
 
-def rigid_problem(m: np.ndarray) -> Optional[Tuple[int, str]]:
+def rigid_problem(m: np.ndarray, far_remedy: str = "") -> Optional[Tuple[int, str]]:
     """Whether every pose of m is a camera-to-world waldo takes: finite, its rotation orthonormal within
     `RIGID_TOL` with det +1, a 4x4's bottom row (0, 0, 0, 1), its origin's coordinates within
     `MAX_COORDINATE`. All N are checked at once (a results.json or a poses file of 10^5 poses), one rule
@@ -360,6 +360,8 @@ def rigid_problem(m: np.ndarray) -> Optional[Tuple[int, str]]:
 
     Args:
       m: poses [N, 4, 4] or [N, 3, 4].
+      far_remedy: what to do about an origin too far, in brackets after its message ("rescale the scene"
+        where the poses are a scene's own; none for poses read to render a scene or for a results.json).
 
     Returns:
       None where all pass; else (index, why in words) of the first pose that fails the earliest rule any
@@ -392,7 +394,7 @@ def rigid_problem(m: np.ndarray) -> Optional[Tuple[int, str]]:
             i = int(np.argmax(far > MAX_COORDINATE))
             return i, (
                 f"camera origin has a coordinate of {far[i]:.6g}, beyond the {MAX_COORDINATE:g} "
-                "that float32 geometry handles (rescale the scene)"
+                "that float32 geometry handles" + (f" ({far_remedy})" if far_remedy else "")
             )
     return None
 

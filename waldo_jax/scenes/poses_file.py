@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 
 from waldo_jax.io import read_json_file
-from waldo_jax.scenes.camera_paths import is_camera_path, read_camera_path
+from waldo_jax.scenes.camera_paths import is_camera_path, read_camera_path, recorded_world
 from waldo_jax.errors import (
     MAX_RESOLUTION,
     MIN_RESOLUTION,
@@ -29,7 +29,7 @@ from waldo_jax.scenes.common import (
 )
 from waldo_jax.types import Intrinsics
 
-__all__ = ["read_poses_file"]
+__all__ = ["PosesFile", "load_poses_file", "read_poses_file"]
 
 
 def _poses_file_c2w(matrix: Any, path: Path, what: str) -> np.ndarray:
@@ -118,9 +118,34 @@ def _check_count(count: int, max_poses: Optional[int], path: Path) -> None:
         raise SceneFormatError(path, f"{count} poses; at most {max_poses} are read at once (split the file)")
 
 
+class PosesFile(NamedTuple):
+    """A poses file's cameras (`load_poses_file`).
+
+    Attributes:
+      c2w: float32 [N, 4, 4] camera-to-world poses.
+      intrinsics: the camera rendering every pose.
+      file_names: frame i's `file_path`, or None when it has none.
+      world: the world the file's poses were written in, as waldo records it (`recorded_world`:
+        "procedural:N" or an absolute path), or None where the file records none.
+    """
+
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    file_names: List[Optional[str]]
+    world: Optional[str]
+
+
 def read_poses_file(
     path: str | os.PathLike, default_intrinsics: Intrinsics, max_poses: Optional[int] = None
 ) -> Tuple[np.ndarray, Intrinsics, List[Optional[str]]]:
+    """(c2w, intrinsics, file_names) of a poses file: `load_poses_file` without the recorded world."""
+    c2w, intrinsics, names, _ = load_poses_file(path, default_intrinsics, max_poses)
+    return c2w, intrinsics, names
+
+
+def load_poses_file(
+    path: str | os.PathLike, default_intrinsics: Intrinsics, max_poses: Optional[int] = None
+) -> PosesFile:
     """Reads the cameras of a transforms.json-like poses file (no images are needed or read).
 
     The file is a JSON object with `frames[].transform_matrix` (instant-ngp / nerfstudio / Blender
@@ -140,8 +165,7 @@ def read_poses_file(
       max_poses: refuse a file of more poses than this (counted before any pose is checked), or None.
 
     Returns:
-      (c2w float32 [N, 4, 4], intrinsics, file_names): `file_names[i]` is frame i's `file_path`, or
-      None when it has none.
+      `PosesFile` (c2w float32 [N, 4, 4], intrinsics, file_names, world), the file parsed once.
 
     Raises:
       SceneFormatError: the file is missing, unreadable, not JSON, has no (or an empty) `frames`
@@ -175,7 +199,7 @@ def read_poses_file(
                 poses.append(_poses_file_c2w(frame["transform_matrix"], path, f"frame {i} transform_matrix"))
                 names.append(field(frame, "file_path", path, "string", where=f"frame {i}"))
             c2w = _rigid_poses(poses, path, "frame {i} transform_matrix")
-            return c2w, _poses_file_intrinsics(meta, path, default_intrinsics), names
+            return PosesFile(c2w, _poses_file_intrinsics(meta, path, default_intrinsics), names, recorded_world(meta))
         if is_camera_path(meta):
             entries = meta.get("camera_path", meta.get("path"))
             count = len(entries) if isinstance(entries, list) else 0
@@ -190,5 +214,6 @@ def read_poses_file(
                 raise SceneFormatError(path, str(e)) from None
             _check_camera(intrinsics, path)
             poses = [_poses_file_c2w(m, path, f"camera path frame {i}") for i, m in enumerate(c2w)]
-            return _rigid_poses(poses, path, "camera path frame {i}"), intrinsics, [None] * len(poses)
+            c2w = _rigid_poses(poses, path, "camera path frame {i}")
+            return PosesFile(c2w, intrinsics, [None] * len(poses), recorded_world(meta))
         raise SceneFormatError(path, "no 'frames' list with transform_matrix entries (transforms.json format)")

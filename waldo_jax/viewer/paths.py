@@ -67,29 +67,20 @@ def path_of(scene: ViewScene, group: str = "") -> Tuple[np.ndarray, float, str]:
     return frames, SHOTS_FPS, f"{what}, {FRAMES_PER_SHOT} frames from one to the next"
 
 
-def _intrinsics(scene: ViewScene, folder: Path):
-    """The run's camera: its poses.json's (explore and path outputs write one), else its resolution and fov_y."""
-    from waldo_jax.scenes import read_poses_file
+def _run_camera(scene: ViewScene, folder: Path):
+    """The run's camera and world from its poses.json, read once (explore and path outputs write one): its
+    intrinsics, else its resolution and fov_y; the world it records (`PosesFile.world`), else None."""
+    from waldo_jax.scenes import load_poses_file
     from waldo_jax.types import Intrinsics
 
     width, height = scene.resolution or (max(1, round(64 * scene.aspect)), 64)
     focal = 0.5 * height / math.tan(0.5 * scene.fov_y)
     fallback = Intrinsics.create(int(width), int(height), focal, focal)
     try:
-        return read_poses_file(folder / "poses.json", fallback)[1]
+        poses = load_poses_file(folder / "poses.json", fallback)
     except (WaldoError, OSError, ValueError):
-        return fallback
-
-
-def _recorded_world(folder: Path) -> Optional[str]:
-    """The world of the run's poses as its poses.json records it (`recorded_world`), or None."""
-    from waldo_jax.io import read_json_file
-    from waldo_jax.scenes.camera_paths import recorded_world
-
-    try:
-        return recorded_world(read_json_file(folder / "poses.json", "poses file"))
-    except (WaldoError, OSError, ValueError):
-        return None
+        return fallback, None
+    return poses.intrinsics, poses.world
 
 
 def _new_folder(output: Path) -> Path:
@@ -122,9 +113,8 @@ def export_camera_path(scene: ViewScene, group: str = "", output: Optional[Path]
         raise ViewerError(f"{scene.path}: no output folder to write a camera path into")
     frames, fps, what = path_of(scene, group)
     run = Path(scene.output or output) / group  # the run whose poses.json has the camera and the world
-    intrinsics = _intrinsics(scene, run)
+    intrinsics, world = _run_camera(scene, run)
     info = {"criterion": scene.criterion, "source": scene.source, "exported_by": "waldo view", "path": what}
-    world = _recorded_world(run)
     if world is not None:  # the run's world goes with its poses: `render --poses` elsewhere says so
         info["source_world"] = world
     folder = _new_folder(Path(output))
