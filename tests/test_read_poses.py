@@ -91,6 +91,20 @@ def test_the_world_a_file_records_comes_with_its_poses_from_one_parse(tmp_path, 
         assert names == loaded.file_names and intrinsics.width == loaded.intrinsics.width
 
 
+def test_an_off_image_principal_point_is_warned_at_the_readers_caller(tmp_path):
+    """The warning names the line that called `read_poses_file` or `load_poses_file` (this file), not the
+    reader's own code."""
+    from waldo_jax.scenes import load_poses_file
+
+    path = _write(
+        tmp_path, {"w": 16, "h": 16, "fl_x": 20.0, "cx": 500.0, "frames": [{"transform_matrix": np.eye(4).tolist()}]}
+    )
+    for reader in (read_poses_file, load_poses_file):
+        with pytest.warns(UserWarning, match="principal point") as caught:
+            reader(path, DEFAULT)
+        assert [w.filename for w in caught] == [__file__], reader.__name__
+
+
 def test_file_without_focal_length_uses_the_default_camera(tmp_path):
     path = _write(tmp_path, {"frames": [{"transform_matrix": np.eye(4).reshape(-1).tolist()}]})  # 16 numbers
     c2w, intrinsics, _ = read_poses_file(path, DEFAULT)

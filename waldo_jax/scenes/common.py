@@ -630,15 +630,16 @@ def distortion_problem(intrinsics: Intrinsics) -> Optional[str]:
     return None
 
 
-def warn_off_image_principal_point(intrinsics: Intrinsics, path: Path) -> None:
+def warn_off_image_principal_point(intrinsics: Intrinsics, path: Path, stacklevel: int = 4) -> None:
     """Warns (naming `path`) when the principal point lies outside the image.
 
-    stacklevel 4 names the caller of `load_scene` or `read_poses_file`: keep the call depth.
+    `stacklevel` 4 names the caller of `load_scene` (5 that of `read_poses_file` / `load_poses_file`): keep
+    the call depths.
     """
     cx, cy = float(intrinsics.cx), float(intrinsics.cy)
     if not (0.0 <= cx <= intrinsics.width and 0.0 <= cy <= intrinsics.height):
         warnings.warn(
             f"{path}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the "
             f"{intrinsics.width}x{intrinsics.height} image; the cameras look far off their image centre",
-            stacklevel=4,
+            stacklevel=stacklevel,
         )

@@ -100,7 +100,7 @@ def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics
         int(round(w)), int(round(h)), fl_x, fl_y, number(meta, "cx", path), number(meta, "cy", path), distortion
     )
     _check_camera(intrinsics, path)
-    warn_off_image_principal_point(intrinsics, path)
+    warn_off_image_principal_point(intrinsics, path, stacklevel=5)  # the caller of read/load_poses_file
     return intrinsics
 
 
@@ -139,7 +139,7 @@ def read_poses_file(
     path: str | os.PathLike, default_intrinsics: Intrinsics, max_poses: Optional[int] = None
 ) -> Tuple[np.ndarray, Intrinsics, List[Optional[str]]]:
     """(c2w, intrinsics, file_names) of a poses file: `load_poses_file` without the recorded world."""
-    c2w, intrinsics, names, _ = load_poses_file(path, default_intrinsics, max_poses)
+    c2w, intrinsics, names, _ = _load(path, default_intrinsics, max_poses)
     return c2w, intrinsics, names
 
 
@@ -172,6 +172,11 @@ def load_poses_file(
         list, a frame without a valid `transform_matrix`, invalid intrinsics, or is a camera path.
         The message names the file (and the frame).
     """
+    return _load(path, default_intrinsics, max_poses)
+
+
+def _load(path: str | os.PathLike, default_intrinsics: Intrinsics, max_poses: Optional[int]) -> PosesFile:
+    """`load_poses_file`'s work, one call below both public readers (a warning's stacklevel names their caller)."""
     with one_line_errors():  # a file name with a newline or an escape stays on one line
         path = Path(path)
         if not os.path.lexists(path):
