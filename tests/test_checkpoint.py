@@ -486,3 +486,18 @@ def test_a_run_of_the_demo_room_rebuilds_that_room_not_the_default(tmp_path):
     for name in ("center", "size", "waldo_points", "waldo_scale", "stripe_width"):
         np.testing.assert_array_equal(getattr(source.room, name), getattr(room, name), err_msg=name)
     assert not np.array_equal(make_room(1).waldo_points, room.waldo_points)  # the default room differs
+
+
+def test_a_file_larger_than_its_header_says_is_refused_before_it_is_read(saved, monkeypatch):
+    """A checkpoint grown (sparse) to 32 GiB past what its header describes, more than this machine's memory
+    (a 4 GiB one took 4.4 GB to be refused): refused from its header and size alone; reading it whole would
+    have failed. One too large for the free memory is refused by its size before it is read."""
+    with open(saved, "r+b") as f:
+        f.truncate(32 << 30)
+    with pytest.raises(ckpt.CheckpointError, match="trailing data"):
+        ckpt.load_checkpoint(saved)
+    saved.unlink()
+    ckpt.save_checkpoint(saved, _params(), _config(), _scene())
+    monkeypatch.setattr(ckpt, "host_memory_bytes", lambda: 1000)
+    with pytest.raises(ckpt.CheckpointError, match="GiB, more than the 0.0 GiB this machine has free"):
+        ckpt.load_checkpoint(saved)

@@ -240,3 +240,22 @@ def test_composition_terms_on_analytic_maps():
     assert float(composition_from_map(np.zeros((32, 32), np.float32))) < float(
         composition_from_map(_blob_map(0.5, 0.5))
     )
+
+
+@pytest.mark.parametrize(
+    "flags, said",
+    [
+        (["--poses", "train"], "--poses has no effect on IMAGE files (it is for --source)"),
+        (["--resolution", "16"], "--resolution has no effect on IMAGE files (it is for --source)"),
+        (["--poses", "p.json", "--resolution", "16"], "--poses and --resolution have no effect on IMAGE files"),
+        ([], None),
+    ],
+)
+def test_render_flags_beside_image_files_say_they_change_nothing(tmp_path, capsys, flags, said):
+    """--poses and --resolution set what `--source` renders: beside image files they were ignored in silence."""
+    import imageio.v3 as iio
+
+    iio.imwrite(tmp_path / "a.png", np.full((8, 8, 3), 90, np.uint8))
+    assert main(["score", "--criterion", "colorfulness", str(tmp_path / "a.png"), *flags]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if line.startswith("waldo: warning:")]
+    assert warned == ([] if said is None else [next(w for w in warned if said in w)])

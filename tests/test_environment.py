@@ -56,6 +56,7 @@ BAD = [
     ("JAX_ENABLE_X64", "t"),  # JAX's own other words for on: "t" and "y" (they got past, and crashed a search)
     ("JAX_DEBUG_INFS", "y"),
     ("JAX_DEBUG_INFS", "1"),
+    ("JAX_DEBUG_NANS", "1"),  # a training chunk's scan and a splat search's finish ended in FloatingPointError
     ("JAX_DISABLE_JIT", "1"),  # a 1-view render of 8x8 pixels took 18 s
     ("JAX_DEFAULT_PRNG_IMPL", "rbg"),  # procedural:0 became another room, exit 0
     ("JAX_THREEFRY_PARTITIONABLE", "0"),

@@ -479,3 +479,118 @@ def test_counts_whose_product_passes_int32_are_refused_by_their_flags(tmp_path, 
     argv = ["explore", "procedural:1", "--views", "4", "--resolution", "16", "--top-k", "2", "--criterion"]
     argv += ["colorfulness", *flags, "--out", str(tmp_path / "new"), "--quiet"]
     _cli_refuses(argv, says, capsys, tmp_path)
+
+
+# --------------------------------------------------------------------------------------------------
+# The second hunt's kinds: counts whose product passes int32, files read whole, lengths inside files.
+
+
+def test_training_views_that_cannot_fit_are_refused_by_their_flags(tmp_path, capsys, monkeypatch):
+    """--views 1000 at --resolution 4096 (16.8 G pixels): the room's training views had ended in JAX's
+    OverflowError (their flat pixel index past int32); now their memory is checked before they render."""
+    import waldo_jax.pipeline.sources as sources
+
+    def never(*args, **kwargs):
+        raise AssertionError("rendered before the training views' memory check")
+
+    monkeypatch.setattr(sources, "room_scene", never)
+    monkeypatch.setattr(experiment, "memory_bytes", lambda: 1 << 50)  # the epoch's check passes
+    monkeypatch.setattr(errors, "host_memory_bytes", lambda: 24 << 30)
+    argv = ["explore", "procedural", "--views", "1000", "--resolution", "4096", "--epochs", "1"]
+    _cli_refuses(
+        [*argv, "--out", str(tmp_path / "new"), "--quiet"],
+        "--views 1000 at --resolution 4096 (the room's training views) would take 500.0 GiB",
+        capsys,
+        tmp_path,
+    )
+
+
+def test_a_render_of_more_rays_than_int32_indexes_is_refused_before_it_runs():
+    """A render call's rays are one flat int32 index: 200 views of 4096x4096 (3.4 G rays) would wrap round.
+    Refused while tracing, before anything is computed."""
+    import jax.numpy as jnp
+
+    from waldo_jax.render.volume import MAX_RAYS_PER_CALL, RenderConfig, render_views
+    from waldo_jax.types import Intrinsics
+
+    def field(params, x, d):
+        return jnp.ones(()), jnp.ones(3)
+
+    c2w = jnp.tile(jnp.eye(4), (200, 1, 1))
+    with pytest.raises(
+        ValueError, match=f"200 views of 4096x4096 are 3,355,443,200 rays, more than the {MAX_RAYS_PER_CALL:,}"
+    ):
+        render_views(field, {}, c2w, Intrinsics.create(4096, 4096, 4096.0), RenderConfig(near=0.1, far=1.0))
+
+
+@pytest.mark.parametrize("opcode", [b"\x8e", b"\x8d"])  # BINBYTES8 (MemoryError before), BINUNICODE8
+def test_a_pickle_that_claims_more_bytes_than_memory_is_refused_by_name(tmp_path, opcode):
+    """14 bytes that claim a 2^60-byte string: Python asks for the memory before it reads, and its
+    MemoryError had ended `waldo score` in a traceback. The torch reader and CSNet's layer config say so."""
+    import struct
+
+    from waldo_jax.criteria.csnet.convert import read_layer_config
+    from waldo_jax.weights import TorchPickleError, WeightsError, read_torch_file
+
+    path = tmp_path / "claims.pth"
+    path.write_bytes(b"\x80\x04" + opcode + struct.pack("<Q", 1 << 60) + b"abc.")
+    with pytest.raises(TorchPickleError, match=re.escape(f"{path}: not a readable torch checkpoint")):
+        read_torch_file(path)
+    with pytest.raises(WeightsError, match=re.escape(f"{path}: not a readable CSNet layer config")):
+        read_layer_config(path)
+    (tmp_path / "large.bin").write_bytes(b"\0" * (2 << 20))
+    with pytest.raises(WeightsError, match="large.bin: 2.0 MiB; a CSNet layer config is a short list"):
+        read_layer_config(tmp_path / "large.bin")
+
+
+def test_files_read_whole_are_refused_when_larger_than_the_free_memory(tmp_path, capsys, monkeypatch):
+    """An SPZ, a .splat, a PLY point cloud and COLMAP text are read whole: past the free memory Linux kills
+    the process mid-read (or Python raises MemoryError). Each is refused by its size first, by name."""
+    from waldo_jax.errors import SceneFormatError
+    from waldo_jax.scenes.colmap import _lines
+    from waldo_jax.scenes.ply import read_ply_points
+    from waldo_jax.splats.formats.common import read_splat_bytes
+
+    import gzip
+    import struct
+
+    big = tmp_path / "big.spz"
+    with open(big, "wb") as f:  # an SPZ header (version 2, 10 splats), then a sparse tail: nothing is written
+        f.write(gzip.compress(b"NGSP" + struct.pack("<IIBBBB", 2, 10, 0, 12, 0, 0)))
+        f.truncate(3 << 30)
+    monkeypatch.setattr(errors, "host_memory_bytes", lambda: 2 << 30)
+    said = "3.0 GiB, more than the 2.0 GiB this machine has free to read it"
+    with pytest.raises(SceneFormatError, match=re.escape(f"{big}: SPZ file of {said}")):
+        read_splat_bytes(big, "SPZ file")
+    with pytest.raises(SceneFormatError, match=re.escape(f"{big}: PLY file of {said}")):
+        read_ply_points(big)
+    with pytest.raises(SceneFormatError, match=re.escape(f"{big}: COLMAP text file of {said}")):
+        _lines(big)
+    _cli_refuses(["scene", "info", str(big)], said, capsys, tmp_path)
+
+
+def test_an_allocation_no_check_foresaw_is_one_line_and_removes_the_new_folder(tmp_path, capsys, monkeypatch):
+    """A MemoryError from anywhere (NumPy says how much it asked for) is one line, exit status 1, and the
+    output folder the command had made is removed, as for any error."""
+    import waldo_jax.cli.render as render_cli
+
+    def allocate(*args, **kwargs):
+        raise MemoryError("Unable to allocate 33.5 GiB for an array with shape (300000, 100, 100, 3)")
+
+    monkeypatch.setattr(render_cli, "_write_groups", allocate)
+    argv = ["render", "procedural", "--views", "2", "--resolution", "8", "--samples", "4", "--out", str(tmp_path / "o")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("waldo: error: out of memory: Unable to allocate 33.5 GiB for an array"), err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_file_that_cannot_be_made_is_named_as_asked_not_by_its_temporary_name(tmp_path):
+    """Files are written through a temporary file beside them: where it cannot be made (/proc, a missing
+    folder), the error names the file asked for (`view --export /proc/x.html` said '/proc/.x.html.3240.tmp')."""
+    from waldo_jax import io
+
+    for target in (tmp_path / "missing" / "x.html", tmp_path / "x.html" / "y"):
+        with pytest.raises(FileNotFoundError) as caught:
+            io.write_text(target, "page")
+        assert caught.value.filename == str(target) and ".tmp" not in str(caught.value)

@@ -375,8 +375,12 @@ def test_waldo_path_writes_exports_video_and_plots_that_render_back(tmp_path, ca
         (np.diag([1.0, 1.0, -1.0, 1.0])[:3], 1.0, "not a rotation"),  # a mirror: exported rotations of det -1
         (np.diag([2.0, 2.0, 2.0, 1.0])[:3], 1.0, "not a rotation"),
         (np.eye(4)[:3], 1e300, "scale must be between"),  # exports of infinities, written as null, exit 0
+        # a 3x4 of a negative scale had said "got shape [4, 4]" (its shape after the row was added)
+        (np.eye(4)[:3], -1.0, "dataparser scale must be positive, got -1$"),
+        (np.full((3, 4), np.nan), 1.0, "holds a value that is not a finite number"),
+        (np.eye(3), 1.0, r"must be a 3x4 matrix, got shape \[3, 3\]"),
     ],
-    ids=["mirror", "scaled", "scale-1e300"],
+    ids=["mirror", "scaled", "scale-1e300", "scale-negative", "nan", "3x3"],
 )
 def test_a_dataparser_transform_that_is_no_rotation_or_of_an_absurd_scale_is_refused(transform, scale, says):
     from waldo_jax.scenes.camera_paths import read_dataparser_transform

@@ -9,6 +9,7 @@ import json
 import os
 import pickle
 import struct
+import warnings
 import zipfile
 
 import numpy as np
@@ -408,3 +409,39 @@ def test_a_weights_file_that_is_no_regular_file_is_said_as_such(tmp_path, kind):
             says = "a directory" if kind == "folder" else "a FIFO, socket or device"
             with pytest.raises(WaldoError, match=f"{path}: {says}, where a"):
                 make_criterion(name, CriterionContext(weights_dir=str(root)))
+
+
+def test_a_model_that_fails_to_convert_leaves_the_destination_as_it_was(tmp_path, capsys):
+    """Every model is read before any is written: a broken later one (cnniqa's file cut in half) used to leave
+    the models converted before it behind in DST."""
+    import shutil
+
+    src = tmp_path / "src"
+    shutil.copytree(require_weights("cnniqa/CNNIQA-LIVE").parent.parent, src)
+    cut = src / "cnniqa" / "CNNIQA-LIVE"
+    cut.chmod(0o644)
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    dst = tmp_path / "dst"
+    assert main(["weights", "convert", str(src), str(dst)]) == 1
+    assert "CNNIQA-LIVE" in capsys.readouterr().err
+    assert not dst.exists() or not any(dst.rglob("*.npz")), sorted(dst.rglob("*"))
+
+
+def test_an_original_changed_after_its_conversion_is_warned_of(tmp_path):
+    """The converted archive beside the originals is what loads: an original edited after it would go unseen,
+    so loading says so."""
+    import shutil
+
+    import waldo_jax.criteria  # noqa: F401  (registers converters)
+    from waldo_jax.weights import load_model
+
+    folder = tmp_path / "w"
+    shutil.copytree(require_weights("cnniqa/CNNIQA-LIVE").parent, folder / "cnniqa")
+    assert main(["weights", "convert", str(folder), str(folder), "--model", "cnniqa", "--quiet"]) == 0
+    native = folder / "cnniqa" / "cnniqa.npz"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_model("cnniqa", folder)
+    os.utime(folder / "cnniqa" / "CNNIQA-LIVE", (native.stat().st_mtime + 10,) * 2)
+    with pytest.warns(UserWarning, match=f"{native} is older than CNNIQA-LIVE beside it, and it is what is loaded"):
+        load_model("cnniqa", folder)

@@ -18,8 +18,8 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
   * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_NUM_CPU_DEVICES`,
     `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be made, tried by making one there; JAX
-    itself only warns at each program it cannot cache), `JAX_ENABLE_X64` and `JAX_DEBUG_INFS` (off only:
-    waldo_jax computes in 32 bits and uses infinities on purpose), `JAX_DISABLE_JIT` (off only),
+    itself only warns at each program it cannot cache), `JAX_ENABLE_X64`, `JAX_DEBUG_INFS` and `JAX_DEBUG_NANS`
+    (off only: waldo_jax computes in 32 bits and uses infinities and NaNs on purpose), `JAX_DISABLE_JIT` (off only),
     `JAX_DEFAULT_PRNG_IMPL` and `JAX_THREEFRY_PARTITIONABLE` (JAX's defaults only: a seed's draws),
     `JAX_NUMPY_RANK_PROMOTION`, `JAX_NUMPY_DTYPE_PROMOTION` and `JAX_TRANSFER_GUARD*` (not their strict
     modes, which waldo_jax's own programs do not meet) and every `JAX_*` configuration
@@ -238,6 +238,13 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "JAX_DEBUG_INFS": (
         _off_only("the searches use infinities on purpose (the fitness of unusable slots): unset it"),
         "stop at the first infinity",
+    ),
+    "JAX_DEBUG_NANS": (
+        _off_only(
+            "waldo_jax keeps failures as NaN inside its compiled programs on purpose (a failed view's score, "
+            "a ray that hits nothing): unset it"
+        ),
+        "stop at the first NaN",
     ),
     "JAX_DISABLE_JIT": (
         _off_only("every search, render and training step is one compiled program: without jit a run takes hours"),

@@ -18,6 +18,7 @@ import os
 import re
 import stat
 from pathlib import Path
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -35,6 +36,7 @@ __all__ = [
     "MAX_RESOLUTION",
     "check_resolution",
     "check_input_file",
+    "read_input_file",
     "check_float32",
     "is_finite_number",
     "check_int",
@@ -207,6 +209,40 @@ def check_input_file(path: str | os.PathLike, what: str = "file") -> Path:
     if not os.access(path, os.R_OK):
         raise WaldoError(f"{path}: cannot read this {what} (permission denied)")
     return path
+
+
+def read_input_file(
+    path: str | os.PathLike,
+    what: str = "file",
+    error: Optional[Callable[[str], Exception]] = None,
+    text: bool = False,
+):
+    """The bytes (or, with `text`, the UTF-8 text) of an input file, once it is a readable regular file
+    (`check_input_file`) no larger than the memory this machine has free (`host_memory_bytes`): a file
+    larger than that would be killed by Linux mid-read, not refused. `error(problem)` makes the
+    exception for a file too large or unreadable (default: a `WaldoError` naming `path`)."""
+
+    def fail(problem: str) -> Exception:
+        return WaldoError(f"{path}: {problem}") if error is None else error(problem)
+
+    try:
+        path = check_input_file(path, what)
+    except WaldoError as e:  # no file, a folder, a FIFO, a link loop: said by `error` where given
+        if error is None:
+            raise
+        said = str(e)
+        raise error(said[len(f"{path}: ") :] if said.startswith(f"{path}: ") else said) from None
+    try:
+        size = path.stat().st_size
+        available = host_memory_bytes()
+        if available and size > available:
+            raise fail(
+                f"{what} of {size / 2**30:,.1f} GiB, more than the {available / 2**30:.1f} GiB this machine has "
+                "free to read it"
+            )
+        return path.read_text(encoding="utf-8") if text else path.read_bytes()
+    except OSError as e:
+        raise fail(f"cannot read this {what} ({e.strerror or e})") from None
 
 
 class MemoryBudgetError(WaldoError, MemoryError):

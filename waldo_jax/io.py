@@ -70,7 +70,10 @@ _CREATED_FOR: Dict[Path, Path] = {}  # each folder `prepare_output_dir` returned
 def _open_temp(path: Path) -> tuple:
     """(name, binary file) of a new temporary file beside `path` (mode 0o666 less the umask)."""
     name = str(path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    try:
+        fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    except OSError as e:  # said of the file asked for: the temporary name means nothing to the user
+        raise OSError(e.errno, e.strerror, str(path)) from None
     return name, os.fdopen(fd, "wb")
 
 

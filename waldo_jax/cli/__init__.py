@@ -89,6 +89,10 @@ def _run(argv: Optional[List[str]]) -> int:
     except WaldoError as e:
         print(f"waldo: error: {one_line(str(e))}{_discarded(created_before)}", file=sys.stderr)
         return 1
+    except MemoryError as e:  # an allocation no check foresaw (NumPy names its size): one line, the new folder removed
+        said = one_line(str(e)) or "an allocation failed"
+        print(f"waldo: error: out of memory: {said}{_discarded(created_before)}", file=sys.stderr)
+        return 1
     except OSError as e:  # the machine refused (disk full, permissions): name the file, no traceback
         where = f"{e.filename}: " if e.filename else ""
         print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)  # the files written so far stay

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import warnings
 
 import jax
 import numpy as np
@@ -46,9 +47,9 @@ def add_command(subparsers) -> None:
     )
     p.add_argument(
         "--poses",
-        default="train",
+        default=None,  # None: "train", and a --poses given beside image files can be told from it
         metavar="FILE|train",
-        help="with --source: a transforms.json-like poses file, or 'train' for its training poses",
+        help="with --source: a transforms.json-like poses file, or 'train' for its training poses (default: train)",
     )
     p.add_argument("--resolution", type=int, default=None, help="with --source: longer side of the renders")
     add_criterion_arguments(p)
@@ -63,6 +64,10 @@ def cmd_score(args: argparse.Namespace) -> int:
         raise WaldoError("give IMAGE files or --source SOURCE (one of the two)")
     if args.source is not None:
         return _score_source(args)
+    ignored = [flag for flag in ("--poses", "--resolution") if getattr(args, flag[2:]) is not None]
+    if ignored:  # flags of renders: image files are scored as they are
+        verb, it = ("has", "it is") if len(ignored) == 1 else ("have", "they are")
+        warnings.warn(f"{' and '.join(ignored)} {verb} no effect on IMAGE files ({it} for --source)", stacklevel=2)
     criterion = criterion_before_source(args)  # None: a criterion of poses (of the procedural room)
     if criterion is None:
         raise WaldoError(f"criterion {args.criterion!r} scores camera poses of the procedural room, not image files")
@@ -135,6 +140,8 @@ def _score_source(args: argparse.Namespace) -> int:
     from waldo_jax.pipeline import load_source, score_function
     from waldo_jax.scenes import read_poses_file
 
+    if args.poses is None:
+        args.poses = "train"
     if args.poses != "train":  # a folder or a FIFO said as such before SOURCE loads, not after (a NeRF: seconds)
         if not os.path.lexists(args.poses):
             raise WaldoError(f"{args.poses}: no such poses file (or pass --poses train)")

@@ -28,6 +28,7 @@ from waldo_jax.errors import (
     SceneFormatError,
     WaldoError,
     check_input_file,
+    host_memory_bytes,
     is_finite_number,
 )
 from waldo_jax.io import atomic_file, parse_json
@@ -515,15 +516,26 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
         check_input_file(path, "checkpoint file")  # a FIFO would block read_bytes, a folder fail late
     except DataNotFoundError:
         raise CheckpointError(path, "no such checkpoint file") from None
-    try:
-        raw = path.read_bytes()
+    try:  # the header first: a file larger (or smaller) than its header says is refused before it is read
+        with open(path, "rb") as f:
+            head = f.read(len(MAGIC) + _LENGTH.size)
+            if len(head) == len(MAGIC) + _LENGTH.size and head[: len(MAGIC)] == MAGIC:
+                (header_length,) = _LENGTH.unpack_from(head, len(MAGIC))
+                head += f.read(min(header_length, _MAX_HEADER_BYTES))
+            header, payload_start = _read_header(path, head)
+            _check_version(path, header)
+            size = os.fstat(f.fileno()).st_size
+            entries = _array_table(path, header, payload_start, size)
+            available = host_memory_bytes()
+            if available and size > available:
+                raise CheckpointError(
+                    path, f"{size / 2**30:,.1f} GiB, more than the {available / 2**30:.1f} GiB this machine has free"
+                )
+            raw = head + f.read()
     except FileNotFoundError:
         raise CheckpointError(path, "no such checkpoint file") from None
     except OSError as e:
         raise CheckpointError(path, f"cannot read checkpoint ({e.strerror or e})") from None
-    header, payload_start = _read_header(path, raw)
-    _check_version(path, header)
-    entries = _array_table(path, header, payload_start, len(raw))
     body = memoryview(raw)[: len(raw) - _DIGEST_BYTES]
     if hashlib.sha256(body).digest() != raw[len(raw) - _DIGEST_BYTES :]:
         raise CheckpointError(path, "corrupt checkpoint (SHA-256 digest mismatch: the file was altered or damaged)")

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from waldo_jax.criteria.base import Views, rendered_views
-from waldo_jax.errors import WaldoError, check_resolution, check_seed
+from waldo_jax.errors import WaldoError, check_memory, check_resolution, check_seed
 from waldo_jax.nerf.checkpoint import load_checkpoint
 from waldo_jax.nerf.field import make_field
 from waldo_jax.nerf.trained import TrainedField, render_setup
@@ -320,6 +320,11 @@ def parse_procedural(source: str, seed: Optional[int] = None) -> Optional[int]:
 RUN_RESOLUTION = 256
 
 
+# Bytes a training view of the room holds per pixel while it is made: float32 rgb, depth and opacity
+# rendered, and the rgb image kept.
+_ROOM_VIEW_BYTES_PER_PIXEL = 32
+
+
 def procedural_source(
     seed: int = 0,
     resolution: Optional[int] = None,
@@ -338,6 +343,13 @@ def procedural_source(
     check_views(views)
     if check is not None:
         check(resolution, resolution, views)
+    # Then the training views' render (rgb, depth and opacity) and their images, before the room renders them.
+    check_memory(
+        views * resolution * resolution * _ROOM_VIEW_BYTES_PER_PIXEL,
+        f"--views {views} at --resolution {resolution} (the room's training views)",
+        "use fewer --views or a smaller --resolution",
+    )
+
     if scene is None or room is None:
         try:
             scene, room = room_scene(seed, num_views=views, resolution=resolution, num_samples=_ROOM_SAMPLES)

@@ -45,6 +45,10 @@ __all__ = [
 MAX_DENSITY = 1e10
 
 
+# The rays one `render_views` call may hold: its flat ray index is int32.
+MAX_RAYS_PER_CALL = 2**31 - 1
+
+
 def default_ray_chunk(backend: Optional[str] = None) -> int:
     """Rays rendered together (one `lax.map` step) by default on a backend (default: JAX's default).
 
@@ -271,6 +275,11 @@ def render_population(
         )(origins, directions, keys)
 
     num_rays = num_poses * intrinsics.height * intrinsics.width
+    if num_rays > MAX_RAYS_PER_CALL:  # the flat ray index is int32: past it, rays would wrap round
+        raise ValueError(
+            f"{num_poses} views of {intrinsics.width}x{intrinsics.height} are {num_rays:,} rays, more than the "
+            f"{MAX_RAYS_PER_CALL:,} one render call indexes: render fewer views at a time"
+        )
     out = map_ray_chunks(render_chunk, num_rays, min(config.ray_chunk, num_rays))
     return jax.tree.map(lambda a: to_images(a, num_poses, intrinsics), out)
 

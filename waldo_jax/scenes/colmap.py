@@ -28,7 +28,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import SceneFormatError, read_input_file
 from waldo_jax.scenes.common import input_file, one_line_errors, shown
 from waldo_jax.io import write_bytes
 
@@ -304,10 +304,12 @@ def _add_camera(cameras: Dict[int, ColmapCamera], camera: ColmapCamera, path: Pa
 
 
 def _lines(path: Path) -> List[str]:
-    try:
-        return path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise SceneFormatError(path, f"cannot read the file ({getattr(e, 'strerror', None) or e})") from None
+    try:  # its size against the free memory first: a text file is read whole
+        return read_input_file(
+            path, "COLMAP text file", lambda problem: SceneFormatError(path, problem), True
+        ).splitlines()
+    except UnicodeDecodeError as e:
+        raise SceneFormatError(path, f"cannot read the file ({e})") from None
 
 
 def _numbers(tokens: Sequence[str], kind, path: Path, where: str) -> list:

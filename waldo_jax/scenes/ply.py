@@ -13,7 +13,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError
+from waldo_jax.errors import SceneFormatError, read_input_file
 from waldo_jax.scenes.common import input_file, one_line_errors
 
 __all__ = ["PlyElement", "PlyHeader", "parse_ply_header", "read_ply_header", "read_ply_points"]
@@ -169,10 +169,7 @@ def read_ply_points(path: str | os.PathLike, colors: bool = False):
     """
     with one_line_errors():  # a file name with a newline or an escape stays on one line
         path = input_file(path, "PLY file")  # a FIFO would block, /dev/zero never end
-        try:
-            raw = path.read_bytes()
-        except OSError as e:
-            raise SceneFormatError(path, f"cannot read file ({e.strerror or e})") from None
+        raw = read_input_file(path, "PLY file", lambda problem: SceneFormatError(path, problem))
         header = parse_ply_header(raw, path)
         vertex = header.element("vertex")
         if vertex is None:

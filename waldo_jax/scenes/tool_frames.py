@@ -199,13 +199,15 @@ def read_dataparser_transform(meta: Dict[str, Any]) -> Tuple[np.ndarray, float]:
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or abs(scale) > 1e300:
         raise ValueError(f"dataparser scale must be a number between 1e-09 and 1e+09, got {value_text(scale)}")
     scale = float(scale)
+    shape = list(transform.shape)  # as the file gives it: a 3x4 is made 4x4 below
     if transform.shape == (3, 4):
         transform = _homogeneous(transform)
-    if transform.shape != (4, 4) or not np.all(np.isfinite(transform)) or not (scale > 0 and math.isfinite(scale)):
-        raise ValueError(
-            f"dataparser transform must be a finite 3x4 matrix with a positive scale, got shape "
-            f"{list(transform.shape)} and scale {scale}"
-        )
+    if transform.shape != (4, 4):
+        raise ValueError(f"dataparser transform must be a 3x4 matrix, got shape {shape}")
+    if not np.all(np.isfinite(transform)):
+        raise ValueError("dataparser transform holds a value that is not a finite number")
+    if not (scale > 0 and math.isfinite(scale)):
+        raise ValueError(f"dataparser scale must be positive, got {scale:g}")
     if abs(np.linalg.det(transform[:3, :3])) < 1e-9:
         raise ValueError("dataparser transform has a singular rotation part")
     rotation = transform[:3, :3]

@@ -32,7 +32,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import yaml
 
-from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError
+from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, read_input_file
 from waldo_jax.scenes.colmap import (
     PINHOLE_LIKE_MODELS,
     ColmapCamera,
@@ -189,10 +189,10 @@ def _get(tree: Any, *keys: str) -> Any:
 
 def _read_run_config(path: Path) -> Dict[str, Any]:
     """config.yml as nested dicts (tags ignored), else a SceneFormatError naming it."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise SceneFormatError(path, f"cannot read the file ({getattr(e, 'strerror', None) or e})") from None
+    try:  # its size against the free memory first: it is read whole
+        text = read_input_file(path, "nerfstudio config", lambda problem: SceneFormatError(path, problem), True)
+    except UnicodeDecodeError as e:
+        raise SceneFormatError(path, f"cannot read the file ({e})") from None
     try:
         config = yaml.load(text, Loader=_ConfigLoader)  # noqa: S506 (a SafeLoader: no tag runs code)
     except (yaml.YAMLError, RecursionError) as e:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Dict, Mapping, Optional, Sequence, Tuple
 
@@ -211,6 +212,22 @@ def load_native(path: str | os.PathLike, model: str) -> Tuple[Dict[str, Any], Di
     return _unflatten(flat), record.get("meta", {})
 
 
+def _warn_if_stale(native: Path, originals: Sequence[Path]) -> None:
+    """Warns when an original file beside a converted archive was changed after it: the archive is what is
+    loaded, so the change would go unseen."""
+    try:
+        made = native.stat().st_mtime
+        newer = [p.name for p in originals if p.is_file() and p.stat().st_mtime > made]
+    except OSError:
+        return
+    if newer:
+        warnings.warn(
+            f"{native} is older than {', '.join(newer)} beside it, and it is what is loaded: convert again "
+            "(waldo weights convert --force) or remove it to use the originals",
+            stacklevel=3,
+        )
+
+
 def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     """A model's `(tree, meta)`: from `<weights>/<model>/<model>.npz` if present, else its original files.
 
@@ -229,6 +246,7 @@ def load_model(model: str, weights_dir: Optional[str | os.PathLike] = None) -> T
     root = resolve_weights_dir(weights_dir)
     native = root / model / f"{model}.npz"
     if native.exists():  # load_native says what is wrong with anything there that is no archive
+        _warn_if_stale(native, [root / model / filename for filename in converter.files])
         return load_native(native, model)
     for filename in converter.files:
         weights_file(root, model, filename)
@@ -264,11 +282,10 @@ def convert_all(
         if unknown:
             raise WaldoError(f"unknown model {unknown[0]!r}; choose from {', '.join(sorted(CONVERTERS))}")
         chosen = list(models)
-    written = {}
-    for model in chosen:
+    converted = {}
+    for model in chosen:  # every model read before any is written: a bad one leaves DST as it was
         converter = CONVERTERS[model]
         for filename in converter.files:
             weights_file(src, model, filename)
-        tree, meta = converter.read(src / model)
-        written[model] = save_native(dst / model / f"{model}.npz", model, tree, meta)
-    return written
+        converted[model] = converter.read(src / model)
+    return {model: save_native(dst / model / f"{model}.npz", model, *converted[model]) for model in chosen}

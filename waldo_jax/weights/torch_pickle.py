@@ -25,9 +25,9 @@ from typing import Any, Callable, Dict, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file
+from waldo_jax.errors import DataNotFoundError, WaldoError, check_input_file, read_input_file
 
-__all__ = ["TorchPickleError", "read_torch_file", "state_dict"]
+__all__ = ["PICKLE_ERRORS", "TorchPickleError", "pickle_problem", "read_torch_file", "state_dict"]
 
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
@@ -36,6 +36,33 @@ _LEGACY_PROTOCOL = 1001
 MAX_PICKLE_BYTES = 64 * 2**20
 MAX_STORAGE_BYTES = 4 * 2**30
 MAX_FILE_BYTES = 4 * 2**30
+
+# What unpickling a corrupt or hostile file raises (besides the readers' own errors): each is said in one line
+# naming the file (`pickle_problem`). MemoryError: a length field claiming more bytes than memory holds (a
+# 14-byte file that claims 2^60; Python asks for the memory before it reads the bytes, so nothing is used).
+PICKLE_ERRORS = (
+    pickle.UnpicklingError,
+    EOFError,
+    ValueError,
+    TypeError,
+    AttributeError,
+    IndexError,
+    KeyError,
+    struct.error,
+    zipfile.BadZipFile,
+    zlib.error,
+    NotImplementedError,  # a zip compression method the standard library lacks
+    RecursionError,  # containers nested past Python's stack
+    MemoryError,
+)
+
+
+def pickle_problem(exc: BaseException) -> str:
+    """One of `PICKLE_ERRORS` in words, for a message that names the file."""
+    if isinstance(exc, MemoryError):
+        return "corrupt: an entry claims more bytes than this machine's memory (and the file) holds"
+    return f"{type(exc).__name__}: {exc}"
+
 
 _STORAGE_DTYPES = {
     "DoubleStorage": np.float64,
@@ -310,27 +337,15 @@ def read_torch_file(path: str | os.PathLike) -> Any:
         if zipfile.is_zipfile(path):
             obj = _read_zip(path)
         else:
-            obj = _read_legacy(Path(path).read_bytes(), path)
+            raw = read_input_file(path, "torch checkpoint", lambda problem: TorchPickleError(f"{path}: {problem}"))
+            obj = _read_legacy(raw, path)
         return _materialise(obj)
     except TorchPickleError as exc:
         if str(exc).startswith(path):
             raise
         raise TorchPickleError(f"{path}: {exc}") from None  # a tensor's own check names no file
-    except (
-        pickle.UnpicklingError,
-        EOFError,
-        ValueError,
-        TypeError,
-        AttributeError,
-        IndexError,
-        KeyError,
-        struct.error,
-        zipfile.BadZipFile,
-        zlib.error,
-        NotImplementedError,  # a zip compression method the standard library lacks
-        RecursionError,  # containers nested past Python's stack
-    ) as exc:
-        raise TorchPickleError(f"{path}: not a readable torch checkpoint ({type(exc).__name__}: {exc})") from None
+    except PICKLE_ERRORS as exc:
+        raise TorchPickleError(f"{path}: not a readable torch checkpoint ({pickle_problem(exc)})") from None
 
 
 def state_dict(obj: Any, path: str = "checkpoint") -> Dict[str, np.ndarray]:

@@ -29,6 +29,7 @@ from waldo_jax.weights import (
     register_converter,
     state_dict,
 )
+from waldo_jax.weights.torch_pickle import PICKLE_ERRORS, pickle_problem
 
 __all__ = [
     "MODEL",
@@ -42,6 +43,8 @@ __all__ = [
 
 MODEL = "csnet"
 FILES = ("csnet-L-x1.pth.tar", "csnet-L-x1.bin")
+# A `.bin` larger than this is refused before it is read (the authors' is 1.5 KiB).
+MAX_LAYER_CONFIG_BYTES = 2**20
 
 
 def _bounds(splits: Splits) -> Tuple[int, ...]:
@@ -202,10 +205,16 @@ def read_layer_config(path: str | Path) -> CSNetConfig:
     """
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_LAYER_CONFIG_BYTES:  # checked before it is read: 1.5 KiB the authors'
+            raise WeightsError(
+                f"{path}: {size / 2**20:,.1f} MiB; a CSNet layer config is a short list of channel splits "
+                f"(at most {MAX_LAYER_CONFIG_BYTES // 2**20} MiB)"
+            )
         with open(path, "rb") as f:
             layer_config = _SplitsUnpickler(io.BytesIO(f.read())).load()
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as exc:
-        raise WeightsError(f"{path}: not a readable CSNet layer config ({type(exc).__name__}: {exc})") from None
+    except PICKLE_ERRORS as exc:
+        raise WeightsError(f"{path}: not a readable CSNet layer config ({pickle_problem(exc)})") from None
     return CSNetConfig.from_layer_config(layer_config, source=str(path))
 
 

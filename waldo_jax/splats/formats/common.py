@@ -14,7 +14,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file, check_memory
+from waldo_jax.errors import SceneFormatError, WaldoError, check_input_file, check_memory, read_input_file
 from waldo_jax.splats.model import MAX_SH_DEGREE, Splats, make_splats, sh_coefficients
 
 SH_C0 = 0.28209479177387814
@@ -147,12 +147,9 @@ def check_splat_count(
 
 def read_splat_bytes(path: Path, what: str) -> bytes:
     """The bytes of `path`; an error naming the file (and `what` it should be) when it is no regular file (a
-    FIFO would block forever) or unreadable."""
+    FIFO would block forever), larger than the memory free to read it, or unreadable."""
     path = check_input_file(path, what)
-    try:
-        return Path(path).read_bytes()
-    except OSError as e:
-        raise SceneFormatError(path, f"cannot read this {what} ({e.strerror or e})") from None
+    return read_input_file(path, what, lambda problem: SceneFormatError(path, problem))
 
 
 def rest_from_channel_major(rest: np.ndarray, n: int) -> np.ndarray:
