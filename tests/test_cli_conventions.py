@@ -236,3 +236,20 @@ def test_path_shows_its_phases_on_a_terminal_and_quiet_hides_them(tmp_path, caps
         assert len(stdout) == 1 and stdout[0].startswith("EGPS path on ") and str(out) in stdout[0]
         found[quiet] = json.loads((out / "results.json").read_text())["found"]["score"]
     assert found[False] == found[True]
+
+
+@pytest.mark.parametrize(
+    "argv, name",
+    [
+        (["scene", "info", ""], "path"),
+        (["train", " ", "--out", "{tmp}/o"], "SCENE_PATH"),
+        (["weights", "convert", "{tmp}", ""], "DST"),  # had converted into the current folder
+        (["score", "--criterion", "colorfulness", ""], "IMAGE"),
+    ],
+)
+def test_an_empty_file_or_folder_argument_is_refused_not_read_as_the_current_folder(tmp_path, capsys, argv, name):
+    before = sorted(Path.cwd().iterdir())
+    assert main([a.replace("{tmp}", str(tmp_path)) for a in argv]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"waldo: error: argument {name}: empty: name a file or folder"]
+    assert sorted(Path.cwd().iterdir()) == before and not (tmp_path / "o").exists()

@@ -134,6 +134,14 @@ def test_build_criterion_parses_the_command_line_forms():
         build_criterion("weighted:composition=1")
     with pytest.raises(CriterionError, match="names 'opacity' twice"):
         build_criterion("weighted:opacity=1,opacity=2")
+    for stray in ("weighted:opacity=1,,composition=1", "weighted:opacity=1,composition=1,", "weighted:,opacity=1"):
+        with pytest.raises(CriterionError, match="an empty item between commas"):  # was dropped in silence
+            build_criterion(stray)
+    with pytest.raises(CriterionError, match="at least two criteria"):
+        build_criterion("weighted:")
+    # Weights near float64's largest summed to infinity and normalised to 0 each: now as 1 : 1.
+    huge = build_criterion("weighted:opacity=1e308,composition=1e308")
+    np.testing.assert_array_equal(np.asarray(huge.params[1]), [0.5, 0.5])
     # A guard threshold that fails every view, or passes every view, is refused with the guard's range.
     for bad, verdict in (("opacity:2", "fails"), ("opacity:-1", "passes"), ("opacity:0", "passes")):
         with pytest.raises(CriterionError, match=f"lies in \\[0, 1\\], so the threshold {verdict} every view"):

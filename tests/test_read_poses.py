@@ -225,3 +225,12 @@ def test_a_poses_file_that_is_a_fifo_is_refused_without_blocking(tmp_path):
     os.mkfifo(tmp_path / "poses.json")
     with pytest.raises(SceneFormatError, match=r"poses\.json: a FIFO"):
         read_poses_file(tmp_path / "poses.json", DEFAULT)
+
+
+def test_a_fractional_image_side_is_refused(tmp_path):
+    """A camera of 16.5 x 16 pixels had rendered at 16 x 16 in silence."""
+    meta = {"w": 16.5, "h": 16, "fl_x": 20.0, "frames": [{"transform_matrix": np.eye(4).tolist()}]}
+    with pytest.raises(SceneFormatError, match=r"'w' must be a whole number of pixels, got 16.5"):
+        read_poses_file(_write(tmp_path, meta), DEFAULT)
+    meta.update(w=16.0)  # a whole number written as a float is one
+    assert read_poses_file(_write(tmp_path, meta), DEFAULT)[1].width == 16

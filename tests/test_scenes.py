@@ -727,6 +727,9 @@ def test_files_whose_content_is_another_format_are_refused_by_name(tmp_path):
     np.save(tmp_path / "pickle" / "poses_bounds.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: cannot read \.npy"):
         load_scene(tmp_path / "pickle")
+    (tmp_path / "pickle" / "poses_bounds.npy").write_text("hello world")  # NumPy: "contains pickled (object) data"
+    with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: not a \.npy array \(it starts b'hello '"):
+        load_scene(tmp_path / "pickle")
     _transforms_scene(tmp_path / "png")
     (tmp_path / "png" / "images" / "001.png").write_text("hello")
     with pytest.raises(SceneFormatError, match=r"001\.png: cannot read image"):

@@ -655,3 +655,21 @@ def test_robust_bounds_leave_far_strays_and_non_finite_means_out():
     low, high = robust_bounds(far)
     assert np.all(np.abs(low) < 5) and np.all(np.abs(high) < 5), (low, high)
     assert extent_problem(far) is None and extent_problem(np.ones((5, 3))) is not None
+
+
+@pytest.mark.parametrize(
+    "line, says",
+    [
+        ("format binary_little_endian 2.0", "expected version 1.0"),  # was read as 1.0
+        ("format binary_little_endian", "expected version 1.0"),
+        ("format ascii 1.0 extra", "expected version 1.0"),
+        ("format binary_middle_endian 1.0", "unsupported PLY format 'binary_middle_endian'"),
+    ],
+)
+def test_a_ply_format_line_of_another_version_or_kind_is_refused(tmp_path, line, says):
+    from waldo_jax.errors import SceneFormatError
+    from waldo_jax.scenes.ply import parse_ply_header
+
+    raw = f"ply\n{line}\nelement vertex 1\nproperty float x\nend_header\n".encode() + b"\0" * 4
+    with pytest.raises(SceneFormatError, match=says):
+        parse_ply_header(raw, tmp_path / "a.ply")

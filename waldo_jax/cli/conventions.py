@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from waldo_jax.errors import WaldoError
 
-__all__ = ["Parser", "UsageError", "is_ascii_number", "DefaultsHelpFormatter", "add_quiet", "Progress"]
+__all__ = ["Parser", "UsageError", "is_ascii_number", "path_argument", "DefaultsHelpFormatter", "add_quiet", "Progress"]
 
 
 # A decimal number in ASCII (a sign, digits with an optional point, an exponent) or a word float() reads for
@@ -30,6 +30,14 @@ __all__ = ["Parser", "UsageError", "is_ascii_number", "DefaultsHelpFormatter", "
 _ASCII_NUMBER = re.compile(
     r"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*|\s*[+-]?(inf|infinity|nan)\s*", re.ASCII | re.I
 )
+
+
+def path_argument(text: str) -> str:
+    """An argparse `type` for a file or folder argument: empty text (or blanks) is refused, where Python's
+    Path would read it as the current folder (`weights convert SRC ''` wrote into it)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty: name a file or folder")
+    return text
 
 
 def is_ascii_number(text: str) -> bool:

@@ -14,7 +14,7 @@ import warnings
 
 import numpy as np
 
-from waldo_jax.cli.conventions import Progress, add_quiet
+from waldo_jax.cli.conventions import Progress, add_quiet, path_argument
 from waldo_jax.errors import MIN_RESOLUTION
 from waldo_jax.scenes import load_scene
 from waldo_jax.scenes.common import SPLITS
@@ -28,7 +28,9 @@ def add_command(subparsers) -> None:
     scene_cmds = scene.add_subparsers(dest="scene_command", metavar="SUBCOMMAND")
     scene_cmds.required = True
     info = scene_cmds.add_parser("info", help="summarise a scene (format, images, cameras, bounds)")
-    info.add_argument("path", help="scene folder or its transforms.json / poses_bounds.npy, or a splat scene")
+    info.add_argument(
+        "path", type=path_argument, help="scene folder or its transforms.json / poses_bounds.npy, or a splat scene"
+    )
     info.add_argument("--json", action="store_true", help="print exactly one JSON object")
     info.add_argument("--downscale", type=float, default=None, help="load images downscaled by this factor")
     info.add_argument(

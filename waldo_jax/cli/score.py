@@ -22,7 +22,7 @@ import numpy as np
 
 from pathlib import Path
 
-from waldo_jax.cli.conventions import Progress, add_quiet
+from waldo_jax.cli.conventions import Progress, add_quiet, path_argument
 from waldo_jax.cli.flags import add_criterion_arguments, criterion_before_source, criterion_from_args
 from waldo_jax.errors import MAX_RESOLUTION, MIN_RESOLUTION, WaldoError, check_input_file
 from waldo_jax.io import read_image
@@ -38,7 +38,7 @@ def add_command(subparsers) -> None:
         description="Score image files with a criterion of the registry (each at its own size). Prints "
         "'score  file' lines, or with --json one object {criterion, direction, scores} in input order.",
     )
-    p.add_argument("images", nargs="*", metavar="IMAGE", help="image files (PNG, JPEG, ...)")
+    p.add_argument("images", type=path_argument, nargs="*", metavar="IMAGE", help="image files (PNG, JPEG, ...)")
     p.add_argument(
         "--source",
         default=None,

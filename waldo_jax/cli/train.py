@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 
-from waldo_jax.cli.conventions import add_quiet
+from waldo_jax.cli.conventions import add_quiet, path_argument
 from waldo_jax.errors import MIN_RESOLUTION, WaldoError
 from waldo_jax.nerf.checkpoint import CHECKPOINT_NAME
 from waldo_jax.nerf.config import PIXEL_SAMPLINGS, PRESETS
@@ -35,7 +35,7 @@ def add_command(subparsers) -> None:
         description="Train an Instant-NGP field on a scene's training split and report the held-out PSNR "
         "on its test split (Blender: transforms_test.json; other formats: every 8th image).",
     )
-    p.add_argument("scene_path", metavar="SCENE_PATH", help="scene folder or scene file")
+    p.add_argument("scene_path", type=path_argument, metavar="SCENE_PATH", help="scene folder or scene file")
     p.add_argument(
         "--model",
         default="nerf",

@@ -10,7 +10,7 @@ import numpy as np
 
 import waldo_jax.criteria  # noqa: F401  (registers the converters)
 from waldo_jax import io
-from waldo_jax.cli.conventions import Progress, add_quiet
+from waldo_jax.cli.conventions import Progress, add_quiet, path_argument
 from waldo_jax.errors import WaldoError
 from waldo_jax.weights import CONVERTERS, convert_all, load_model
 
@@ -29,8 +29,8 @@ def add_command(subparsers) -> None:
         "../shared/weights layout) and write DST/<model>/<model>.npz for each model, checking every "
         "shape. Criteria load DST faster with --weights DST (or WALDO_WEIGHTS=DST).",
     )
-    c.add_argument("src", metavar="SRC", help="weights folder in the ../shared/weights layout")
-    c.add_argument("dst", metavar="DST", help="output folder")
+    c.add_argument("src", type=path_argument, metavar="SRC", help="weights folder in the ../shared/weights layout")
+    c.add_argument("dst", type=path_argument, metavar="DST", help="output folder")
     c.add_argument("--model", action="append", default=None, help="convert only this model (repeatable)")
     c.add_argument("--force", action="store_true", help="replace existing converted files")
     add_quiet(c, "line per model")

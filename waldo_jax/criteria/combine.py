@@ -215,8 +215,9 @@ def weighted(criteria: Sequence[Criterion], weights: Sequence[float]) -> Criteri
             f"weighted needs one weight per criterion, got {len(criteria)} criteria and {len(weights)} weights"
         )
     w = np.asarray(weights, np.float64)
-    if np.any(w < 0) or not np.all(np.isfinite(w)) or w.sum() <= 0:
+    if np.any(w < 0) or not np.all(np.isfinite(w)) or not np.max(w) > 0:
         raise CriterionError(f"weighted: weights must be finite, >= 0 and not all 0, got {list(weights)}")
+    w = w / np.max(w)  # weights near float64's largest would sum to infinity (and normalise to 0)
     for c in criteria:
         low, high = c.value_range
         if not (np.isfinite(low) and np.isfinite(high) and high > low):
@@ -258,7 +259,10 @@ def parse_guard(spec: str) -> Tuple[str, float]:
 def _weighted_items(spec: str) -> Tuple[Tuple[str, float], ...]:
     """`weighted:NAME=W,...` -> ((name, weight), ...), with a clear error for a malformed spec."""
     items = []
-    for item in filter(None, spec[len("weighted:") :].split(",")):
+    rest = spec[len("weighted:") :]
+    for item in rest.split(",") if rest.strip() else []:
+        if not item.strip():  # a stray comma: a criterion left out by mistake, not a spec to guess at
+            raise CriterionError(f"bad criterion {spec!r}: an empty item between commas (expected NAME=WEIGHT,...)")
         name, _, value = item.partition("=")
         name = name.strip()
         try:

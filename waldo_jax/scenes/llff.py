@@ -54,6 +54,13 @@ def _read_poses_bounds(path: Path) -> np.ndarray:
     """poses_bounds.npy as float64 [N, 17] (a 3x5 pose, near, far per row), checked finite and non-empty."""
     input_file(path, "poses file (.npy)")
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+    except OSError as e:
+        raise SceneFormatError(shown(path), f"cannot read .npy array ({e.strerror or e})") from None
+    if magic != b"\x93NUMPY" and magic[:2] != b"PK":  # NumPy would say "pickled (object) data" of any other bytes
+        raise SceneFormatError(shown(path), f"not a .npy array (it starts {magic!r}, not NumPy's b'\\x93NUMPY')")
+    try:
         table = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises ValueError/OSError/EOFError... for bad files.
         raise SceneFormatError(shown(path), f"cannot read .npy array ({type(e).__name__}: {e})") from None

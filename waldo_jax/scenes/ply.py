@@ -112,6 +112,8 @@ def parse_ply_header(raw: bytes, path: str | os.PathLike) -> PlyHeader:
             break
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
+            if words[2:] != ["1.0"]:  # the only PLY version there is: another is no file this reader knows
+                raise SceneFormatError(path, f"PLY format line {line!r}: expected version 1.0")
         elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPES:

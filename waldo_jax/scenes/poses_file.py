@@ -65,6 +65,9 @@ _FRAME_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "c
 def _poses_file_intrinsics(meta: Dict[str, Any], path: Path, default: Intrinsics) -> Intrinsics:
     """Intrinsics of a poses file, or `default` when it has no focal length."""
     w, h = number(meta, "w", path, positive=True), number(meta, "h", path, positive=True)
+    for key, side in (("w", w), ("h", h)):
+        if side is not None and side != int(side):  # 16.5 had rendered at 16 without a word
+            raise SceneFormatError(path, f"{key!r} must be a whole number of pixels, got {side:g}")
     fl_x, fl_y = number(meta, "fl_x", path, positive=True), number(meta, "fl_y", path, positive=True)
     angle_x, angle_y = number(meta, "camera_angle_x", path), number(meta, "camera_angle_y", path)
     if fl_x is None and fl_y is None and angle_x is None and angle_y is None:
