@@ -461,6 +461,9 @@ def test_llff_bad_shape_and_count(tmp_path):
     with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: expected shape \[N, 17\].*\[3, 15\]"):
         load_scene(tmp_path)
     (tmp_path / "poses_bounds.npy").write_bytes(b"not numpy")
+    with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: not a \.npy array \(it starts b'not nu'"):
+        load_scene(tmp_path)
+    (tmp_path / "poses_bounds.npy").write_bytes(b"\x93NUMPY\x01\x00garbage")  # NumPy's magic, then no header
     with pytest.raises(SceneFormatError, match=r"poses_bounds\.npy: cannot read \.npy"):
         load_scene(tmp_path)
     _llff_scene(tmp_path / "b", [np.eye(3, 4)] * 2)
