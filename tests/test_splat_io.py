@@ -673,3 +673,10 @@ def test_a_ply_format_line_of_another_version_or_kind_is_refused(tmp_path, line,
     raw = f"ply\n{line}\nelement vertex 1\nproperty float x\nend_header\n".encode() + b"\0" * 4
     with pytest.raises(SceneFormatError, match=says):
         parse_ply_header(raw, tmp_path / "a.ply")
+
+
+def test_a_ply_format_version_written_as_1_is_read():
+    from waldo_jax.scenes.ply import parse_ply_header
+
+    raw = b"ply\nformat binary_little_endian 1\nelement vertex 1\nproperty float x\nend_header\n" + b"\0" * 4
+    assert parse_ply_header(raw, "a.ply").format == "binary_little_endian"

@@ -84,6 +84,14 @@ class PlyHeader:
         raise KeyError(name)
 
 
+def _is_version_one(text: str) -> bool:
+    """A PLY format line's version that reads as 1 ("1.0", "1")."""
+    try:
+        return float(text) == 1.0
+    except ValueError:
+        return False
+
+
 def parse_ply_header(raw: bytes, path: str | os.PathLike) -> PlyHeader:
     """Parses the header at the start of `raw` (the file's first bytes, the whole header at least).
 
@@ -112,7 +120,7 @@ def parse_ply_header(raw: bytes, path: str | os.PathLike) -> PlyHeader:
             break
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
-            if words[2:] != ["1.0"]:  # the only PLY version there is: another is no file this reader knows
+            if len(words) != 3 or not _is_version_one(words[2]):  # the only PLY version there is
                 raise SceneFormatError(path, f"PLY format line {line!r}: expected version 1.0")
         elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
