@@ -243,7 +243,7 @@ def test_path_shows_its_phases_on_a_terminal_and_quiet_hides_them(tmp_path, caps
     [
         (["scene", "info", ""], "path"),
         (["train", " ", "--out", "{tmp}/o"], "SCENE_PATH"),
-        (["weights", "convert", "{tmp}", ""], "DST"),  # had converted into the current folder
+        (["weights", "convert", "", "{tmp}/o"], "SRC"),  # had converted the current folder (DST: the --out rule)
         (["score", "--criterion", "colorfulness", ""], "IMAGE"),
     ],
 )

@@ -30,7 +30,7 @@ def add_command(subparsers) -> None:
         "shape. Criteria load DST faster with --weights DST (or WALDO_WEIGHTS=DST).",
     )
     c.add_argument("src", type=path_argument, metavar="SRC", help="weights folder in the ../shared/weights layout")
-    c.add_argument("dst", type=path_argument, metavar="DST", help="output folder")
+    c.add_argument("dst", metavar="DST", help="output folder")  # checked as every output folder is
     c.add_argument("--model", action="append", default=None, help="convert only this model (repeatable)")
     c.add_argument("--force", action="store_true", help="replace existing converted files")
     add_quiet(c, "line per model")
