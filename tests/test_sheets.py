@@ -214,6 +214,23 @@ def test_pose_cloud_plots_the_scene_up_vertical(axis):
     assert any(f"up, +{'xyz'[axis]}" in t.get_text() for t in fig.texts)
 
 
+def test_pose_cloud_draws_one_direction_line_per_view_in_its_score_colour():
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    c2w = _ring(2)
+    fig = _cloud(c2w, threshold=0.25)  # scores 0.0, 0.1, ... for the ring, then 0.9 (epoch 1) and NaN (epoch 2)
+    panels = [ax for ax in fig.axes if ax.name == "3d"]
+    shown = [len(c2w), len(c2w) + 1, len(c2w) + 2]  # start, epoch 1, final
+    for ax, count in zip(panels, shown, strict=True):
+        lines = [c for c in ax.collections if isinstance(c, Line3DCollection)]
+        colours = np.concatenate([c.get_colors() for c in lines])
+        assert len(colours) == count  # a line for every view of the panel, one artist per kind of view
+        good = [0.1 * i > 0.25 for i in range(len(c2w))] + [True, None][: count - len(c2w)]
+        for colour, is_good in zip(colours, good):
+            expected = figures._FAILED if is_good is None else (figures._GOOD if is_good else figures._BAD)
+            np.testing.assert_allclose(colour, expected)
+
+
 @pytest.mark.slow
 def test_pose_cloud_legend_names_every_mark():
     fig = _cloud(_ring(2), marker=np.zeros(3))
