@@ -16,9 +16,10 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     XLA does not take as a flag, a value it cannot read), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
     `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
-  * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_NUM_CPU_DEVICES`,
-    `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be made, tried by making one there; JAX
-    itself only warns at each program it cannot cache), `JAX_ENABLE_X64`, `JAX_DEBUG_INFS` and `JAX_DEBUG_NANS`
+  * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_DEFAULT_DEVICE`
+    (one of them), `JAX_NUM_CPU_DEVICES`, `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be
+    made, tried by making one there; JAX itself only warns at each program it cannot cache),
+    `JAX_ENABLE_X64`, `JAX_DEBUG_INFS` and `JAX_DEBUG_NANS`
     (off only: waldo_jax computes in 32 bits and uses infinities and NaNs on purpose), `JAX_DISABLE_JIT` (off only),
     `JAX_DEFAULT_PRNG_IMPL` and `JAX_THREEFRY_PARTITIONABLE` (JAX's defaults only: a seed's draws),
     `JAX_NUMPY_RANK_PROMOTION`, `JAX_NUMPY_DTYPE_PROMOTION` and `JAX_TRANSFER_GUARD*` (not their strict
@@ -148,6 +149,12 @@ def _platforms(value: str) -> Optional[str]:
     return None
 
 
+def _platform(value: str) -> Optional[str]:
+    """One platform name (`JAX_DEFAULT_DEVICE`: JAX takes a name there, not a list)."""
+    name = value.strip().lower()
+    return None if name in _PLATFORMS else f"unknown platform {value!r} (known: {', '.join(_PLATFORMS)})"
+
+
 def _cuda_devices(value: str) -> Optional[str]:
     items = [v.strip() for v in value.split(",")]
     if value.strip() == "" or all(_CUDA_DEVICE.fullmatch(v) for v in items):
@@ -229,6 +236,7 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "CUDA_VISIBLE_DEVICES": (_cuda_devices, "the GPUs JAX may use"),
     "JAX_PLATFORMS": (_platforms, "the backends JAX may start"),
     "JAX_PLATFORM_NAME": (_platforms, "the backend JAX starts (deprecated for JAX_PLATFORMS)"),
+    "JAX_DEFAULT_DEVICE": (_platform, "the backend JAX puts arrays on by default"),
     "JAX_NUM_CPU_DEVICES": (lambda v: _integer(v, 1, 256, also=(-1,)), "the CPU devices JAX makes"),
     "JAX_COMPILATION_CACHE_DIR": (_writable_folder, "JAX's persistent compilation cache"),
     "JAX_ENABLE_X64": (
