@@ -26,7 +26,7 @@ __all__ = ["archive_sheet", "archive_summary", "view_descriptors"]
 
 _EMPTY_GREY = 0.55
 _descriptors = jax.jit(jax.vmap(view_descriptor, in_axes=(0, None)))
-# One program for the frame's axes (eagerly, each of their operations compiled on its own: about 0.7 s a run).
+# One program for the frame's axes: eagerly each of their operations compiled on its own, 0.6 s a run against 0.1 s.
 _frame_axes = jax.jit(frame_axes)
 # Poses are padded to a multiple of this (copies of the last, cropped away): one program for the top-k and
 # the archive's elites of every method, not one per count.
