@@ -224,3 +224,18 @@ def test_unknown_evosax_strategy_lists_the_choices():
     with pytest.raises(ValueError, match="choose one of .*SNES"):
         strategy.evosax_method("NOPE")
     assert "CMA_ES" in strategy.strategy_names()
+
+
+def test_a_strategy_whose_defaults_need_concrete_sizes_runs_as_a_pose_search():
+    """LM_MA_ES computes its default params with `int()` of a `jnp` expression of the dimension: traced, it
+    ended `explore` and `path` in a ConcretizationTypeError traceback. Its defaults are now built from the
+    static sizes, the same inside a compiled search as outside, and the search runs (and reruns bit for bit)."""
+    lm = strategy.make_strategy("LM_MA_ES", CONFIG.children_per_epoch)
+    params = strategy.Params()
+    eager = strategy.strategy_params(lm, params)
+    traced = jax.jit(lambda: strategy.strategy_params(lm, params))()
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), eager, traced)
+    first = explore(jax.random.key(3), toy_score, INITIAL, "evosax:LM_MA_ES", CONFIG)
+    again = explore(jax.random.key(3), toy_score, INITIAL, "evosax:LM_MA_ES", CONFIG)
+    assert_same(first, again)
+    assert np.isfinite(np.asarray(first.population.score)).any()

@@ -133,9 +133,24 @@ def is_distribution_based(strategy) -> bool:
     return isinstance(strategy, DistributionBasedAlgorithm)
 
 
+# What a trace raises where a strategy's code needs a concrete value.
+_CONCRETE_ONLY = (
+    jax.errors.ConcretizationTypeError,
+    jax.errors.TracerIntegerConversionError,
+    jax.errors.TracerArrayConversionError,
+)
+
+
 def strategy_params(strategy, params: Params):
-    """The strategy's default evosax params with `Params.std_init` where it has one."""
-    defaults = strategy.default_params
+    """The strategy's default evosax params with `Params.std_init` where it has one.
+
+    Defaults that need concrete sizes (LM_MA_ES takes `int()` of a `jnp` expression of the dimension)
+    cannot be traced: they are built eagerly, from the static sizes alone."""
+    try:
+        defaults = strategy.default_params
+    except _CONCRETE_ONLY:
+        with jax.ensure_compile_time_eval():
+            defaults = strategy.default_params
     if "std_init" in getattr(defaults, "__dataclass_fields__", {}):
         return defaults.replace(std_init=jnp.asarray(params.std_init, jnp.float32))
     return defaults
