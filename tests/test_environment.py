@@ -52,6 +52,7 @@ BAD = [
     ("JAX_PLATFORMS", " "),
     ("JAX_PLATFORM_NAME", "banana"),
     ("JAX_DEFAULT_DEVICE", "banana"),  # had been refused in JAX's words, after it had started
+    ("MPLBACKEND", "banana"),  # Matplotlib refused it at the first figure: a traceback after the whole search
     ("JAX_NUM_CPU_DEVICES", "-5"),
     ("JAX_ENABLE_X64", "1"),
     ("JAX_ENABLE_X64", "t"),  # JAX's own other words for on: "t" and "y" (they got past, and crashed a search)

@@ -15,7 +15,8 @@ first and raises `EnvironmentVariableError`, one line naming the variable, its v
     a child process, `xla_flags_refused`, which finds the rest: a name the library holds as a string but
     XLA does not take as a flag, a value it cannot read), `XLA_PYTHON_CLIENT_PREALLOCATE`,
     `XLA_PYTHON_CLIENT_MEM_FRACTION`, `XLA_PYTHON_CLIENT_ALLOCATOR`, `TF_CPP_MIN_LOG_LEVEL`,
-    `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`;
+    `TF_CPP_MAX_VLOG_LEVEL`, `CUDA_VISIBLE_DEVICES`; Matplotlib's `MPLBACKEND` (a backend it knows,
+    asked of Matplotlib: it refuses a bad one only at a run's first figure);
   * JAX's: `JAX_PLATFORMS` and `JAX_PLATFORM_NAME` (names from the known platforms), `JAX_DEFAULT_DEVICE`
     (one of them), `JAX_NUM_CPU_DEVICES`, `JAX_COMPILATION_CACHE_DIR` (a folder that exists or can be
     made, tried by making one there; JAX itself only warns at each program it cannot cache),
@@ -155,6 +156,20 @@ def _platform(value: str) -> Optional[str]:
     return None if name in _PLATFORMS else f"unknown platform {value!r} (known: {', '.join(_PLATFORMS)})"
 
 
+def _mpl_backend(value: str) -> Optional[str]:
+    """A backend Matplotlib takes (it reads `MPLBACKEND` when imported, and refuses a bad one only then:
+    after a search, at its first figure). Asked of Matplotlib itself, which is imported only to ask."""
+    try:
+        from matplotlib import rcsetup  # importing matplotlib reads MPLBACKEND: a bad one raises here
+
+        rcsetup.validate_backend(value)
+    except ImportError:  # pragma: no cover - matplotlib is a dependency
+        return None
+    except ValueError:
+        return "not a backend Matplotlib knows (agg draws without a display; unset it for Matplotlib's choice)"
+    return None
+
+
 def _cuda_devices(value: str) -> Optional[str]:
     items = [v.strip() for v in value.split(",")]
     if value.strip() == "" or all(_CUDA_DEVICE.fullmatch(v) for v in items):
@@ -234,6 +249,7 @@ VARIABLES: Dict[str, Tuple[Callable[[str], Optional[str]], str]] = {
     "TF_CPP_MIN_LOG_LEVEL": (lambda v: _level(v, 3), "XLA's log level"),
     "TF_CPP_MAX_VLOG_LEVEL": (lambda v: _level(v, 10), "XLA's verbose log level"),
     "CUDA_VISIBLE_DEVICES": (_cuda_devices, "the GPUs JAX may use"),
+    "MPLBACKEND": (_mpl_backend, "the backend Matplotlib draws the figures with"),
     "JAX_PLATFORMS": (_platforms, "the backends JAX may start"),
     "JAX_PLATFORM_NAME": (_platforms, "the backend JAX starts (deprecated for JAX_PLATFORMS)"),
     "JAX_DEFAULT_DEVICE": (_platform, "the backend JAX puts arrays on by default"),
