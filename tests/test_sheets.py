@@ -313,3 +313,20 @@ def test_gif_frames_last_one_over_fps_to_the_centisecond(tmp_path, fps):
             gif.seek(i)
             durations.append(gif.info["duration"])
     assert durations == [round(100 / fps) * 10] * 4 == [path_run.gif_frame_ms(fps)] * 4
+
+
+def test_pose_cloud_of_cameras_at_one_height_warns_nothing():
+    """Cameras on a ring at one height (a COLMAP rig, or copies of one pose) gave Matplotlib's own warning,
+    "Attempting to set identical low and high zlims", which the CLI showed as waldo's."""
+    import warnings
+
+    c2w = _ring(2)
+    c2w[:, 2, 3] = 1.5  # every centre at one height
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fig = figures.pose_cloud(None, c2w, np.arange(len(c2w), dtype=float), np.zeros(len(c2w), int), "max")
+        same = figures.pose_cloud(None, np.repeat(c2w[:1], 4, 0), np.ones(4), np.zeros(4, int), "max")
+    for panel in [ax for ax in fig.axes if ax.name == "3d"]:
+        low, high = panel.get_zlim()
+        assert low < 1.5 < high
+    assert all(np.ptp(ax.get_xlim()) > 0 for ax in same.axes if ax.name == "3d")

@@ -255,6 +255,15 @@ def _plot_cloud(c2w: np.ndarray, epoch: np.ndarray, colours: np.ndarray, style: 
     )
 
 
+def _widened(low: float, high: float) -> Tuple[float, float]:
+    """Axis limits (low, high), widened by 5 % of their size (at least 0.05) about a range of no extent."""
+    low, high = float(low), float(high)
+    if high - low > 1e-9 * max(1.0, abs(low), abs(high)):
+        return low, high
+    pad = 0.05 * max(abs(low), abs(high), 1.0)
+    return low - pad, high + pad
+
+
 def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
     """One 3D panel: the poses that exist at `stage` (-1: the final epoch `last`), the marker, axes and title."""
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
@@ -285,10 +294,12 @@ def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
         ax.scatter([star[0]], [star[1]], [star[2]], c="k", marker="*", s=120, depthshade=False)
     name = "start (training views)" if upto == 0 else (f"epoch {upto}" if stage >= 0 else f"final (epoch {upto})")
     ax.set_title(f"{name}: {int(shown.sum())} views", fontsize=9)
-    low, high = cloud.bounds
-    ax.set_xlim(low[0], high[0])
-    ax.set_ylim(low[1], high[1])
-    ax.set_zlim(low[2], high[2])
+    # Cameras all at one height (or one place) give an axis of no extent: widened here, as Matplotlib
+    # would do with a warning of its own ("identical low and high zlims").
+    (x0, x1), (y0, y1), (z0, z1) = (_widened(a, b) for a, b in zip(*cloud.bounds))
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_zlim(z0, z1)
     ax.set_xlabel(cloud.frame.labels[0], fontsize=8)
     ax.set_ylabel(cloud.frame.labels[1], fontsize=8)
     ax.set_zlabel(cloud.frame.labels[2], fontsize=8)
