@@ -7,6 +7,7 @@ import json
 import math
 import os
 import re
+import time
 import struct
 
 import numpy as np
@@ -444,6 +445,14 @@ def test_bad_splatfacto_runs(tmp_path):
     with pytest.raises(SceneFormatError, match="not a readable YAML file") as e:
         load_splat_model(ply)
     assert e.value.path == str(run / "config.yml")
+    # A config of nested lists past CONFIG_MAX_BYTES (8 MB had taken 147 s and 3.3 GB): refused unread.
+    (run / "config.yml").write_text(
+        _config_yml(["data", "scene"]) + "junk: [" + ",".join(["[[[1]]]"] * 600_000) + "]\n"
+    )
+    start = time.perf_counter()
+    with pytest.raises(SceneFormatError, match=r"nerfstudio config of 4\.6 MiB; more than 4 MiB is not one") as e:
+        read_camera_source(run)
+    assert e.value.path == str(run / "config.yml") and time.perf_counter() - start < 1.0
     (run / "config.yml").write_text("!!python/object/apply:os.system ['touch pwned']\n")
     with pytest.raises(SceneFormatError, match="expected nerfstudio's config"):
         load_splat_model(ply)  # the tag is read as data, never run
@@ -455,6 +464,32 @@ def test_bad_splatfacto_runs(tmp_path):
     ) as e:
         load_splat_model(ply)
     assert e.value.path == str(run / "dataparser_transforms.json")
+
+
+def test_part_of_a_run_or_model_given_as_cameras_says_what_is_missing(tmp_path):
+    """`--cameras` naming a nerfstudio run without one of its two files, or a COLMAP model without its
+    images file, had been "a directory, where a poses file was expected"; a config.yml that is a FIFO,
+    "no such file"."""
+    _, run, *_ = _splatfacto_project(tmp_path)
+    (run / "dataparser_transforms.json").unlink()
+    with pytest.raises(
+        SceneFormatError, match=r"no such file: a nerfstudio run without it \(the folder holds config.yml\)"
+    ) as e:
+        read_camera_source(run)
+    assert e.value.path == str(run / "dataparser_transforms.json")
+    camera = ColmapCamera(1, "PINHOLE", 64, 48, (50.0, 52.0, 30.0, 20.0))
+    model = write_colmap_model(tmp_path / "model", [camera], [_image(1, _cameras(1)[0], 1, "v.png")], binary=True)
+    (model / "images.bin").unlink()
+    with pytest.raises(SceneFormatError, match="a COLMAP model without images.bin or images.txt.*cameras.bin"):
+        read_camera_source(model)
+    fifo = tmp_path / "fifo_run"
+    fifo.mkdir()
+    (fifo / "dataparser_transforms.json").write_text("{}")
+    os.mkfifo(fifo / "config.yml")
+    with pytest.raises(SceneFormatError, match="a FIFO, socket or device, where a file was expected") as e:
+        read_camera_source(fifo / "config.yml")
+    assert e.value.path == str(fifo / "config.yml")
+    assert read_camera_source(tmp_path / "model" / "nothing_here") is None  # not a run or model: a poses file's
 
 
 # ---------------------------------------------------------------------------------------------
@@ -521,6 +556,11 @@ def test_splat_source_reads_colmap_cameras(tmp_path):
     assert source.train_names == ("v0.png", "v1.png")
     d = source.intrinsics.to_dict()  # the COLMAP camera at 32 px: its off-centre principal point scaled
     assert (d["width"], d["height"], d["fx"], d["cx"], d["cy"]) == (32, 24, 25.0, 15.0, 10.0)
+    # A principal point far off the image renders every view empty: warned of, as a poses file's is.
+    off = ColmapCamera(1, "PINHOLE", 64, 48, (50.0, 52.0, -1e6, 20.0))
+    far = write_colmap_model(tmp_path / "far", [off], images, binary=True)
+    with pytest.warns(UserWarning, match=r"principal point \(cx, cy\) = \(-1e\+06, 20\) lies outside the 64x48"):
+        splat_source(str(ply), resolution=32, cameras=str(far), images=False)
     write_colmap_model(tmp_path / "scene" / "sparse", [camera], images[:1])
     source = splat_source(str(ply), resolution=32, images=False)
     assert source.info["poses"] == f"COLMAP model {tmp_path / 'scene' / 'sparse'} (images.bin)"

@@ -216,11 +216,14 @@ def read_input_file(
     what: str = "file",
     error: Optional[Callable[[str], Exception]] = None,
     text: bool = False,
+    max_bytes: Optional[int] = None,
 ):
     """The bytes (or, with `text`, the UTF-8 text) of an input file, once it is a readable regular file
     (`check_input_file`) no larger than the memory this machine has free (`host_memory_bytes`): a file
-    larger than that would be killed by Linux mid-read, not refused. `error(problem)` makes the
-    exception for a file too large or unreadable (default: a `WaldoError` naming `path`)."""
+    larger than that would be killed by Linux mid-read, not refused. `max_bytes` bounds a format whose
+    files are small by nature and whose parser takes many times a file's size (YAML: about 400 times).
+    `error(problem)` makes the exception for a file too large or unreadable (default: a `WaldoError`
+    naming `path`)."""
 
     def fail(problem: str) -> Exception:
         return WaldoError(f"{path}: {problem}") if error is None else error(problem)
@@ -234,6 +237,8 @@ def read_input_file(
         raise error(said[len(f"{path}: ") :] if said.startswith(f"{path}: ") else said) from None
     try:
         size = path.stat().st_size
+        if max_bytes is not None and size > max_bytes:
+            raise fail(f"{what} of {size / 2**20:,.1f} MiB; more than {max_bytes / 2**20:g} MiB is not one")
         available = host_memory_bytes()
         if available and size > available:
             raise fail(

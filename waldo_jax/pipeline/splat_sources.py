@@ -39,6 +39,7 @@ from waldo_jax.criteria.base import rendered_views
 from waldo_jax.errors import SceneFormatError, WaldoError, check_resolution
 from waldo_jax.pipeline.sources import Source, SourceError, resize_images
 from waldo_jax.scenes import load_scene, read_poses_file
+from waldo_jax.scenes.common import warn_off_image_principal_point
 from waldo_jax.splats.formats import find_splat_file, splat_format
 from waldo_jax.splats.cameras import read_camera_source
 from waldo_jax.splats.cameras_json import render_intrinsics
@@ -449,6 +450,7 @@ def splat_source(
         c2w, names = other[0].c2w, other[0].names
         intrinsics = other[0].shared_intrinsics or other[0].intrinsics[0]
         info["poses"] = f"--cameras {cameras}: {other[1]}"
+        warn_off_image_principal_point(intrinsics, Path(cameras), stacklevel=2)  # as a poses file's reader does
     elif cameras is not None:
         default = Intrinsics.from_fov(SPLAT_RESOLUTION, SPLAT_RESOLUTION, math.radians(RING_FOV_DEG))
         c2w, intrinsics, files = read_poses_file(cameras, default)
@@ -458,6 +460,7 @@ def splat_source(
         c2w, names = model.cameras.c2w, model.cameras.names
         intrinsics = model.cameras.shared_intrinsics or model.cameras.intrinsics[0]
         # `model.source` ends "with N cameras from <where>" (`find_splat_cameras`' description).
+        warn_off_image_principal_point(intrinsics, Path(model.source.rpartition(" cameras from ")[2]), stacklevel=2)
         info["poses"] = model.source.rpartition(" cameras from ")[2] + (
             "" if model.cameras.shared_intrinsics else " (cameras of several sizes: the first camera's intrinsics)"
         )

@@ -32,7 +32,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import yaml
 
-from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, read_input_file
+from waldo_jax.errors import MIN_RESOLUTION, SceneFormatError, WaldoError, check_input_file, read_input_file
 from waldo_jax.scenes.colmap import (
     PINHOLE_LIKE_MODELS,
     ColmapCamera,
@@ -61,6 +61,9 @@ __all__ = [
 ]
 
 NERFSTUDIO_RUN_FILES = ("config.yml", "dataparser_transforms.json")
+# A nerfstudio config.yml is a few KiB (its dataclasses written out); PyYAML takes about 400 times a file's
+# size in memory and 8 MB of nested lists took 147 s to read: past this it is refused unread.
+CONFIG_MAX_BYTES = 4 * 2**20
 # nerfstudio camera models (transforms.json `camera_model`) that are pinholes, with or without distortion.
 _NERFSTUDIO_PINHOLES = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -190,7 +193,9 @@ def _get(tree: Any, *keys: str) -> Any:
 def _read_run_config(path: Path) -> Dict[str, Any]:
     """config.yml as nested dicts (tags ignored), else a SceneFormatError naming it."""
     try:  # its size against the free memory first: it is read whole
-        text = read_input_file(path, "nerfstudio config", lambda problem: SceneFormatError(path, problem), True)
+        text = read_input_file(
+            path, "nerfstudio config", lambda problem: SceneFormatError(path, problem), True, CONFIG_MAX_BYTES
+        )
     except UnicodeDecodeError as e:
         raise SceneFormatError(path, f"cannot read the file ({e})") from None
     try:
@@ -308,10 +313,13 @@ def read_nerfstudio_cameras(run: str | os.PathLike) -> Tuple[SplatCameras, str]:
         run = run.parent
     config_path, transform_path = (run / name for name in NERFSTUDIO_RUN_FILES)
     for path in (config_path, transform_path):
-        if not path.is_file():
+        try:
+            check_input_file(path, "file")
+        except WaldoError as e:  # nothing there, or a folder, a FIFO, a link loop: said as such
+            problem = str(e).removeprefix(f"{path}: ")
             raise SceneFormatError(
-                path, "no such file (a nerfstudio run holds config.yml and dataparser_transforms.json)"
-            )
+                path, f"{problem} (a nerfstudio run holds config.yml and dataparser_transforms.json)"
+            ) from None
     config = _read_run_config(config_path)
     try:
         dataparser = read_dataparser_transform(read_json(transform_path))
@@ -384,7 +392,30 @@ def read_camera_source(path: str | os.PathLike) -> Optional[Tuple[SplatCameras, 
     if found is not None:
         folder, ext = found
         return read_colmap_cameras(path), f"COLMAP model {folder} (images{ext})"
+    if path.is_dir():
+        _refuse_a_part(path)
     return None
+
+
+# A COLMAP model's files besides images.bin / images.txt, which hold its poses.
+_COLMAP_OTHERS = ("cameras.bin", "cameras.txt", "points3D.bin", "points3D.txt")
+
+
+def _refuse_a_part(folder: Path) -> None:
+    """Raises a SceneFormatError saying what is missing when `folder` holds part of a nerfstudio run (one of
+    its two files) or of a COLMAP model (its cameras or points without images.bin / images.txt)."""
+    held = [name for name in NERFSTUDIO_RUN_FILES if (folder / name).exists()]
+    if len(held) == 1:
+        missing = next(name for name in NERFSTUDIO_RUN_FILES if name not in held)
+        raise SceneFormatError(
+            folder / missing, f"no such file: a nerfstudio run without it (the folder holds {held[0]})"
+        )
+    held = [name for name in _COLMAP_OTHERS if (folder / name).exists()]
+    if held:
+        raise SceneFormatError(
+            folder,
+            f"a COLMAP model without images.bin or images.txt, which hold its poses (it holds {', '.join(held)})",
+        )
 
 
 def find_splat_cameras(ply_or_folder: str | os.PathLike) -> Optional[Tuple[SplatCameras, str]]:
