@@ -473,7 +473,7 @@ def test_part_of_a_run_or_model_given_as_cameras_says_what_is_missing(tmp_path):
     _, run, *_ = _splatfacto_project(tmp_path)
     (run / "dataparser_transforms.json").unlink()
     with pytest.raises(
-        SceneFormatError, match=r"no such file: a nerfstudio run without it \(the folder holds config.yml\)"
+        SceneFormatError, match=r"no such file \(a nerfstudio run holds config.yml and dataparser_transforms.json\)"
     ) as e:
         read_camera_source(run)
     assert e.value.path == str(run / "dataparser_transforms.json")
@@ -486,9 +486,10 @@ def test_part_of_a_run_or_model_given_as_cameras_says_what_is_missing(tmp_path):
     fifo.mkdir()
     (fifo / "dataparser_transforms.json").write_text("{}")
     os.mkfifo(fifo / "config.yml")
-    with pytest.raises(SceneFormatError, match="a FIFO, socket or device, where a file was expected") as e:
-        read_camera_source(fifo / "config.yml")
-    assert e.value.path == str(fifo / "config.yml")
+    for spec in (fifo / "config.yml", fifo):
+        with pytest.raises(SceneFormatError, match="a FIFO, socket or device, where a file was expected") as e:
+            read_camera_source(spec)
+        assert e.value.path == str(fifo / "config.yml")
     assert read_camera_source(tmp_path / "model" / "nothing_here") is None  # not a run or model: a poses file's
 
 

@@ -384,7 +384,13 @@ def _nerfstudio_run_near(base: Path) -> Optional[Path]:
 
 def read_camera_source(path: str | os.PathLike) -> Optional[Tuple[SplatCameras, str]]:
     """The cameras of a COLMAP model (folder, `images.bin`/`.txt`) or a nerfstudio run (folder,
-    config.yml) at `path`, with a description; None when `path` is neither (a poses file, say)."""
+    config.yml) at `path`, with a description; None when `path` is neither (a poses file, say).
+
+    Raises:
+      SceneFormatError: `path` is a folder holding part of a run (one of its two files) or of a COLMAP
+        model (its cameras or points without images.bin / images.txt), named by what it lacks; or what
+        `read_nerfstudio_cameras` and `read_colmap_cameras` raise.
+    """
     path = Path(path)
     if path.name == "config.yml" or (path.is_dir() and _is_run(path)):
         return read_nerfstudio_cameras(path)
@@ -392,30 +398,19 @@ def read_camera_source(path: str | os.PathLike) -> Optional[Tuple[SplatCameras, 
     if found is not None:
         folder, ext = found
         return read_colmap_cameras(path), f"COLMAP model {folder} (images{ext})"
-    if path.is_dir():
-        _refuse_a_part(path)
+    if path.is_dir() and any(os.path.lexists(path / name) for name in NERFSTUDIO_RUN_FILES):
+        return read_nerfstudio_cameras(path)  # part of a run: refused by the file it lacks (or cannot read)
+    held = [name for name in _COLMAP_OTHERS if (path / name).exists()] if path.is_dir() else []
+    if held:
+        raise SceneFormatError(
+            path,
+            f"a COLMAP model without images.bin or images.txt, which hold its poses (it holds {', '.join(held)})",
+        )
     return None
 
 
 # A COLMAP model's files besides images.bin / images.txt, which hold its poses.
 _COLMAP_OTHERS = ("cameras.bin", "cameras.txt", "points3D.bin", "points3D.txt")
-
-
-def _refuse_a_part(folder: Path) -> None:
-    """Raises a SceneFormatError saying what is missing when `folder` holds part of a nerfstudio run (one of
-    its two files) or of a COLMAP model (its cameras or points without images.bin / images.txt)."""
-    held = [name for name in NERFSTUDIO_RUN_FILES if (folder / name).exists()]
-    if len(held) == 1:
-        missing = next(name for name in NERFSTUDIO_RUN_FILES if name not in held)
-        raise SceneFormatError(
-            folder / missing, f"no such file: a nerfstudio run without it (the folder holds {held[0]})"
-        )
-    held = [name for name in _COLMAP_OTHERS if (folder / name).exists()]
-    if held:
-        raise SceneFormatError(
-            folder,
-            f"a COLMAP model without images.bin or images.txt, which hold its poses (it holds {', '.join(held)})",
-        )
 
 
 def find_splat_cameras(ply_or_folder: str | os.PathLike) -> Optional[Tuple[SplatCameras, str]]:
