@@ -255,12 +255,14 @@ def _plot_cloud(c2w: np.ndarray, epoch: np.ndarray, colours: np.ndarray, style: 
     )
 
 
-def _widened(low: float, high: float) -> Tuple[float, float]:
-    """Axis limits (low, high), widened by 5 % of their size (at least 0.05) about a range of no extent."""
+def _widened(low: float, high: float, arrow: float) -> Tuple[float, float]:
+    """Axis limits (low, high) as they are, or, for a range of no extent, widened on each side by the
+    view-direction lines' length `arrow` (at least 5 % of the range's magnitude, and 0.05), so that the
+    lines stay inside the box."""
     low, high = float(low), float(high)
     if high - low > 1e-9 * max(1.0, abs(low), abs(high)):
         return low, high
-    pad = 0.05 * max(abs(low), abs(high), 1.0)
+    pad = max(0.05 * max(abs(low), abs(high), 1.0), float(arrow))
     return low - pad, high + pad
 
 
@@ -296,7 +298,7 @@ def _draw_stage(ax, cloud: _Cloud, stage: int, last: int) -> None:
     ax.set_title(f"{name}: {int(shown.sum())} views", fontsize=9)
     # Cameras all at one height (or one place) give an axis of no extent: widened here, as Matplotlib
     # would do with a warning of its own ("identical low and high zlims").
-    (x0, x1), (y0, y1), (z0, z1) = (_widened(a, b) for a, b in zip(*cloud.bounds))
+    (x0, x1), (y0, y1), (z0, z1) = (_widened(a, b, cloud.arrow) for a, b in zip(*cloud.bounds))
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_zlim(z0, z1)
