@@ -587,6 +587,34 @@ def test_an_allocation_no_check_foresaw_is_one_line_and_removes_the_new_folder(t
     assert not (tmp_path / "o").exists()
 
 
+def test_an_xla_allocation_no_check_foresaw_is_one_line_and_removes_the_new_folder(tmp_path, capsys, monkeypatch):
+    """XLA's own out-of-memory (JAX's RESOURCE_EXHAUSTED, here a real 256 TiB allocation of the CPU
+    backend) is one line naming the size, exit status 1, and the new output folder is removed (`waldo train
+    --sampler dense` had ended in a 50-line traceback and left its empty folder)."""
+    import jax
+    import jax.numpy as jnp
+
+    import waldo_jax.cli.render as render_cli
+
+    def allocate(*args, **kwargs):
+        jax.jit(lambda: jnp.ones((2**48,), jnp.uint8))().block_until_ready()
+
+    monkeypatch.setattr(render_cli, "_write_groups", allocate)
+    argv = ["render", "procedural", "--views", "2", "--resolution", "8", "--samples", "4", "--out", str(tmp_path / "o")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("waldo: error: out of memory: XLA could not allocate 256.0 TiB"), err
+    assert "removed the unfinished output folder" in err[-1], err
+    assert not (tmp_path / "o").exists()
+
+    def fails(*args, **kwargs):  # any other XLA failure is not dressed up as one
+        raise jax.errors.JaxRuntimeError("INTERNAL: something else")
+
+    monkeypatch.setattr(render_cli, "_write_groups", fails)
+    with pytest.raises(jax.errors.JaxRuntimeError):
+        main(argv[:-1] + [str(tmp_path / "p")])
+
+
 def test_a_file_that_cannot_be_made_is_named_as_asked_not_by_its_temporary_name(tmp_path):
     """Files are written through a temporary file beside them: where it cannot be made (/proc, a missing
     folder), the error names the file asked for (`view --export /proc/x.html` said '/proc/.x.html.3240.tmp')."""

@@ -257,7 +257,8 @@ class MemoryBudgetError(WaldoError, MemoryError):
 
 def host_memory_bytes() -> int:
     """Memory this process can still take on the host: Linux's MemAvailable (and a cgroup's limit less its
-    use, where lower), else the physical memory; 0 where neither can be read (no check then)."""
+    use, and an address-space limit less the process's virtual size, where lower), else the physical
+    memory; 0 where none can be read (no check then)."""
     available = []
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
@@ -272,12 +273,31 @@ def host_memory_bytes() -> int:
             available.append(int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text().strip()))
     except (OSError, ValueError):
         pass
+    address_space = _address_space_left()
+    if address_space is not None:
+        available.append(address_space)
     if not available:
         try:
             available.append(int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")))
         except (AttributeError, ValueError, OSError):
             return 0
-    return max(min(available), 0)
+    return max(min(available), 1)  # 0 would mean "unknown": nothing left is 1 byte
+
+
+def _address_space_left() -> Optional[int]:
+    """What an address-space limit (`ulimit -v`, RLIMIT_AS) leaves this process: the limit less its
+    virtual size now; None without such a limit (or where neither can be read)."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/status", encoding="ascii") as f:
+            size = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+        return int(soft) - size
+    except (ImportError, OSError, ValueError, IndexError, StopIteration):
+        return None
 
 
 def check_memory(need: float, what: str, hint: str) -> None:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import sys
 import warnings
@@ -97,8 +98,26 @@ def _run(argv: Optional[List[str]]) -> int:
         where = f"{e.filename}: " if e.filename else ""
         print(f"waldo: error: {where}{e.strerror or e}", file=sys.stderr)  # the files written so far stay
         return 1
+    except Exception as e:  # XLA out of memory: an allocation no estimate foresaw, as NumPy's above
+        said = _xla_out_of_memory(e)
+        if said is None:
+            raise
+        print(f"waldo: error: out of memory: {said}{_discarded(created_before)}", file=sys.stderr)
+        return 1
     finally:
         warnings.showwarning = show
+
+
+def _xla_out_of_memory(error: BaseException) -> Optional[str]:
+    """What an XLA allocation failure asked for, in words (JAX's `JaxRuntimeError` RESOURCE_EXHAUSTED, on
+    any backend), or None for any other error. Checked by name, so that the CLI need not import JAX."""
+    text = str(error)
+    if type(error).__name__ != "JaxRuntimeError" or "RESOURCE_EXHAUSTED" not in text:
+        return None
+    asked = re.search(r"allocating (\d+) bytes", text)
+    gib = int(asked.group(1)) / 2**30 if asked else None
+    size = "memory" if gib is None else f"{gib:.1f} GiB" if gib < 1024 else f"{gib / 1024:.1f} TiB"
+    return f"XLA could not allocate {size} for a computation this input sets (choose smaller sizes)"
 
 
 _PACKAGE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
