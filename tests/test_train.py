@@ -358,7 +358,6 @@ def test_preset_takes_box_and_aabb_scale_from_the_scene(lego_small):
         TrainConfig.preset("fast", lego_small, steps=10**7 + 1)
     with pytest.raises(TrainConfigError, match="unknown preset 'best'"):
         TrainConfig.preset("best", lego_small)
-
     with pytest.raises(TrainConfigError, match="rays_per_batch"):
         TrainConfig.preset("fast", lego_small, rays_per_batch=0)
     assert TrainConfig.from_dict(quality.to_dict()) == quality
