@@ -210,6 +210,21 @@ def test_top_c_past_the_runs_views_is_said_and_pairs_them_all(tmp_path, capsys):
     assert runs[25]["scores_generated"] == runs[20]["scores_generated"]
 
 
+def test_a_search_that_generates_nothing_says_so(tmp_path, capsys):
+    """EGPS breeds from two views with a finite score: from one training view it generates none. The run
+    still ends (its results.json says n_generated 0), with a warning line naming why and what to use, where
+    it had reported a CVIR of 0 as if it had searched."""
+    argv = ["--views", "1", "--method", "egps"]
+    assert main(["explore", "procedural:1", "--out", str(tmp_path / "one"), *TINY, *argv]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if "generated no views" in line]
+    assert warned == [
+        "waldo: warning: egps generated no views in 2 epochs: 1 of the run's 1 training views scored (a finite "
+        "score), and EGPS and PIBS make each child from two of them. Use --method grs (or map-elites), or "
+        "--pibs-fallback grs with PIBS"
+    ]
+    assert json.loads((tmp_path / "one" / "results.json").read_text())["n_generated"] == 0
+
+
 @pytest.mark.parametrize(
     "flags, warned",
     [

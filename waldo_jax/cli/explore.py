@@ -19,6 +19,8 @@ import time
 import warnings
 from typing import Optional
 
+import numpy as np
+
 from waldo_jax import io
 from waldo_jax.cli.conventions import Progress, add_quiet
 from waldo_jax.cli.flags import (
@@ -210,6 +212,22 @@ def explore_config_from_args(args: argparse.Namespace, method: Optional[str] = N
         raise WaldoError(str(e)) from None
 
 
+def _warn_nothing_generated(run, results: dict) -> None:
+    """Warns where a search asked for children and generated none: EGPS breeds each child from two views
+    with a finite score and PIBS pairs them (both mask every child of an epoch without such a pair), so a run of
+    one training view, or of views that all failed, adds nothing and reports a CVIR of 0 as if searched."""
+    epochs = results["epochs_count"]
+    if results["n_generated"] or not epochs or not results["children_per_epoch"]:
+        return
+    finite = int(np.sum(np.isfinite(np.asarray(results["scores_train"], dtype=float))))
+    warnings.warn(
+        f"{run.config.method} generated no views in {epochs} epochs: {finite} of the run's {results['n_train']} "
+        "training views scored (a finite score), and EGPS and PIBS make each child from two of them. "
+        "Use --method grs (or map-elites), or --pibs-fallback grs with PIBS",
+        stacklevel=2,
+    )
+
+
 def cmd_explore(args: argparse.Namespace) -> int:
     """`waldo explore`: runs the search and writes its files into --out."""
     config = explore_config_from_args(args)
@@ -261,6 +279,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
         progress.phase("rendering the top views and writing the results")
         results = write_outputs(run, out)
     best = results["topk"][0]["score"] if results["topk"] else None
+    _warn_nothing_generated(run, results)
 
     def percent(value, spread=None):  # None where no score was usable (every view failed a guard, or NaN)
         if value is None:
