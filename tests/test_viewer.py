@@ -663,3 +663,28 @@ def test_export_path_writes_the_top_shots_as_keyframes(donut_explore, tmp_path):
         assert len(frames) == (len(shots) - 1) * FRAMES_PER_SHOT + 1
         np.testing.assert_allclose(frames[::FRAMES_PER_SHOT], shots, atol=1e-5)  # the shots are the keyframes
         assert (intrinsics.width, intrinsics.height) == tuple(results["resolution"])
+
+
+def test_a_malformed_request_is_one_line_and_the_server_serves_on(capsys):
+    """A client's junk (here bytes that are no HTTP request, and a 100 KB header) is one "waldo: view:" line
+    each on stderr, naming what the websockets server refused, not its traceback; the page is served after."""
+    import socket
+
+    viewer = serve(load_view_scene("procedural:0"), port=0)
+    try:
+        port = viewer.server.get_port()
+        for junk in (b"GARBAGE\r\n\r\n", b"GET / HTTP/1.1\r\nX: " + b"b" * 100_000 + b"\r\n\r\n"):
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as client:
+                client.sendall(junk)
+                client.recv(200)
+        err, deadline = "", time.monotonic() + 10
+        while time.monotonic() < deadline and err.count("opening handshake failed") < 2:  # logged by its thread
+            time.sleep(0.1)
+            err += capsys.readouterr().err
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as page:
+            assert page.status == 200
+    finally:
+        viewer.stop()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert "Traceback" not in err, err
+    assert lines and all(line.startswith("waldo: view: opening handshake failed (") for line in lines), lines

@@ -18,14 +18,16 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from waldo_jax.errors import WaldoError
+from waldo_jax.errors import WaldoError, one_line
 from waldo_jax.viewer.live import LiveView, opengl_c2w
 from waldo_jax.viewer.paths import export_camera_path
 from waldo_jax.viewer.scene import Frustum, ViewerError, ViewScene
@@ -55,6 +57,34 @@ def _quiet(silent: bool):
         return
     with contextlib.redirect_stdout(io.StringIO()):
         yield
+
+
+class _OneLine(logging.Handler):
+    """A library's log record as one line on stderr ("waldo: view: ..."), its exception as its type and
+    message: a client's malformed request (junk bytes, a 100 KB header, a bad websocket frame) had printed
+    a traceback of the websockets server per request; the server goes on serving either way."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            said = record.getMessage()
+            if record.exc_info and record.exc_info[1] is not None:
+                error = record.exc_info[1]
+                said += f" ({type(error).__name__}: {one_line(str(error)) or 'no message'})"
+            print(f"waldo: view: {one_line(said)}", file=sys.stderr, flush=True)
+        except Exception:  # a log line must never take the server down
+            self.handleError(record)
+
+
+_LIBRARY_LOGGERS = ("websockets", "viser")
+
+
+def _library_logs_one_line() -> None:
+    """Routes the websockets and viser loggers through `_OneLine` (once per process)."""
+    for name in _LIBRARY_LOGGERS:
+        logger = logging.getLogger(name)
+        if not any(isinstance(h, _OneLine) for h in logger.handlers):
+            logger.addHandler(_OneLine(logging.WARNING))
+            logger.propagate = False
 
 
 def import_viser():
@@ -171,6 +201,7 @@ class Viewer:
     def __init__(self, scene: ViewScene, host: str = "127.0.0.1", port: int = 8080, verbose: bool = False):
         viser = import_viser()
         self.scene = scene
+        _library_logs_one_line()
         with _quiet(not verbose):  # viser prints its own address box; `waldo view` prints one line
             self.server = viser.ViserServer(host=host, port=port, label="waldo view", verbose=verbose)
         self.handles: Dict[str, object] = {}
