@@ -447,6 +447,14 @@ def test_sniffing_and_splat_sources(tmp_path):
     not_splat = tmp_path / "rows.splat"
     not_splat.write_bytes(np.full(8, -1.0, "<f4").tobytes())  # 32 bytes, negative scales
     assert F.splat_format(not_splat) is None
+    # Read as a .splat all the same (it has no magic bytes), so the decoder names what is wrong, where the
+    # generic "not a splat file of any format" line had been all a user saw.
+    with pytest.raises(SceneFormatError, match="rows.splat: not a .splat file: 1 of 1 rows have a non-finite"):
+        F.read_splat_file(not_splat)
+    uneven = tmp_path / "uneven.splat"
+    uneven.write_bytes(F.write_antimatter_splat(tmp_path / "x.splat", splats).read_bytes() + b"\0" * 7)
+    with pytest.raises(SceneFormatError, match="263 bytes is no whole number of 32-byte splats"):
+        F.read_splat_file(uneven)
     assert F.splat_format(tmp_path) is None and F.splat_format(tmp_path / "missing.spz") is None
     two = tmp_path / "two"
     two.mkdir()

@@ -194,6 +194,16 @@ def find_splat_file(folder: str | os.PathLike) -> Optional[Path]:
     return found[0] if found else None
 
 
+def _has_other_magic(path: Path) -> bool:
+    """Whether the file starts with another format's magic bytes (PLY, SPZ, gzip, zip, JSON)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return False
+    return head.startswith((b"ply\n", b"ply\r\n", b"NGSP", b"\x1f\x8b", b"PK\x03\x04")) or head.lstrip()[:1] == b"{"
+
+
 def read_splat_file(path: str | os.PathLike) -> SplatFile:
     """Reads a splat file of any format in `FORMATS`, told from its content (`splat_format`).
 
@@ -204,6 +214,8 @@ def read_splat_file(path: str | os.PathLike) -> SplatFile:
     """
     path = check_input_file(path, "splat file")
     fmt = splat_format(path)
+    if fmt is None and path.suffix.lower() == ".splat" and not _has_other_magic(path):
+        fmt = "splat"  # a .splat has no magic bytes: its decoder names what is wrong (size, rows, scales)
     if fmt is None:
         raise SceneFormatError(
             path,
