@@ -357,6 +357,21 @@ def test_a_cmyk_image_reads_as_its_colours_not_its_ink(tmp_path, suffix):
     assert float(np.abs(got - rgb / 255.0).mean()) < tolerance
 
 
+def test_a_grey_and_alpha_image_reads_as_grey_rgb_with_its_alpha(tmp_path):
+    """A PNG of grey and alpha (Pillow's LA mode) is read as its grey in R, G and B, with its alpha where
+    asked for: `waldo score` had refused it ("an array of shape (H, W, 2)") though a scene read it."""
+    from PIL import Image
+
+    from waldo_jax.io import read_image
+
+    la = np.stack([np.arange(256, dtype=np.uint8).reshape(16, 16), np.full((16, 16), 128, np.uint8)], axis=-1)
+    Image.fromarray(la, "LA").save(tmp_path / "la.png")
+    grey = la[..., 0] / 255.0
+    np.testing.assert_allclose(read_image(tmp_path / "la.png"), np.repeat(grey[..., None], 3, -1), atol=1e-7)
+    with_alpha = read_image(tmp_path / "la.png", keep_alpha=True)
+    assert with_alpha.shape == (16, 16, 4) and np.allclose(with_alpha[..., 3], 128 / 255)
+
+
 def test_a_lab_image_is_refused_by_name(tmp_path):
     from PIL import Image
 

@@ -534,6 +534,29 @@ def test_corrupt_image(tmp_path):
         load_scene(tmp_path)
 
 
+def test_an_image_of_several_frames_is_refused_and_a_turned_one_said(tmp_path):
+    """A scene image of several frames (an animated PNG or GIF, a multi-page TIFF) is refused by name, as
+    `waldo score` refuses one: its first frame had been read silently. An image that viewers show turned
+    (EXIF orientation 6) is read as stored, and a warning line says so."""
+    from PIL import Image
+
+    _transforms_scene(tmp_path)
+    first = tmp_path / "images" / "001.png"
+    frames = [Image.fromarray(np.full((8, 8, 3), v, np.uint8)) for v in (0, 255)]
+    frames[0].save(first, save_all=True, append_images=frames[1:])  # an APNG
+    with pytest.raises(SceneFormatError, match=r"001\.png: an image of several frames"):
+        load_scene(tmp_path)
+    stored = _write_image(first)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(stored).save(first, exif=exif)
+    with pytest.warns(
+        UserWarning, match=r"1 of the 3 images \(first: .*001\.png, EXIF orientation 6\) are shown turned"
+    ):
+        scene = load_scene(tmp_path)
+    np.testing.assert_array_equal(np.round(scene.images[1] * 255).astype(np.uint8), stored)  # as stored
+
+
 def test_bad_arguments(tmp_path):
     _transforms_scene(tmp_path)
     with pytest.raises(SceneArgumentError, match="unknown split 'dev'"):

@@ -577,6 +577,8 @@ def read_image(
         image = image[0]
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
+    if image.ndim == 3 and image.shape[-1] == 2:  # grey and alpha (a PNG's LA mode): grey as RGB, alpha kept
+        image = np.concatenate([np.repeat(image[..., :1], 3, axis=-1), image[..., 1:]], axis=-1)
     if image.ndim != 3 or image.shape[-1] not in (1, 3, 4):
         raise WaldoError(f"{path}: expected a grey, RGB or RGBA image, got an array of shape {image.shape}")
     _check_image_size(path, image.shape[1], image.shape[0], min_side)

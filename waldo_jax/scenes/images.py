@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
@@ -153,16 +154,34 @@ def image_size(path: Path) -> Tuple[int, int]:
     return _header(path)[0]
 
 
-def _header(path: Path) -> Tuple[Tuple[int, int], str, bool]:
-    """((width, height), PIL mode, has alpha) from an image header, nothing decoded; a file that is no
-    regular file (a FIFO, a device) is refused before it is opened."""
+# The EXIF tag of the orientation a viewer shows an image in (1: as stored).
+_EXIF_ORIENTATION = 0x0112
+
+
+def _header(path: Path) -> Tuple[Tuple[int, int], str, bool, int]:
+    """((width, height), PIL mode, has alpha, EXIF orientation (1: as stored)) from an image header, nothing
+    decoded; a file that is no regular file (a FIFO, a device) is refused before it is opened, and so is
+    one of several frames (an animation, a multi-page file: which frame is the view?), as `waldo score`
+    refuses it."""
     input_file(path, "scene image file")
     try:
         with Image.open(path) as img:
             alpha = img.mode in _ALPHA_MODES or (img.mode == "P" and "transparency" in img.info)
-            return img.size, img.mode, alpha
+            frames = 2 if getattr(img, "is_animated", False) else 1  # Pillow looks no further than frame 2
+            try:
+                orientation = int(img.getexif().get(_EXIF_ORIENTATION, 1) or 1)
+            except Exception:  # a damaged EXIF block: the pixels are read as stored anyway
+                orientation = 1
+            size, mode = img.size, img.mode
     except Exception as e:  # PIL raises many types for bad files.
         raise SceneFormatError(shown(path), f"cannot read image ({type(e).__name__}: {e})") from None
+    if frames > 1:
+        raise SceneFormatError(
+            shown(path),
+            "an image of several frames (an animation or a multi-page file); a scene's views are still images: "
+            "save the frame you mean as a PNG",
+        )
+    return size, mode, alpha, orientation
 
 
 def _decode_bytes(width: int, height: int, mode: str, alpha: bool) -> int:
@@ -188,7 +207,15 @@ def load_images(
     """
     headers = [_header(path) for path in paths]
     full = headers[0][0]
-    for path, (path_size, _, _) in zip(paths, headers):
+    turned = [path for path, header in zip(paths, headers) if header[3] != 1]
+    if turned:  # read as stored: a scene's poses are made from the stored pixels, as its intrinsics are
+        warnings.warn(
+            f"{len(turned)} of the {len(paths)} images (first: {shown(turned[0])}, EXIF orientation "
+            f"{headers[list(paths).index(turned[0])][3]}) are shown turned by image viewers; they are read as "
+            "stored, without the turn (their poses and sizes must describe the stored pixels)",
+            stacklevel=2,
+        )
+    for path, (path_size, _, _, _) in zip(paths, headers):
         if path_size != full:
             raise SceneFormatError(
                 shown(path),
@@ -196,9 +223,9 @@ def load_images(
                 f"{full[0]}x{full[1]}: all images of a scene must have the same size",
             )
     size = _target_size(*full, factor)
-    any_alpha = any(alpha for _, _, alpha in headers)
+    any_alpha = any(alpha for _, _, alpha, _ in headers)
     kept = 4 * len(paths) * size[0] * size[1] * (4 if any_alpha else 3)
-    decode = max(_decode_bytes(*full, mode, alpha) for _, mode, alpha in headers)
+    decode = max(_decode_bytes(*full, mode, alpha) for _, mode, alpha, _ in headers)
     workers = max(1, min(_MAX_THREADS, os.cpu_count() or 1, len(paths)))
     available = errors.host_memory_bytes()
     if available:  # as many decodes at once as fit beside the images kept (at least one)
