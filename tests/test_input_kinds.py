@@ -275,6 +275,27 @@ def test_splats_that_cannot_show_warn_and_are_flagged(tmp_path, make, says):
     assert any("every render is the background alone" in str(w.message) for w in caught)
 
 
+@pytest.mark.parametrize("offset, warned", [(0.0, False), (100.0, False), (1e4, True), (1e7, True)])
+def test_splats_far_from_the_origin_for_their_size_warn_and_are_flagged(offset, warned):
+    """Splats read in float32 far from the origin for their extent are placed coarsely (a model saved at
+    +10^6 in float64 rendered as a slab, at +10^7 as a streak, silently): a warning names the distance and
+    the step, and `coarse_positions` flags it in the source's info. A model of 6 units at 100 has 10^6
+    steps across it, and says nothing."""
+    from waldo_jax.pipeline.splat_sources import _flag_coarse_positions
+
+    splats = _tiny_splats()
+    splats = splats.replace(means=np.asarray(splats.means) * np.float32(0.05) + np.float32(offset))  # 0.3 across
+    info = {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _flag_coarse_positions("far.ply", splats, info)
+    assert ("coarse_positions" in info) == warned
+    said = [str(w.message) for w in caught]
+    assert said == ([f"far.ply: {info['coarse_positions']}"] if warned else [])
+    if warned:
+        assert f"lie {offset:.3g} from the origin" in said[0] and "placed coarsely" in said[0]
+
+
 @pytest.mark.parametrize(
     "record, says",
     [

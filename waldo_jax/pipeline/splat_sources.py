@@ -382,6 +382,40 @@ def _flag_transparent(spec: str, splats: Splats, info: Dict[str, Any]) -> None:
     warnings.warn(f"{spec}: {why}", stacklevel=3)
 
 
+# Fewer float32 steps than this across the splats' extent, at their distance from the origin, place them
+# visibly coarsely: a 0.2-unit model 10^4 units out has about 200 steps across it.
+MIN_POSITION_STEPS = 1000
+
+
+def _steps(count: float) -> str:
+    return f"{count:.0f} steps" if count >= 1.5 else "one step" if count >= 0.5 else "under one step"
+
+
+def _flag_coarse_positions(spec: str, splats: Splats, info: Dict[str, Any]) -> None:
+    """Warns, and flags `info["coarse_positions"]`, when the splats lie so far from the origin, for their
+    extent, that float32 (in which they are read and rendered) holds fewer than `MIN_POSITION_STEPS`
+    positions across them: a model saved at +10^6 in float64 rendered as a distorted slab, at +10^7 as a
+    streak, with no word."""
+    valid = np.asarray(splats.valid, bool)
+    means = np.asarray(splats.means, np.float32)[valid]
+    means = means[np.all(np.isfinite(means), -1)]
+    if len(means) < 2:
+        return
+    low, high = np.quantile(means, [0.02, 0.98], axis=0)
+    extent = float(np.max(high - low))
+    distance = float(np.max(np.abs(np.concatenate([low, high]))))
+    step = float(np.spacing(np.float32(distance)))
+    if step * MIN_POSITION_STEPS <= extent:
+        return
+    why = (
+        f"its splats lie {distance:.3g} from the origin, where float32 (in which they are read and rendered) "
+        f"steps by {step:.2g}: their extent {extent:.3g} is {_steps(extent / step)}, so they are placed coarsely "
+        "(move the model near the origin, in float64, before saving it)"
+    )
+    info["coarse_positions"] = why
+    warnings.warn(f"{spec}: {why}", stacklevel=3)
+
+
 def splat_source(
     spec: str,
     resolution: Optional[int] = None,
@@ -433,6 +467,7 @@ def splat_source(
         if fitted and fitted.get("scene_path"):
             info["fit_scene_path"] = fitted["scene_path"]  # for `source_world` only
     _flag_transparent(spec, splats, info)
+    _flag_coarse_positions(spec, splats, info)
     if getattr(model, "degenerate", None) and "degenerate" not in info:  # a scene of one point (warned on load)
         info["degenerate"] = model.degenerate
     names: Tuple[str, ...]
