@@ -557,6 +557,25 @@ def test_an_image_of_several_frames_is_refused_and_a_turned_one_said(tmp_path):
     np.testing.assert_array_equal(np.round(scene.images[1] * 255).astype(np.uint8), stored)  # as stored
 
 
+@pytest.mark.parametrize(
+    "channels, value, says",
+    [(4, 0, "are transparent (highest alpha 0, under 1/255)"), (3, 0, "are one colour (0, 0, 0)"), (3, None, None)],
+    ids=["transparent", "black", "photos"],
+)
+def test_images_that_show_nothing_to_learn_warn(tmp_path, channels, value, says):
+    """A scene whose images are all transparent, or all one colour, loads with a warning line: a field
+    trained on them learns nothing (such a scene trained to 6.7 dB without a word)."""
+    _transforms_scene(tmp_path)
+    for i in range(3):
+        _write_image(tmp_path / "images" / f"{i:03d}.png", channels=channels, value=value)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_scene(tmp_path)
+    said = [str(w.message) for w in caught if "learns nothing" in str(w.message)]
+    assert len(said) == (0 if says is None else 1), said
+    assert says is None or said[0].startswith(f"{tmp_path / 'images'}: all 3 images {says}"), said
+
+
 def test_bad_arguments(tmp_path):
     _transforms_scene(tmp_path)
     with pytest.raises(SceneArgumentError, match="unknown split 'dev'"):

@@ -271,7 +271,28 @@ def load_images(
             if a is not None:
                 alphas[i] = a
     np.clip(images, 0.0, 1.0, out=images)
+    _warn_nothing_to_learn(paths, images, alphas)
     return images, alphas, full
+
+
+def _warn_nothing_to_learn(paths: Sequence[Path], images: np.ndarray, alphas: Optional[np.ndarray]) -> None:
+    """Warns when the images show nothing a field could learn: every pixel transparent (alpha under 1/255:
+    what is seen is the background alone), or every image one colour (all black, say). Such a scene
+    trained to 6.7 dB with no word, as splats that cannot show are warned of."""
+    where = f"{shown(paths[0].parent)}"
+    if alphas is not None and float(alphas.max(initial=0.0)) < 1.0 / 255.0:
+        warnings.warn(
+            f"{where}: all {len(paths)} images are transparent (highest alpha {float(alphas.max()):.2g}, under "
+            "1/255): they show the background alone, so a field trained on them learns nothing else",
+            stacklevel=3,
+        )
+    elif images.size and float(np.ptp(images)) == 0.0:
+        colour = ", ".join(f"{v:.3g}" for v in images.reshape(-1, 3)[0])
+        warnings.warn(
+            f"{where}: all {len(paths)} images are one colour ({colour}): a field trained on them learns nothing "
+            "of the scene",
+            stacklevel=3,
+        )
 
 
 def resolve_image(folder: Path, file_path: str) -> Optional[Path]:
