@@ -492,7 +492,7 @@ def _with(name, data):
 
 BROKEN = {
     "unknown": ("x.dat", lambda t: b"hello, world" * 10, r"not a splat file of any format read here \(formats read: "),
-    "splat size": ("x.splat", lambda t: bytes(33), r"not a splat file of any format read here"),
+    "splat size": ("x.splat", lambda t: bytes(33), r"not a .splat file: 33 bytes is no whole number of 32-byte splats"),
     "gzip cut": ("x.spz", lambda t: _spz_v3(t)[:-30], r"corrupt SPZ gzip stream"),
     "gzip not spz": ("x.spz", lambda t: gzip.compress(b"NGSP" + bytes(12)), r"SPZ version 0 is not read"),
     "spz short": ("x.spz", lambda t: gzip.compress(gzip.decompress(_spz_v3(t))[:-5]), r"truncated SPZ: 20 splats"),
