@@ -237,6 +237,27 @@ def _write_sog(folder, meta, files, bundle):
     return folder / "meta.json"
 
 
+def test_sog_images_that_rgba_conversion_would_change_are_refused(tmp_path):
+    """A lossy WebP where the positions' 16 bits are stored, or a 16-bit PNG (clipped by the conversion to
+    RGBA8), had been read silently; each is refused naming the image. A meta.json that lacks one section is
+    read as a SOG, so that the section it lacks is named (it had been "a JSON file without 'frames'")."""
+    meta, files = _sog_files()
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((1, 2, 4), np.uint8), "RGBA").save(buffer, "WEBP", quality=10)
+    lossy = _write_sog(tmp_path / "lossy", meta, {**files, "means_l.webp": buffer.getvalue()}, bundle=True)
+    with pytest.raises(SceneFormatError, match="'means_l.webp' is a lossy WebP: the splats' positions need it"):
+        F.read_sog(lossy)
+    buffer = io.BytesIO()
+    Image.fromarray(np.full((1, 2), 40000, np.uint16)).save(buffer, "PNG")
+    deep = _write_sog(tmp_path / "deep", meta, {**files, "scales.webp": buffer.getvalue()}, bundle=True)
+    with pytest.raises(SceneFormatError, match=r"'scales.webp' is of mode I;16 \(not 8 bits a channel\)"):
+        F.read_sog(deep)
+    partial = _write_sog(tmp_path / "partial", {k: v for k, v in meta.items() if k != "sh0"}, files, bundle=False)
+    assert F.splat_format(partial) == "sog"
+    with pytest.raises(SceneFormatError, match="'sh0' must be an object with a 'files' list"):
+        F.read_splat_file(partial)
+
+
 def _inverse_log(v):
     return math.copysign(math.exp(abs(v)) - 1, v)
 

@@ -113,7 +113,9 @@ def _is_sog_meta(data: bytes) -> bool:
         meta = parse_json(data, "meta.json")
     except WaldoError:
         return False
-    return isinstance(meta, dict) and all(k in meta for k in ("means", "scales", "quats", "sh0"))
+    # Two of its four sections make it a SOG's meta.json, so that the SOG reader names the one it lacks
+    # (a meta.json without sh0 had been "a JSON file without 'frames'", a scene's words).
+    return isinstance(meta, dict) and sum(k in meta for k in ("means", "scales", "quats", "sh0")) >= 2
 
 
 def _plausible_dot_splat(raw: bytes) -> bool:
@@ -127,8 +129,8 @@ def splat_format(path: str | os.PathLike) -> Optional[str]:
     """The format of the splat file at `path` (a key of `FORMATS`), from its content, else None.
 
     PLY (`ply\\n`; `compressed_ply` when it has a `chunk` element or `packed_position`), SPZ (`NGSP`, or
-    gzip whose first bytes are `NGSP`), SOG (a zip holding `meta.json`, or a JSON file with `means`,
-    `scales`, `quats` and `sh0`) are told by their magic bytes. A `.splat` file has none: it is one when
+    gzip whose first bytes are `NGSP`), SOG (a zip holding `meta.json`, or a JSON file with two or more of
+    `means`, `scales`, `quats` and `sh0`) are told by their magic bytes. A `.splat` file has none: it is one when
     its name ends in `.splat`, its size is a non-zero multiple of 32 and its first 4,096 rows decode to
     finite positions and finite positive scales. A folder, a missing or unreadable file gives None.
     """

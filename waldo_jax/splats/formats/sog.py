@@ -133,7 +133,10 @@ class _SogFiles:
         image = self._open(name, max_texels)
         try:
             with image:
+                self._check_still_8_bit(name, image)
                 return np.asarray(image.convert("RGBA"))
+        except SceneFormatError:
+            raise
         except MemoryError:
             raise
         except Exception as e:  # noqa: BLE001 (any decoder error on bad bytes is the file's)
@@ -141,12 +144,48 @@ class _SogFiles:
                 self.path, f"the SOG's image {name!r} cannot be decoded ({type(e).__name__}: {e})"
             ) from None
 
+    def _check_still_8_bit(self, name: str, image) -> None:
+        """Refuses what RGBA conversion would change silently: an image of several frames (the first had
+        been read), one of more than 8 bits a channel (clipped), and a lossy WebP where the splats' positions
+        are stored (its 16 bits split over `means_l` and `means_u` are exact only losslessly)."""
+        if getattr(image, "is_animated", False):
+            raise SceneFormatError(self.path, f"the SOG's image {name!r} has several frames; SOG's images are still")
+        if image.mode not in _EIGHT_BIT_MODES:
+            raise SceneFormatError(
+                self.path, f"the SOG's image {name!r} is of mode {image.mode} (not 8 bits a channel); SOG's are RGBA8"
+            )
+        if name.startswith("means") and _lossy_webp(self._raw.get(name, b"")):
+            raise SceneFormatError(
+                self.path,
+                f"the SOG's image {name!r} is a lossy WebP: the splats' positions need it lossless (its texels are "
+                "the low and high bytes of 16-bit coordinates)",
+            )
+
     def texels(self, name: str, count: int) -> np.ndarray:
         """The first `count` texels of image `name` in row-major order, uint8 [count, 4]."""
         texels = self.image(name, _max_texels(count)).reshape(-1, 4)
         if len(texels) < count:
             raise SceneFormatError(self.path, f"the SOG's image {name!r} has {len(texels)} texels for {count} splats")
         return texels[:count]
+
+
+# Pillow modes of 8 bits a channel that convert to RGBA without losing anything.
+_EIGHT_BIT_MODES = ("RGBA", "RGB", "L", "LA", "P", "PA", "RGBX", "RGBa", "La")
+
+
+def _lossy_webp(raw: bytes) -> bool:
+    """Whether WebP bytes hold a lossy ("VP8 ") bitstream, from their RIFF chunks (False for anything else)."""
+    if raw[:4] != b"RIFF" or raw[8:12] != b"WEBP":
+        return False
+    at = 12
+    while at + 8 <= len(raw):
+        fourcc, size = raw[at : at + 4], int.from_bytes(raw[at + 4 : at + 8], "little")
+        if fourcc == b"VP8 ":
+            return True
+        if fourcc == b"VP8L":
+            return False
+        at += 8 + size + (size & 1)
+    return False
 
 
 def _max_texels(count: int) -> int:
