@@ -144,6 +144,17 @@ def test_spz_v4_container_and_safe_orbit_extension(tmp_path):
     assert read.extras["safe_orbit"] == {"elevation_min": -0.25, "elevation_max": 0.75, "radius_min": 2.5}
     assert read.extras["unknown_extensions"] == ["0x12340001"]
     assert "safe orbit: elevation -0.25 to 0.75 rad, radius >= 2.5" in load_splat_model(path).source
+    # A safe orbit that is none (NaN, an infinite elevation, a negative radius) is left out with a warning:
+    # it had been printed as "elevation nan to inf rad, radius >= -1".
+    bad = struct.pack("<II3f", 0xADBE0002, 12, math.nan, math.inf, -1.0)
+    path.write_bytes(
+        struct.pack("<IIIBBBBI12x", 0x5053474E, 4, 1, 1, 12, 0x3, 6, 32 + len(bad)) + bad + table + b"".join(packed)
+    )
+    with pytest.warns(
+        UserWarning, match=r"safe-orbit extension \(elevation nan to inf rad, radius >= -1\) is no orbit"
+    ):
+        read = F.read_splat_file(path)
+    assert "safe_orbit" not in read.extras
 
 
 def test_compressed_ply_decodes_to_hand_computed_values(tmp_path):

@@ -571,7 +571,7 @@ def read_image(
             else:
                 image = np.asarray(iio.imread(path))
     except Exception as exc:  # imageio raises many types, some with installation advice on later lines
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0].replace("``", "`")  # imageio's typo
         raise WaldoError(f"{path}: not a readable image ({first[:160]})") from None
     if image.ndim == 4 and image.shape[0] == 1:  # a still GIF comes as one frame of a stack
         image = image[0]

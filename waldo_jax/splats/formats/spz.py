@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import gzip
 import io
+import math
 import os
 import struct
+import warnings
 import zlib
 from pathlib import Path
 from typing import Optional, Tuple
@@ -110,7 +112,14 @@ def _spz_extensions(path: Path, block: bytes) -> dict:
             raise SceneFormatError(path, f"SPZ extension 0x{kind:08X} claims {length} bytes, {len(payload)} remain")
         if kind == _EXT_SAFE_ORBIT and length >= 12:
             lo, hi, radius = struct.unpack_from("<fff", payload)
-            found["safe_orbit"] = {"elevation_min": lo, "elevation_max": hi, "radius_min": radius}
+            if all(math.isfinite(v) for v in (lo, hi, radius)) and lo <= hi and radius >= 0:
+                found["safe_orbit"] = {"elevation_min": lo, "elevation_max": hi, "radius_min": radius}
+            else:  # only described (`scene info`), never used: a record that cannot hold is left out, said
+                warnings.warn(
+                    f"{path}: its safe-orbit extension (elevation {lo:g} to {hi:g} rad, radius >= {radius:g}) "
+                    "is no orbit; it is left out",
+                    stacklevel=2,
+                )
         elif kind == _EXT_COORDINATES and length >= 4:
             found["coordinate_system"] = struct.unpack_from("<I", payload)[0]
         else:
