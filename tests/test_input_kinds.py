@@ -651,6 +651,23 @@ def test_an_xla_allocation_no_check_foresaw_is_one_line_and_removes_the_new_fold
         main(argv[:-1] + [str(tmp_path / "p")])
 
 
+def test_the_memory_at_hand_counts_an_address_space_limit(monkeypatch):
+    """Under `ulimit -v` (RLIMIT_AS) a process can take no more than its limit less what it has mapped, however
+    much the machine has free: the memory checks' estimate counts it (it had read MemAvailable alone, so a
+    check passed that the limit then failed, in a traceback)."""
+    import resource
+
+    unlimited = errors.host_memory_bytes()
+    with open("/proc/self/status", encoding="ascii") as f:
+        mapped = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+    limit = mapped + (1 << 30)
+    monkeypatch.setattr(resource, "getrlimit", lambda kind: (limit, resource.RLIM_INFINITY))
+    limited = errors.host_memory_bytes()
+    assert 0 < limited <= 1 << 30 and limited <= unlimited
+    monkeypatch.setattr(resource, "getrlimit", lambda kind: (mapped - (1 << 30), resource.RLIM_INFINITY))  # past it
+    assert errors.host_memory_bytes() == 1  # the least there is, not 0 ("unknown": no check)
+
+
 def test_a_file_that_cannot_be_made_is_named_as_asked_not_by_its_temporary_name(tmp_path):
     """Files are written through a temporary file beside them: where it cannot be made (/proc, a missing
     folder), the error names the file asked for (`view --export /proc/x.html` said '/proc/.x.html.3240.tmp')."""
