@@ -12,6 +12,7 @@ import sys
 import time
 import types
 import urllib.request
+import warnings
 from collections import Counter
 
 import numpy as np
@@ -702,3 +703,43 @@ def test_a_malformed_request_is_one_line_and_the_server_serves_on(tmp_path):
     lines = [line for line in text.splitlines() if "opening handshake" in line or "Traceback" in line]
     assert "Traceback" not in text, text
     assert len(lines) == 2 and all(line.startswith("waldo: view: opening handshake failed (") for line in lines), text
+
+
+def test_images_swapped_by_two_clicks_at_once_are_removed_once(monkeypatch):
+    """viser runs its callbacks in a thread pool, so two "Render this view" clicks swap the panel's image at
+    once: each removed the same old handle, and viser warned "Attempted to remove an already removed
+    GuiImageHandle" (as waldo's warning). The swap is now one at a time: each handle is removed once."""
+    import threading
+
+    viewer = serve(load_view_scene("procedural:0"), port=0)
+    try:
+        monkeypatch.setattr(viewer.live, "render", lambda c2w: np.zeros((8, 8, 3), np.float32))
+        add_image = viewer.server.gui.add_image
+        removed = Counter()
+
+        def slow_handles(*args, **kwargs):  # a wide window between reading the old handle and replacing it
+            handle = add_image(*args, **kwargs)
+            remove = handle.remove
+
+            def slow_remove():
+                removed[id(handle)] += 1
+                time.sleep(0.05)
+                remove()
+
+            monkeypatch.setattr(handle, "remove", slow_remove)
+            return handle
+
+        monkeypatch.setattr(viewer.server.gui, "add_image", slow_handles)
+        viewer.render_view(viewer.scene.frustums[0].c2w)
+        c2w = [f.c2w for f in viewer.scene.frustums[:8]]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            threads = [threading.Thread(target=viewer.render_view, args=(pose,)) for pose in c2w]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(timeout=60)
+    finally:
+        viewer.stop()
+    assert not [w for w in caught if "already removed" in str(w.message)]
+    assert removed and set(removed.values()) == {1}, removed  # every old image removed once, none twice

@@ -21,6 +21,7 @@ import io
 import logging
 import math
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -210,6 +211,9 @@ class Viewer:
         self._scored = sum(1 for f in scene.frustums if f.rank is not None and f.kind != "topk")
         self._image = None
         self.live_image = None
+        # viser runs its callbacks in a thread pool: two clicks swap an image at once, and the second removed
+        # the handle the first had removed (viser's "already removed GuiImageHandle" warning).
+        self._images_lock = threading.Lock()
         self._syncing = False
         self.live = LiveView(
             scene.source, scene.criterion, scene.resolution, scene.scores, scene.direction or "max", scene.room_metadata
@@ -411,9 +415,10 @@ class Viewer:
         """Renders OpenGL c2w [4, 4] with the scene's SOURCE (`LiveView`) and shows the image in the panel."""
         self.live_panel.content = "*rendering (the first render loads the source and compiles) ...*"
         image = self.live.render(c2w)
-        if self.live_image is not None:
-            self.live_image.remove()
-        self.live_image = self.server.gui.add_image(image, label="this view")
+        with self._images_lock:
+            if self.live_image is not None:
+                self.live_image.remove()
+            self.live_image = self.server.gui.add_image(image, label="this view")
         self.live_panel.content = f"**this view**, rendered at {image.shape[1]}x{image.shape[0]}"
         return image
 
@@ -468,16 +473,17 @@ class Viewer:
         frustum = self.frustums[name]
         self.selected = frustum
         self.panel.content = describe(frustum, self.scene, self._scored)
-        if self._image is not None:
-            self._image.remove()
-            self._image = None
-        if frustum.image is not None:  # a grey or 16-bit image as RGB 8-bit ([..., :3] cut a grey one's width)
-            try:
-                pixels = shot_image(frustum.image)
-            except ViewerError as e:  # replaced or removed since the page was built: said in the panel
-                self.panel.content += f"  \n*{e}*"
-            else:
-                self._image = self.server.gui.add_image(pixels, label=frustum.image.name)
+        with self._images_lock:
+            if self._image is not None:
+                self._image.remove()
+                self._image = None
+            if frustum.image is not None:  # a grey or 16-bit image as RGB 8-bit ([..., :3] cut a grey one's width)
+                try:
+                    pixels = shot_image(frustum.image)
+                except ViewerError as e:  # replaced or removed since the page was built: said in the panel
+                    self.panel.content += f"  \n*{e}*"
+                else:
+                    self._image = self.server.gui.add_image(pixels, label=frustum.image.name)
         wxyz, position = opencv_pose(frustum.c2w)
         forward = -np.asarray(frustum.c2w, np.float64)[:3, 2]
         for client in clients:
