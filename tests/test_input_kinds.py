@@ -296,6 +296,23 @@ def test_splats_far_from_the_origin_for_their_size_warn_and_are_flagged(offset, 
         assert f"lie {offset:.3g} from the origin" in said[0] and "placed coarsely" in said[0]
 
 
+@pytest.mark.slow
+def test_a_splat_source_far_from_the_origin_is_flagged_in_its_info(tmp_path):
+    """The check above, as a splat scene loads: a PLY 10^4 out flags `coarse_positions` in the source's
+    info (results.json's source_info) with its warning line; the same PLY at the origin does not."""
+    from waldo_jax.pipeline.splat_sources import splat_source
+
+    splats = _tiny_splats()
+    for offset, flagged in ((0.0, False), (1e4, True)):
+        moved = splats.replace(means=np.asarray(splats.means) * np.float32(0.05) + np.float32(offset))
+        path = write_splat_ply(tmp_path / f"at_{offset:g}.ply", moved)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            source = splat_source(str(path), resolution=16)
+        assert ("coarse_positions" in source.info) == flagged
+        assert any("placed coarsely" in str(w.message) for w in caught) == flagged
+
+
 @pytest.mark.parametrize(
     "record, says",
     [

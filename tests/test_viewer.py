@@ -667,6 +667,7 @@ def test_export_path_writes_the_top_shots_as_keyframes(donut_explore, tmp_path):
         assert (intrinsics.width, intrinsics.height) == tuple(results["resolution"])
 
 
+@pytest.mark.slow  # a `waldo view` process: 7 s
 def test_a_malformed_request_is_one_line_and_the_server_serves_on(tmp_path):
     """`waldo view` given a client's junk (bytes that are no HTTP request, a 100 KB header) prints one
     "waldo: view:" line for each, naming what the websockets server refused, not its traceback (14 of them
